@@ -1,0 +1,167 @@
+"""Gyro-driven MRP attitude kinematics (method.md §1).
+
+State ``x = p`` (3-state, gyro bias known) or ``x = [p; b]`` (6-state), input the
+measured body rate ``ω̃`` (rad/s):
+
+.. math::
+
+    \\dot p = \\tfrac14 B(p)(\\tilde ω - b - η_v),\\qquad \\dot b = η_u,
+
+so ``f = [¼B(p)(ω̃ − b); 0]``, ``g = [[−¼B(p), 0], [0, I₃]]`` and
+``Q = diag(σ_v² I₃, σ_u² I₃)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
+from .base import ContinuousModel, check_nonnegative
+
+__all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
+
+#: Angle random walk, rad/s^½ (method.md §4).
+DEFAULT_SIGMA_V = 10.0**0.5 * 1e-7
+#: Rate random walk, rad/s^{3/2} (method.md §4).
+DEFAULT_SIGMA_U = 10.0**0.5 * 1e-10
+
+
+class AttitudeModel(ContinuousModel):
+    """MRP attitude driven by a rate gyro, with or without bias estimation.
+
+    Args:
+        estimate_bias: ``False`` → 3-state ``x = p`` with the gyro bias known
+            (``bias``); ``True`` → 6-state ``x = [p; b]``.
+        sigma_v: angle random walk σ_v (rad/s^½).
+        sigma_u: rate random walk σ_u (rad/s^{3/2}); used by the 6-state model.
+        bias: known gyro bias (rad/s), ``[3]`` or batched ``[..., 3]``;
+            subtracted from ``ω̃`` in the 3-state model, ignored by the 6-state one.
+    """
+
+    def __init__(
+        self,
+        estimate_bias: bool = False,
+        sigma_v: float = DEFAULT_SIGMA_V,
+        sigma_u: float = DEFAULT_SIGMA_U,
+        bias: Tensor | float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.estimate_bias = bool(estimate_bias)
+        self.state_dim = 6 if self.estimate_bias else 3
+        self.register_buffer("sigma_v", check_nonnegative("sigma_v", sigma_v))
+        self.register_buffer("sigma_u", check_nonnegative("sigma_u", sigma_u))
+        b = torch.as_tensor(bias, dtype=torch.float64)
+        if b.dim() == 0:
+            b = b.expand(3).clone()
+        if b.shape[-1] != 3:
+            raise ValueError(f"bias must have shape [..., 3], got {tuple(b.shape)}")
+        if not bool(torch.isfinite(b).all()):
+            raise ValueError("bias must be finite")
+        self.register_buffer("bias", b)
+
+    # ------------------------------------------------------------- helpers
+    def _rate(self, x: Tensor, u: Tensor) -> Tensor:
+        """Bias-corrected body rate ``ω = ω̃ − b`` (``[..., 3]``)."""
+        if self.estimate_bias:
+            return u - x[..., 3:]
+        return u - self.bias.to(u)
+
+    # ------------------------------------------------------------ protocol
+    def drift(self, x: Tensor, u: Tensor) -> Tensor:
+        """``f(x, ω̃) = [¼B(p)(ω̃ − b); 0₃]``: ``x [..., n]``, ``u = ω̃ [..., 3]``."""
+        p = x[..., :3]
+        w = self._rate(x, u)
+        B = mrp_kinematics_matrix(p)
+        pdot = 0.25 * (B @ w.unsqueeze(-1)).squeeze(-1)
+        if self.estimate_bias:
+            return torch.cat((pdot, torch.zeros_like(pdot)), -1)
+        return pdot
+
+    def noise_gain(self, x: Tensor) -> Tensor:
+        """``g(x) = −¼B(p)`` (3-state) or ``[[−¼B(p), 0], [0, I₃]]`` (6-state)."""
+        gp = -0.25 * mrp_kinematics_matrix(x[..., :3])
+        if not self.estimate_bias:
+            return gp
+        z = torch.zeros_like(gp)
+        eye = torch.eye(3, dtype=x.dtype, device=x.device).expand_as(gp)
+        return torch.cat((torch.cat((gp, z), -1), torch.cat((z, eye), -1)), -2)
+
+    def noise_psd(self) -> Tensor:
+        """``Q = σ_v² I₃`` or ``diag(σ_v² I₃, σ_u² I₃)``."""
+        sv2 = self.sigma_v**2 * torch.ones(3, dtype=self.sigma_v.dtype, device=self.sigma_v.device)
+        if not self.estimate_bias:
+            return torch.diag(sv2)
+        return torch.diag(torch.cat((sv2, self.sigma_u**2 * torch.ones_like(sv2))))
+
+    def drift_jacobian(self, x: Tensor, u: Tensor) -> Tensor:
+        """Closed form ``A = [[F, −¼B(p)], [0, 0]]`` with ``ω = ω̃ − b``.
+
+        .. math:: F = \\tfrac12 \\left(p ω^T - ω p^T - [ω×] + (ω^T p) I_3\\right)
+        """
+        p = x[..., :3]
+        w = self._rate(x, u)
+        p, w = torch.broadcast_tensors(p, w)
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        F = 0.5 * (
+            p[..., :, None] * w[..., None, :]
+            - w[..., :, None] * p[..., None, :]
+            - cross_matrix(w)
+            + (w * p).sum(-1)[..., None, None] * eye
+        )
+        if not self.estimate_bias:
+            return F
+        top = torch.cat((F, -0.25 * mrp_kinematics_matrix(p)), -1)
+        return torch.cat((top, torch.zeros_like(top)), -2)
+
+    def process_noise(self, x: Tensor) -> Tensor:
+        """Closed form ``g Q gᵀ``: ``(σ_v²/16)(1 + s)² I₃`` on the MRP block (``B Bᵀ = (1+s)² I``)."""
+        p = x[..., :3]
+        s = (p * p).sum(-1)[..., None, None]
+        eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
+        Gp = (self.sigma_v**2 / 16.0) * (1.0 + s) ** 2 * eye3
+        if not self.estimate_bias:
+            return Gp
+        z = torch.zeros_like(Gp)
+        Gb = (self.sigma_u**2 * eye3).expand_as(Gp)
+        return torch.cat((torch.cat((Gp, z), -1), torch.cat((z, Gb), -1)), -2)
+
+    # ------------------------------------------------------- MRP manifold
+    def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+        """Switch every component with ``|p| > 1`` to the shadow set.
+
+        ``p ← −p/s`` and ``P ← T P Tᵀ`` with ``T = blockdiag(J, I)``,
+        ``J = (2ppᵀ − sI₃)/s²``; bias rows and columns are unchanged.
+
+        Args:
+            mean: ``[..., n]``; cov: ``[..., n, n]``.
+        """
+        p = mean[..., :3]
+        s = (p * p).sum(-1)
+        switch = s > 1.0
+        if not bool(switch.any()):
+            return mean, cov
+        safe_p = torch.where(switch[..., None], p, torch.ones_like(p))
+        J = mrp_shadow_jacobian(safe_p)
+        eye = torch.eye(self.state_dim, dtype=mean.dtype, device=mean.device)
+        T = eye.expand(*J.shape[:-2], self.state_dim, self.state_dim).clone()
+        T[..., :3, :3] = J
+        T = torch.where(switch[..., None, None], T, eye)
+        new_p = torch.where(switch[..., None], -safe_p / (safe_p * safe_p).sum(-1, keepdim=True), p)
+        new_mean = torch.cat((new_p, mean[..., 3:]), -1)
+        new_cov = T @ cov @ T.transpose(-1, -2)
+        return new_mean, 0.5 * (new_cov + new_cov.transpose(-1, -2))
+
+    def state_error(self, x_est: Tensor, x_true: Tensor) -> Tensor:
+        """``x_est − x_true`` with the true MRP taken in whichever set (itself or
+        its shadow) lies closer to the estimate."""
+        p_e, p_t = torch.broadcast_tensors(x_est[..., :3], x_true[..., :3])
+        s_t = (p_t * p_t).sum(-1, keepdim=True)
+        shadow = -p_t / s_t.clamp_min(torch.finfo(p_t.dtype).tiny)
+        d_direct = p_e - p_t
+        d_shadow = p_e - shadow
+        use_shadow = (d_shadow * d_shadow).sum(-1, keepdim=True) < (d_direct * d_direct).sum(-1, keepdim=True)
+        dp = torch.where(use_shadow, d_shadow, d_direct)
+        if not self.estimate_bias:
+            return dp
+        return torch.cat((dp, x_est[..., 3:] - x_true[..., 3:]), -1)

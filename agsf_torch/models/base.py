@@ -1,0 +1,193 @@
+"""The model protocol: continuous-time dynamics and measurement models.
+
+A user model subclasses :class:`ContinuousModel` (an Itô SDE
+``dx = f(x, u) dt + g(x) dβ``, ``E[dβ dβᵀ] = Q dt``) and/or
+:class:`MeasurementModel` (``y = h(x) + v``, ``v ~ N(0, R)``).  Everything a
+filter needs beyond ``f, g, Q, h, R`` — Jacobians, the diffusion matrix and the
+derivative terms of the Fokker–Planck operator — has a default computed with
+``torch.func``; a subclass may override any of them with a closed form.
+
+Shape contract: every method is *elementwise over leading batch dims*: an input
+``x`` of shape ``[..., n]`` gives outputs whose leading dims are the broadcast of
+``x``'s leading dims with those of the model's own tensors (for example the star
+directions of a measurement).  Filters rely on this to evaluate all trajectories
+and all mixture components in one call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "batched_jacobian",
+    "ContinuousModel",
+    "MeasurementModel",
+    "FunctionMeasurement",
+    "check_finite",
+    "check_nonnegative",
+]
+
+
+def check_finite(name: str, value: Tensor) -> None:
+    """Raise ``ValueError`` naming ``name`` if ``value`` holds a NaN or ±inf."""
+    if not bool(torch.isfinite(value).all()):
+        bad = (~torch.isfinite(value)).nonzero()
+        raise ValueError(f"{name} must be finite; non-finite entry at index {tuple(bad[0].tolist())}")
+
+
+def check_nonnegative(name: str, value) -> Tensor:
+    """Return ``value`` as a float64 tensor, or raise if negative or non-finite."""
+    t = torch.as_tensor(value, dtype=torch.float64) if not isinstance(value, Tensor) else value
+    check_finite(name, t)
+    if bool((t < 0).any()):
+        raise ValueError(f"{name} must be non-negative, got {t.tolist()}")
+    return t
+
+
+def batched_jacobian(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
+    """Jacobian of an elementwise-batched function by forward-mode AD.
+
+    One Jacobian–vector product per state direction (``n`` in all), each
+    evaluated for the whole batch at once, so the cost is ``n`` batched calls of
+    ``fn`` whatever the batch size.
+
+    Args:
+        fn: maps ``[..., n]`` to ``[..., d]``, elementwise over leading dims.
+        x: ``[..., n]``.
+
+    Returns:
+        ``∂fn/∂x`` of shape ``[..., d, n]``.
+    """
+    n = x.shape[-1]
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
+    basis = eye.reshape(n, *([1] * (x.dim() - 1)), n).expand(n, *x.shape)
+
+    def column(t: Tensor) -> Tensor:
+        return torch.func.jvp(fn, (x,), (t,))[1]
+
+    return torch.func.vmap(column)(basis).movedim(0, -1)
+
+
+class ContinuousModel(nn.Module):
+    """Continuous-time stochastic model ``dx = f(x, u) dt + g(x) dβ``, ``E[dβdβᵀ] = Q dt``.
+
+    Subclasses set :attr:`state_dim` and implement :meth:`drift`,
+    :meth:`noise_gain` and :meth:`noise_psd`.  Tensors that parametrise the
+    model should be registered as buffers so ``.to(device)`` moves them.
+    """
+
+    state_dim: int
+
+    def drift(self, x: Tensor, u: Tensor | None) -> Tensor:
+        """Drift ``f(x, u)``: ``x [..., n]``, ``u [..., m]`` (or None) → ``[..., n]``."""
+        raise NotImplementedError
+
+    def noise_gain(self, x: Tensor) -> Tensor:
+        """Noise gain ``g(x)``: ``[..., n]`` → ``[..., n, q]``."""
+        raise NotImplementedError
+
+    def noise_psd(self) -> Tensor:
+        """Spectral density ``Q`` of the driving white noise, ``[q, q]``."""
+        raise NotImplementedError
+
+    # ----------------------------------------------------------- derived terms
+    def drift_jacobian(self, x: Tensor, u: Tensor | None) -> Tensor:
+        """``A = ∂f/∂x`` at ``x``, ``[..., n, n]`` (default: ``torch.func``)."""
+        return batched_jacobian(lambda z: self.drift(z, u), x)
+
+    def process_noise(self, x: Tensor) -> Tensor:
+        """``g(x) Q g(x)ᵀ``, the Riccati equation's source term, ``[..., n, n]``."""
+        g = self.noise_gain(x)
+        return g @ self.noise_psd().to(g) @ g.transpose(-1, -2)
+
+    def diffusion(self, x: Tensor) -> Tensor:
+        """Diffusion matrix of the Fokker–Planck operator, ``D(x) = ½ g Q gᵀ``, ``[..., n, n]``."""
+        return 0.5 * self.process_noise(x)
+
+    # --------------------------------------------------------- state manifold
+    def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+        """Re-express Gaussian components in a canonical chart (identity by default).
+
+        Args:
+            mean: ``[..., n]``; cov: ``[..., n, n]``.
+        """
+        return mean, cov
+
+    def state_error(self, x_est: Tensor, x_true: Tensor) -> Tensor:
+        """Estimation error ``x_est − x_true`` expressed in the estimate's chart, ``[..., n]``."""
+        return x_est - x_true
+
+
+class MeasurementModel(nn.Module):
+    """Measurement ``y = h(x) + v``, ``v ~ N(0, R)``.
+
+    Subclasses implement :meth:`predict` and :meth:`noise_cov`; :meth:`jacobian`
+    defaults to ``torch.func``.  :meth:`mask` marks which of the ``d``
+    measurement entries are valid (``None``: all); invalid entries contribute
+    nothing to an update.
+    """
+
+    def predict(self, x: Tensor) -> Tensor:
+        """Predicted measurement ``h(x)``: ``[..., n]`` → ``[..., d]``."""
+        raise NotImplementedError
+
+    def noise_cov(self) -> Tensor:
+        """Measurement noise covariance ``R``, ``[d, d]`` or ``[..., d, d]``."""
+        raise NotImplementedError
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        """``H = ∂h/∂x`` at ``x``, ``[..., d, n]`` (default: ``torch.func``)."""
+        return batched_jacobian(self.predict, x)
+
+    def mask(self) -> Tensor | None:
+        """Validity of each measurement entry, ``[..., d]`` bool, or ``None`` (all valid)."""
+        return None
+
+
+class FunctionMeasurement(MeasurementModel):
+    """A measurement model from a plain function.
+
+    Args:
+        fn: ``h``, mapping ``[..., n]`` to ``[..., d]`` elementwise over leading dims.
+        noise_cov: ``R``, ``[d, d]`` (or batched), symmetric positive definite.
+        jacobian: optional closed form of ``∂h/∂x`` (``[..., n]`` → ``[..., d, n]``).
+        mask: optional ``[..., d]`` bool validity of the entries.
+    """
+
+    def __init__(
+        self,
+        fn: Callable[[Tensor], Tensor],
+        noise_cov: Tensor,
+        jacobian: Callable[[Tensor], Tensor] | None = None,
+        mask: Tensor | None = None,
+    ) -> None:
+        super().__init__()
+        R = torch.as_tensor(noise_cov)
+        if R.dim() < 2 or R.shape[-1] != R.shape[-2]:
+            raise ValueError(f"noise_cov must be a square matrix [..., d, d], got shape {tuple(R.shape)}")
+        check_finite("noise_cov", R)
+        if not torch.allclose(R, R.transpose(-1, -2)):
+            raise ValueError("noise_cov must be symmetric")
+        if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
+            raise ValueError("noise_cov must be positive definite")
+        self.fn = fn
+        self._jacobian = jacobian
+        self.register_buffer("R", R)
+        self.register_buffer("_mask", None if mask is None else torch.as_tensor(mask, dtype=torch.bool))
+
+    def predict(self, x: Tensor) -> Tensor:
+        return self.fn(x)
+
+    def noise_cov(self) -> Tensor:
+        return self.R
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        if self._jacobian is not None:
+            return self._jacobian(x)
+        return super().jacobian(x)
+
+    def mask(self) -> Tensor | None:
+        return self._mask

@@ -1,0 +1,115 @@
+"""AttitudeModel: closed forms against torch.func, kinematics, shadow switching."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from agsf_torch import rotations as rot
+from agsf_torch.models import AttitudeModel, ContinuousModel
+from tests.conftest import random_mrps
+
+
+def _states(gen, num, estimate_bias, max_norm=1.3):
+    p = random_mrps(num, gen, max_norm=max_norm)
+    if not estimate_bias:
+        return p
+    return torch.cat((p, 1e-3 * torch.randn(num, 3, generator=gen, dtype=torch.float64)), -1)
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+def test_drift_jacobian_matches_autograd(gen, estimate_bias):
+    model = AttitudeModel(estimate_bias=estimate_bias, bias=torch.tensor([1e-4, -2e-4, 3e-4], dtype=torch.float64))
+    x = _states(gen, 2000, estimate_bias)
+    u = 0.1 * torch.randn(2000, 3, generator=gen, dtype=torch.float64)
+    A = model.drift_jacobian(x, u)
+    A_ad = ContinuousModel.drift_jacobian(model, x, u)  # the generic torch.func path
+    torch.testing.assert_close(A, A_ad, rtol=0, atol=1e-10)
+    assert A.shape == (2000, model.state_dim, model.state_dim)
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+def test_process_noise_closed_form_matches_generic(gen, estimate_bias):
+    model = AttitudeModel(estimate_bias=estimate_bias, sigma_v=3e-6, sigma_u=2e-8)
+    x = _states(gen, 500, estimate_bias)
+    G = model.process_noise(x)
+    # off-diagonal entries are exact zeros in the closed form, rounding (~1e-16 relative) in the generic one
+    torch.testing.assert_close(G, ContinuousModel.process_noise(model, x), rtol=1e-12, atol=1e-12 * float(G.abs().max()))
+    torch.testing.assert_close(model.diffusion(x), 0.5 * model.process_noise(x))
+
+
+def test_drift_is_mrp_kinematics(gen):
+    """f(p, ω̃) integrated over a step equals the exact quaternion rotation at constant rate."""
+    model = AttitudeModel()
+    p0 = random_mrps(64, gen, max_norm=0.8)
+    w = 0.05 * torch.randn(64, 3, generator=gen, dtype=torch.float64)
+    dt, steps = 1.0, 200
+    h = dt / steps
+    p = p0.clone()
+    for _ in range(steps):  # RK4 on ṗ = ¼B(p)ω
+        k1 = model.drift(p, w)
+        k2 = model.drift(p + 0.5 * h * k1, w)
+        k3 = model.drift(p + 0.5 * h * k2, w)
+        k4 = model.drift(p + h * k3, w)
+        p = p + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    q_exact = rot.quat_multiply(rot.rotvec_to_quat(w * dt), rot.mrp_to_quat(p0))
+    torch.testing.assert_close(rot.mrp_to_dcm(p), rot.quat_to_dcm(q_exact), rtol=0, atol=1e-12)
+
+
+def test_six_state_structure(gen):
+    model = AttitudeModel(estimate_bias=True, sigma_v=1e-6, sigma_u=1e-9)
+    x = _states(gen, 10, True)
+    u = torch.randn(10, 3, generator=gen, dtype=torch.float64)
+    f = model.drift(x, u)
+    assert torch.equal(f[:, 3:], torch.zeros(10, 3, dtype=torch.float64))
+    torch.testing.assert_close(f[:, :3], AttitudeModel().drift(x[:, :3], u - x[:, 3:]))
+    Q = model.noise_psd()
+    torch.testing.assert_close(torch.diag(Q), torch.tensor([1e-12] * 3 + [1e-18] * 3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+def test_canonicalize_switches_to_shadow(gen, estimate_bias):
+    model = AttitudeModel(estimate_bias=estimate_bias)
+    n = model.state_dim
+    x = _states(gen, 300, estimate_bias, max_norm=2.0)
+    L = torch.randn(300, n, n, generator=gen, dtype=torch.float64)
+    P = 1e-4 * (L @ L.transpose(-1, -2) + torch.eye(n, dtype=torch.float64))
+    m2, P2 = model.canonicalize(x, P)
+    s = (x[:, :3] ** 2).sum(-1)
+    switched = s > 1
+    assert switched.any() and (~switched).any()
+    assert bool(((m2[:, :3] ** 2).sum(-1) <= 1 + 1e-15).all())
+    torch.testing.assert_close(m2[~switched], x[~switched], rtol=0, atol=0)
+    torch.testing.assert_close(P2[~switched], P[~switched], rtol=0, atol=0)
+    # switched means describe the same attitude; covariance maps with T = blockdiag(J, I)
+    torch.testing.assert_close(rot.mrp_to_dcm(m2[switched, :3]), rot.mrp_to_dcm(x[switched, :3]), rtol=0, atol=1e-12)
+    J = rot.mrp_shadow_jacobian(x[switched, :3])
+    T = torch.eye(n, dtype=torch.float64).repeat(int(switched.sum()), 1, 1)
+    T[:, :3, :3] = J
+    torch.testing.assert_close(P2[switched], T @ P[switched] @ T.transpose(-1, -2), rtol=1e-12, atol=1e-18)
+    if estimate_bias:
+        torch.testing.assert_close(P2[:, 3:, 3:], P[:, 3:, 3:], rtol=0, atol=0)
+        torch.testing.assert_close(m2[:, 3:], x[:, 3:], rtol=0, atol=0)
+
+
+def test_state_error_uses_nearest_set(gen):
+    model = AttitudeModel()
+    p = random_mrps(100, gen, max_norm=0.99)
+    p = p[p.norm(dim=-1) > 0.5]
+    err = model.state_error(p, rot.mrp_shadow(p))
+    torch.testing.assert_close(err, torch.zeros_like(p), rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"sigma_v": -1.0}, "sigma_v"),
+        ({"sigma_u": float("nan")}, "sigma_u"),
+        ({"sigma_v": float("inf")}, "sigma_v"),
+        ({"bias": [1.0, 2.0]}, "bias"),
+        ({"bias": [float("nan")] * 3}, "bias"),
+    ],
+)
+def test_bad_configuration_raises(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        AttitudeModel(**kwargs)

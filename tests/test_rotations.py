@@ -1,0 +1,122 @@
+"""Rotations against scipy's Rotation, round trips and identities."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from agsf_torch import rotations as rot
+
+
+def test_cross_matrix(gen):
+    a, b = torch.randn(2, 50, 3, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(rot.cross_matrix(a) @ b[..., None], torch.linalg.cross(a, b)[..., None], rtol=0, atol=1e-14)
+
+
+def test_mrp_to_dcm_matches_scipy(mrps):
+    C = rot.mrp_to_dcm(mrps)
+    C_ref = Rotation.from_mrp(mrps.numpy()).as_matrix().transpose(0, 2, 1)  # scipy's matrix is Cᵀ
+    np.testing.assert_allclose(C.numpy(), C_ref, rtol=0, atol=1e-12)
+
+
+def test_mrp_to_quat_and_quat_to_dcm_match_scipy(mrps):
+    q = rot.mrp_to_quat(mrps)
+    q_ref = Rotation.from_mrp(mrps.numpy()).as_quat()
+    sign = np.sign((q.numpy() * q_ref).sum(-1, keepdims=True))
+    np.testing.assert_allclose(q.numpy(), sign * q_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(rot.quat_to_dcm(q).numpy(), rot.mrp_to_dcm(mrps).numpy(), rtol=0, atol=1e-12)
+
+
+def test_dcm_to_quat_matches_scipy(mrps):
+    C = rot.mrp_to_dcm(mrps)
+    q = rot.dcm_to_quat(C)
+    q_ref = Rotation.from_matrix(C.transpose(-1, -2).numpy()).as_quat()
+    sign = np.sign((q.numpy() * q_ref).sum(-1, keepdims=True))
+    np.testing.assert_allclose(q.numpy(), sign * q_ref, rtol=0, atol=1e-12)
+
+
+def test_round_trips(mrps):
+    p_short = rot.mrp_canonical(mrps)
+    assert bool(((p_short**2).sum(-1) <= 1.0 + 1e-15).all())
+    torch.testing.assert_close(rot.quat_to_mrp(rot.mrp_to_quat(mrps)), p_short, rtol=0, atol=1e-12)
+    torch.testing.assert_close(rot.dcm_to_mrp(rot.mrp_to_dcm(mrps)), p_short, rtol=0, atol=1e-12)
+    C = rot.mrp_to_dcm(mrps)
+    torch.testing.assert_close(rot.quat_to_dcm(rot.dcm_to_quat(C)), C, rtol=0, atol=1e-12)
+
+
+def test_dcm_is_proper_orthogonal(mrps):
+    C = rot.mrp_to_dcm(mrps)
+    eye = torch.eye(3, dtype=torch.float64).expand_as(C)
+    torch.testing.assert_close(C @ C.transpose(-1, -2), eye, rtol=0, atol=1e-12)
+    torch.testing.assert_close(torch.linalg.det(C), torch.ones(len(C), dtype=torch.float64), rtol=0, atol=1e-12)
+
+
+def test_quat_multiply_composes_matrices(gen):
+    from tests.conftest import random_mrps
+
+    pa, pb = random_mrps(1000, gen), random_mrps(1000, gen)
+    qa, qb = rot.mrp_to_quat(pa), rot.mrp_to_quat(pb)
+    torch.testing.assert_close(
+        rot.quat_to_dcm(rot.quat_multiply(qa, qb)), rot.mrp_to_dcm(pa) @ rot.mrp_to_dcm(pb), rtol=0, atol=1e-12
+    )
+    torch.testing.assert_close(rot.mrp_to_dcm(rot.mrp_compose(pa, pb)), rot.mrp_to_dcm(pa) @ rot.mrp_to_dcm(pb), rtol=0, atol=1e-12)
+    # scipy: as_matrix() is Cᵀ, so C(a)C(b) = (R_b R_a)ᵀ
+    R = Rotation.from_mrp(pb.numpy()) * Rotation.from_mrp(pa.numpy())
+    np.testing.assert_allclose(rot.mrp_to_dcm(rot.mrp_compose(pa, pb)).numpy(), R.as_matrix().transpose(0, 2, 1), atol=1e-12)
+
+
+def test_shadow_set_same_attitude_and_jacobian(mrps):
+    p = mrps[(mrps.norm(dim=-1) > 1e-3)]
+    ps = rot.mrp_shadow(p)
+    torch.testing.assert_close(rot.mrp_to_dcm(ps), rot.mrp_to_dcm(p), rtol=0, atol=1e-11)
+    J = rot.mrp_shadow_jacobian(p[:500])
+    J_ad = torch.func.vmap(torch.func.jacrev(rot.mrp_shadow))(p[:500])
+    torch.testing.assert_close(J, J_ad, rtol=1e-10, atol=1e-10)
+
+
+def test_kinematics_matrix_identity(mrps):
+    B = rot.mrp_kinematics_matrix(mrps)
+    s = (mrps**2).sum(-1)
+    eye = torch.eye(3, dtype=torch.float64)
+    torch.testing.assert_close(B @ B.transpose(-1, -2) / ((1 + s) ** 2)[:, None, None], eye.expand_as(B), rtol=0, atol=1e-12)
+
+
+def test_attitude_error_angle(gen, mrps):
+    from tests.conftest import random_mrps
+
+    pa = random_mrps(len(mrps), gen)
+    ang = rot.attitude_error_angle(pa, mrps)
+    ra, rb = Rotation.from_mrp(pa.numpy()), Rotation.from_mrp(mrps.numpy())
+    ref = (ra * rb.inv()).magnitude()
+    np.testing.assert_allclose(ang.numpy(), ref, rtol=0, atol=1e-12)
+    # same attitude through the shadow set: zero error
+    big = mrps[mrps.norm(dim=-1) > 1e-3]
+    assert float(rot.attitude_error_angle(big, rot.mrp_shadow(big)).max()) < 1e-7
+
+
+def test_attitude_error_vector_small_angle(gen):
+    from tests.conftest import random_mrps
+
+    p_true = random_mrps(200, gen)
+    dtheta = 1e-4 * torch.randn(200, 3, generator=gen, dtype=torch.float64)
+    q_est = rot.quat_multiply(rot.rotvec_to_quat(dtheta), rot.mrp_to_quat(p_true))
+    err = rot.attitude_error_vector(rot.quat_to_mrp(q_est), p_true)
+    # C(q_est) = exp(−[δθ×]) C(p_true) ⇒ error vector is δθ up to O(|δθ|³)
+    torch.testing.assert_close(err, dtheta, rtol=0, atol=1e-11)
+
+
+def test_rotvec_to_quat_matches_scipy(gen):
+    phi = torch.randn(500, 3, generator=gen, dtype=torch.float64)
+    phi[:10] *= 1e-12
+    q = rot.rotvec_to_quat(phi)
+    # scipy's rotation vector is active: C(q) = R(φ)ᵀ
+    np.testing.assert_allclose(rot.quat_to_dcm(q).numpy(), Rotation.from_rotvec(phi.numpy()).as_matrix().transpose(0, 2, 1), atol=1e-12)
+
+
+def test_batched_over_leading_dims(gen):
+    from tests.conftest import random_mrps
+
+    p = random_mrps(24, gen).reshape(2, 3, 4, 3)
+    torch.testing.assert_close(rot.mrp_to_dcm(p).reshape(24, 3, 3), rot.mrp_to_dcm(p.reshape(24, 3)))
+    torch.testing.assert_close(rot.dcm_to_quat(rot.mrp_to_dcm(p)).shape, torch.Size((2, 3, 4, 4)))
