@@ -1,0 +1,194 @@
+"""Classic Gaussian sum filter and the EKF as its one-component case (method.md §2)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..mixture import GaussianMixture
+from ..models.base import ContinuousModel, MeasurementModel
+from ..propagation import propagate_moments
+from ..update import kalman_update
+
+__all__ = ["GaussianSumFilter", "ExtendedKalmanFilter"]
+
+
+class GaussianSumFilter:
+    """Gaussian sum filter: every component is an EKF, weights change only at updates.
+
+    All trajectories (leading dims) and components advance as one tensor
+    program.  The contract shared by every filter of the package::
+
+        mixture = filt.predict(mixture, u, dt)          # propagate over one input interval
+        mixture = filt.update(mixture, y, measurement)  # Bayes update with one measurement
+        mean, cov = filt.estimate(mixture)
+
+    After each call ``filt.diagnostics`` holds that step's diagnostics as a dict
+    of tensors (computed during the step, never recomputed):
+
+    * predict: ``weight_entropy [...]``, ``covariance_repairs`` (int, this call);
+    * update: ``log_likelihood [...]`` (``log Σ wᵢβᵢ``), ``nis [..., N]``,
+      ``nis_mixture [...]`` (moment-matched innovation of the mixture), ``dof [...]``
+      (valid measurement entries), ``weight_entropy [...]``, ``covariance_repairs``.
+
+    Args:
+        model: the continuous-time model.
+        substeps: RK4 steps per ``predict`` interval.
+        repair_covariance: if ``False`` (default) a component covariance that
+            stops being positive definite raises ``ValueError`` naming the
+            trajectory and component; if ``True`` it is repaired by clipping its
+            eigenvalues at ``min_eigenvalue`` times its largest one, and the
+            repair is counted in the diagnostics.
+        min_eigenvalue: relative eigenvalue floor of the repair.
+    """
+
+    def __init__(
+        self,
+        model: ContinuousModel,
+        *,
+        substeps: int = 1,
+        repair_covariance: bool = False,
+        min_eigenvalue: float = 1e-12,
+    ) -> None:
+        if not isinstance(model, ContinuousModel):
+            raise TypeError(f"model must be a ContinuousModel, got {type(model).__name__}")
+        if int(substeps) != substeps or substeps < 1:
+            raise ValueError(f"substeps must be a positive integer, got {substeps}")
+        if not 0.0 < min_eigenvalue < 1.0:
+            raise ValueError(f"min_eigenvalue must lie in (0, 1), got {min_eigenvalue}")
+        self.model = model
+        self.substeps = int(substeps)
+        self.repair_covariance = bool(repair_covariance)
+        self.min_eigenvalue = float(min_eigenvalue)
+        self.diagnostics: dict[str, Any] = {}
+
+    # ----------------------------------------------------------------- checks
+    def _check_mixture(self, mixture: GaussianMixture) -> None:
+        if not isinstance(mixture, GaussianMixture):
+            raise TypeError(f"mixture must be a GaussianMixture, got {type(mixture).__name__}")
+        if mixture.state_dim != self.model.state_dim:
+            raise ValueError(f"mixture state dimension {mixture.state_dim} != model state_dim {self.model.state_dim}")
+
+    @staticmethod
+    def _check_batched(name: str, value: Tensor, batch_shape: torch.Size) -> None:
+        if not bool(torch.isfinite(value).all()):
+            idx = (~torch.isfinite(value)).nonzero()[0].tolist()
+            raise ValueError(f"{name} must be finite; non-finite value at index {tuple(idx)}")
+        try:
+            torch.broadcast_shapes(value.shape[:-1], batch_shape)
+        except RuntimeError:
+            raise ValueError(
+                f"{name} has shape {tuple(value.shape)}, whose leading dims do not broadcast with "
+                f"the mixture's batch shape {tuple(batch_shape)}"
+            ) from None
+
+    def _ensure_positive_definite(self, covs: Tensor, where: str) -> tuple[Tensor, int]:
+        info = torch.linalg.cholesky_ex(covs).info
+        bad = info != 0
+        if not bool(bad.any()):
+            return covs, 0
+        if not self.repair_covariance:
+            idx = bad.nonzero()[0].tolist()
+            raise ValueError(
+                f"covariance lost positive definiteness {where} at trajectory index {tuple(idx[:-1])}, "
+                f"component {idx[-1]} (enable repair_covariance=True to clip its eigenvalues)"
+            )
+        evals, evecs = torch.linalg.eigh(covs)
+        floor = self.min_eigenvalue * evals[..., -1:].abs()
+        fixed = evecs @ torch.diag_embed(torch.maximum(evals, floor)) @ evecs.transpose(-1, -2)
+        fixed = 0.5 * (fixed + fixed.transpose(-1, -2))
+        return torch.where(bad[..., None, None], fixed, covs), int(bad.sum())
+
+    # ------------------------------------------------------------- the steps
+    def predict(self, mixture: GaussianMixture, u: Tensor | None, dt: float) -> GaussianMixture:
+        """Propagate every component over ``dt`` with the input ``u`` held constant.
+
+        Args:
+            mixture: the belief at ``t`` (batch shape ``[...]``, ``N`` components).
+            u: input ``[..., m]`` (e.g. the gyro rate, rad/s), or ``None``.
+            dt: interval (s), finite and > 0.
+
+        Returns:
+            The belief at ``t + dt``.
+        """
+        self._check_mixture(mixture)
+        if not (isinstance(dt, (int, float)) or torch.is_tensor(dt)) or not float(dt) > 0 or not torch.isfinite(torch.tensor(float(dt))):
+            raise ValueError(f"dt must be a finite positive number, got {dt}")
+        if u is not None:
+            u = torch.as_tensor(u, dtype=mixture.means.dtype, device=mixture.means.device)
+            self._check_batched("u", u, mixture.batch_shape)
+            u = u.unsqueeze(-2)  # broadcast over components
+        means, covs = propagate_moments(self.model, mixture.means, mixture.covs, u, float(dt), self.substeps)
+        means, covs = self.model.canonicalize(means, covs)
+        covs, repairs = self._ensure_positive_definite(covs, "during propagation")
+        propagated = mixture.replace(means=means, covs=covs)
+        propagated, extra = self._adapt_weights(mixture, propagated, u, float(dt))
+        self.diagnostics = {"weight_entropy": propagated.entropy_of_weights(), "covariance_repairs": repairs, **extra}
+        return propagated
+
+    def _adapt_weights(
+        self, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, dt: float
+    ) -> tuple[GaussianMixture, dict[str, Any]]:
+        """Hook for weight corrections during propagation; the classic filter keeps the weights."""
+        return propagated, {}
+
+    def update(self, mixture: GaussianMixture, y: Tensor, measurement: MeasurementModel) -> GaussianMixture:
+        """Bayes update of every component with the measurement ``y``.
+
+        Args:
+            mixture: the predicted belief.
+            y: measurement ``[..., d]`` (entries masked out by the measurement
+               model are ignored but must still be finite).
+            measurement: the measurement model.
+
+        Returns:
+            The posterior belief.
+        """
+        self._check_mixture(mixture)
+        if not isinstance(measurement, MeasurementModel):
+            raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
+        y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
+        self._check_batched("y", y, mixture.batch_shape)
+        res = kalman_update(mixture.log_weights, mixture.means, mixture.covs, y, measurement)
+        means, covs = self.model.canonicalize(res.means, res.covs)
+        covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
+        posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs)
+        self.diagnostics = {
+            "log_likelihood": res.log_likelihood,
+            "nis": res.nis,
+            "nis_mixture": _mixture_nis(mixture.log_weights, res.innovation, res.innovation_cov),
+            "dof": res.dof,
+            "weight_entropy": posterior.entropy_of_weights(),
+            "covariance_repairs": repairs,
+        }
+        return posterior
+
+    def estimate(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor]:
+        """Point estimate and covariance of the belief (the mixture's moments)."""
+        return mixture.moments()
+
+
+def _mixture_nis(log_weights: Tensor, nu: Tensor, S: Tensor) -> Tensor:
+    """NIS of the moment-matched mixture prediction: ``ν̄ᵀ S̄⁻¹ ν̄`` with
+    ``ν̄ = Σwᵢνᵢ``, ``S̄ = Σwᵢ(Sᵢ + (νᵢ−ν̄)(νᵢ−ν̄)ᵀ)``.  ``[...]``."""
+    w = log_weights.exp()
+    nu_bar = (w[..., None] * nu).sum(-2)
+    dn = nu - nu_bar.unsqueeze(-2)
+    S_bar = (w[..., None, None] * (S + dn[..., :, None] * dn[..., None, :])).sum(-3)
+    L = torch.linalg.cholesky(S_bar)
+    z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False).squeeze(-1)
+    return (z * z).sum(-1)
+
+
+class ExtendedKalmanFilter(GaussianSumFilter):
+    """The extended Kalman filter: a Gaussian sum filter with one component.
+
+    Build its belief with ``GaussianMixture.from_gaussian(mean, cov)``.
+    """
+
+    def _check_mixture(self, mixture: GaussianMixture) -> None:
+        super()._check_mixture(mixture)
+        if mixture.num_components != 1:
+            raise ValueError(f"ExtendedKalmanFilter needs a one-component mixture, got {mixture.num_components}")

@@ -1,0 +1,235 @@
+"""The Gaussian mixture belief ``p̂(x) = Σᵢ wᵢ N(x; μᵢ, Pᵢ)``.
+
+Shapes (any leading batch dims ``...``, usually one trajectory dim ``B``):
+log-weights ``[..., N]``, means ``[..., N, n]``, covariances ``[..., N, n, n]``.
+Weights are stored in the log domain and normalised with log-sum-exp.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["GaussianMixture", "split_gaussian", "check_covariance"]
+
+
+def check_covariance(name: str, P: Tensor, rtol: float = 1e-9) -> None:
+    """Raise ``ValueError`` unless every ``P[..., :, :]`` is finite, symmetric and positive definite.
+
+    The message names the first offending batch index.
+    """
+    if P.dim() < 2 or P.shape[-1] != P.shape[-2]:
+        raise ValueError(f"{name} must have shape [..., n, n], got {tuple(P.shape)}")
+    if not bool(torch.isfinite(P).all()):
+        idx = (~torch.isfinite(P)).flatten(-2).any(-1).nonzero()[0].tolist()
+        raise ValueError(f"{name} has non-finite entries at batch index {tuple(idx)}")
+    scale = P.diagonal(dim1=-2, dim2=-1).abs().amax(-1, keepdim=True)[..., None]
+    asym = (P - P.transpose(-1, -2)).abs() > rtol * scale
+    if bool(asym.any()):
+        idx = asym.flatten(-2).any(-1).nonzero()[0].tolist()
+        raise ValueError(f"{name} is not symmetric at batch index {tuple(idx)}")
+    info = torch.linalg.cholesky_ex(P).info
+    if bool((info != 0).any()):
+        idx = (info != 0).nonzero()[0].tolist()
+        raise ValueError(f"{name} is not positive definite at batch index {tuple(idx)}")
+
+
+@dataclass(frozen=True)
+class GaussianMixture:
+    """A batch of Gaussian mixtures.
+
+    Construct with keyword arguments, giving either ``weights`` or
+    ``log_weights`` (unnormalised is fine: they are normalised here)::
+
+        GaussianMixture(weights=w, means=mu, covs=P)      # w [..., N]
+        GaussianMixture(log_weights=lw, means=mu, covs=P)
+
+    Inputs are validated (shapes, finiteness, symmetric positive definite
+    covariances, non-negative weights with a positive sum) unless
+    ``validate=False`` (used internally by the filters on their own outputs).
+    """
+
+    log_weights: Tensor
+    means: Tensor
+    covs: Tensor
+
+    def __init__(
+        self,
+        *,
+        means: Tensor,
+        covs: Tensor,
+        weights: Tensor | None = None,
+        log_weights: Tensor | None = None,
+        validate: bool = True,
+    ) -> None:
+        means = torch.as_tensor(means)
+        covs = torch.as_tensor(covs, dtype=means.dtype, device=means.device)
+        if (weights is None) == (log_weights is None):
+            raise ValueError("give exactly one of weights= or log_weights=")
+        if weights is not None:
+            weights = torch.as_tensor(weights, dtype=means.dtype, device=means.device)
+            if validate:
+                if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+                    raise ValueError("weights must be finite and non-negative")
+                if bool((weights.sum(-1) <= 0).any()):
+                    raise ValueError("weights must have a positive sum in every mixture")
+            log_weights = torch.log(weights)
+        else:
+            log_weights = torch.as_tensor(log_weights, dtype=means.dtype, device=means.device)
+            if validate and (bool(torch.isnan(log_weights).any()) or bool(torch.isposinf(log_weights).any())):
+                raise ValueError("log_weights must not be NaN or +inf")
+        if validate:
+            if means.dim() < 2:
+                raise ValueError(f"means must have shape [..., N, n], got {tuple(means.shape)}")
+            n = means.shape[-1]
+            if covs.shape[-2:] != (n, n) or covs.shape[:-2] != means.shape[:-1]:
+                raise ValueError(f"covs must have shape {tuple(means.shape) + (n,)}, got {tuple(covs.shape)}")
+            if log_weights.shape != means.shape[:-1]:
+                raise ValueError(f"weights must have shape {tuple(means.shape[:-1])}, got {tuple(log_weights.shape)}")
+            if not bool(torch.isfinite(means).all()):
+                raise ValueError("means must be finite")
+            check_covariance("covs", covs)
+            if bool(torch.isneginf(log_weights).all(-1).any()):
+                raise ValueError("weights must have a positive sum in every mixture")
+        log_weights = log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
+        object.__setattr__(self, "log_weights", log_weights)
+        object.__setattr__(self, "means", means)
+        object.__setattr__(self, "covs", covs)
+
+    # ------------------------------------------------------------ properties
+    @property
+    def weights(self) -> Tensor:
+        """Normalised weights ``[..., N]``."""
+        return self.log_weights.exp()
+
+    @property
+    def num_components(self) -> int:
+        return self.means.shape[-2]
+
+    @property
+    def state_dim(self) -> int:
+        return self.means.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.means.shape[:-2]
+
+    def replace(self, **kwargs: Tensor) -> GaussianMixture:
+        """A copy with some of ``log_weights``, ``means``, ``covs`` replaced (no validation)."""
+        fields = {"log_weights": self.log_weights, "means": self.means, "covs": self.covs}
+        fields.update(kwargs)
+        return GaussianMixture(validate=False, **fields)
+
+    # ------------------------------------------------------------ statistics
+    def moments(self) -> tuple[Tensor, Tensor]:
+        """Mean and covariance of the mixture.
+
+        .. math:: μ = Σ_i w_i μ_i,\\qquad P = Σ_i w_i \\left(P_i + (μ_i - μ)(μ_i - μ)^T\\right)
+
+        Returns:
+            ``(mean [..., n], cov [..., n, n])``.
+        """
+        w = self.weights
+        mean = (w[..., None] * self.means).sum(-2)
+        d = self.means - mean[..., None, :]
+        spread = d[..., :, None] * d[..., None, :]
+        cov = (w[..., None, None] * (self.covs + spread)).sum(-3)
+        return mean, 0.5 * (cov + cov.transpose(-1, -2))
+
+    def component_log_prob(self, x: Tensor) -> Tensor:
+        """``log N(x_k; μ_i, P_i)`` for every point and component.
+
+        Args:
+            x: ``[..., K, n]``.
+
+        Returns:
+            ``[..., N, K]``.
+        """
+        L = torch.linalg.cholesky(self.covs)  # [..., N, n, n]
+        d = x.unsqueeze(-3) - self.means.unsqueeze(-2)  # [..., N, K, n]
+        z = torch.linalg.solve_triangular(L, d.transpose(-1, -2), upper=False)  # [..., N, n, K]
+        maha = (z * z).sum(-2)
+        logdet = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1, keepdim=True)
+        return -0.5 * (maha + logdet + self.state_dim * math.log(2.0 * math.pi))
+
+    def log_prob(self, x: Tensor) -> Tensor:
+        """Log-density of the mixture, ``log Σ_i w_i N(x_k; μ_i, P_i)``.
+
+        Args:
+            x: ``[..., K, n]``.
+
+        Returns:
+            ``[..., K]``.
+        """
+        return torch.logsumexp(self.log_weights[..., None] + self.component_log_prob(x), -2)
+
+    def entropy_of_weights(self) -> Tensor:
+        """Shannon entropy of the weights, ``−Σ wᵢ log wᵢ`` (nats), ``[...]``."""
+        lw = self.log_weights
+        return -(lw.exp() * torch.where(torch.isneginf(lw), torch.zeros_like(lw), lw)).sum(-1)
+
+    # ---------------------------------------------------------- construction
+    @classmethod
+    def from_gaussian(cls, mean: Tensor, cov: Tensor, num_components: int = 1, spread: float = 0.5) -> GaussianMixture:
+        """Moment-preserving split of ``N(mean, cov)`` into ``num_components``.
+
+        See :func:`split_gaussian` for the scheme.
+
+        Args:
+            mean: ``[..., n]``; cov: ``[..., n, n]`` symmetric positive definite.
+        """
+        mean = torch.as_tensor(mean)
+        cov = torch.as_tensor(cov, dtype=mean.dtype, device=mean.device)
+        if mean.dim() < 1 or cov.shape[-2:] != (mean.shape[-1],) * 2:
+            raise ValueError(f"mean [..., n] and cov [..., n, n] do not match: {tuple(mean.shape)}, {tuple(cov.shape)}")
+        if not bool(torch.isfinite(mean).all()):
+            raise ValueError("mean must be finite")
+        check_covariance("cov", cov)
+        w, mu, P = split_gaussian(mean, cov, num_components, spread)
+        return cls(weights=w, means=mu, covs=P, validate=False)
+
+
+def split_gaussian(mean: Tensor, cov: Tensor, num_components: int, spread: float = 0.5) -> tuple[Tensor, Tensor, Tensor]:
+    """Split a Gaussian into ``N`` components along its principal axis, preserving mean and covariance.
+
+    With ``λ, v`` the largest eigenpair of ``P`` and ``u_i`` equally spaced in
+    ``[−2, 2]``: weights ``w_i ∝ exp(−u_i²/2)``, offsets ``m_i = c u_i`` with ``c``
+    chosen so that ``Σ w_i m_i² = spread``; then
+
+    .. math:: μ_i = μ + m_i \\sqrt{λ}\\, v,\\qquad P_i = P - \\mathrm{spread}\\; λ\\, v v^T
+
+    so ``Σ w_i μ_i = μ`` and ``Σ w_i (P_i + (μ_i − μ)(μ_i − μ)ᵀ) = P`` exactly
+    (to rounding).  ``spread ∈ (0, 1)`` is the share of the principal variance
+    carried by the spacing of the means; each component keeps ``1 − spread``.
+
+    Args:
+        mean: ``[..., n]``; cov: ``[..., n, n]``; num_components ≥ 1.
+
+    Returns:
+        ``(weights [..., N], means [..., N, n], covs [..., N, n, n])``.
+    """
+    if int(num_components) != num_components or num_components < 1:
+        raise ValueError(f"num_components must be a positive integer, got {num_components}")
+    if not 0.0 < spread < 1.0:
+        raise ValueError(f"spread must lie in (0, 1), got {spread}")
+    N = int(num_components)
+    batch = mean.shape[:-1]
+    if N == 1:
+        w = torch.ones(*batch, 1, dtype=mean.dtype, device=mean.device)
+        return w, mean.unsqueeze(-2).clone(), cov.unsqueeze(-3).clone()
+    u = torch.linspace(-2.0, 2.0, N, dtype=mean.dtype, device=mean.device)
+    w = torch.exp(-0.5 * u * u)
+    w = w / w.sum()
+    u = u - (w * u).sum()  # exactly zero-mean offsets
+    m = u * math.sqrt(spread) / torch.sqrt((w * u * u).sum())
+    evals, evecs = torch.linalg.eigh(cov)
+    lam, v = evals[..., -1], evecs[..., :, -1]  # [...], [..., n]
+    offsets = m[:, None] * (torch.sqrt(lam)[..., None] * v).unsqueeze(-2)  # [..., N, n]
+    means = mean.unsqueeze(-2) + offsets
+    P = cov - spread * lam[..., None, None] * v[..., :, None] * v[..., None, :]
+    P = 0.5 * (P + P.transpose(-1, -2))
+    covs = P.unsqueeze(-3).expand(*batch, N, *cov.shape[-2:]).clone()
+    return w.expand(*batch, N).clone(), means, covs

@@ -1,0 +1,89 @@
+"""GaussianMixture: moments, densities, the moment-preserving split, validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import multivariate_normal
+
+from agsf_torch import GaussianMixture
+from agsf_torch.mixture import split_gaussian
+
+
+def _spd(gen, *shape, n=3, scale=1.0):
+    A = torch.randn(*shape, n, n, generator=gen, dtype=torch.float64)
+    return scale * (A @ A.transpose(-1, -2) + 0.1 * torch.eye(n, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("N", [1, 2, 3, 5, 9])
+@pytest.mark.parametrize("n", [1, 3, 6])
+def test_split_preserves_moments(gen, N, n):
+    mean = torch.randn(7, n, generator=gen, dtype=torch.float64)
+    cov = _spd(gen, 7, n=n, scale=1e-3)
+    mix = GaussianMixture.from_gaussian(mean, cov, N)
+    assert mix.weights.shape == (7, N) and mix.means.shape == (7, N, n)
+    m, P = mix.moments()
+    torch.testing.assert_close(m, mean, rtol=0, atol=1e-12 * float(mean.abs().max()))
+    torch.testing.assert_close(P, cov, rtol=0, atol=1e-12 * float(cov.abs().max()))
+    assert bool((torch.linalg.eigvalsh(mix.covs) > 0).all())
+
+
+def test_split_spread_controls_component_width(gen):
+    cov = torch.diag(torch.tensor([4.0, 1.0], dtype=torch.float64))
+    w, mu, P = split_gaussian(torch.zeros(2, dtype=torch.float64), cov, 5, spread=0.75)
+    torch.testing.assert_close(P[0], torch.diag(torch.tensor([1.0, 1.0], dtype=torch.float64)))
+    assert torch.allclose(mu[:, 1], torch.zeros(5, dtype=torch.float64))  # along the principal axis only
+    torch.testing.assert_close(w.flip(0), w)  # symmetric weights
+
+
+def test_log_prob_matches_scipy(gen):
+    N, n = 4, 3
+    w = torch.rand(2, N, generator=gen, dtype=torch.float64)
+    mu = torch.randn(2, N, n, generator=gen, dtype=torch.float64)
+    P = _spd(gen, 2, N, n=n)
+    mix = GaussianMixture(weights=w, means=mu, covs=P)
+    x = torch.randn(2, 11, n, generator=gen, dtype=torch.float64)
+    lp = mix.log_prob(x)
+    for b in range(2):
+        wn = (w[b] / w[b].sum()).numpy()
+        ref = sum(wn[i] * multivariate_normal(mu[b, i].numpy(), P[b, i].numpy()).pdf(x[b].numpy()) for i in range(N))
+        np.testing.assert_allclose(lp[b].numpy(), np.log(ref), rtol=1e-12)
+
+
+def test_log_weights_constructor_and_entropy(gen):
+    lw = torch.tensor([[0.0, -1000.0, float("-inf")]], dtype=torch.float64)
+    mix = GaussianMixture(log_weights=lw, means=torch.zeros(1, 3, 2, dtype=torch.float64), covs=torch.eye(2, dtype=torch.float64).expand(1, 3, 2, 2))
+    torch.testing.assert_close(mix.weights.sum(-1), torch.ones(1, dtype=torch.float64))
+    assert float(mix.entropy_of_weights()) == pytest.approx(0.0, abs=1e-300)
+    uni = GaussianMixture(weights=torch.ones(1, 4), means=torch.zeros(1, 4, 1, dtype=torch.float64), covs=torch.ones(1, 4, 1, 1, dtype=torch.float64))
+    assert float(uni.entropy_of_weights()) == pytest.approx(np.log(4), rel=1e-14)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"weights": torch.tensor([[1.0, -1.0]])}, "non-negative"),
+        ({"weights": torch.tensor([[0.0, 0.0]])}, "positive sum"),
+        ({"weights": torch.tensor([[1.0, 1.0, 1.0]])}, "weights must have shape"),
+        ({"weights": torch.ones(1, 2), "covs": -torch.eye(2).expand(1, 2, 2, 2)}, "positive definite"),
+        ({"weights": torch.ones(1, 2), "covs": torch.tensor([[1.0, 0.5], [0.0, 1.0]]).expand(1, 2, 2, 2)}, "symmetric"),
+        ({"weights": torch.ones(1, 2), "means": torch.full((1, 2, 2), float("nan"))}, "means must be finite"),
+        ({"weights": torch.ones(1, 2), "covs": torch.eye(3).expand(1, 2, 3, 3)}, "covs must have shape"),
+        ({"weights": torch.ones(1, 2), "log_weights": torch.zeros(1, 2)}, "exactly one"),
+    ],
+)
+def test_bad_input_raises(kwargs, match):
+    args = {"means": torch.zeros(1, 2, 2, dtype=torch.float64), "covs": torch.eye(2, dtype=torch.float64).expand(1, 2, 2, 2)}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        GaussianMixture(**args)
+
+
+def test_from_gaussian_rejects_bad_prior():
+    with pytest.raises(ValueError, match="positive definite"):
+        GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.diag(torch.tensor([1.0, -1.0], dtype=torch.float64)), 3)
+    with pytest.raises(ValueError, match="num_components"):
+        GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 0)
+    with pytest.raises(ValueError, match="spread"):
+        GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 3, spread=1.0)
