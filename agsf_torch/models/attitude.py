@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
-from .base import ContinuousModel, check_nonnegative
+from .base import ContinuousModel, FokkerPlanckTerms, check_nonnegative
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
 
@@ -125,6 +125,28 @@ class AttitudeModel(ContinuousModel):
         z = torch.zeros_like(Gp)
         Gb = (self.sigma_u**2 * eye3).expand_as(Gp)
         return torch.cat((torch.cat((Gp, z), -1), torch.cat((z, Gb), -1)), -2)
+
+    def fokker_planck_terms(self, x: Tensor, u: Tensor) -> FokkerPlanckTerms:
+        """Closed forms (method.md §3), with ``c = σ_v²/32``, ``s = pᵀp``, ``ω = ω̃ − b``:
+
+        ``div f = (3/2) pᵀω``, ``D_pp = c(1+s)² I₃`` (``D_bb = (σ_u²/2) I₃``),
+        ``aₖ = 4c(1+s) pₖ`` on the MRP entries (0 on the bias), ``Σ∂²D = 4c(3 + 5s)``.
+        """
+        p = x[..., :3]
+        w = self._rate(x, u)
+        p_b, w_b = torch.broadcast_tensors(p, w)
+        s = (p_b * p_b).sum(-1)
+        c = self.sigma_v**2 / 32.0
+        a = 4.0 * c * (1.0 + s)[..., None] * p_b
+        if self.estimate_bias:
+            a = torch.cat((a, torch.zeros_like(a)), -1)
+        return FokkerPlanckTerms(
+            drift=self.drift(x, u),
+            drift_divergence=1.5 * (p_b * w_b).sum(-1),
+            diffusion=0.5 * self.process_noise(x),
+            diffusion_divergence=a,
+            diffusion_second_divergence=4.0 * c * (3.0 + 5.0 * s),
+        )
 
     # ------------------------------------------------------- MRP manifold
     def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:

@@ -17,11 +17,13 @@ and all mixture components in one call.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 __all__ = [
+    "FokkerPlanckTerms",
     "batched_jacobian",
     "ContinuousModel",
     "MeasurementModel",
@@ -71,6 +73,27 @@ def batched_jacobian(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
     return torch.func.vmap(column)(basis).movedim(0, -1)
 
 
+@dataclass(frozen=True)
+class FokkerPlanckTerms:
+    """The model's pieces of the Fokker–Planck operator at points ``x`` (method.md §3).
+
+    ``L_FP(p) = −Σⱼ ∂(fⱼ p)/∂xⱼ + Σⱼₖ ∂²(Dⱼₖ p)/∂xⱼ∂xₖ`` needs, at each point:
+
+    Attributes:
+        drift: ``f(x, u)`` ``[..., n]``.
+        drift_divergence: ``div f = Σⱼ ∂fⱼ/∂xⱼ`` ``[...]``.
+        diffusion: ``D(x) = ½ g Q gᵀ`` ``[..., n, n]``.
+        diffusion_divergence: ``aₖ = Σⱼ ∂Dⱼₖ/∂xⱼ`` ``[..., n]``.
+        diffusion_second_divergence: ``Σⱼₖ ∂²Dⱼₖ/∂xⱼ∂xₖ`` ``[...]``.
+    """
+
+    drift: Tensor
+    drift_divergence: Tensor
+    diffusion: Tensor
+    diffusion_divergence: Tensor
+    diffusion_second_divergence: Tensor
+
+
 class ContinuousModel(nn.Module):
     """Continuous-time stochastic model ``dx = f(x, u) dt + g(x) dβ``, ``E[dβdβᵀ] = Q dt``.
 
@@ -106,6 +129,30 @@ class ContinuousModel(nn.Module):
     def diffusion(self, x: Tensor) -> Tensor:
         """Diffusion matrix of the Fokker–Planck operator, ``D(x) = ½ g Q gᵀ``, ``[..., n, n]``."""
         return 0.5 * self.process_noise(x)
+
+    def fokker_planck_terms(self, x: Tensor, u: Tensor | None) -> FokkerPlanckTerms:
+        """Drift, diffusion and their derivatives at ``x`` (default: ``torch.func``).
+
+        ``div f`` is the trace of :meth:`drift_jacobian`; ``aₖ = Σⱼ ∂Dⱼₖ/∂xⱼ`` and
+        ``Σⱼₖ ∂²Dⱼₖ/∂xⱼ∂xₖ = div a`` by nested forward-mode differentiation of
+        :meth:`diffusion`.  Subclasses with closed forms override this.
+        """
+        n = x.shape[-1]
+
+        def divergence_of_diffusion(z: Tensor) -> Tensor:
+            J = batched_jacobian(lambda v: self.diffusion(v).flatten(-2), z)  # [..., n*n, n]
+            J = J.unflatten(-2, (n, n))  # [..., j, k, l] = ∂D_jk/∂x_l
+            return J.diagonal(dim1=-3, dim2=-1).sum(-1)  # Σ_j ∂D_jk/∂x_j
+
+        a = divergence_of_diffusion(x)
+        c = batched_jacobian(divergence_of_diffusion, x).diagonal(dim1=-2, dim2=-1).sum(-1)
+        return FokkerPlanckTerms(
+            drift=self.drift(x, u),
+            drift_divergence=self.drift_jacobian(x, u).diagonal(dim1=-2, dim2=-1).sum(-1),
+            diffusion=self.diffusion(x),
+            diffusion_divergence=a,
+            diffusion_second_divergence=c,
+        )
 
     # --------------------------------------------------------- state manifold
     def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:

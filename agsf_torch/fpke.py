@@ -1,0 +1,191 @@
+"""Fokker–Planck residual of a Gaussian mixture and the weight-update matrix ``L`` (method.md §3).
+
+For a mixture whose components follow the moment equations ``μ̇ᵢ, Ṗᵢ``, the
+FPKE residual ``e(t, x) = ∂p̂/∂t − L_FP(p̂)`` is linear in the weights,
+``e = Σᵢ wᵢ Lᵢ(x)``, with ``Lᵢ = pᵢ ℓᵢ`` and, for ``dᵢ = x − μᵢ``,
+``zᵢ = Pᵢ⁻¹ dᵢ`` (a Cholesky solve):
+
+.. math::
+
+    ℓ_i(x) = z_i^T \\dot μ_i + ½\\left(z_i^T \\dot P_i z_i - \\operatorname{tr}(P_i^{-1}\\dot P_i)\\right)
+             + \\operatorname{div} f - f^T z_i
+             - \\left(Σ_{jk} ∂^2_{jk} D_{jk} - 2 a^T z_i + z_i^T D z_i - \\operatorname{tr}(D P_i^{-1})\\right)
+
+with ``aₖ = Σⱼ ∂Dⱼₖ/∂xⱼ``.  The matrix ``L_ij = ∫ Lᵢ Lⱼ dx`` over ``Rⁿ`` uses
+``pᵢ pⱼ = z_ij N(x; m_ij, S_ij)`` (``z_ij = N(μᵢ; μⱼ, Pᵢ + Pⱼ)``):
+``L_ij = z_ij E_{N(m_ij, S_ij)}[ℓᵢ ℓⱼ]``, evaluated by quadrature.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .models.base import ContinuousModel, FokkerPlanckTerms
+
+__all__ = ["ComponentRates", "residual_factor", "fpke_residual", "fpke_matrix", "FPKEMatrix"]
+
+
+@dataclass(frozen=True)
+class ComponentRates:
+    """A mixture's components and their moment rates at one time.
+
+    Attributes:
+        means: ``μᵢ`` ``[..., N, n]``; chol: Cholesky factors of ``Pᵢ`` ``[..., N, n, n]``;
+        mean_rates: ``μ̇ᵢ`` ``[..., N, n]``; cov_rates: ``Ṗᵢ`` ``[..., N, n, n]``.
+    """
+
+    means: Tensor
+    chol: Tensor
+    mean_rates: Tensor
+    cov_rates: Tensor
+
+
+def residual_factor(terms: FokkerPlanckTerms, x: Tensor, rates: ComponentRates) -> Tensor:
+    """``ℓᵢ(x)`` of the module equation for points and components that broadcast.
+
+    Args:
+        terms: model terms at ``x`` (leading dims those of ``x``).
+        x: points ``[..., n]``.
+        rates: component data whose leading dims broadcast against ``x``'s
+            (for example ``[..., N, 1, n]`` against points ``[..., N, K, n]``).
+
+    Returns:
+        ``ℓ`` with the broadcast leading dims.
+    """
+    L = rates.chol
+    D = terms.diffusion
+    d = x - rates.means
+    n = d.shape[-1]
+    shape = torch.broadcast_shapes(d.shape[:-1], L.shape[:-2], D.shape[:-2])
+    Lb = L.expand(*shape, n, n)
+    # z = P⁻¹ d and tr(D P⁻¹) through the Cholesky factor, for every point
+    z = torch.cholesky_solve(d.expand(*shape, n).unsqueeze(-1), Lb).squeeze(-1)
+    tr_D_Pinv = torch.cholesky_solve(D.expand(*shape, n, n), Lb).diagonal(dim1=-2, dim2=-1).sum(-1)
+    tr_Pinv_Pdot = torch.cholesky_solve(rates.cov_rates, L).diagonal(dim1=-2, dim2=-1).sum(-1)
+
+    def quad(M: Tensor) -> Tensor:
+        return (z * (M @ z.unsqueeze(-1)).squeeze(-1)).sum(-1)
+
+    dp_dt = (z * rates.mean_rates).sum(-1) + 0.5 * (quad(rates.cov_rates) - tr_Pinv_Pdot)
+    transport = terms.drift_divergence - (terms.drift * z).sum(-1)
+    diffusion = terms.diffusion_second_divergence - 2.0 * (terms.diffusion_divergence * z).sum(-1) + quad(D) - tr_D_Pinv
+    return dp_dt + transport - diffusion
+
+
+def fpke_residual(model: ContinuousModel, x: Tensor, u: Tensor | None, log_weights: Tensor, rates: ComponentRates) -> Tensor:
+    """Pointwise FPKE residual of the mixture, ``e(x) = Σᵢ wᵢ pᵢ(x) ℓᵢ(x)``.
+
+    Args:
+        x: ``[..., K, n]``; u: input ``[..., m]`` or ``None``;
+        log_weights: ``[..., N]``; rates: components ``[..., N, ...]``.
+
+    Returns:
+        ``[..., K]``.
+    """
+    xi = x.unsqueeze(-3)  # [..., 1, K, n]
+    terms = model.fokker_planck_terms(xi, None if u is None else u[..., None, None, :])
+    rates_i = ComponentRates(
+        rates.means.unsqueeze(-2), rates.chol.unsqueeze(-3), rates.mean_rates.unsqueeze(-2), rates.cov_rates.unsqueeze(-3)
+    )
+    ell = residual_factor(terms, xi, rates_i)  # [..., N, K]
+    logp = _log_normal(xi, rates_i.means, rates_i.chol)
+    return (torch.exp(log_weights.unsqueeze(-1) + logp) * ell).sum(-2)
+
+
+def _log_normal(x: Tensor, mean: Tensor, chol: Tensor) -> Tensor:
+    """``log N(x; μ, LLᵀ)`` with broadcasting: x ``[..., n]``, mean ``[..., n]``, chol ``[..., n, n]``."""
+    d = x - mean
+    shape = torch.broadcast_shapes(d.shape[:-1], chol.shape[:-2])
+    Lb = chol.expand(*shape, *chol.shape[-2:])
+    z = torch.linalg.solve_triangular(Lb, d.expand(*shape, d.shape[-1]).unsqueeze(-1), upper=False).squeeze(-1)
+    logdet = torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)
+    return -0.5 * (z * z).sum(-1) - logdet - 0.5 * x.shape[-1] * math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class FPKEMatrix:
+    """``L = exp(log_scale) · L̃``, with ``L̃ = z̃_ij E[ℓᵢℓⱼ]`` kept in a safe range.
+
+    Attributes:
+        scaled: ``L̃`` ``[..., N, N]`` symmetric PSD.
+        log_scale: ``[...]``, the largest ``log z_ij`` of each mixture.
+    """
+
+    scaled: Tensor
+    log_scale: Tensor
+
+    def full(self) -> Tensor:
+        """The unscaled ``L`` (may overflow to inf for extremely narrow components)."""
+        return self.scaled * torch.exp(self.log_scale)[..., None, None]
+
+    def error(self, weights: Tensor) -> Tensor:
+        """Unscaled FPKE error ``wᵀ L w`` ``[...]``."""
+        q = (weights.unsqueeze(-2) @ self.scaled @ weights.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+        return q * torch.exp(self.log_scale)
+
+
+def fpke_matrix(
+    model: ContinuousModel,
+    u: Tensor | None,
+    rates: ComponentRates,
+    nodes: Tensor,
+    node_weights: Tensor,
+    chunk_size: int = 4096,
+) -> FPKEMatrix:
+    """``L_ij = ∫ Lᵢ Lⱼ dx`` for every pair of components (method.md §3).
+
+    ``S_ij`` and ``m_ij`` come from ``Σ = Pᵢ + Pⱼ`` without inverting a
+    covariance: ``K = Pᵢ Σ⁻¹``, ``m_ij = μᵢ + K(μⱼ − μᵢ)``, ``S_ij = Pᵢ − K Pᵢ``.
+    Quadrature points ``x = m_ij + chol(S_ij) ξ`` are processed in chunks of
+    ``chunk_size`` to bound memory.
+
+    Args:
+        model: the continuous-time model.
+        u: input ``[..., m]`` (broadcast against the trajectory dims) or ``None``.
+        rates: components ``[..., N, ...]`` with their moment rates.
+        nodes, node_weights: a rule for ``N(0, I_n)`` (:mod:`agsf_torch.quadrature`).
+
+    Returns:
+        :class:`FPKEMatrix` (``[..., N, N]``).
+    """
+    mu, L = rates.means, rates.chol
+    P = L @ L.transpose(-1, -2)
+    Pi, Pj = P.unsqueeze(-3), P.unsqueeze(-4)  # [..., N, 1, n, n], [..., 1, N, n, n]
+    mui, muj = mu.unsqueeze(-2), mu.unsqueeze(-3)  # [..., N, 1, n], [..., 1, N, n]
+    Sigma = Pi + Pj
+    Ls = torch.linalg.cholesky(Sigma)  # [..., N, N, n, n]
+    Pi_b = Pi.expand_as(Sigma)
+    Kt = torch.cholesky_solve(Pi_b, Ls)  # Σ⁻¹ Pᵢ = Kᵀ
+    dmu = (muj - mui).expand(*Sigma.shape[:-1])
+    m = mui + (Kt.transpose(-1, -2) @ dmu.unsqueeze(-1)).squeeze(-1)
+    S = Pi_b - Kt.transpose(-1, -2) @ Pi_b
+    S = 0.5 * (S + S.transpose(-1, -2))
+    LS = torch.linalg.cholesky(S)
+    log_z = _log_normal(mui.expand_as(m), muj.expand_as(m), Ls)  # [..., N, N]
+    log_scale = log_z.flatten(-2).amax(-1)
+
+    # component data broadcast for ℓᵢ (i along dim -3) and ℓⱼ (j along dim -2) at points [..., N, N, K, n]
+    rates_i = ComponentRates(
+        mu[..., :, None, None, :], L[..., :, None, None, :, :], rates.mean_rates[..., :, None, None, :], rates.cov_rates[..., :, None, None, :, :]
+    )
+    rates_j = ComponentRates(
+        mu[..., None, :, None, :], L[..., None, :, None, :, :], rates.mean_rates[..., None, :, None, :], rates.cov_rates[..., None, :, None, :, :]
+    )
+    if u is not None:
+        u = u[..., None, None, None, :]
+    acc = torch.zeros(m.shape[:-1], dtype=mu.dtype, device=mu.device)
+    for start in range(0, nodes.shape[0], chunk_size):
+        xi = nodes[start : start + chunk_size].to(mu)
+        wq = node_weights[start : start + chunk_size].to(mu)
+        x = m.unsqueeze(-2) + (LS.unsqueeze(-3) @ xi.unsqueeze(-1)).squeeze(-1)  # [..., N, N, K, n]
+        terms = model.fokker_planck_terms(x, u)
+        ell_i = residual_factor(terms, x, rates_i)
+        ell_j = residual_factor(terms, x, rates_j)
+        acc = acc + (ell_i * ell_j * wq).sum(-1)
+    scaled = torch.exp(log_z - log_scale[..., None, None]) * acc
+    scaled = 0.5 * (scaled + scaled.transpose(-1, -2))
+    return FPKEMatrix(scaled, log_scale)

@@ -1,0 +1,164 @@
+"""FPKE residual: zero for exact linear-Gaussian propagation, equal to a finite-difference
+evaluation of ∂p/∂t − L_FP(p) for nonlinear models; closed forms equal torch.func."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from agsf_torch.fpke import ComponentRates, fpke_matrix, fpke_residual
+from agsf_torch.models import AttitudeModel, ContinuousModel
+from agsf_torch.propagation import moment_derivatives
+from agsf_torch.quadrature import gauss_hermite
+from tests import linear_system as ls
+from tests.models.test_base import Pendulum
+
+F64 = torch.float64
+
+
+class GenericAttitude(ContinuousModel):
+    """The attitude model seen only through drift / noise_gain / noise_psd (all derivatives by torch.func)."""
+
+    def __init__(self, inner: AttitudeModel):
+        super().__init__()
+        self.inner = inner
+        self.state_dim = inner.state_dim
+
+    def drift(self, x, u):
+        return self.inner.drift(x, u)
+
+    def noise_gain(self, x):
+        return self.inner.noise_gain(x)
+
+    def noise_psd(self):
+        return self.inner.noise_psd()
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+def test_attitude_closed_forms_match_torch_func(gen, estimate_bias):
+    model = AttitudeModel(estimate_bias=estimate_bias, sigma_v=3e-4, sigma_u=2e-5)
+    x = 0.6 * torch.randn(40, 6, generator=gen, dtype=F64)[:, : model.state_dim]
+    u = torch.randn(40, 3, generator=gen, dtype=F64)
+    a, g = model.fokker_planck_terms(x, u), GenericAttitude(model).fokker_planck_terms(x, u)
+    for name in a.__dataclass_fields__:
+        A, G = getattr(a, name), getattr(g, name)
+        scale = max(float(G.abs().max()), 1e-300)
+        torch.testing.assert_close(A, G, rtol=0, atol=1e-10 * scale, msg=name)
+
+
+def _rates(model, mean, cov, u):
+    r = moment_derivatives(model, mean, cov, u)
+    return ComponentRates(mean, torch.linalg.cholesky(cov), r.mean_rate, r.cov_rate)
+
+
+def test_linear_sde_exact_moments_have_zero_residual(gen):
+    model = ls.model()
+    mean = torch.randn(4, 2, 3, generator=gen, dtype=F64)
+    A = torch.randn(4, 2, 3, 3, generator=gen, dtype=F64)
+    cov = A @ A.transpose(-1, -2) + 0.5 * torch.eye(3, dtype=F64)
+    u = torch.randn(4, 1, generator=gen, dtype=F64)
+    rates = _rates(model, mean, cov, u.unsqueeze(-2))
+    x = mean[:, :1] + 2.0 * torch.randn(4, 50, 3, generator=gen, dtype=F64)
+    e = fpke_residual(model, x, u, torch.log(torch.tensor([[0.3, 0.7]] * 4, dtype=F64)), rates)
+    assert float(e.abs().max()) < 1e-13  # pdf values here are O(1e-2): the residual is rounding
+
+
+def _fd_residual(model, x, u, mean, cov):
+    """∂p/∂t − L_FP(p) for p = N(μ, P) by central finite differences (time via μ̇, Ṗ; space via x),
+    Richardson-extrapolated in the spatial step: error O((h/σ)⁴) ≈ 1e-8 with h = 0.01σ, rounding
+    ε(σ/h)² ≈ 1e-12."""
+    h = 1e-2 * float(cov.diagonal().sqrt().min())
+    return (4.0 * _fd_residual_at(model, x, u, mean, cov, h / 2) - _fd_residual_at(model, x, u, mean, cov, h)) / 3.0
+
+
+def _fd_residual_at(model, x, u, mean, cov, h):
+    r = moment_derivatives(model, mean, cov, u)
+    n = x.shape[-1]
+
+    def pdf(z, m=mean, P=cov):
+        return torch.exp(torch.distributions.MultivariateNormal(m, P).log_prob(z))
+
+    eps = 1e-6
+    dp_dt = (pdf(x, mean + eps * r.mean_rate, cov + eps * r.cov_rate) - pdf(x, mean - eps * r.mean_rate, cov - eps * r.cov_rate)) / (2 * eps)
+    eye = torch.eye(n, dtype=F64)
+
+    def fp(z):
+        return model.drift(z, u) * pdf(z)[..., None]
+
+    def Dp(z):
+        return model.diffusion(z) * pdf(z)[..., None, None]
+
+    div = sum((fp(x + h * eye[j])[..., j] - fp(x - h * eye[j])[..., j]) / (2 * h) for j in range(n))
+    second = 0.0
+    for j in range(n):
+        for k in range(n):
+            second = second + (
+                Dp(x + h * eye[j] + h * eye[k])[..., j, k]
+                - Dp(x + h * eye[j] - h * eye[k])[..., j, k]
+                - Dp(x - h * eye[j] + h * eye[k])[..., j, k]
+                + Dp(x - h * eye[j] - h * eye[k])[..., j, k]
+            ) / (4 * h * h)
+    return dp_dt - (-div + second)
+
+
+@pytest.mark.parametrize("which", ["pendulum", "attitude3", "attitude6"])
+def test_residual_matches_finite_differences(gen, which):
+    if which == "pendulum":
+        model, n = Pendulum(), 2
+        u = torch.tensor([0.3], dtype=F64)
+        mean = torch.tensor([0.4, -0.2], dtype=F64)
+        cov = torch.tensor([[0.2, 0.05], [0.05, 0.1]], dtype=F64)
+    else:
+        model = AttitudeModel(estimate_bias=which == "attitude6", sigma_v=0.05, sigma_u=0.02)
+        n = model.state_dim
+        u = torch.tensor([0.3, -0.2, 0.5], dtype=F64)
+        mean = torch.tensor([0.1, -0.2, 0.15, 0.01, 0.02, -0.01], dtype=F64)[:n]
+        cov = torch.diag(torch.tensor([0.01, 0.02, 0.015, 0.004, 0.003, 0.005], dtype=F64)[:n])
+    x = mean + 1.5 * cov.diagonal().sqrt() * torch.randn(20, n, generator=gen, dtype=F64)
+    e = fpke_residual(model, x, u, torch.zeros(1, dtype=F64), _rates(model, mean[None], cov[None], u))
+    ref = _fd_residual(model, x, u, mean, cov)
+    torch.testing.assert_close(e, ref, rtol=1e-6, atol=1e-7 * float(ref.abs().max()))
+
+
+def test_residual_matches_autograd_operator(gen):
+    """The same identity with exact derivatives (torch.func) instead of differences: to rounding."""
+    model = Pendulum()
+    u = torch.tensor([0.3], dtype=F64)
+    mean = torch.tensor([0.4, -0.2], dtype=F64)
+    cov = torch.tensor([[0.2, 0.05], [0.05, 0.1]], dtype=F64)
+    x = mean + 0.5 * torch.randn(10, 2, generator=gen, dtype=F64)
+    e = fpke_residual(model, x, u, torch.zeros(1, dtype=F64), _rates(model, mean[None], cov[None], u))
+    r = moment_derivatives(model, mean, cov, u)
+
+    def pdf(z, m=mean, P=cov):
+        return torch.exp(torch.distributions.MultivariateNormal(m, P).log_prob(z))
+
+    def operator(z):
+        dp_dt = torch.func.jvp(lambda m, P: pdf(z, m, P), (mean, cov), (r.mean_rate, r.cov_rate))[1]
+        div = torch.func.jacfwd(lambda v: model.drift(v, u) * pdf(v))(z).diagonal().sum()
+        Hs = torch.func.jacfwd(torch.func.jacfwd(lambda v: model.diffusion(v) * pdf(v)))(z)
+        return dp_dt + div - torch.einsum("jkjk->", Hs)
+
+    ref = torch.stack([operator(z) for z in x])
+    torch.testing.assert_close(e, ref, rtol=1e-12, atol=1e-14)
+
+
+def test_fpke_matrix_equals_brute_force_integral(gen):
+    """L_ij by the product-Gaussian identity + exact Gauss–Hermite equals a dense grid integral."""
+    model = AttitudeModel(sigma_v=0.05)
+    N = 3
+    mean = 0.05 * torch.randn(N, 3, generator=gen, dtype=F64)
+    cov = torch.diag_embed(0.002 + 0.002 * torch.rand(N, 3, generator=gen, dtype=F64))
+    u = torch.tensor([0.3, -0.2, 0.5], dtype=F64)
+    rates = _rates(model, mean, cov, u)
+    nodes, w = gauss_hermite(7, 3)
+    Lm = fpke_matrix(model, u, rates, nodes, w).full()
+    # brute force: ∫ Lᵢ Lⱼ over a fine grid covering ±7σ of every component
+    g = torch.linspace(-0.4, 0.4, 121, dtype=F64)
+    X = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    dv = float(g[1] - g[0]) ** 3
+    Ls = torch.stack(
+        [fpke_residual(model, X, u, torch.zeros(1, dtype=F64), ComponentRates(*(t[i : i + 1] for t in (rates.means, rates.chol, rates.mean_rates, rates.cov_rates)))) for i in range(N)]
+    )
+    ref = (Ls[:, None, :] * Ls[None, :, :]).sum(-1) * dv
+    torch.testing.assert_close(Lm, ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()))
