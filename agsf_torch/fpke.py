@@ -35,13 +35,35 @@ class ComponentRates:
 
     Attributes:
         means: ``μᵢ`` ``[..., N, n]``; chol: Cholesky factors of ``Pᵢ`` ``[..., N, n, n]``;
-        mean_rates: ``μ̇ᵢ`` ``[..., N, n]``; cov_rates: ``Ṗᵢ`` ``[..., N, n, n]``.
+        mean_rates: ``μ̇ᵢ`` ``[..., N, n]``; cov_rates: ``Ṗᵢ`` ``[..., N, n, n]``;
+        precision: ``Πᵢ = Pᵢ⁻¹`` formed once per component from its Cholesky factor
+            (``cholesky_inverse``) unless given; it appears in ``ℓᵢ`` itself.
     """
 
     means: Tensor
     chol: Tensor
     mean_rates: Tensor
     cov_rates: Tensor
+    precision: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.precision is None:
+            Pi = torch.cholesky_inverse(self.chol)
+            object.__setattr__(self, "precision", 0.5 * (Pi + Pi.transpose(-1, -2)))
+
+    def select(self, index: Tensor, dim_offset: int = 0) -> "ComponentRates":
+        """Components ``index`` along the component dim, with ``dim_offset`` singleton
+        dims inserted after it (to broadcast against points)."""
+
+        def pick(t: Tensor, event: int) -> Tensor:
+            out = t.index_select(t.dim() - event - 1, index)
+            for _ in range(dim_offset):
+                out = out.unsqueeze(out.dim() - event)
+            return out
+
+        return ComponentRates(
+            pick(self.means, 1), pick(self.chol, 2), pick(self.mean_rates, 1), pick(self.cov_rates, 2), pick(self.precision, 2)
+        )
 
 
 def residual_factor(terms: FokkerPlanckTerms, x: Tensor, rates: ComponentRates) -> Tensor:
@@ -56,16 +78,11 @@ def residual_factor(terms: FokkerPlanckTerms, x: Tensor, rates: ComponentRates) 
     Returns:
         ``ℓ`` with the broadcast leading dims.
     """
-    L = rates.chol
+    Pi = rates.precision
     D = terms.diffusion
-    d = x - rates.means
-    n = d.shape[-1]
-    shape = torch.broadcast_shapes(d.shape[:-1], L.shape[:-2], D.shape[:-2])
-    Lb = L.expand(*shape, n, n)
-    # z = P⁻¹ d and tr(D P⁻¹) through the Cholesky factor, for every point
-    z = torch.cholesky_solve(d.expand(*shape, n).unsqueeze(-1), Lb).squeeze(-1)
-    tr_D_Pinv = torch.cholesky_solve(D.expand(*shape, n, n), Lb).diagonal(dim1=-2, dim2=-1).sum(-1)
-    tr_Pinv_Pdot = torch.cholesky_solve(rates.cov_rates, L).diagonal(dim1=-2, dim2=-1).sum(-1)
+    z = (Pi @ (x - rates.means).unsqueeze(-1)).squeeze(-1)
+    tr_D_Pinv = (D * Pi).sum((-2, -1))
+    tr_Pinv_Pdot = (Pi * rates.cov_rates).sum((-2, -1))
 
     def quad(M: Tensor) -> Tensor:
         return (z * (M @ z.unsqueeze(-1)).squeeze(-1)).sum(-1)
@@ -88,9 +105,8 @@ def fpke_residual(model: ContinuousModel, x: Tensor, u: Tensor | None, log_weigh
     """
     xi = x.unsqueeze(-3)  # [..., 1, K, n]
     terms = model.fokker_planck_terms(xi, None if u is None else u[..., None, None, :])
-    rates_i = ComponentRates(
-        rates.means.unsqueeze(-2), rates.chol.unsqueeze(-3), rates.mean_rates.unsqueeze(-2), rates.cov_rates.unsqueeze(-3)
-    )
+    N = rates.means.shape[-2]
+    rates_i = rates.select(torch.arange(N, device=x.device), dim_offset=1)
     ell = residual_factor(terms, xi, rates_i)  # [..., N, K]
     logp = _log_normal(xi, rates_i.means, rates_i.chol)
     return (torch.exp(log_weights.unsqueeze(-1) + logp) * ell).sum(-2)
@@ -134,14 +150,17 @@ def fpke_matrix(
     rates: ComponentRates,
     nodes: Tensor,
     node_weights: Tensor,
-    chunk_size: int = 4096,
+    chunk_size: int | None = None,
+    max_chunk_elements: int = 2**24,
 ) -> FPKEMatrix:
     """``L_ij = ∫ Lᵢ Lⱼ dx`` for every pair of components (method.md §3).
 
-    ``S_ij`` and ``m_ij`` come from ``Σ = Pᵢ + Pⱼ`` without inverting a
-    covariance: ``K = Pᵢ Σ⁻¹``, ``m_ij = μᵢ + K(μⱼ − μᵢ)``, ``S_ij = Pᵢ − K Pᵢ``.
-    Quadrature points ``x = m_ij + chol(S_ij) ξ`` are processed in chunks of
-    ``chunk_size`` to bound memory.
+    Only the ``N(N+1)/2`` pairs ``i ≤ j`` are evaluated.  ``S_ij`` and ``m_ij``
+    come from ``Σ = Pᵢ + Pⱼ`` by Cholesky solves: ``Kᵀ = Σ⁻¹Pᵢ``,
+    ``m_ij = μᵢ + K(μⱼ − μᵢ)``, ``S_ij = Pᵢ − K Pᵢ``.  Quadrature points
+    ``x = m_ij + chol(S_ij) ξ`` are processed in chunks (``chunk_size`` nodes, or
+    as many as keep a ``[..., pairs, chunk, n, n]`` tensor under
+    ``max_chunk_elements``) to bound memory.
 
     Args:
         model: the continuous-time model.
@@ -153,39 +172,34 @@ def fpke_matrix(
         :class:`FPKEMatrix` (``[..., N, N]``).
     """
     mu, L = rates.means, rates.chol
-    P = L @ L.transpose(-1, -2)
-    Pi, Pj = P.unsqueeze(-3), P.unsqueeze(-4)  # [..., N, 1, n, n], [..., 1, N, n, n]
-    mui, muj = mu.unsqueeze(-2), mu.unsqueeze(-3)  # [..., N, 1, n], [..., 1, N, n]
-    Sigma = Pi + Pj
-    Ls = torch.linalg.cholesky(Sigma)  # [..., N, N, n, n]
-    Pi_b = Pi.expand_as(Sigma)
-    Kt = torch.cholesky_solve(Pi_b, Ls)  # Σ⁻¹ Pᵢ = Kᵀ
-    dmu = (muj - mui).expand(*Sigma.shape[:-1])
-    m = mui + (Kt.transpose(-1, -2) @ dmu.unsqueeze(-1)).squeeze(-1)
-    S = Pi_b - Kt.transpose(-1, -2) @ Pi_b
-    S = 0.5 * (S + S.transpose(-1, -2))
-    LS = torch.linalg.cholesky(S)
-    log_z = _log_normal(mui.expand_as(m), muj.expand_as(m), Ls)  # [..., N, N]
-    log_scale = log_z.flatten(-2).amax(-1)
+    N, n = mu.shape[-2], mu.shape[-1]
+    iu = torch.triu_indices(N, N, device=mu.device)
+    ri, rj = rates.select(iu[0]), rates.select(iu[1])  # [..., Pc, ...]
+    Pi = ri.chol @ ri.chol.transpose(-1, -2)
+    Pj = rj.chol @ rj.chol.transpose(-1, -2)
+    Ls = torch.linalg.cholesky(Pi + Pj)
+    Kt = torch.cholesky_solve(Pi, Ls)  # Σ⁻¹ Pᵢ = Kᵀ
+    m = ri.means + (Kt.transpose(-1, -2) @ (rj.means - ri.means).unsqueeze(-1)).squeeze(-1)
+    S = Pi - Kt.transpose(-1, -2) @ Pi
+    LS = torch.linalg.cholesky(0.5 * (S + S.transpose(-1, -2)))
+    log_z = _log_normal(ri.means, rj.means, Ls)  # [..., Pc]
+    log_scale = log_z.amax(-1)
 
-    # component data broadcast for ℓᵢ (i along dim -3) and ℓⱼ (j along dim -2) at points [..., N, N, K, n]
-    rates_i = ComponentRates(
-        mu[..., :, None, None, :], L[..., :, None, None, :, :], rates.mean_rates[..., :, None, None, :], rates.cov_rates[..., :, None, None, :, :]
-    )
-    rates_j = ComponentRates(
-        mu[..., None, :, None, :], L[..., None, :, None, :, :], rates.mean_rates[..., None, :, None, :], rates.cov_rates[..., None, :, None, :, :]
-    )
+    ri, rj = ri.select(torch.arange(iu.shape[1], device=mu.device), 1), rj.select(torch.arange(iu.shape[1], device=mu.device), 1)
     if u is not None:
-        u = u[..., None, None, None, :]
+        u = u[..., None, None, :]
+    if chunk_size is None:
+        per_node = max(1, int(m[..., 0].numel()) * n * n)
+        chunk_size = max(1, max_chunk_elements // per_node)
     acc = torch.zeros(m.shape[:-1], dtype=mu.dtype, device=mu.device)
     for start in range(0, nodes.shape[0], chunk_size):
         xi = nodes[start : start + chunk_size].to(mu)
         wq = node_weights[start : start + chunk_size].to(mu)
-        x = m.unsqueeze(-2) + (LS.unsqueeze(-3) @ xi.unsqueeze(-1)).squeeze(-1)  # [..., N, N, K, n]
+        x = m.unsqueeze(-2) + (LS.unsqueeze(-3) @ xi.unsqueeze(-1)).squeeze(-1)  # [..., Pc, K, n]
         terms = model.fokker_planck_terms(x, u)
-        ell_i = residual_factor(terms, x, rates_i)
-        ell_j = residual_factor(terms, x, rates_j)
-        acc = acc + (ell_i * ell_j * wq).sum(-1)
-    scaled = torch.exp(log_z - log_scale[..., None, None]) * acc
-    scaled = 0.5 * (scaled + scaled.transpose(-1, -2))
+        acc = acc + (residual_factor(terms, x, ri) * residual_factor(terms, x, rj) * wq).sum(-1)
+    vals = torch.exp(log_z - log_scale[..., None]) * acc
+    scaled = torch.zeros(*vals.shape[:-1], N, N, dtype=mu.dtype, device=mu.device)
+    scaled[..., iu[0], iu[1]] = vals
+    scaled[..., iu[1], iu[0]] = vals
     return FPKEMatrix(scaled, log_scale)

@@ -154,7 +154,7 @@ class GaussianSumFilter:
         res = kalman_update(mixture.log_weights, mixture.means, mixture.covs, y, measurement)
         means, covs = self.model.canonicalize(res.means, res.covs)
         covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
-        posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs)
+        posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs, ref_log_weights=res.log_weights)
         self.diagnostics = {
             "log_likelihood": res.log_likelihood,
             "nis": res.nis,

@@ -148,6 +148,19 @@ class AttitudeModel(ContinuousModel):
             diffusion_second_divergence=4.0 * c * (3.0 + 5.0 * s),
         )
 
+    def fpke_quadrature_points(self) -> tuple[int, ...]:
+        """Exact rule for ``ℓᵢℓⱼ``: 7 points per MRP axis, 3 per bias axis.
+
+        ``ℓ`` is a polynomial of total degree 6 (the term ``zᵀDz`` with
+        ``D ∝ (1+s)²``), so ``ℓᵢℓⱼ`` has degree 12 (7 Gauss–Hermite points). In
+        the 6-state model ``ℓ`` is at most quadratic in the bias for fixed ``p``;
+        with the quadrature points ``x = m + Lξ`` (``L`` lower-triangular, MRP
+        first) the bias coordinates are linear in ``ξ_b`` and the MRP
+        coordinates do not depend on ``ξ_b``, so ``ℓᵢℓⱼ`` has degree ≤ 4 in
+        ``ξ_b`` (3 points).  The 6-D rule has 7³·3³ = 9261 nodes and is exact.
+        """
+        return (7, 7, 7, 3, 3, 3) if self.estimate_bias else (7, 7, 7)
+
     # ------------------------------------------------------- MRP manifold
     def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
         """Switch every component with ``|p| > 1`` to the shadow set.

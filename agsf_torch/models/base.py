@@ -154,6 +154,13 @@ class ContinuousModel(nn.Module):
             diffusion_second_divergence=c,
         )
 
+    def fpke_quadrature_points(self) -> tuple[int, ...] | None:
+        """Gauss–Hermite points per axis that integrate ``ℓᵢℓⱼ`` exactly, if known.
+
+        ``None`` (default) lets the adaptive filter choose a generic rule.
+        """
+        return None
+
     # --------------------------------------------------------- state manifold
     def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
         """Re-express Gaussian components in a canonical chart (identity by default).

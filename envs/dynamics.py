@@ -1,0 +1,117 @@
+"""Truth attitude dynamics: quaternion propagation exact for a rate held over a step.
+
+With the body rate ``ω`` (rad/s) held constant over ``(t_k, t_k + Δt]`` the attitude
+matrix obeys ``Ċ = −[ω×] C``, so ``C_{k+1} = exp(−[ω×]Δt) C_k``, which in scalar-last
+quaternions (``C(q_a ⊗ q_b) = C(q_a) C(q_b)``) is
+
+    q_{k+1} = q(ω Δt) ⊗ q_k,    q(φ) = [sin(|φ|/2) φ/|φ|, cos(|φ|/2)]
+
+(:func:`agsf_torch.rotations.rotvec_to_quat`); the result is renormalised each step.
+This is the exact solution of the MRP kinematics ``ṗ = ¼ B(p) ω`` over the step.
+
+Rate profile (**[choice]**): a constant 3-vector, or a callable ``rate(t) → ω`` with
+``t [B]`` (s) and ``ω [B, 3]`` (rad/s), written in torch.  A callable profile is held
+at its value at the step's midpoint, ``ω_{k+1} = rate(t_k + Δt/2)`` (zero-order hold,
+second-order accurate in Δt for a smooth profile); the gyro then measures exactly
+this held rate (:mod:`envs.gyro`), so the truth and the measurement model agree.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence, Union
+
+import torch
+from torch import Tensor
+
+from agsf_torch.rotations import quat_multiply, rotvec_to_quat
+
+__all__ = ["DEFAULT_OMEGA0", "DEFAULT_RATE", "RateLike", "AttitudeDynamics", "propagate_quat"]
+
+DEFAULT_OMEGA0 = 2.0 * math.pi / 100.0
+"""ω₀ = 2π/100 rad/s."""
+DEFAULT_RATE = (DEFAULT_OMEGA0, DEFAULT_OMEGA0, 0.0)
+"""Default truth rate ω₀[1, 1, 0] (rad/s)."""
+
+RateLike = Union[Sequence[float], Tensor, Callable[[Tensor], Tensor]]
+
+
+def propagate_quat(q: Tensor, omega: Tensor, dt: float) -> Tensor:
+    """Exact attitude step for a body rate held over ``dt``.
+
+    .. math:: q_{k+1} = q(ωΔt) ⊗ q_k / |q(ωΔt) ⊗ q_k|
+
+    Args:
+        q: ``[..., 4]`` scalar-last unit quaternions (inertial → body).
+        omega: ``[..., 3]`` body rate (rad/s).
+        dt: step (s).
+
+    Returns:
+        ``[..., 4]``.
+    """
+    q_next = quat_multiply(rotvec_to_quat((omega * dt).contiguous()), q)
+    return q_next / torch.linalg.vector_norm(q_next, dim=-1, keepdim=True)
+
+
+class AttitudeDynamics:
+    """The truth rate profile and attitude step.
+
+    Args:
+        rate: constant body rate (3 finite numbers, rad/s) or a callable
+            ``rate(t [B]) -> [B, 3]`` (torch; t in s, rate in rad/s).
+        dt: step Δt (s), finite > 0.
+
+    Raises:
+        ValueError: naming the field and value of any bad setting.
+    """
+
+    def __init__(self, rate: RateLike = DEFAULT_RATE, dt: float = 0.1) -> None:
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise ValueError(f"AttitudeDynamics: dt must be a number, got {dt!r}") from None
+        if not math.isfinite(dt) or dt <= 0.0:
+            raise ValueError(f"AttitudeDynamics: dt must be finite and > 0, got {dt}")
+        self.dt = dt
+        self.rate_fn: Callable[[Tensor], Tensor] | None
+        if callable(rate) and not isinstance(rate, Tensor):
+            self.rate_fn = rate
+            self.rate_const = None
+        else:
+            if isinstance(rate, Tensor):
+                rate = rate.detach().cpu().tolist()
+            try:
+                vec = tuple(float(v) for v in rate)  # type: ignore[union-attr]
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"AttitudeDynamics: rate must be 3 numbers (rad/s) or a callable, got {rate!r}"
+                ) from None
+            if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
+                raise ValueError(f"AttitudeDynamics: rate must be 3 finite numbers (rad/s), got {rate!r}")
+            self.rate_fn = None
+            self.rate_const = vec
+
+    def rate(self, t: Tensor) -> Tensor:
+        """Body rate at times ``t [B]`` (s) → ``[B, 3]`` (rad/s), dtype/device of ``t``.
+
+        Raises:
+            ValueError: if a callable profile returns the wrong shape or non-finite values.
+        """
+        if self.rate_fn is None:
+            w = torch.tensor(self.rate_const, dtype=t.dtype, device=t.device)
+            return w.expand(*t.shape, 3)
+        w = self.rate_fn(t)
+        if not isinstance(w, Tensor) or w.shape != (*t.shape, 3):
+            shape = tuple(w.shape) if isinstance(w, Tensor) else type(w).__name__
+            raise ValueError(f"AttitudeDynamics: rate(t) must return a tensor of shape {(*t.shape, 3)}, got {shape}")
+        if not torch.isfinite(w).all():
+            raise ValueError("AttitudeDynamics: rate(t) returned non-finite values")
+        return w.to(t.dtype)
+
+    def held_rate(self, t_start: Tensor) -> Tensor:
+        """Rate held over ``(t_k, t_k + Δt]``: ``rate(t_k + Δt/2)`` → ``[B, 3]`` (rad/s)."""
+        return self.rate(t_start + 0.5 * self.dt)
+
+    def step(self, q: Tensor, omega: Tensor) -> Tensor:
+        """:func:`propagate_quat` with this Δt: ``[B, 4], [B, 3] → [B, 4]``."""
+        return propagate_quat(q, omega, self.dt)

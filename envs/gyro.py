@@ -1,0 +1,135 @@
+"""Rate-integrating gyro with angle and rate random walk (method.md §1).
+
+Discrete model at gyro period Δt (Farrenkopf's model as used by Crassidis & Junkins):
+
+    ω̃_{k+1} = ω_{k+1} + ½ (b_{k+1} + b_k) + sqrt(σ_v²/Δt + σ_u² Δt/12) · N_v
+    b_{k+1}  = b_k + σ_u sqrt(Δt) · N_u
+
+with ``N_v, N_u ~ N(0, I₃)`` independent.  Here ``ω_{k+1}`` is the true body rate
+over ``(t_k, t_{k+1}]`` (held constant over the step; see :mod:`envs.dynamics`).
+Units: σ_v in rad/s^½ (angle random walk), σ_u in rad/s^{3/2} (rate random walk),
+Δt in s, rates and biases in rad/s.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "DEG_PER_HOUR",
+    "DEFAULT_SIGMA_V",
+    "DEFAULT_SIGMA_U",
+    "DEFAULT_INITIAL_BIAS",
+    "Gyro",
+]
+
+DEG_PER_HOUR = math.pi / 180.0 / 3600.0
+"""One degree per hour in rad/s."""
+DEFAULT_SIGMA_V = math.sqrt(10.0) * 1e-7
+"""Angle random walk σ_v (rad/s^½)."""
+DEFAULT_SIGMA_U = math.sqrt(10.0) * 1e-10
+"""Rate random walk σ_u (rad/s^{3/2})."""
+DEFAULT_INITIAL_BIAS = (0.1 * DEG_PER_HOUR,) * 3
+"""Initial bias, 0.1 deg/hr on each axis (rad/s)."""
+
+
+def _nonneg(name: str, value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"Gyro: {name} must be a number, got {value!r}") from None
+    if not math.isfinite(value) or value < 0.0:
+        raise ValueError(f"Gyro: {name} must be finite and ≥ 0, got {value}")
+    return value
+
+
+def _vector3(owner: str, name: str, value) -> tuple[float, float, float]:
+    """A finite 3-vector from a scalar (all axes) or 3 numbers."""
+    if isinstance(value, Tensor):
+        value = value.detach().cpu().tolist()
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = (value,) * 3
+    try:
+        vec = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}: {name} must be a number or 3 numbers, got {value!r}") from None
+    if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
+        raise ValueError(f"{owner}: {name} must be 3 finite numbers, got {value!r}")
+    return vec  # type: ignore[return-value]
+
+
+class Gyro:
+    """The discrete gyro model above, batched over leading dims.
+
+    Args:
+        sigma_v: angle random walk σ_v (rad/s^½), finite ≥ 0.
+        sigma_u: rate random walk σ_u (rad/s^{3/2}), finite ≥ 0.
+        dt: gyro period Δt (s), finite > 0.
+        initial_bias: ``b_0`` (rad/s), a scalar (every axis) or 3 numbers, finite.
+
+    Attributes:
+        rate_noise_std: ``sqrt(σ_v²/Δt + σ_u²Δt/12)`` (rad/s), std of each axis of
+            the measurement noise.
+        bias_step_std: ``σ_u sqrt(Δt)`` (rad/s), std of each axis of a bias step.
+
+    Raises:
+        ValueError: naming the field and value of any bad setting.
+    """
+
+    def __init__(
+        self,
+        sigma_v: float = DEFAULT_SIGMA_V,
+        sigma_u: float = DEFAULT_SIGMA_U,
+        dt: float = 0.1,
+        initial_bias: float | Sequence[float] = DEFAULT_INITIAL_BIAS,
+    ) -> None:
+        self.sigma_v = _nonneg("sigma_v", sigma_v)
+        self.sigma_u = _nonneg("sigma_u", sigma_u)
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise ValueError(f"Gyro: dt must be a number, got {dt!r}") from None
+        if not math.isfinite(dt) or dt <= 0.0:
+            raise ValueError(f"Gyro: dt must be finite and > 0, got {dt}")
+        self.dt = dt
+        self.initial_bias = _vector3("Gyro", "initial_bias", initial_bias)
+        self.rate_noise_std = math.sqrt(self.sigma_v**2 / dt + self.sigma_u**2 * dt / 12.0)
+        self.bias_step_std = self.sigma_u * math.sqrt(dt)
+
+    def initial_bias_tensor(
+        self, batch_shape: Sequence[int] = (), dtype: torch.dtype = torch.float64, device=None
+    ) -> Tensor:
+        """``b_0`` broadcast to ``[*batch_shape, 3]`` (rad/s)."""
+        b = torch.tensor(self.initial_bias, dtype=dtype, device=device)
+        return b.expand(*batch_shape, 3).clone()
+
+    def step(self, omega: Tensor, bias: Tensor, n_v: Tensor, n_u: Tensor) -> tuple[Tensor, Tensor]:
+        """One gyro period.
+
+        .. math::
+            b_{k+1} = b_k + σ_u\\sqrt{Δt}\\, n_u,\\qquad
+            ω̃_{k+1} = ω_{k+1} + ½(b_{k+1} + b_k) + \\sqrt{σ_v^2/Δt + σ_u^2Δt/12}\\; n_v
+
+        Args:
+            omega: true rate ``ω_{k+1}`` over the step ``[..., 3]`` (rad/s).
+            bias: ``b_k`` ``[..., 3]`` (rad/s).
+            n_v, n_u: standard normals ``[..., 3]``.
+
+        Returns:
+            ``(ω̃_{k+1} [..., 3], b_{k+1} [..., 3])`` (rad/s).
+        """
+        bias_next = bias + self.bias_step_std * n_u
+        measured = omega + 0.5 * (bias_next + bias) + self.rate_noise_std * n_v
+        return measured, bias_next
+
+    def read(self, omega: Tensor, bias: Tensor, n_v: Tensor) -> Tensor:
+        """A reading with the bias held: ``ω + b + sqrt(σ_v²/Δt + σ_u²Δt/12) n_v`` (rad/s).
+
+        Used for the reading that accompanies the initial observation, which closes
+        no gyro interval.  Shapes ``[..., 3]``.
+        """
+        return omega + bias + self.rate_noise_std * n_v
