@@ -78,8 +78,20 @@ def kalman_update(
     covs: Tensor,
     y: Tensor,
     measurement: MeasurementModel,
+    iterations: int = 1,
 ) -> ComponentUpdate:
     """Joseph-form EKF update of all components and Bayes' rule on the weights.
+
+    With ``iterations = 1`` this is the EKF update of method.md §2 (``H`` and
+    ``βᵢ`` at the predicted mean).  With ``iterations > 1`` it is the iterated
+    EKF (Gauss–Newton on the MAP problem of each component): the measurement is
+    relinearised at the current iterate ``xⱼ``,
+
+    .. math:: x_{j+1} = μ + K_j\left(\tilde y - h(x_j) - H_j(μ - x_j)\right),
+
+    and the covariance, the innovation and ``βᵢ`` use the last linearisation.
+    It removes the linearisation error of the first star frame after a wide
+    prior, where one EKF step leaves errors many σ outside its covariance.
 
     Args:
         log_weights: ``[..., N]`` normalised.
@@ -87,38 +99,45 @@ def kalman_update(
         covs: ``[..., N, n, n]``.
         y: measurement ``[..., d]``.
         measurement: the measurement model (``h``, ``H``, ``R``, mask).
+        iterations: linearisations (≥ 1).
 
     Returns:
         :class:`ComponentUpdate`.
     """
-    h, H = evaluate_measurement(measurement, means)
-    d = h.shape[-1]
-    if y.shape[-1] != d:
-        raise ValueError(f"y has {y.shape[-1]} entries but the measurement model predicts {d}")
     R = measurement.noise_cov().to(means)
     mask = measurement.mask()
     y = y.unsqueeze(-2)  # [..., 1, d]
-    nu = y - h
-    if mask is None:
-        valid = torch.ones(h.shape[:-1] + (d,), dtype=means.dtype, device=means.device)
-    else:
-        valid = mask.to(means.dtype).unsqueeze(-2).expand(h.shape)
     R = R.unsqueeze(-3) if R.dim() > 2 else R
-    R_eff = valid[..., :, None] * valid[..., None, :] * R + torch.diag_embed(1.0 - valid)
-    nu = valid * nu
-    H = valid[..., None] * H
-
-    PHt = covs @ H.transpose(-1, -2)  # [..., N, n, d]
-    S = H @ PHt + R_eff
-    S = 0.5 * (S + S.transpose(-1, -2))
-    L, info = torch.linalg.cholesky_ex(S)
-    if bool((info != 0).any()):
-        idx = (info != 0).nonzero()[0].tolist()
-        raise ValueError(f"innovation covariance is not positive definite at (trajectory…, component) index {tuple(idx)}")
-    K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)  # [..., N, n, d]
-    new_means = means + (K @ nu.unsqueeze(-1)).squeeze(-1)
     n = means.shape[-1]
-    IKH = torch.eye(n, dtype=means.dtype, device=means.device) - K @ H
+    eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
+    x = means
+    for _ in range(int(iterations)):
+        h, H = evaluate_measurement(measurement, x)
+        d = h.shape[-1]
+        if y.shape[-1] != d:
+            raise ValueError(f"y has {y.shape[-1]} entries but the measurement model predicts {d}")
+        if mask is None:
+            valid = torch.ones(h.shape[:-1] + (d,), dtype=means.dtype, device=means.device)
+        else:
+            valid = mask.to(means.dtype).unsqueeze(-2).expand(h.shape)
+        R_eff = valid[..., :, None] * valid[..., None, :] * R + torch.diag_embed(1.0 - valid)
+        H = valid[..., None] * H
+        nu = y - h
+        if x is not means:
+            nu = nu - (H @ (means - x).unsqueeze(-1)).squeeze(-1)
+        nu = valid * nu
+
+        PHt = covs @ H.transpose(-1, -2)  # [..., N, n, d]
+        S = H @ PHt + R_eff
+        S = 0.5 * (S + S.transpose(-1, -2))
+        L, info = torch.linalg.cholesky_ex(S)
+        if bool((info != 0).any()):
+            idx = (info != 0).nonzero()[0].tolist()
+            raise ValueError(f"innovation covariance is not positive definite at (trajectory…, component) index {tuple(idx)}")
+        K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)  # [..., N, n, d]
+        x = means + (K @ nu.unsqueeze(-1)).squeeze(-1)
+    new_means = x
+    IKH = eye_n - K @ H
     new_covs = IKH @ covs @ IKH.transpose(-1, -2) + K @ R_eff @ K.transpose(-1, -2)
     new_covs = 0.5 * (new_covs + new_covs.transpose(-1, -2))
 

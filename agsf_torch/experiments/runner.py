@@ -141,7 +141,9 @@ def run_monte_carlo(
 
     records: dict[str, dict[str, list]] = {name: {k: [] for k in FilterTrace.__dataclass_fields__} for name in filters}
     times, frames = [], []
-    dt = float(env.dt)
+    dt = float(env.config.dt)
+    if env.config.max_steps < num_steps:
+        raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
     prev_bias = truth_b
     steps = range(num_steps)
     if progress:

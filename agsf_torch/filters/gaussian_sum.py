@@ -42,6 +42,9 @@ class GaussianSumFilter:
             eigenvalues at ``min_eigenvalue`` times its largest one, and the
             repair is counted in the diagnostics.
         min_eigenvalue: relative eigenvalue floor of the repair.
+        update_iterations: linearisations per measurement update; 1 (default) is
+            the EKF update of the method, more give the iterated EKF update
+            (:func:`agsf_torch.update.kalman_update`).
     """
 
     def __init__(
@@ -51,6 +54,7 @@ class GaussianSumFilter:
         substeps: int = 1,
         repair_covariance: bool = False,
         min_eigenvalue: float = 1e-12,
+        update_iterations: int = 1,
     ) -> None:
         if not isinstance(model, ContinuousModel):
             raise TypeError(f"model must be a ContinuousModel, got {type(model).__name__}")
@@ -58,6 +62,9 @@ class GaussianSumFilter:
             raise ValueError(f"substeps must be a positive integer, got {substeps}")
         if not 0.0 < min_eigenvalue < 1.0:
             raise ValueError(f"min_eigenvalue must lie in (0, 1), got {min_eigenvalue}")
+        if int(update_iterations) != update_iterations or update_iterations < 1:
+            raise ValueError(f"update_iterations must be a positive integer, got {update_iterations}")
+        self.update_iterations = int(update_iterations)
         self.model = model
         self.substeps = int(substeps)
         self.repair_covariance = bool(repair_covariance)
@@ -151,7 +158,7 @@ class GaussianSumFilter:
             raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
         y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
         self._check_batched("y", y, mixture.batch_shape)
-        res = kalman_update(mixture.log_weights, mixture.means, mixture.covs, y, measurement)
+        res = kalman_update(mixture.log_weights, mixture.means, mixture.covs, y, measurement, self.update_iterations)
         means, covs = self.model.canonicalize(res.means, res.covs)
         covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
         posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs, ref_log_weights=res.log_weights)
@@ -166,8 +173,17 @@ class GaussianSumFilter:
         return posterior
 
     def estimate(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor]:
-        """Point estimate and covariance of the belief (the mixture's moments)."""
-        return mixture.moments()
+        """Point estimate and covariance of the belief: the mixture's moments, after the
+        components are expressed in the chart of the heaviest one (``model.align``).
+
+        Returns:
+            ``(mean [..., n], cov [..., n, n])``.
+        """
+        best = mixture.log_weights.argmax(-1)
+        idx = best[..., None, None].expand(*best.shape, 1, mixture.state_dim)
+        reference = torch.gather(mixture.means, -2, idx)
+        means, covs = self.model.align(mixture.means, mixture.covs, reference)
+        return mixture.replace(means=means, covs=covs).moments()
 
 
 def _mixture_nis(log_weights: Tensor, nu: Tensor, S: Tensor) -> Tensor:

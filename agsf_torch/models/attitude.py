@@ -162,20 +162,15 @@ class AttitudeModel(ContinuousModel):
         return (7, 7, 7, 3, 3, 3) if self.estimate_bias else (7, 7, 7)
 
     # ------------------------------------------------------- MRP manifold
-    def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
-        """Switch every component with ``|p| > 1`` to the shadow set.
+    def _switch(self, mean: Tensor, cov: Tensor, switch: Tensor) -> tuple[Tensor, Tensor]:
+        """Map the components flagged in ``switch [...]`` to the other MRP set.
 
         ``p ← −p/s`` and ``P ← T P Tᵀ`` with ``T = blockdiag(J, I)``,
         ``J = (2ppᵀ − sI₃)/s²``; bias rows and columns are unchanged.
-
-        Args:
-            mean: ``[..., n]``; cov: ``[..., n, n]``.
         """
-        p = mean[..., :3]
-        s = (p * p).sum(-1)
-        switch = s > 1.0
         if not bool(switch.any()):
             return mean, cov
+        p = mean[..., :3]
         safe_p = torch.where(switch[..., None], p, torch.ones_like(p))
         J = mrp_shadow_jacobian(safe_p)
         eye = torch.eye(self.state_dim, dtype=mean.dtype, device=mean.device)
@@ -186,6 +181,31 @@ class AttitudeModel(ContinuousModel):
         new_mean = torch.cat((new_p, mean[..., 3:]), -1)
         new_cov = T @ cov @ T.transpose(-1, -2)
         return new_mean, 0.5 * (new_cov + new_cov.transpose(-1, -2))
+
+    def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+        """Switch every component with ``|p| > 1`` to the shadow set (see :meth:`_switch`).
+
+        Args:
+            mean: ``[..., n]``; cov: ``[..., n, n]``.
+        """
+        p = mean[..., :3]
+        return self._switch(mean, cov, (p * p).sum(-1) > 1.0)
+
+    def align(self, mean: Tensor, cov: Tensor, reference: Tensor) -> tuple[Tensor, Tensor]:
+        """Express each component in the MRP set (itself or its shadow) nearer to ``reference``.
+
+        Components on different sides of ``|p| = 1`` describe nearby attitudes with
+        far-apart MRPs; their moments are meaningful only in one chart.
+
+        Args:
+            mean: ``[..., N, n]``; cov: ``[..., N, n, n]``; reference: broadcastable to ``mean``.
+        """
+        p = mean[..., :3]
+        s = (p * p).sum(-1, keepdim=True)
+        shadow = -p / s.clamp_min(torch.finfo(p.dtype).tiny)
+        ref = reference[..., :3]
+        switch = ((shadow - ref) ** 2).sum(-1) < ((p - ref) ** 2).sum(-1)
+        return self._switch(mean, cov, switch)
 
     def state_error(self, x_est: Tensor, x_true: Tensor) -> Tensor:
         """``x_est − x_true`` with the true MRP taken in whichever set (itself or

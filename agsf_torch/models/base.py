@@ -170,6 +170,15 @@ class ContinuousModel(nn.Module):
         """
         return mean, cov
 
+    def align(self, mean: Tensor, cov: Tensor, reference: Tensor) -> tuple[Tensor, Tensor]:
+        """Re-express components in the chart of ``reference`` before they are combined
+        (identity by default).
+
+        Args:
+            mean: ``[..., N, n]``; cov: ``[..., N, n, n]``; reference: broadcastable to ``mean``.
+        """
+        return mean, cov
+
     def state_error(self, x_est: Tensor, x_true: Tensor) -> Tensor:
         """Estimation error ``x_est − x_true`` expressed in the estimate's chart, ``[..., n]``."""
         return x_est - x_true
