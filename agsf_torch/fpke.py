@@ -51,15 +51,11 @@ class ComponentRates:
             Pi = torch.cholesky_inverse(self.chol)
             object.__setattr__(self, "precision", 0.5 * (Pi + Pi.transpose(-1, -2)))
 
-    def select(self, index: Tensor, dim_offset: int = 0) -> "ComponentRates":
-        """Components ``index`` along the component dim, with ``dim_offset`` singleton
-        dims inserted after it (to broadcast against points)."""
+    def select(self, index: Tensor) -> "ComponentRates":
+        """The components ``index`` (along the component dim)."""
 
         def pick(t: Tensor, event: int) -> Tensor:
-            out = t.index_select(t.dim() - event - 1, index)
-            for _ in range(dim_offset):
-                out = out.unsqueeze(out.dim() - event)
-            return out
+            return t.index_select(t.dim() - event - 1, index)
 
         return ComponentRates(
             pick(self.means, 1), pick(self.chol, 2), pick(self.mean_rates, 1), pick(self.cov_rates, 2), pick(self.precision, 2)
@@ -67,29 +63,33 @@ class ComponentRates:
 
 
 def residual_factor(terms: FokkerPlanckTerms, x: Tensor, rates: ComponentRates) -> Tensor:
-    """``ℓᵢ(x)`` of the module equation for points and components that broadcast.
+    """``ℓᵢ(x)`` of the module equation at ``K`` points per component.
 
     Args:
-        terms: model terms at ``x`` (leading dims those of ``x``).
-        x: points ``[..., n]``.
-        rates: component data whose leading dims broadcast against ``x``'s
-            (for example ``[..., N, 1, n]`` against points ``[..., N, K, n]``).
+        terms: model terms at ``x`` (leading dims broadcastable to ``[..., C, K]``);
+            ``terms.diffusion`` may be a full ``[..., n, n]`` or, for a diagonal
+            ``D``, its diagonal ``[..., n]``.
+        x: points ``[..., C, K, n]``.
+        rates: the component paired with each row of points, ``[..., C, ...]``.
 
     Returns:
-        ``ℓ`` with the broadcast leading dims.
+        ``ℓ`` ``[..., C, K]``.
     """
-    Pi = rates.precision
-    D = terms.diffusion
-    z = (Pi @ (x - rates.means).unsqueeze(-1)).squeeze(-1)
-    tr_D_Pinv = (D * Pi).sum((-2, -1))
-    tr_Pinv_Pdot = (Pi * rates.cov_rates).sum((-2, -1))
-
-    def quad(M: Tensor) -> Tensor:
-        return (z * (M @ z.unsqueeze(-1)).squeeze(-1)).sum(-1)
-
-    dp_dt = (z * rates.mean_rates).sum(-1) + 0.5 * (quad(rates.cov_rates) - tr_Pinv_Pdot)
+    Pi = rates.precision  # [..., C, n, n]
+    z = (x - rates.means.unsqueeze(-2)) @ Pi  # Π d for every point (Π symmetric)
+    Pdot = rates.cov_rates
+    dp_dt = (z * rates.mean_rates.unsqueeze(-2)).sum(-1) + 0.5 * (
+        ((z @ Pdot) * z).sum(-1) - (Pi * Pdot).sum((-2, -1)).unsqueeze(-1)
+    )
     transport = terms.drift_divergence - (terms.drift * z).sum(-1)
-    diffusion = terms.diffusion_second_divergence - 2.0 * (terms.diffusion_divergence * z).sum(-1) + quad(D) - tr_D_Pinv
+    D = terms.diffusion
+    if D.dim() == x.dim() or D.shape[-2:] != (x.shape[-1], x.shape[-1]):  # diagonal D, [..., n]
+        quad_D = (D * z * z).sum(-1)
+        tr_D_Pinv = (D * Pi.diagonal(dim1=-2, dim2=-1).unsqueeze(-2)).sum(-1)
+    else:
+        quad_D = ((D * z.unsqueeze(-2)).sum(-1) * z).sum(-1)
+        tr_D_Pinv = (D * Pi.unsqueeze(-3)).sum((-2, -1))
+    diffusion = terms.diffusion_second_divergence - 2.0 * (terms.diffusion_divergence * z).sum(-1) + quad_D - tr_D_Pinv
     return dp_dt + transport - diffusion
 
 
@@ -103,12 +103,11 @@ def fpke_residual(model: ContinuousModel, x: Tensor, u: Tensor | None, log_weigh
     Returns:
         ``[..., K]``.
     """
-    xi = x.unsqueeze(-3)  # [..., 1, K, n]
-    terms = model.fokker_planck_terms(xi, None if u is None else u[..., None, None, :])
     N = rates.means.shape[-2]
-    rates_i = rates.select(torch.arange(N, device=x.device), dim_offset=1)
-    ell = residual_factor(terms, xi, rates_i)  # [..., N, K]
-    logp = _log_normal(xi, rates_i.means, rates_i.chol)
+    xi = x.unsqueeze(-3).expand(*x.shape[:-2], N, *x.shape[-2:])  # [..., N, K, n]
+    terms = model.fokker_planck_terms(x.unsqueeze(-3), None if u is None else u[..., None, None, :])
+    ell = residual_factor(terms, xi, rates)  # [..., N, K]
+    logp = _log_normal(xi, rates.means.unsqueeze(-2), rates.chol.unsqueeze(-3))
     return (torch.exp(log_weights.unsqueeze(-1) + logp) * ell).sum(-2)
 
 
@@ -185,7 +184,6 @@ def fpke_matrix(
     log_z = _log_normal(ri.means, rj.means, Ls)  # [..., Pc]
     log_scale = log_z.amax(-1)
 
-    ri, rj = ri.select(torch.arange(iu.shape[1], device=mu.device), 1), rj.select(torch.arange(iu.shape[1], device=mu.device), 1)
     if u is not None:
         u = u[..., None, None, :]
     if chunk_size is None:

@@ -126,11 +126,21 @@ class AttitudeModel(ContinuousModel):
         Gb = (self.sigma_u**2 * eye3).expand_as(Gp)
         return torch.cat((torch.cat((Gp, z), -1), torch.cat((z, Gb), -1)), -2)
 
+    def _diffusion_diagonal(self, x: Tensor) -> Tensor:
+        """Diagonal of ``D = ½gQgᵀ``: ``(σ_v²/32)(1+s)²`` on the MRP axes, ``σ_u²/2`` on the bias axes."""
+        p = x[..., :3]
+        s = (p * p).sum(-1, keepdim=True)
+        dp = (self.sigma_v**2 / 32.0) * (1.0 + s) ** 2 * torch.ones_like(p)
+        if not self.estimate_bias:
+            return dp
+        return torch.cat((dp, (0.5 * self.sigma_u**2) * torch.ones_like(p)), -1)
+
     def fokker_planck_terms(self, x: Tensor, u: Tensor) -> FokkerPlanckTerms:
         """Closed forms (method.md §3), with ``c = σ_v²/32``, ``s = pᵀp``, ``ω = ω̃ − b``:
 
         ``div f = (3/2) pᵀω``, ``D_pp = c(1+s)² I₃`` (``D_bb = (σ_u²/2) I₃``),
         ``aₖ = 4c(1+s) pₖ`` on the MRP entries (0 on the bias), ``Σ∂²D = 4c(3 + 5s)``.
+        ``D`` is diagonal and is returned as its diagonal ``[..., n]``.
         """
         p = x[..., :3]
         w = self._rate(x, u)
@@ -143,7 +153,7 @@ class AttitudeModel(ContinuousModel):
         return FokkerPlanckTerms(
             drift=self.drift(x, u),
             drift_divergence=1.5 * (p_b * w_b).sum(-1),
-            diffusion=0.5 * self.process_noise(x),
+            diffusion=self._diffusion_diagonal(x),
             diffusion_divergence=a,
             diffusion_second_divergence=4.0 * c * (3.0 + 5.0 * s),
         )

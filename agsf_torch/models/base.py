@@ -82,7 +82,8 @@ class FokkerPlanckTerms:
     Attributes:
         drift: ``f(x, u)`` ``[..., n]``.
         drift_divergence: ``div f = Σⱼ ∂fⱼ/∂xⱼ`` ``[...]``.
-        diffusion: ``D(x) = ½ g Q gᵀ`` ``[..., n, n]``.
+        diffusion: ``D(x) = ½ g Q gᵀ`` ``[..., n, n]``, or its diagonal ``[..., n]``
+            when ``D`` is diagonal (a cheaper path in the FPKE residual).
         diffusion_divergence: ``aₖ = Σⱼ ∂Dⱼₖ/∂xⱼ`` ``[..., n]``.
         diffusion_second_divergence: ``Σⱼₖ ∂²Dⱼₖ/∂xⱼ∂xₖ`` ``[...]``.
     """
