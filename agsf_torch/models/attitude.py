@@ -67,13 +67,19 @@ class AttitudeModel(ContinuousModel):
             return u - x[..., 3:]
         return u - self.bias.to(u)
 
+    @staticmethod
+    def _mrp_rate(p: Tensor, w: Tensor) -> Tensor:
+        """``¼B(p)ω = ¼[(1 − s)ω + 2 p×ω + 2p(pᵀω)]`` without forming ``B``."""
+        s = (p * p).sum(-1, keepdim=True)
+        pw = (p * w).sum(-1, keepdim=True)
+        return 0.25 * ((1.0 - s) * w + 2.0 * torch.linalg.cross(p, w.expand_as(p) if w.dim() < p.dim() else w, dim=-1) + 2.0 * pw * p)
+
     # ------------------------------------------------------------ protocol
     def drift(self, x: Tensor, u: Tensor) -> Tensor:
         """``f(x, ω̃) = [¼B(p)(ω̃ − b); 0₃]``: ``x [..., n]``, ``u = ω̃ [..., 3]``."""
         p = x[..., :3]
         w = self._rate(x, u)
-        B = mrp_kinematics_matrix(p)
-        pdot = 0.25 * (B @ w.unsqueeze(-1)).squeeze(-1)
+        pdot = self._mrp_rate(p, w)
         if self.estimate_bias:
             return torch.cat((pdot, torch.zeros_like(pdot)), -1)
         return pdot
@@ -143,19 +149,24 @@ class AttitudeModel(ContinuousModel):
         ``D`` is diagonal and is returned as its diagonal ``[..., n]``.
         """
         p = x[..., :3]
-        w = self._rate(x, u)
-        p_b, w_b = torch.broadcast_tensors(p, w)
-        s = (p_b * p_b).sum(-1)
+        p_b, w_b = torch.broadcast_tensors(p, self._rate(x, u))
+        s = (p_b * p_b).sum(-1, keepdim=True)
+        pw = (p_b * w_b).sum(-1, keepdim=True)
         c = self.sigma_v**2 / 32.0
-        a = 4.0 * c * (1.0 + s)[..., None] * p_b
+        pdot = 0.25 * ((1.0 - s) * w_b + 2.0 * torch.linalg.cross(p_b, w_b, dim=-1) + 2.0 * pw * p_b)
+        a = (4.0 * c) * (1.0 + s) * p_b
+        d = c * (1.0 + s) ** 2 * torch.ones_like(p_b)
         if self.estimate_bias:
-            a = torch.cat((a, torch.zeros_like(a)), -1)
+            zero = torch.zeros_like(p_b)
+            pdot = torch.cat((pdot, zero), -1)
+            a = torch.cat((a, zero), -1)
+            d = torch.cat((d, (0.5 * self.sigma_u**2) * torch.ones_like(p_b)), -1)
         return FokkerPlanckTerms(
-            drift=self.drift(x, u),
-            drift_divergence=1.5 * (p_b * w_b).sum(-1),
-            diffusion=self._diffusion_diagonal(x),
+            drift=pdot,
+            drift_divergence=1.5 * pw.squeeze(-1),
+            diffusion=d,
             diffusion_divergence=a,
-            diffusion_second_divergence=4.0 * c * (3.0 + 5.0 * s),
+            diffusion_second_divergence=(4.0 * c) * (3.0 + 5.0 * s.squeeze(-1)),
         )
 
     def fpke_quadrature_points(self) -> tuple[int, ...]:

@@ -129,3 +129,11 @@ def test_singular_covariance_is_named_or_repaired(gen):
 def test_bad_options_raise(kwargs, match):
     with pytest.raises(ValueError, match=match):
         AdaptiveGaussianSumFilter(AttitudeModel(), **kwargs)
+
+
+@pytest.mark.slow
+def test_compiled_kernel_equals_eager(gen):
+    model, mix, u, meas, y = _attitude_setup(gen, False, B=32)
+    eager = AdaptiveGaussianSumFilter(model).predict(mix, u, 0.1)
+    compiled = AdaptiveGaussianSumFilter(model, compile=True).predict(mix, u, 0.1)
+    torch.testing.assert_close(compiled.log_weights, eager.log_weights, rtol=1e-10, atol=1e-12)
