@@ -164,3 +164,50 @@ def test_fpke_matrix_equals_brute_force_integral(gen):
     )
     ref = (Ls[:, None, :] * Ls[None, :, :]).sum(-1) * dv
     torch.testing.assert_close(Lm, ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()))
+
+
+def _six_state_rates(gen):
+    model = AttitudeModel(estimate_bias=True, sigma_v=0.05, sigma_u=0.02)
+    N = 3
+    mean = torch.cat((0.1 * torch.randn(2, N, 3, generator=gen, dtype=F64), 0.01 * torch.randn(2, N, 3, generator=gen, dtype=F64)), -1)
+    A = torch.randn(2, N, 6, 6, generator=gen, dtype=F64)
+    cov = 0.003 * (A @ A.transpose(-1, -2) / 6 + 0.2 * torch.eye(6, dtype=F64))
+    u = torch.tensor([[0.3, -0.2, 0.5], [0.1, 0.4, -0.3]], dtype=F64)
+    return model, u, _rates(model, mean, cov, u.unsqueeze(-2))
+
+
+def test_six_state_rule_against_dense_quadrature(gen):
+    """The exact 9261-node rule (7,7,7,3,3,3) against a dense 91,125-node (9,9,9,5,5,5) reference
+    with correlated MRP/bias covariances: both integrate ℓᵢℓⱼ exactly, so they agree to rounding."""
+    model, u, rates = _six_state_rates(gen)
+    fast = fpke_matrix(model, u, rates, *gauss_hermite(model.fpke_quadrature_points())).full()
+    dense = fpke_matrix(model, u, rates, *gauss_hermite((9, 9, 9, 5, 5, 5))).full()
+    rel = float(((fast - dense).abs() / dense.abs().amax((-2, -1), keepdim=True)).max())
+    print(f"6-D exact rule vs dense reference: max relative difference {rel:.2e}")
+    assert rel < 1e-6
+    # one point fewer per bias axis is no longer exact: the test can tell
+    coarse = fpke_matrix(model, u, rates, *gauss_hermite((7, 7, 7, 2, 2, 2))).full()
+    assert float(((coarse - dense).abs() / dense.abs().amax((-2, -1), keepdim=True)).max()) > 1e-6
+
+
+def test_smolyak_rule_for_generic_six_state(gen):
+    """The generic 6-D default (Smolyak level 7, exact to total degree 13) on the same integrals."""
+    from agsf_torch.quadrature import smolyak_gauss_hermite
+
+    model, u, rates = _six_state_rates(gen)
+    dense = fpke_matrix(model, u, rates, *gauss_hermite((9, 9, 9, 5, 5, 5))).full()
+    sparse = fpke_matrix(model, u, rates, *smolyak_gauss_hermite(6, 7)).full()
+    rel = float(((sparse - dense).abs() / dense.abs().amax((-2, -1), keepdim=True)).max())
+    print(f"6-D Smolyak level 7 vs dense reference: max relative difference {rel:.2e}")
+    assert rel < 1e-6
+
+
+def test_three_state_rule_against_dense_quadrature(gen):
+    model = AttitudeModel(sigma_v=0.05)
+    mean = 0.1 * torch.randn(2, 4, 3, generator=gen, dtype=F64)
+    cov = torch.diag_embed(0.005 + 0.01 * torch.rand(2, 4, 3, generator=gen, dtype=F64))
+    u = torch.tensor([[0.3, -0.2, 0.5], [0.1, 0.4, -0.3]], dtype=F64)
+    rates = _rates(model, mean, cov, u.unsqueeze(-2))
+    exact = fpke_matrix(model, u, rates, *gauss_hermite(7, 3)).full()
+    dense = fpke_matrix(model, u, rates, *gauss_hermite(15, 3)).full()
+    torch.testing.assert_close(exact, dense, rtol=1e-10, atol=1e-12 * float(dense.abs().max()))
