@@ -5,9 +5,14 @@ Subcommands:
 * ``agsf simulate`` — simulate B trajectories of the star-tracker environment and
   write the truth, gyro and star data (``simulation.npz``) and their statistics
   (``summary.json``) under ``--out``.
-* ``agsf montecarlo`` — EKF, classic GSF and adaptive GSF on one star-tracker
-  case, batched over ``--runs`` trajectories that all filters share; writes
-  ``summary.json`` (the numbers behind the figure) and ``rms.png``.
+* ``agsf run CONFIG [--set key=value …] --out DIR`` — one configuration (a TOML
+  file or a preset name): EKF, classic GSF and adaptive GSF batched over the runs,
+  all seeing the same truth and measurements.
+* ``agsf reproduce --case {1,2,3,all} [--runs R] --out DIR`` — the paper's cases.
+* ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR`` — a resumable grid.
+
+Every experiment writes ``summary.json``, ``runs.npz``, PNG figures and
+TensorBoard events (see :mod:`agsf_torch.experiments.experiment`).
 """
 
 from __future__ import annotations
@@ -38,22 +43,13 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _prepare_out(path: str, kind: str) -> Path:
-    """Create the output folder; refuse to overwrite one that holds a different kind of run."""
-    out = Path(path)
-    marker = out / "summary.json"
-    if marker.exists():
-        previous = json.loads(marker.read_text()).get("command")
-        if previous != kind:
-            raise SystemExit(f"agsf: {out} already holds a '{previous}' run; choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    return out
-
-
 def _simulate(args: argparse.Namespace) -> int:
     import envs
 
-    out = _prepare_out(args.out, "simulate")
+    from .experiment import prepare_output
+
+    params = {"runs": args.runs, "steps": args.steps, "star_period": args.star_period, "seed": args.seed}
+    out = prepare_output(Path(args.out), "simulate", json.dumps(params, sort_keys=True), params)
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, max_steps=args.steps, star_period=args.star_period)
     t0 = time.perf_counter()
     sim = env.simulate(args.steps, seed=args.seed)
@@ -78,79 +74,60 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _montecarlo(args: argparse.Namespace) -> int:
-    import envs
+def _run(args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .experiment import run_experiment
 
-    from ..filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter
-    from ..metrics import chi2_band
-    from ..models import AttitudeModel
-    from .runner import FilterSetup, run_monte_carlo
-
-    torch.set_num_threads(max(1, args.threads))
-    out = _prepare_out(args.out, "montecarlo")
-    steps = int(round(args.duration / 0.1))
-    env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, max_steps=steps, star_period=args.star_period)
-    model = AttitudeModel()
-    kw = {"update_iterations": args.update_iterations}
-    filters = {
-        "EKF": FilterSetup(ExtendedKalmanFilter(model, **kw), 1),
-        "GSF": FilterSetup(GaussianSumFilter(model, **kw), args.components),
-        "AGSF": FilterSetup(AdaptiveGaussianSumFilter(model, **kw), args.components),
-    }
-    P0 = args.prior_var * torch.eye(3, dtype=torch.float64)
-    t0 = time.perf_counter()
-    res = run_monte_carlo(
-        env, filters, num_steps=steps, prior_cov=P0, sigma_s=10e-6, seed=args.seed, progress=not args.quiet
-    )
-    elapsed = time.perf_counter() - t0
-    lo, hi = chi2_band(3, args.runs)
-    summary = {
-        "command": "montecarlo",
-        "runs": args.runs,
-        "duration_s": args.duration,
-        "star_period_s": args.star_period,
-        "components": args.components,
-        "prior_var_mrp2": args.prior_var,
-        "update_iterations": args.update_iterations,
-        "seed": args.seed,
-        "seconds": elapsed,
-        "time_s": res.time.tolist(),
-        "nees_band_95": [lo, hi],
-        "filters": {},
-    }
-    for name, tr in res.traces.items():
-        rms = tr.rms_error()
-        summary["filters"][name] = {
-            "rms_error_rad": rms.tolist(),
-            "final_rms_error_urad": float(rms[-1] * 1e6),
-            "time_averaged_nees": float(tr.nees.mean()),
-            "mean_weight_entropy": float(tr.weight_entropy.mean()),
-        }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    _plot_rms(res, out / "rms.png")
-    print(f"{args.runs} runs × {args.duration:g} s in {elapsed:.1f} s → {out}")
-    for name, s in summary["filters"].items():
-        print(f"  {name:5s} final RMS {s['final_rms_error_urad']:8.2f} µrad   time-averaged NEES {s['time_averaged_nees']:.3f}")
-    print(f"  95% NEES band for {args.runs} runs: [{lo:.3f}, {hi:.3f}]")
+    cfg = load_config(args.config, args.set)
+    _threads(args)
+    summary = run_experiment(cfg, Path(args.out), progress=not args.quiet, kind="run")
+    _print_summary(cfg.name, summary)
+    print(f"results: {args.out}/summary.json, figures *.png, TensorBoard: tensorboard --logdir {args.out}")
     return 0
 
 
-def _plot_rms(res, path: Path) -> None:
-    import matplotlib
+def _reproduce(args: argparse.Namespace) -> int:
+    from .reproduce import reproduce
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    _threads(args)
+    cases = [1, 2, 3] if args.case == "all" else [int(args.case)]
+    overrides = list(args.set)
+    if args.runs is not None:
+        overrides.append(f"runs={args.runs}")
+    if args.duration is not None:
+        overrides.append(f"duration={args.duration}")
+    table = reproduce(cases, Path(args.out), overrides, progress=not args.quiet)
+    print(table)
+    print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/case*/ (figures, runs.npz)")
+    print(f"TensorBoard: tensorboard --logdir {args.out}")
+    return 0
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, tr in res.traces.items():
-        ax.semilogy(res.time, np.degrees(tr.rms_error()), label=name)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("RMS attitude error (deg)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+
+def _sweep(args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .sweep import parse_grid, run_sweep
+
+    base = load_config(args.config, args.set)
+    grid = parse_grid(args.grid)
+    _threads(args)
+    rows = run_sweep(base, grid, Path(args.out), progress=not args.quiet)
+    print(f"{len(rows)} configurations in {args.out}/results.jsonl; TensorBoard hparams: tensorboard --logdir {args.out}")
+    return 0
+
+
+def _threads(args: argparse.Namespace) -> None:
+    if getattr(args, "threads", None):
+        torch.set_num_threads(max(1, args.threads))
+
+
+def _print_summary(name: str, summary: dict) -> None:
+    print(f"{name}: mean RMS between star frames (deg) and time-averaged NEES")
+    for fname, f in summary["filters"].items():
+        bu = f.get("between_updates", {}).get("mean_rms_deg", float("nan"))
+        print(f"  {fname:5s} {bu:.6g}   NEES {f['time_averaged_nees']:.4g}")
+    if "agsf_minus_gsf" in summary and "between_updates" in summary["agsf_minus_gsf"]:
+        d = summary["agsf_minus_gsf"]["between_updates"]
+        print(f"  AGSF − GSF {d['mean_deg']:.3g} deg, 95% CI [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}]")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -165,24 +142,41 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/simulation")
     p.set_defaults(func=_simulate)
 
-    p = sub.add_parser("montecarlo", help="EKF, GSF and adaptive GSF on one case, batched")
-    p.add_argument("--runs", type=_positive_int, default=100)
-    p.add_argument("--duration", type=_positive_float, default=30.0, help="s")
-    p.add_argument("--star-period", type=_positive_float, default=1.0, help="s between star frames")
-    p.add_argument("--components", type=_positive_int, default=5)
-    p.add_argument("--prior-var", type=_positive_float, default=1e-3, help="prior MRP variance per axis")
-    p.add_argument("--update-iterations", type=_positive_int, default=3)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=torch.get_num_threads())
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--out", default="runs/montecarlo")
-    p.set_defaults(func=_montecarlo)
+    def common(p):
+        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+        p.add_argument("--threads", type=int, default=None, help="torch threads")
+        p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("run", help="one configuration (a TOML file or a preset name)")
+    p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior)")
+    p.add_argument("--out", required=True)
+    common(p)
+    p.set_defaults(func=_run)
+
+    p = sub.add_parser("reproduce", help="the paper's three cases (star frames at 1, 0.5, 0.2 Hz)")
+    p.add_argument("--case", choices=["1", "2", "3", "all"], default="all")
+    p.add_argument("--runs", type=_positive_int, default=None, help="Monte Carlo runs (preset: 100)")
+    p.add_argument("--duration", type=_positive_float, default=None, help="s (preset: 30)")
+    p.add_argument("--out", default="runs/reproduce")
+    common(p)
+    p.set_defaults(func=_reproduce)
+
+    p = sub.add_parser("sweep", help="a grid of configurations, each one batched Monte Carlo")
+    p.add_argument("config", help="base TOML file or preset")
+    p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...", help="a swept key")
+    p.add_argument("--out", required=True)
+    common(p)
+    p.set_defaults(func=_sweep)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except ValueError as exc:  # bad configuration or output folder: a message, not a traceback
+        print(f"agsf: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -1,0 +1,79 @@
+"""Experiment configuration: presets, overrides, validation naming the key."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from agsf_torch.experiments.config import ExperimentConfig, load_config, load_preset, preset_names
+
+
+def test_presets_carry_the_decoded_and_guessed_values():
+    assert {"case1", "case2", "case3", "wide_prior"} <= set(preset_names())
+    c1, c2, c3 = (load_preset(f"case{k}") for k in (1, 2, 3))
+    assert (c1.star_period, c2.star_period, c3.star_period) == (1.0, 2.0, 5.0)
+    for c in (c1, c2, c3):
+        assert c.fov_deg == 8.0 and c.focal_length == 0.065 and c.max_stars == 5
+        assert c.sigma_s == 10e-6 and c.dt == 0.1 and c.prior_var == 1e-3
+        assert c.gyro_bias_deg_per_hr == 0.1 and c.rate_axes == [1.0, 1.0, 0.0]
+        assert math.isclose(c.omega0, 2 * math.pi / 100) and math.isclose(c.sigma_v, math.sqrt(10) * 1e-7)
+        assert math.isclose(c.sigma_u, math.sqrt(10) * 1e-10)
+        assert c.reg == 1.0 and c.weight_ref == "update" and not c.estimate_bias and c.runs >= 100
+    wide = load_preset("wide_prior")
+    assert wide.max_stars == 2 and wide.prior_var > 0.01 and wide.sigma_s == c1.sigma_s  # inherits case1
+
+
+def test_file_with_preset_and_overrides(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('preset = "case2"\nname = "mine"\ncomponents = 3\n')
+    cfg = load_config(f, ["runs=7", "scaling=none", "rate_axes=[0.0, 0.0, 1.0]"])
+    assert (cfg.name, cfg.components, cfg.runs, cfg.scaling, cfg.star_period) == ("mine", 3, 7, "none", 2.0)
+    assert cfg.rate_axes == [0.0, 0.0, 1.0]
+    assert cfg.digest() != load_config(f).digest()
+
+
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("bogus = 1", "bogus"),
+        ('runs = "many"', "runs"),
+        ("runs = 0", "runs"),
+        ("runs = 2.5", "runs"),
+        ("sigma_s = -1e-6", "sigma_s"),
+        ("duration = inf", "duration"),
+        ("spread = 1.0", "spread"),
+        ('scaling = "log"', "scaling"),
+        ("estimate_bias = 1", "estimate_bias"),
+        ('filters = ["UKF"]', "filters"),
+        ("star_period = 0.25", "star_period"),
+        ("rate_axes = [1.0, 2.0]", "rate_axes"),
+        ('preset = "case9"', "case9"),
+    ],
+)
+def test_bad_files_name_the_key(tmp_path, text, key):
+    f = tmp_path / "bad.toml"
+    f.write_text(text + "\n")
+    with pytest.raises(ValueError, match=key):
+        load_config(f)
+
+
+def test_bad_overrides_and_files(tmp_path):
+    with pytest.raises(ValueError, match="unknown config key 'nope'"):
+        load_config("case1", ["nope=3"])
+    with pytest.raises(ValueError, match="key=value"):
+        load_config("case1", ["runs"])
+    with pytest.raises(ValueError, match="does not exist"):
+        load_config(tmp_path / "missing.toml")
+    f = tmp_path / "broken.toml"
+    f.write_text("runs = [\n")
+    with pytest.raises(ValueError, match="not valid TOML"):
+        load_config(f)
+    # TOML is data only: a would-be code string is just an invalid value
+    f.write_text('name = "__import__(\'os\').system(\'false\')"\nruns = "__import__(\'os\')"\n')
+    with pytest.raises(ValueError, match="'runs' must be an integer"):
+        load_config(f)
+
+
+def test_defaults_validate():
+    assert ExperimentConfig().num_steps == 300

@@ -1,0 +1,126 @@
+"""An experiment end to end: outputs exist and agree; the summary equals an independent
+recomputation from the saved per-run data; sweeps resume; folders are not overwritten."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.stats import t as student_t
+
+from agsf_torch.experiments import cli
+from agsf_torch.experiments.config import load_config
+from agsf_torch.experiments.experiment import OutputConflict, run_experiment
+from agsf_torch.experiments.sweep import parse_grid, run_sweep
+
+SMALL = ["runs=12", "duration=3.0", "star_period=1.0", "compile=false", "components=3"]
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory):
+    out = tmp_path_factory.mktemp("exp") / "case"
+    cfg = load_config("case1", SMALL)
+    summary = run_experiment(cfg, out, progress=False)
+    return cfg, out, summary
+
+
+def test_outputs_exist_and_agree(experiment):
+    cfg, out, summary = experiment
+    for name in ("summary.json", "runs.npz", "rms.png", "axes.png", "weights.png", "fpke.png", "experiment.json"):
+        assert (out / name).stat().st_size > 0, name
+    on_disk = json.loads((out / "summary.json").read_text())
+    assert on_disk["filters"]["AGSF"]["rms_deg"] == summary["filters"]["AGSF"]["rms_deg"]
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(out / "tensorboard"))
+    acc.Reload()
+    for name in cfg.filters:
+        events = acc.Scalars(f"{name}/rms_deg")
+        assert len(events) == cfg.num_steps
+        np.testing.assert_allclose([e.value for e in events], summary["filters"][name]["rms_deg"], rtol=1e-6)
+    assert "AGSF/fpke_error_before" in acc.Tags()["scalars"]
+    assert "AGSF/weights" in acc.Tags()["histograms"]
+
+
+def test_summary_matches_independent_recomputation(experiment):
+    cfg, out, summary = experiment
+    data = np.load(out / "runs.npz")
+    frames = data["star_frame"]
+    B = cfg.runs
+    per_run = {}
+    for name in cfg.filters:
+        theta = data[f"{name}/error_angle"]
+        # RMS over runs at each time, by explicit loops
+        for k in (0, len(frames) // 2, len(frames) - 1):
+            expect = np.degrees(np.sqrt(sum(theta[k, b] ** 2 for b in range(B)) / B))
+            assert summary["filters"][name]["rms_deg"][k] == pytest.approx(expect, rel=1e-12)
+        r = []
+        for b in range(B):
+            vals = [theta[k, b] ** 2 for k in range(len(frames)) if not frames[k]]
+            r.append(np.degrees(np.sqrt(np.mean(vals))))
+        per_run[name] = np.array(r)
+        assert summary["filters"][name]["between_updates"]["mean_rms_deg"] == pytest.approx(np.mean(r), rel=1e-12)
+        assert summary["filters"][name]["time_averaged_nees"] == pytest.approx(float(np.mean(data[f"{name}/nees"])), rel=1e-12)
+    d = per_run["AGSF"] - per_run["GSF"]
+    half = student_t.ppf(0.975, B - 1) * np.std(d, ddof=1) / np.sqrt(B)
+    got = summary["agsf_minus_gsf"]["between_updates"]
+    assert got["mean_deg"] == pytest.approx(d.mean(), rel=1e-9, abs=1e-15)
+    assert got["ci95_deg"][0] == pytest.approx(d.mean() - half, rel=1e-9, abs=1e-15)
+    assert got["ci95_deg"][1] == pytest.approx(d.mean() + half, rel=1e-9, abs=1e-15)
+
+
+def test_same_seed_same_numbers(experiment, tmp_path):
+    cfg, out, summary = experiment
+    again = run_experiment(cfg, tmp_path / "again", progress=False)
+    assert again["filters"]["GSF"]["rms_deg"] == summary["filters"]["GSF"]["rms_deg"]
+
+
+def test_output_folder_is_not_overwritten(experiment, tmp_path):
+    cfg, out, summary = experiment
+    with pytest.raises(OutputConflict, match="different experiment"):
+        run_experiment(cfg.replace(seed=cfg.seed + 1), out, progress=False)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(OutputConflict, match="not an agsf experiment"):
+        run_experiment(cfg, tmp_path / "other", progress=False)
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+
+
+def test_sweep_resumes_after_interruption(tmp_path):
+    base = load_config("case1", ["runs=4", "duration=1.0", "compile=false", "components=2", "filters=[\"GSF\", \"AGSF\"]"])
+    grid = parse_grid(["reg=0.1,1.0", "scaling=trace,none"])
+    calls = []
+
+    def interrupted(cfg, out, **kw):
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        calls.append(cfg.digest())
+        return run_experiment(cfg, out, **kw)
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(base, grid, tmp_path / "sweep", progress=False, runner=interrupted)
+    lines = (tmp_path / "sweep" / "results.jsonl").read_text().splitlines()
+    assert len(lines) == 2
+    resumed = []
+
+    def counting(cfg, out, **kw):
+        resumed.append(cfg.digest())
+        return run_experiment(cfg, out, **kw)
+
+    rows = run_sweep(base, grid, tmp_path / "sweep", progress=False, runner=counting)
+    assert len(rows) == 4 and len(resumed) == 2 and not set(resumed) & set(calls)
+    assert {tuple(sorted(r["params"].items())) for r in rows} == {
+        (("reg", r), ("scaling", s)) for r in (0.1, 1.0) for s in ("trace", "none")
+    }
+    # a different grid may not reuse the folder
+    with pytest.raises(OutputConflict):
+        run_sweep(base, parse_grid(["reg=0.5"]), tmp_path / "sweep", progress=False)
+
+
+def test_cli_rejects_bad_config_before_work(tmp_path, capsys):
+    assert cli.main(["run", "case1", "--set", "runs=-3", "--out", str(tmp_path / "x")]) == 2
+    assert "'runs'" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+    assert cli.main(["sweep", "case1", "--grid", "bogus=1,2", "--out", str(tmp_path / "y")]) == 2
+    assert "bogus" in capsys.readouterr().err
