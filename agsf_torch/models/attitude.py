@@ -35,8 +35,9 @@ class AttitudeModel(ContinuousModel):
             (``bias``); ``True`` → 6-state ``x = [p; b]``.
         sigma_v: angle random walk σ_v (rad/s^½).
         sigma_u: rate random walk σ_u (rad/s^{3/2}); used by the 6-state model.
-        bias: known gyro bias (rad/s), ``[3]`` or batched ``[..., 3]``;
-            subtracted from ``ω̃`` in the 3-state model, ignored by the 6-state one.
+        bias: known constant gyro bias (rad/s), ``[3]``; subtracted from ``ω̃`` in
+            the 3-state model, ignored by the 6-state one.  Known biases that
+            differ between trajectories are subtracted from the gyro input instead.
     """
 
     def __init__(
@@ -54,8 +55,8 @@ class AttitudeModel(ContinuousModel):
         b = torch.as_tensor(bias, dtype=torch.float64)
         if b.dim() == 0:
             b = b.expand(3).clone()
-        if b.shape[-1] != 3:
-            raise ValueError(f"bias must have shape [..., 3], got {tuple(b.shape)}")
+        if b.shape != (3,):
+            raise ValueError(f"bias must be a scalar or have shape [3], got {tuple(b.shape)}")
         if not bool(torch.isfinite(b).all()):
             raise ValueError("bias must be finite")
         self.register_buffer("bias", b)
