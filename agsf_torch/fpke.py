@@ -136,7 +136,7 @@ _COMPILED = None
 def _compiled_pair_chunk():
     global _COMPILED
     if _COMPILED is None:
-        _COMPILED = torch.compile(_pair_chunk, dynamic=False)
+        _COMPILED = torch.compile(_pair_chunk)  # static first, dynamic after a shape change (no recompile storm)
     return _COMPILED
 
 

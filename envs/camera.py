@@ -44,6 +44,7 @@ from torch import Tensor
 
 from agsf_torch.rotations import quat_to_dcm
 
+from ._checks import check_real
 from .catalog import StarCatalog
 from .random import CounterKey, counter_normal
 
@@ -76,13 +77,7 @@ class StarObservation(NamedTuple):
 
 
 def _finite_positive(name: str, value: float) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"StarCamera: {name} must be a number, got {value!r}") from None
-    if not math.isfinite(value) or value <= 0.0:
-        raise ValueError(f"StarCamera: {name} must be finite and > 0, got {value}")
-    return value
+    return check_real("StarCamera", name, value, positive=True)
 
 
 class StarCamera:

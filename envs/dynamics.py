@@ -26,6 +26,8 @@ from torch import Tensor
 
 from agsf_torch.rotations import quat_multiply, rotvec_to_quat
 
+from ._checks import check_real
+
 __all__ = ["DEFAULT_OMEGA0", "DEFAULT_RATE", "RateLike", "AttitudeDynamics", "propagate_quat"]
 
 DEFAULT_OMEGA0 = 2.0 * math.pi / 100.0
@@ -66,13 +68,7 @@ class AttitudeDynamics:
     """
 
     def __init__(self, rate: RateLike = DEFAULT_RATE, dt: float = 0.1) -> None:
-        try:
-            dt = float(dt)
-        except (TypeError, ValueError):
-            raise ValueError(f"AttitudeDynamics: dt must be a number, got {dt!r}") from None
-        if not math.isfinite(dt) or dt <= 0.0:
-            raise ValueError(f"AttitudeDynamics: dt must be finite and > 0, got {dt}")
-        self.dt = dt
+        self.dt = check_real("AttitudeDynamics", "dt", dt, positive=True)
         self.rate_fn: Callable[[Tensor], Tensor] | None
         if callable(rate) and not isinstance(rate, Tensor):
             self.rate_fn = rate

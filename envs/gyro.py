@@ -19,6 +19,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from ._checks import check_real
+
 __all__ = [
     "DEG_PER_HOUR",
     "DEFAULT_SIGMA_V",
@@ -38,13 +40,7 @@ DEFAULT_INITIAL_BIAS = (0.1 * DEG_PER_HOUR,) * 3
 
 
 def _nonneg(name: str, value: float) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"Gyro: {name} must be a number, got {value!r}") from None
-    if not math.isfinite(value) or value < 0.0:
-        raise ValueError(f"Gyro: {name} must be finite and ≥ 0, got {value}")
-    return value
+    return check_real("Gyro", name, value)
 
 
 def _vector3(owner: str, name: str, value) -> tuple[float, float, float]:

@@ -61,6 +61,7 @@ from agsf_torch.rotations import (
     rotvec_to_quat,
 )
 
+from ._checks import check_real
 from .camera import NOISE_MODES, StarCamera
 from .catalog import DEFAULT_MAX_MAGNITUDE, StarCatalog
 from .dynamics import DEFAULT_RATE, AttitudeDynamics, RateLike
@@ -97,23 +98,11 @@ _BLOCK_ELEMENTS = 1 << 20  # simulate(): noise draws per block of time steps
 
 # ============================================================================ config
 def _positive(name: str, value: Any) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"StarTrackerConfig: {name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0.0:
-        raise ValueError(f"StarTrackerConfig: {name} must be finite and > 0, got {value!r}")
-    return v
+    return check_real("StarTrackerConfig", name, value, positive=True)
 
 
 def _nonnegative(name: str, value: Any) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"StarTrackerConfig: {name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v < 0.0:
-        raise ValueError(f"StarTrackerConfig: {name} must be finite and ≥ 0, got {value!r}")
-    return v
+    return check_real("StarTrackerConfig", name, value)
 
 
 def _count(name: str, value: Any) -> int:

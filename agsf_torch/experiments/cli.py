@@ -115,6 +115,18 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench(args: argparse.Namespace) -> int:
+    from .bench import format_table, run_bench
+
+    _threads(args)
+    report = run_bench(Path(args.out), budget=args.budget, compile=not args.no_compile, quick=args.quick)
+    table = format_table(report)
+    (Path(args.out) / "bench.md").write_text(table + "\n")
+    print(table)
+    print(f"report: {args.out}/bench.json, {args.out}/bench.md")
+    return 0
+
+
 def _threads(args: argparse.Namespace) -> None:
     if getattr(args, "threads", None):
         torch.set_num_threads(max(1, args.threads))
@@ -167,6 +179,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     common(p)
     p.set_defaults(func=_sweep)
+    p = sub.add_parser("bench", help="throughput, peers (filterpy, Clarabel), FLOP rates, memory")
+    p.add_argument("--out", default="runs/bench")
+    p.add_argument("--budget", type=_positive_float, default=20.0, help="s per measurement before extrapolating")
+    p.add_argument("--quick", action="store_true", help="smaller samples (a smoke run, not the reference numbers)")
+    p.add_argument("--no-compile", action="store_true", help="eager FPKE quadrature")
+    p.add_argument("--threads", type=int, default=None, help="torch threads")
+    p.set_defaults(func=_bench)
     return parser
 
 
