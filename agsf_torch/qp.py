@@ -2,8 +2,9 @@
 
 .. math:: \\min_w \\; ½ w^T H w + c^T w \\quad\\text{s.t.}\\quad 1^T w = 1,\\; w ≥ 0
 
-:func:`solve_simplex_qp` solves a whole batch exactly in torch by *support
-enumeration*: the minimiser of a convex QP lies in the relative interior of one
+:func:`solve_simplex_qp` solves a whole batch exactly in torch: a batched
+primal–dual active-set iteration settles most problems in a few KKT solves, and
+any it has not settled is solved by *support enumeration*: the minimiser of a convex QP lies in the relative interior of one
 face of the simplex, where it solves the equality-constrained KKT system
 
 .. math:: \\begin{bmatrix} H_{SS} & -1 \\\\ 1^T & 0 \\end{bmatrix}
@@ -99,15 +100,23 @@ def kkt_residual(H: Tensor, c: Tensor, w: Tensor) -> Tensor:
 
 
 def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 4096) -> QPResult:
-    """Solve ``min ½wᵀHw + cᵀw`` on the simplex for a batch, exactly (support enumeration).
+    """Solve ``min ½wᵀHw + cᵀw`` on the simplex for a batch, exactly.
+
+    A batched primal–dual active-set iteration runs first: solve the KKT system
+    on the current support, keep the entries with ``wᵢ > 0``, add those whose
+    multiplier ``μᵢ`` is negative, stop when the KKT conditions hold (typically
+    1–3 iterations for the filter's ``L + λI``).  Problems it has not settled
+    after ``2N + 2`` iterations — it may cycle on hard problems — are solved by
+    support enumeration (module docstring), so the answer is always exact.
 
     Args:
         H: ``[..., N, N]`` symmetric positive semidefinite.
         c: ``[..., N]`` (default zero).
-        chunk_size: problems solved per batched call (bounds memory).
+        chunk_size: problems per batched enumeration call (bounds memory).
 
     Returns:
-        :class:`QPResult`.
+        :class:`QPResult` (``iterations``: active-set iterations run, plus
+        ``2^N − 1`` if any problem needed the enumeration).
 
     Raises:
         ValueError: non-finite entries (naming the batch index), bad shapes, or ``N > MAX_COMPONENTS``.
@@ -122,43 +131,88 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 40
     Hf = H.expand(*batch, N, N).reshape(-1, N, N)
     cf = c.expand(*batch, N).reshape(-1, N)
     Hf = 0.5 * (Hf + Hf.transpose(-1, -2))
-    S = torch.as_tensor(_supports(N), device=H.device)  # [K, N]
-    out = [
-        _solve_chunk(Hf[i : i + chunk_size], cf[i : i + chunk_size], S) for i in range(0, max(Hf.shape[0], 1), chunk_size)
-    ]
-    w = torch.cat(out).reshape(*batch, N)
-    return QPResult(w, kkt_residual(H.expand(*batch, N, N), c.expand(*batch, N), w), S.shape[0])
+    w, done, iterations = _active_set(Hf, cf)
+    if not bool(done.all()):
+        idx = (~done).nonzero().squeeze(-1)
+        S = torch.as_tensor(_supports(N), device=H.device)  # [K, N]
+        Hr, cr = Hf[idx], cf[idx]
+        out = [_solve_chunk(Hr[i : i + chunk_size], cr[i : i + chunk_size], S) for i in range(0, idx.numel(), chunk_size)]
+        w = w.index_copy(0, idx, torch.cat(out))
+        iterations += S.shape[0]
+    w = w.reshape(*batch, N)
+    return QPResult(w, kkt_residual(H.expand(*batch, N, N), c.expand(*batch, N), w), iterations)
 
 
-def _solve_chunk(H: Tensor, c: Tensor, S: Tensor) -> Tensor:
-    B, N = c.shape
-    K = S.shape[0]
-    m = S.to(H.dtype)  # [K, N]
+_KKT_TOL = 1e-9
+
+
+def _support_solve(H: Tensor, c: Tensor, m: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """KKT solutions with the entries outside the support mask ``m`` pinned to 0.
+
+    Args:
+        H: ``[B, N, N]``; c: ``[B, N]``; m: ``[B, K, N]`` (1.0 on the support).
+
+    Returns:
+        ``w [B, K, N]`` (zero where singular), the scaled KKT violation ``[B, K]``
+        (inf where singular), and the multipliers ``μ [B, K, N]``.
+    """
+    N = H.shape[-1]
     # KKT matrix per (problem, support); variables off the support are pinned to 0 by identity rows
-    A = torch.zeros(B, K, N + 1, N + 1, dtype=H.dtype, device=H.device)
-    A[..., :N, :N] = H[:, None] * (m[:, :, None] * m[:, None, :]) + torch.diag_embed(1.0 - m)
-    A[..., :N, N] = -m
-    A[..., N, :N] = m
-    rhs = torch.zeros(B, K, N + 1, dtype=H.dtype, device=H.device)
-    rhs[..., :N] = -c[:, None] * m
-    rhs[..., N] = 1.0
+    top = torch.cat((H.unsqueeze(1) * (m.unsqueeze(-1) * m.unsqueeze(-2)) + torch.diag_embed(1.0 - m), -m.unsqueeze(-1)), -1)
+    bottom = torch.cat((m, torch.zeros_like(m[..., :1])), -1).unsqueeze(-2)
+    A = torch.cat((top, bottom), -2)
+    rhs = torch.cat((-c.unsqueeze(1) * m, torch.ones_like(m[..., :1])), -1)
     sol, info = torch.linalg.solve_ex(A, rhs.unsqueeze(-1))
     sol = sol.squeeze(-1)
     singular = info != 0
-    w = torch.where(singular[..., None], torch.zeros_like(sol[..., :N]), sol[..., :N] * m)
-    nu = sol[..., N]
-    g = (H[:, None] @ w.unsqueeze(-1)).squeeze(-1) + c[:, None]  # [B, K, N]
-    mu = (g - nu[..., None]) * (1.0 - m)
-    scale = 1.0 + H.abs().flatten(-2).amax(-1) + c.abs().amax(-1)  # [B]
-    tol = 1e-9
-    violation = torch.maximum((-w).clamp_min(0).amax(-1), (-mu).clamp_min(0).amax(-1) / scale[:, None])
+    w = torch.where(singular.unsqueeze(-1), torch.zeros_like(m), sol[..., :N] * m)
+    g = (H.unsqueeze(1) @ w.unsqueeze(-1)).squeeze(-1) + c.unsqueeze(1)
+    mu = (g - sol[..., N:]) * (1.0 - m)
+    scale = (1.0 + H.abs().flatten(-2).amax(-1) + c.abs().amax(-1)).unsqueeze(-1)
+    violation = torch.maximum((-w).clamp_min(0).amax(-1), (-mu).clamp_min(0).amax(-1) / scale)
     violation = torch.where(singular | ~torch.isfinite(violation), torch.full_like(violation, float("inf")), violation)
+    return w, violation, mu
+
+
+def _active_set(H: Tensor, c: Tensor) -> tuple[Tensor, Tensor, int]:
+    """Batched primal–dual active-set iterations; returns ``(w [B, N], settled [B], iterations)``."""
+    B, N = c.shape
+    m = torch.ones(B, 1, N, dtype=H.dtype, device=H.device)
+    w_out = torch.zeros(B, N, dtype=H.dtype, device=H.device)
+    done = torch.zeros(B, dtype=torch.bool, device=H.device)
+    active = torch.arange(B, device=H.device)
+    it = 0
+    for it in range(1, 2 * N + 3):
+        w, violation, mu = _support_solve(H[active], c[active], m)
+        ok = violation[:, 0] <= _KKT_TOL
+        w_ok = w[ok, 0].clamp_min(0.0)
+        w_out[active[ok]] = w_ok / w_ok.sum(-1, keepdim=True)
+        done[active[ok]] = True
+        keep = ~ok
+        if not bool(keep.any()):
+            break
+        support = m[keep, 0] > 0
+        new = (support & (w[keep, 0] > 0)) | (~support & (mu[keep, 0] < 0))
+        empty = ~new.any(-1)
+        if bool(empty.any()):  # keep one entry: the lowest gradient
+            g = (H[active[keep]] @ w[keep, 0].unsqueeze(-1)).squeeze(-1) + c[active[keep]]
+            new[empty] = torch.nn.functional.one_hot(g[empty].argmin(-1), N).bool()
+        m = new.to(H.dtype).unsqueeze(1)
+        active = active[keep]
+    return w_out, done, it
+
+
+def _solve_chunk(H: Tensor, c: Tensor, S: Tensor) -> Tensor:
+    """Support enumeration for ``[B, N]`` problems over the supports ``S [K, N]``."""
+    B, N = c.shape
+    m = S.to(H.dtype).unsqueeze(0).expand(B, -1, -1)
+    w, violation, _ = _support_solve(H, c, m)
     # among supports meeting KKT to tolerance pick the lowest objective; if none does (numerical
     # trouble), the smallest violation
     wc = w.clamp_min(0)
     wc = wc / wc.sum(-1, keepdim=True).clamp_min(torch.finfo(H.dtype).tiny)
     obj = 0.5 * (wc.unsqueeze(-2) @ H[:, None] @ wc.unsqueeze(-1)).squeeze(-1).squeeze(-1) + (c[:, None] * wc).sum(-1)
-    ok = violation <= tol
+    ok = violation <= _KKT_TOL
     key = torch.where(ok, obj, torch.full_like(obj, float("inf")))
     best = torch.where(ok.any(-1), key.argmin(-1), violation.argmin(-1))
     return wc.gather(1, best[:, None, None].expand(B, 1, N)).squeeze(1)
