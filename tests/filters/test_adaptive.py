@@ -134,3 +134,21 @@ def test_compiled_kernel_equals_eager(gen):
     eager = AdaptiveGaussianSumFilter(model).predict(mix, u, 0.1)
     compiled = AdaptiveGaussianSumFilter(model, compile=True).predict(mix, u, 0.1)
     torch.testing.assert_close(compiled.log_weights, eager.log_weights, rtol=1e-10, atol=1e-12)
+
+
+def test_non_finite_fpke_matrix_names_the_trajectory(gen):
+    """A model whose Fokker–Planck terms turn NaN for one trajectory: a clear error, never a NaN weight."""
+    from agsf_torch.models.base import FokkerPlanckTerms
+
+    class Broken(AttitudeModel):
+        def fokker_planck_terms(self, x, u):
+            t = super().fokker_planck_terms(x, u)
+            div = t.drift_divergence.clone()
+            div[2] = float("nan")  # trajectory 2, every pair and node
+            return FokkerPlanckTerms(t.drift, div, t.diffusion, t.diffusion_divergence, t.diffusion_second_divergence)
+
+    model, mix, u, meas, y = _attitude_setup(gen, False, B=4, N=3)
+    before = mix.log_weights.clone()
+    with pytest.raises(ValueError, match=r"FPKE matrix L is not finite at trajectory index \(2,\)"):
+        AdaptiveGaussianSumFilter(Broken()).predict(mix, u[:4], 0.1)
+    assert torch.equal(mix.log_weights, before)
