@@ -246,6 +246,15 @@ def _polish(H: np.ndarray, c: np.ndarray, w: np.ndarray, threshold: float = 1e-6
     return out
 
 
+def _flat_problems(H, c) -> tuple[tuple[int, ...], np.ndarray, np.ndarray]:
+    """``(batch shape, H [P, N, N], c [P, N])`` as float64 numpy, broadcast and flattened."""
+    H = np.asarray(H, dtype=np.float64)
+    N = H.shape[-1]
+    c = np.zeros(H.shape[:-1]) if c is None else np.asarray(c, dtype=np.float64)
+    batch = np.broadcast_shapes(H.shape[:-2], c.shape[:-1])
+    return batch, np.broadcast_to(H, (*batch, N, N)).reshape(-1, N, N), np.broadcast_to(c, (*batch, N)).reshape(-1, N)
+
+
 def solve_simplex_qp_clarabel(
     H: Tensor | np.ndarray, c: Tensor | np.ndarray | None = None, polish: bool = True, **settings
 ) -> np.ndarray:
@@ -264,12 +273,8 @@ def solve_simplex_qp_clarabel(
     import clarabel
     import scipy.sparse as sp
 
-    H = np.asarray(H, dtype=np.float64)
-    N = H.shape[-1]
-    c = np.zeros(H.shape[:-1]) if c is None else np.asarray(c, dtype=np.float64)
-    batch = np.broadcast_shapes(H.shape[:-2], c.shape[:-1])
-    Hf = np.broadcast_to(H, (*batch, N, N)).reshape(-1, N, N)
-    cf = np.broadcast_to(c, (*batch, N)).reshape(-1, N)
+    batch, Hf, cf = _flat_problems(H, c)
+    N = Hf.shape[-1]
     A = sp.csc_matrix(np.vstack((np.ones((1, N)), -np.eye(N))))
     b = np.concatenate(([1.0], np.zeros(N)))
     cones = [clarabel.ZeroConeT(1), clarabel.NonnegativeConeT(N)]
@@ -291,12 +296,8 @@ def solve_simplex_qp_cvxpy(H: Tensor | np.ndarray, c: Tensor | np.ndarray | None
     """Reference: the same problem through cvxpy with the CLARABEL solver (tolerances 1e-12), one problem at a time."""
     import cvxpy as cp
 
-    H = np.asarray(H, dtype=np.float64)
-    N = H.shape[-1]
-    c = np.zeros(H.shape[:-1]) if c is None else np.asarray(c, dtype=np.float64)
-    batch = np.broadcast_shapes(H.shape[:-2], c.shape[:-1])
-    Hf = np.broadcast_to(H, (*batch, N, N)).reshape(-1, N, N)
-    cf = np.broadcast_to(c, (*batch, N)).reshape(-1, N)
+    batch, Hf, cf = _flat_problems(H, c)
+    N = Hf.shape[-1]
     out = np.empty_like(cf)
     for k in range(Hf.shape[0]):
         w = cp.Variable(N)
