@@ -212,7 +212,8 @@ def split_gaussian(mean: Tensor, cov: Tensor, num_components: int, spread: float
     .. math:: μ_i = μ + m_i \\sqrt{λ}\\, v,\\qquad P_i = P - \\mathrm{spread}\\; λ\\, v v^T
 
     so ``Σ w_i μ_i = μ`` and ``Σ w_i (P_i + (μ_i − μ)(μ_i − μ)ᵀ) = P`` exactly
-    (to rounding).  ``spread ∈ (0, 1)`` is the share of the principal variance
+    (to rounding).  The split is differentiable in ``mean`` and ``cov`` with the
+    principal direction ``v`` held fixed (``λ = vᵀPv``).  ``spread ∈ (0, 1)`` is the share of the principal variance
     carried by the spacing of the means; each component keeps ``1 − spread``.
 
     Args:
@@ -235,8 +236,10 @@ def split_gaussian(mean: Tensor, cov: Tensor, num_components: int, spread: float
     w = w / w.sum()
     u = u - (w * u).sum()  # exactly zero-mean offsets
     m = u * math.sqrt(spread) / torch.sqrt((w * u * u).sum())
-    evals, evecs = torch.linalg.eigh(cov)
-    lam, v = evals[..., -1], evecs[..., :, -1]  # [...], [..., n]
+    # principal direction from the detached covariance (eigenvectors of repeated eigenvalues have
+    # no derivative); λ = vᵀPv carries the gradient with respect to P
+    v = torch.linalg.eigh(cov.detach())[1][..., :, -1]  # [..., n]
+    lam = (v.unsqueeze(-2) @ cov @ v.unsqueeze(-1)).squeeze(-1).squeeze(-1)  # [...]
     offsets = m[:, None] * (torch.sqrt(lam)[..., None] * v).unsqueeze(-2)  # [..., N, n]
     means = mean.unsqueeze(-2) + offsets
     P = cov - spread * lam[..., None, None] * v[..., :, None] * v[..., None, :]

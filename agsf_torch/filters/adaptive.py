@@ -76,7 +76,8 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
         **kwargs: Any,
     ) -> None:
         super().__init__(model, **kwargs)
-        if not (isinstance(reg, (int, float)) and reg >= 0 and reg == reg and reg != float("inf")):
+        reg_value = float(reg) if isinstance(reg, (int, float)) else float(reg.detach()) if torch.is_tensor(reg) and reg.numel() == 1 else None
+        if reg_value is None or not (reg_value >= 0 and reg_value != float("inf")):
             raise ValueError(f"reg must be a finite number ≥ 0, got {reg}")
         if scaling not in _SCALINGS:
             raise ValueError(f"scaling must be one of {_SCALINGS}, got {scaling!r}")
@@ -84,7 +85,7 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
             raise ValueError(f"weight_ref must be one of {_REFERENCES}, got {weight_ref!r}")
         if int(cadence) != cadence or cadence < 1:
             raise ValueError(f"cadence must be a positive integer, got {cadence}")
-        self.reg = float(reg)
+        self.reg = reg if torch.is_tensor(reg) else float(reg)  # a tensor λ keeps its gradient
         self.scaling = scaling
         self.weight_ref = weight_ref
         self.cadence = int(cadence)
