@@ -1,0 +1,56 @@
+"""Maximum-likelihood learning through the filter on simulated data."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import envs
+from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.learning import fit_attitude_parameters
+
+F64 = torch.float64
+DEG_PER_HOUR = math.pi / 180 / 3600
+BASE = dict(sigma_v=math.sqrt(10) * 1e-7, sigma_u=math.sqrt(10) * 1e-10, sigma_s=1e-5, bias=[0.1 * DEG_PER_HOUR] * 3, reg=1.0, prior_scale=1.0)
+
+
+def _fit(learn, configured, B=24, steps=150, **env_kwargs):
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=B, max_steps=steps, **env_kwargs)
+    rec = record_environment(env, steps, seed=11)
+    g = torch.Generator().manual_seed(3)
+    mean0 = torch.as_tensor(rec.truth_mrp[:, 0]) + 1e-4 * torch.randn(B, 3, generator=g, dtype=F64)
+    return fit_attitude_parameters(
+        rec, {**BASE, **configured}, learn, prior_mean=mean0, prior_cov=1e-8 * torch.eye(3, dtype=F64), max_iter=30, update_iterations=3
+    )
+
+
+def test_learns_gyro_noise_from_twice_the_configured_value():
+    r = _fit(["sigma_v"], {"sigma_v": 1e-5}, sigma_v=2e-5, star_period=5.0)
+    assert r.converged and abs(r.learned["sigma_v"] / 2e-5 - 1) < 0.10
+    assert not r.inside["sigma_v"]  # the configured 1e-5 is flagged
+
+
+def test_learns_a_constant_gyro_bias():
+    b = 2e-5
+    r = _fit(["bias"], {"bias": [0.0, 0.0, 0.0]}, initial_bias=b, star_period=2.0)
+    assert all(abs(v / b - 1) < 0.10 for v in r.learned["bias"])
+    assert not r.inside["bias"]
+
+
+def test_star_noise_under_the_isotropic_unit_vector_model():
+    """The camera's noise lies in the 2 directions across the star vector; the filter's model
+    σ_s²I₃ spreads it over 3, so its maximum-likelihood σ_s is √(2/3) of the simulated one."""
+    r = _fit(["sigma_s"], {"sigma_s": 5e-6}, sigma_s=1e-5)
+    assert abs(r.learned["sigma_s"] / (math.sqrt(2 / 3) * 1e-5) - 1) < 0.05
+    assert not r.inside["sigma_s"]
+
+
+def test_bad_requests():
+    with pytest.raises(ValueError, match="unknown parameter"):
+        fit_attitude_parameters(None, {**BASE, "gamma": 1.0}, ["gamma"], prior_mean=None, prior_cov=None)
+    with pytest.raises(ValueError, match="nothing to learn"):
+        fit_attitude_parameters(None, BASE, [], prior_mean=None, prior_cov=None)
+    with pytest.raises(ValueError, match="must be > 0"):
+        fit_attitude_parameters(None, {**BASE, "sigma_s": 0.0}, ["sigma_s"], prior_mean=None, prior_cov=None)
