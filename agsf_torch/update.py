@@ -87,7 +87,7 @@ def kalman_update(
     EKF (Gauss–Newton on the MAP problem of each component): the measurement is
     relinearised at the current iterate ``xⱼ``,
 
-    .. math:: x_{j+1} = μ + K_j\left(\tilde y - h(x_j) - H_j(μ - x_j)\right),
+    .. math:: x_{j+1} = μ + K_j\\left(\\tilde y - h(x_j) - H_j(μ - x_j)\\right),
 
     and the covariance, the innovation and ``βᵢ`` use the last linearisation.
     It removes the linearisation error of the first star frame after a wide
