@@ -176,7 +176,7 @@ def fit_attitude_parameters(
         history.append(float(loss.detach()))
         last_finite.copy_(x.detach())
         if log is not None:
-            log(len(history), float(loss), {k: v.detach().tolist() for k, v in unpack(x.detach()).items() if k in learn})
+            log(len(history), float(loss.detach()), {k: v.detach().tolist() for k, v in unpack(x.detach()).items() if k in learn})
         return loss
 
     try:

@@ -127,6 +127,29 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _diagnose(args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .diagnose import diagnose
+
+    cfg = load_config(args.config, args.set)
+    _threads(args)
+    report, passed = diagnose(cfg, Path(args.out), progress=not args.quiet)
+    print(report)
+    return 0 if passed else 1
+
+
+def _learn(args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .learn import learn
+
+    cfg = load_config(args.config, args.set)
+    _threads(args)
+    names = [n.strip() for n in args.learn.split(",") if n.strip()]
+    report = learn(cfg, names, Path(args.out), recording=args.recording, max_iter=args.max_iter)
+    print(report)
+    return 0
+
+
 def _threads(args: argparse.Namespace) -> None:
     if getattr(args, "threads", None):
         torch.set_num_threads(max(1, args.threads))
@@ -179,6 +202,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     common(p)
     p.set_defaults(func=_sweep)
+    p = sub.add_parser("diagnose", help="consistency checks (NEES, NIS, whiteness) of one configuration, in words")
+    p.add_argument("config", help="TOML file or preset")
+    p.add_argument("--out", required=True)
+    common(p)
+    p.set_defaults(func=_diagnose)
+
+    p = sub.add_parser("learn", help="maximum-likelihood fit of noise-model parameters through the filter")
+    p.add_argument("config", help="TOML file or preset (simulation and filter settings)")
+    p.add_argument("--learn", required=True, help="comma-separated: sigma_v, sigma_u, sigma_s, bias, reg, prior_scale")
+    p.add_argument("--recording", default=None, help="a recorded .npz file instead of simulating (needs truth for the prior)")
+    p.add_argument("--max-iter", type=_positive_int, default=40)
+    p.add_argument("--out", required=True)
+    common(p)
+    p.set_defaults(func=_learn)
+
     p = sub.add_parser("bench", help="throughput, peers (filterpy, Clarabel), FLOP rates, memory")
     p.add_argument("--out", default="runs/bench")
     p.add_argument("--budget", type=_positive_float, default=20.0, help="s per measurement before extrapolating")

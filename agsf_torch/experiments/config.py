@@ -56,6 +56,9 @@ class ExperimentConfig:
         filters: which of EKF, GSF, AGSF to run.
         seed: seeds truth, noise and prior draws.
         compile: ``torch.compile`` the FPKE quadrature kernel.
+        filter_sigma_s_scale: the filters assume ``σ_s × scale`` (1: the simulated value;
+            other values make a deliberately mis-modelled filter, e.g. for ``agsf diagnose``).
+        filter_sigma_v_scale: likewise for σ_v.
     """
 
     name: str = "experiment"
@@ -84,6 +87,8 @@ class ExperimentConfig:
     filters: list = field(default_factory=lambda: list(FILTER_NAMES))
     seed: int = 0
     compile: bool = False
+    filter_sigma_s_scale: float = 1.0
+    filter_sigma_v_scale: float = 1.0
 
     def __post_init__(self) -> None:
         types = {f.name: f.type for f in dataclasses.fields(self)}
@@ -105,7 +110,10 @@ class ExperimentConfig:
             elif kind == "list":
                 if not isinstance(value, list):
                     raise ValueError(f"config key '{key}' must be a list, got {value!r}")
-        positive = ("duration", "dt", "star_period", "sigma_s", "fov_deg", "focal_length", "prior_var", "prior_bias_sigma_deg_per_hr")
+        positive = (
+            "duration", "dt", "star_period", "sigma_s", "fov_deg", "focal_length", "prior_var",
+            "prior_bias_sigma_deg_per_hr", "filter_sigma_s_scale", "filter_sigma_v_scale",
+        )
         for key in positive:
             v = getattr(self, key)
             if not math.isfinite(v) or v <= 0:

@@ -73,7 +73,7 @@ def make_env(cfg: ExperimentConfig):
 
 def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:
     """EKF / GSF / AGSF of a configuration, all on the same attitude model."""
-    model = AttitudeModel(estimate_bias=cfg.estimate_bias, sigma_v=cfg.sigma_v, sigma_u=cfg.sigma_u)
+    model = AttitudeModel(estimate_bias=cfg.estimate_bias, sigma_v=cfg.sigma_v * cfg.filter_sigma_v_scale, sigma_u=cfg.sigma_u)
     kw = {"update_iterations": cfg.update_iterations}
     made = {
         "EKF": lambda: FilterSetup(ExtendedKalmanFilter(model, **kw), 1),
@@ -103,6 +103,7 @@ def _save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
         data[f"{name}/sigma"] = tr.sigma
         data[f"{name}/nees"] = tr.nees
         data[f"{name}/nis"] = tr.nis
+        data[f"{name}/nis_dof"] = tr.nis_dof
         data[f"{name}/weights"] = tr.weights
         data[f"{name}/weight_entropy"] = tr.weight_entropy
         for key in ("fpke_error_before", "fpke_error_after"):
@@ -271,7 +272,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, *, progress: bool = True, k
         make_filters(cfg),
         num_steps=cfg.num_steps,
         prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s,
+        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
         seed=cfg.seed,
         estimate_bias=cfg.estimate_bias,
         progress=progress,

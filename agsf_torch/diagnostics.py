@@ -1,0 +1,114 @@
+"""Consistency diagnostics: do the filter's covariances match its errors and innovations?
+
+* **NEES** (needs the truth): the run- and time-averaged ``eᵀP⁻¹e`` against the
+  two-sided 95 % χ² band of the run average (``n`` degrees of freedom per run).
+* **NIS** (always): ``νᵀS⁻¹ν`` at star frames divided by its expected value,
+  against the χ² band of the average.  For star unit vectors under the model
+  ``σ_s²I₃`` the noise has 2 degrees of freedom per star, not 3 (it lies across
+  the star vector), so the expected NIS is ``tangent_fraction · d`` with
+  ``tangent_fraction = 2/3`` for ``d`` valid entries.
+* **Whiteness**: the lag-1 autocorrelation of the standardised NIS sequence of
+  each run, averaged over runs, against ``±1.96/√(count)``.
+* **FPKE error**: reported (mean before/after the weight update), not judged.
+
+Each check says in words whether it passes and what a failure suggests.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .metrics import chi2_band
+
+__all__ = ["Check", "consistency_checks", "format_report"]
+
+
+@dataclass(frozen=True)
+class Check:
+    name: str
+    value: float
+    band: tuple[float, float]
+    passed: bool
+    text: str
+
+
+def consistency_checks(
+    *,
+    nees: np.ndarray | None,
+    state_dim: int,
+    nis: np.ndarray,
+    nis_dof: np.ndarray,
+    tangent_fraction: float = 2.0 / 3.0,
+    confidence: float = 0.95,
+) -> list[Check]:
+    """The checks of the module docstring.
+
+    Args:
+        nees: ``[T, B]`` or ``None`` (no truth).
+        state_dim: ``n``.
+        nis: ``[T, B]`` NIS at star frames, NaN elsewhere.
+        nis_dof: ``[T, B]`` valid measurement entries at each NIS.
+        tangent_fraction: expected NIS per valid entry (2/3 for star unit vectors).
+    """
+    checks: list[Check] = []
+    if nees is not None:
+        B = nees.shape[1]
+        lo, hi = chi2_band(state_dim, B, confidence)
+        v = float(np.mean(nees))
+        ok = lo <= v <= hi
+        text = (
+            f"NEES {v:.4g} inside [{lo:.4g}, {hi:.4g}]: the covariance matches the errors"
+            if ok
+            else f"NEES {v:.4g} {'above' if v > hi else 'below'} [{lo:.4g}, {hi:.4g}]: the filter is "
+            + ("over-confident (errors larger than its covariance)" if v > hi else "under-confident (covariance too large)")
+        )
+        checks.append(Check("nees", v, (lo, hi), ok, text))
+    valid = np.isfinite(nis) & (nis_dof > 0)
+    expected = tangent_fraction * nis_dof[valid]
+    count = int(valid.sum())
+    if count:
+        ratio = float(nis[valid].sum() / expected.sum())
+        k = float(expected.mean())
+        lo, hi = chi2_band(k, count, confidence)
+        lo, hi = lo / k, hi / k
+        ok = lo <= ratio <= hi
+        text = (
+            f"NIS / expected {ratio:.4g} inside [{lo:.4g}, {hi:.4g}]: innovations match the measurement model"
+            if ok
+            else f"NIS / expected {ratio:.4g} {'above' if ratio > hi else 'below'} [{lo:.4g}, {hi:.4g}]: innovations are "
+            + ("larger than the filter expects — measurement or process noise under-modelled" if ratio > hi else "smaller than the filter expects — noise over-modelled")
+        )
+        checks.append(Check("nis", ratio, (lo, hi), ok, text))
+        # whiteness: lag-1 autocorrelation of the standardised NIS per run
+        z = np.where(valid, (nis - tangent_fraction * nis_dof) / np.sqrt(2.0 * np.maximum(tangent_fraction * nis_dof, 1e-300)), np.nan)
+        rows = [z[valid[:, b], b] for b in range(z.shape[1])]  # the frames of each run (a loop over runs in numpy: a report, not the filter)
+        num, n_pairs = 0.0, 0
+        for r in rows:
+            if r.size > 2:
+                r = r - r.mean()
+                den = float((r * r).sum())
+                if den > 0:
+                    num += float((r[1:] * r[:-1]).sum() / den) * (r.size - 1)
+                    n_pairs += r.size - 1
+        if n_pairs:
+            rho = num / n_pairs
+            bound = 1.959963984540054 / math.sqrt(n_pairs)
+            ok = abs(rho) <= bound
+            text = (
+                f"innovation lag-1 autocorrelation {rho:.3g} within ±{bound:.3g}: white"
+                if ok
+                else f"innovation lag-1 autocorrelation {rho:.3g} outside ±{bound:.3g}: correlated innovations — unmodelled dynamics or bias"
+            )
+            checks.append(Check("whiteness", rho, (-bound, bound), ok, text))
+    return checks
+
+
+def format_report(name: str, checks: list[Check], fpke: tuple[float, float] | None = None) -> str:
+    lines = [f"{name}: " + ("all checks pass" if all(c.passed for c in checks) else "FAILED: " + ", ".join(c.name for c in checks if not c.passed))]
+    lines += [f"  [{'pass' if c.passed else 'FAIL'}] {c.text}" for c in checks]
+    if fpke is not None:
+        lines.append(f"  [info] FPKE error wᵀLw (mean): {fpke[0]:.4g} before, {fpke[1]:.4g} after the weight update")
+    return "\n".join(lines)

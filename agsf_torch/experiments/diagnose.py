@@ -1,0 +1,44 @@
+"""``agsf diagnose``: run a configuration and judge its consistency in words."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..diagnostics import consistency_checks, format_report
+from .config import ExperimentConfig
+from .experiment import run_experiment
+
+__all__ = ["diagnose"]
+
+
+def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True) -> tuple[str, bool]:
+    """Run ``cfg`` under ``out`` and check every filter; writes ``diagnose.json`` / ``diagnose.md``.
+
+    Returns:
+        ``(report text, whether every check of every filter passed)``.
+    """
+    run_experiment(cfg, out, progress=progress, kind="diagnose")
+    data = np.load(Path(out) / "runs.npz")
+    n = 6 if cfg.estimate_bias else 3
+    texts, result, passed = [], {}, True
+    for name in cfg.filters:
+        checks = consistency_checks(
+            nees=data[f"{name}/nees"], state_dim=n, nis=data[f"{name}/nis"], nis_dof=data[f"{name}/nis_dof"]
+        )
+        fpke = None
+        if f"{name}/fpke_error_before" in data:
+            fpke = (float(data[f"{name}/fpke_error_before"].mean()), float(data[f"{name}/fpke_error_after"].mean()))
+        texts.append(format_report(name, checks, fpke))
+        result[name] = [c.__dict__ for c in checks]
+        passed &= all(c.passed for c in checks)
+    report = "\n".join(texts)
+    (Path(out) / "diagnose.json").write_text(json.dumps({"passed": passed, "filters": result}, indent=2, default=float))
+    (Path(out) / "diagnose.md").write_text(report + "\n")
+    from torch.utils.tensorboard import SummaryWriter
+
+    with SummaryWriter(str(Path(out) / "tensorboard")) as writer:
+        writer.add_text("diagnose", report.replace("\n", "  \n"))
+    return report, passed

@@ -1,0 +1,67 @@
+"""``agsf learn``: fit noise-model parameters on simulated or recorded trajectories."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from ..learning import fit_attitude_parameters
+from ..recordings import Recording
+from .config import DEG_PER_HOUR, ExperimentConfig
+from .experiment import make_env, prepare_output, prior_covariance
+from .recorded import record_environment
+
+__all__ = ["learn"]
+
+
+def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str | None = None, max_iter: int = 40) -> str:
+    """Fit ``names`` by maximum likelihood (EKF, ``cfg.update_iterations``); report learned vs configured.
+
+    Data: ``recording`` if given, else ``cfg.runs`` simulated trajectories.  The
+    configured values are the filter's (σ scaled by the ``filter_*_scale`` keys).
+    """
+    out = prepare_output(Path(out), "learn", cfg.digest() + ",".join(names) + str(recording), cfg.to_dict())
+    rec = Recording.load(recording) if recording else record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
+    if rec.truth_mrp is None:
+        raise ValueError("learning needs a prior mean: the recording has no truth_mrp (column)")
+    gen = torch.Generator().manual_seed(cfg.seed + 7919)
+    n = 6 if cfg.estimate_bias else 3
+    P0 = prior_covariance(cfg)
+    truth0 = torch.cat((torch.as_tensor(rec.truth_mrp[:, 0]), torch.as_tensor(rec.truth_bias[:, 0]) if rec.truth_bias is not None else torch.zeros(rec.num_trajectories, 3, dtype=torch.float64)), -1)[:, :n]
+    mean0 = truth0 + torch.randn(truth0.shape, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(P0).T
+    configured = {
+        "sigma_v": cfg.sigma_v * cfg.filter_sigma_v_scale,
+        "sigma_u": cfg.sigma_u,
+        "sigma_s": cfg.sigma_s * cfg.filter_sigma_s_scale,
+        "bias": [cfg.gyro_bias_deg_per_hr * DEG_PER_HOUR] * 3,
+        "reg": cfg.reg,
+        "prior_scale": 1.0,
+    }
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(str(out / "tensorboard"))
+
+    def log(i, nll, values):
+        writer.add_scalar("learn/nll", nll, i)
+        for k, v in values.items():
+            for j, x in enumerate(v if isinstance(v, list) else [v]):
+                writer.add_scalar(f"learn/{k}" + (f"_{j}" if isinstance(v, list) else ""), x, i)
+
+    try:
+        res = fit_attitude_parameters(
+            rec, configured, names, prior_mean=mean0, prior_cov=P0, max_iter=max_iter, log=log,
+            estimate_bias=cfg.estimate_bias, update_iterations=cfg.update_iterations,
+        )
+    finally:
+        writer.close()
+    lines = [f"learn ({res.message}; −log-likelihood {res.nll:.6g} after {len(res.history)} evaluations):"]
+    for k in names:
+        flag = "consistent with the data" if res.inside[k] else "OUTSIDE the 95 % interval: mis-modelled"
+        lines.append(f"  {k}: learned {res.learned[k]}, 95 % interval {res.interval[k]}, configured {res.configured[k]} — {flag}")
+    report = "\n".join(lines)
+    (out / "learn.json").write_text(json.dumps(res.__dict__, indent=2, default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o)))
+    (out / "learn.md").write_text(report + "\n")
+    return report
