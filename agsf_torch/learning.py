@@ -36,6 +36,10 @@ _POSITIVE = {"sigma_v", "sigma_u", "sigma_s", "reg", "prior_scale"}
 F64 = torch.float64
 
 
+class _Diverged(Exception):
+    """The likelihood or its gradient became non-finite."""
+
+
 @dataclass
 class FitResult:
     """Learned values, 95 % intervals, the configured values and whether each lies inside.
@@ -68,6 +72,7 @@ def attitude_log_likelihood(
     num_components: int = 1,
     estimate_bias: bool = False,
     update_iterations: int = 1,
+    noise_model: str = "isotropic",
 ) -> Tensor:
     """``Σ_b Σ_updates log Σᵢ wᵢβᵢ`` of a recording under the parameters ``params``.
 
@@ -76,6 +81,7 @@ def attitude_log_likelihood(
         params: ``sigma_v``, ``sigma_u``, ``sigma_s``, ``bias``, ``reg``, ``prior_scale``
             (tensors; any may require grad).
         prior_mean: ``[B, n]``; prior_cov: ``[n, n]`` (scaled by ``prior_scale``).
+        noise_model: the star-vector noise model (:class:`~agsf_torch.models.StarVectorMeasurement`).
     """
     model = AttitudeModel(
         estimate_bias=estimate_bias, sigma_v=params["sigma_v"], sigma_u=params["sigma_u"], bias=params["bias"]
@@ -106,6 +112,7 @@ def attitude_log_likelihood(
                     "star_mask": torch.as_tensor(rec.star_mask[:, k]),
                 },
                 params["sigma_s"],
+                noise_model=noise_model,
             )
             mix = filt.update(mix, y, meas)
             total = total + filt.diagnostics["log_likelihood"].sum()
@@ -170,9 +177,10 @@ def fit_attitude_parameters(
         opt.zero_grad()
         loss = nll(x)
         if not torch.isfinite(loss):
-            state["diverged"] = True
-            return loss
+            raise _Diverged
         loss.backward()
+        if not bool(torch.isfinite(x.grad).all()):
+            raise _Diverged
         history.append(float(loss.detach()))
         last_finite.copy_(x.detach())
         if log is not None:
@@ -181,9 +189,8 @@ def fit_attitude_parameters(
 
     try:
         opt.step(closure)
-    except RuntimeError as exc:  # a failed factorisation inside the filter at a wild step
+    except (_Diverged, RuntimeError, ValueError):  # non-finite likelihood, or a failed factorisation at a wild step
         state["diverged"] = True
-        state["error"] = str(exc)
     x_hat = last_finite if state["diverged"] or not torch.isfinite(x).all() else x.detach()
     values = unpack(x_hat)
     hess = torch.autograd.functional.hessian(nll, x_hat)

@@ -16,13 +16,14 @@ DEG_PER_HOUR = math.pi / 180 / 3600
 BASE = dict(sigma_v=math.sqrt(10) * 1e-7, sigma_u=math.sqrt(10) * 1e-10, sigma_s=1e-5, bias=[0.1 * DEG_PER_HOUR] * 3, reg=1.0, prior_scale=1.0)
 
 
-def _fit(learn, configured, B=24, steps=150, **env_kwargs):
+def _fit(learn, configured, B=24, steps=150, noise_model="isotropic", **env_kwargs):
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=B, max_steps=steps, **env_kwargs)
     rec = record_environment(env, steps, seed=11)
     g = torch.Generator().manual_seed(3)
     mean0 = torch.as_tensor(rec.truth_mrp[:, 0]) + 1e-4 * torch.randn(B, 3, generator=g, dtype=F64)
     return fit_attitude_parameters(
-        rec, {**BASE, **configured}, learn, prior_mean=mean0, prior_cov=1e-8 * torch.eye(3, dtype=F64), max_iter=30, update_iterations=3
+        rec, {**BASE, **configured}, learn, prior_mean=mean0, prior_cov=1e-8 * torch.eye(3, dtype=F64), max_iter=30, update_iterations=3,
+        noise_model=noise_model,
     )
 
 
@@ -47,6 +48,12 @@ def test_star_noise_under_the_isotropic_unit_vector_model():
     assert not r.inside["sigma_s"]
 
 
+def test_learns_star_noise_from_twice_the_configured_value_with_the_tangent_model():
+    r = _fit(["sigma_s"], {"sigma_s": 5e-6}, sigma_s=1e-5, noise_model="tangent")
+    assert r.converged and abs(r.learned["sigma_s"] / 1e-5 - 1) < 0.10
+    assert not r.inside["sigma_s"]
+
+
 def test_bad_requests():
     with pytest.raises(ValueError, match="unknown parameter"):
         fit_attitude_parameters(None, {**BASE, "gamma": 1.0}, ["gamma"], prior_mean=None, prior_cov=None)
@@ -54,3 +61,20 @@ def test_bad_requests():
         fit_attitude_parameters(None, BASE, [], prior_mean=None, prior_cov=None)
     with pytest.raises(ValueError, match="must be > 0"):
         fit_attitude_parameters(None, {**BASE, "sigma_s": 0.0}, ["sigma_s"], prior_mean=None, prior_cov=None)
+
+
+def test_a_diverging_fit_stops_with_the_last_finite_parameters(monkeypatch):
+    import agsf_torch.learning as learning
+
+    calls = {"n": 0}
+    real = learning.attitude_log_likelihood
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        value = real(*args, **kwargs)
+        return value if calls["n"] <= 3 else value * float("nan")
+
+    monkeypatch.setattr(learning, "attitude_log_likelihood", flaky)
+    r = _fit(["sigma_v"], {"sigma_v": 1e-5}, B=4, steps=30, sigma_v=2e-5, star_period=1.0)
+    assert not r.converged and "diverged" in r.message
+    assert math.isfinite(r.learned["sigma_v"]) and len(r.history) >= 1

@@ -83,3 +83,23 @@ def test_replay_needs_truth(recording):
     a = _arrays(recording)
     with pytest.raises(ValueError, match="truth"):
         RecordingEnv(Recording(**a))
+
+
+def test_cli_simulate_then_run_on_the_file(tmp_path):
+    import json
+
+    from agsf_torch.experiments import cli
+    from agsf_torch.experiments.config import load_config
+    from agsf_torch.experiments.experiment import make_env, run_experiment
+
+    cfg = load_config("case1", ["runs=6", "duration=3.0", "compile=false", 'filters=["EKF", "GSF"]'])
+    path = record_environment(make_env(cfg), cfg.num_steps, cfg.seed).save(tmp_path / "rec.npz")
+    args = ["run", "case1", "--recording", str(path), "--quiet", "--out", str(tmp_path / "replay")]
+    args += sum([["--set", s] for s in ("runs=6", "duration=3.0", "compile=false", 'filters=["EKF", "GSF"]')], [])
+    assert cli.main(args) == 0
+    live = run_experiment(cfg, tmp_path / "live", progress=False)
+    replay = json.loads((tmp_path / "replay" / "summary.json").read_text())
+    assert replay["filters"]["GSF"]["rms_deg"] == live["filters"]["GSF"]["rms_deg"]
+    assert cli.main(["simulate", "--runs", "3", "--steps", "20", "--out", str(tmp_path / "sim")]) == 0
+    assert Recording.load(tmp_path / "sim" / "recording.npz").num_samples == 21
+    assert cli.main(args[:4] + ["--set", "runs=7", "--out", str(tmp_path / "x")]) == 2  # shape mismatch named

@@ -46,30 +46,21 @@ def _positive_float(text: str) -> float:
 def _simulate(args: argparse.Namespace) -> int:
     import envs
 
+    from ..recordings import FORMAT
     from .experiment import prepare_output
+    from .recorded import record_environment
 
     params = {"runs": args.runs, "steps": args.steps, "star_period": args.star_period, "seed": args.seed}
     out = prepare_output(Path(args.out), "simulate", json.dumps(params, sort_keys=True), params)
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, max_steps=args.steps, star_period=args.star_period)
     t0 = time.perf_counter()
-    sim = env.simulate(args.steps, seed=args.seed)
+    rec = record_environment(env, args.steps, args.seed)
+    path = rec.save(out / "recording.npz")
     elapsed = time.perf_counter() - t0
-    data = {k: v.numpy() for k, v in sim.items() if torch.is_tensor(v)}
-    np.savez_compressed(out / "simulation.npz", **data)
-    stars = data["star_mask"].sum(-1)
-    counts = np.bincount(stars.ravel(), minlength=env.config.max_stars + 1)
-    summary = {
-        "command": "simulate",
-        "runs": args.runs,
-        "steps": args.steps,
-        "seed": args.seed,
-        "star_period_s": args.star_period,
-        "seconds": elapsed,
-        "stars_per_frame_histogram": counts.tolist(),
-        "keys": sorted(data),
-    }
+    counts = np.bincount(rec.star_mask[:, rec.star_frames()].sum(-1).ravel(), minlength=env.config.max_stars + 1)
+    summary = {**params, "command": "simulate", "format": FORMAT, "seconds": elapsed, "stars_per_frame_histogram": counts.tolist()}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"simulated {args.runs} trajectories × {args.steps} steps in {elapsed:.1f} s → {out}")
+    print(f"simulated {args.runs} trajectories × {args.steps} steps in {elapsed:.1f} s → {path} ({FORMAT})")
     print(f"stars per frame (0..{env.config.max_stars}): {counts.tolist()}")
     return 0
 
@@ -80,7 +71,7 @@ def _run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.set)
     _threads(args)
-    summary = run_experiment(cfg, Path(args.out), progress=not args.quiet, kind="run")
+    summary = run_experiment(cfg, Path(args.out), progress=not args.quiet, kind="run", recording=args.recording)
     _print_summary(cfg.name, summary)
     print(f"results: {args.out}/summary.json, figures *.png, TensorBoard: tensorboard --logdir {args.out}")
     return 0
@@ -184,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="one configuration (a TOML file or a preset name)")
     p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior)")
+    p.add_argument("--recording", default=None, help="replay a recorded .npz file (with truth) instead of simulating")
     p.add_argument("--out", required=True)
     common(p)
     p.set_defaults(func=_run)

@@ -59,6 +59,8 @@ class ExperimentConfig:
         filter_sigma_s_scale: the filters assume ``σ_s × scale`` (1: the simulated value;
             other values make a deliberately mis-modelled filter, e.g. for ``agsf diagnose``).
         filter_sigma_v_scale: likewise for σ_v.
+        star_noise_model: the filters' star-vector noise model, ``"isotropic"`` (σ_s²I₃,
+            the method) or ``"tangent"`` (noise across the star direction only).
     """
 
     name: str = "experiment"
@@ -89,6 +91,7 @@ class ExperimentConfig:
     compile: bool = False
     filter_sigma_s_scale: float = 1.0
     filter_sigma_v_scale: float = 1.0
+    star_noise_model: str = "isotropic"
 
     def __post_init__(self) -> None:
         types = {f.name: f.type for f in dataclasses.fields(self)}
@@ -133,6 +136,8 @@ class ExperimentConfig:
             raise ValueError(f"config key 'fov_deg' must be < 180, got {self.fov_deg!r}")
         if self.scaling not in ("trace", "none"):
             raise ValueError(f"config key 'scaling' must be 'trace' or 'none', got {self.scaling!r}")
+        if self.star_noise_model not in ("isotropic", "tangent"):
+            raise ValueError(f"config key 'star_noise_model' must be 'isotropic' or 'tangent', got {self.star_noise_model!r}")
         if self.weight_ref not in ("update", "previous"):
             raise ValueError(f"config key 'weight_ref' must be 'update' or 'previous', got {self.weight_ref!r}")
         if len(self.rate_axes) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes):

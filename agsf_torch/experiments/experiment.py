@@ -263,10 +263,28 @@ def _tensorboard(out: Path, data: dict[str, np.ndarray], summary: dict[str, Any]
     writer.close()
 
 
-def run_experiment(cfg: ExperimentConfig, out: Path, *, progress: bool = True, kind: str = "run") -> dict[str, Any]:
-    """Run one configuration and write everything it produces under ``out``."""
-    out = prepare_output(Path(out), kind, cfg.digest(), cfg.to_dict())
-    env = make_env(cfg)
+def run_experiment(
+    cfg: ExperimentConfig, out: Path, *, progress: bool = True, kind: str = "run", recording: str | Path | None = None
+) -> dict[str, Any]:
+    """Run one configuration and write everything it produces under ``out``.
+
+    With ``recording`` the filters replay that file (it must hold the truth and
+    ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps) instead of a simulation.
+    """
+    if recording is not None:
+        from ..recordings import Recording
+        from .recorded import RecordingEnv
+
+        env = RecordingEnv(Recording.load(recording))
+        if env.num_envs != cfg.runs or env.config.max_steps < cfg.num_steps or abs(env.config.dt - cfg.dt) > 1e-9 * cfg.dt:
+            raise ValueError(
+                f"recording {recording} has {env.num_envs} trajectories × {env.config.max_steps} steps of {env.config.dt} s; "
+                f"the configuration needs runs={cfg.runs}, ≥ {cfg.num_steps} steps of dt={cfg.dt}"
+            )
+        digest = cfg.digest() + ":" + str(Path(recording).resolve())
+    else:
+        env, digest = make_env(cfg), cfg.digest()
+    out = prepare_output(Path(out), kind, digest, cfg.to_dict())
     res = run_monte_carlo(
         env,
         make_filters(cfg),
@@ -276,6 +294,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, *, progress: bool = True, k
         seed=cfg.seed,
         estimate_bias=cfg.estimate_bias,
         progress=progress,
+        noise_model=cfg.star_noise_model,
     )
     data = _save_runs(out / "runs.npz", res)
     summary = summarize(data, cfg)

@@ -53,7 +53,7 @@ def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str 
     try:
         res = fit_attitude_parameters(
             rec, configured, names, prior_mean=mean0, prior_cov=P0, max_iter=max_iter, log=log,
-            estimate_bias=cfg.estimate_bias, update_iterations=cfg.update_iterations,
+            estimate_bias=cfg.estimate_bias, update_iterations=cfg.update_iterations, noise_model=cfg.star_noise_model,
         )
     finally:
         writer.close()

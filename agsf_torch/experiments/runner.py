@@ -106,6 +106,7 @@ def run_monte_carlo(
     estimate_bias: bool = False,
     progress: bool = False,
     callback=None,
+    noise_model: str = "isotropic",
 ) -> MonteCarloResult:
     """Run every filter over ``num_steps`` gyro periods of a batched environment.
 
@@ -121,6 +122,7 @@ def run_monte_carlo(
             ``True`` → 6-state.
         progress: show a progress bar.
         callback: optional ``callback(step, name, filter, mixture)`` after each step.
+        noise_model: star-vector noise model of the filters (``"isotropic"`` or ``"tangent"``).
     """
     n = 6 if estimate_bias else 3
     prior_cov = torch.as_tensor(prior_cov, dtype=torch.float64)
@@ -167,6 +169,7 @@ def run_monte_carlo(
             y, meas = StarVectorMeasurement.from_observation(
                 {"star_body": _as_tensor(obs["star_body"]), "star_inertial": _as_tensor(obs["star_inertial"]), "star_mask": mask},
                 sigma_s,
+                noise_model=noise_model,
             )
         times.append(float(_as_tensor(obs["time"]).reshape(B, -1)[0, 0]))
         frames.append(has_stars)

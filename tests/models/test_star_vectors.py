@@ -76,3 +76,22 @@ def test_from_observation(gen):
 def test_bad_input_raises(args, match):
     with pytest.raises(ValueError, match=match):
         StarVectorMeasurement(*args)
+
+
+def test_tangent_noise_model(gen):
+    r = _unit(gen, 2, 3)
+    body = _unit(gen, 2, 3)
+    meas = StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent", body=body, radial_sigma=1e-3)
+    R = meas.noise_cov()
+    assert R.shape == (2, 9, 9)
+    torch.testing.assert_close(R, R.transpose(-1, -2), rtol=0, atol=0)
+    block = R[1, 3:6, 3:6]
+    b = body[1, 1]
+    torch.testing.assert_close(block @ b, 1e-6 * b, rtol=1e-12, atol=0)  # radial: σ_r²
+    t = torch.linalg.cross(b, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(block @ t, 1e-10 * t, rtol=1e-9, atol=1e-25)  # across: σ_s²
+    assert float(R[0, 0:3, 3:6].abs().max()) == 0.0
+    with pytest.raises(ValueError, match="body"):
+        StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent")
+    with pytest.raises(ValueError, match="noise_model"):
+        StarVectorMeasurement(r, sigma=1e-5, noise_model="radial")
