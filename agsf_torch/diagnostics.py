@@ -57,31 +57,28 @@ def consistency_checks(
     if nees is not None:
         B = nees.shape[1]
         lo, hi = chi2_band(state_dim, B, confidence)
-        v = float(np.mean(nees))
-        ok = lo <= v <= hi
-        text = (
-            f"NEES {v:.4g} inside [{lo:.4g}, {hi:.4g}]: the covariance matches the errors"
-            if ok
-            else f"NEES {v:.4g} {'above' if v > hi else 'below'} [{lo:.4g}, {hi:.4g}]: the filter is "
-            + ("over-confident (errors larger than its covariance)" if v > hi else "under-confident (covariance too large)")
+        checks.append(
+            _band_check(
+                "nees", "NEES", float(np.mean(nees)), lo, hi,
+                "the covariance matches the errors",
+                "the filter is over-confident (errors larger than its covariance)",
+                "the filter is under-confident (covariance too large)",
+            )
         )
-        checks.append(Check("nees", v, (lo, hi), ok, text))
     valid = np.isfinite(nis) & (nis_dof > 0)
     expected = tangent_fraction * nis_dof[valid]
     count = int(valid.sum())
     if count:
-        ratio = float(nis[valid].sum() / expected.sum())
         k = float(expected.mean())
         lo, hi = chi2_band(k, count, confidence)
-        lo, hi = lo / k, hi / k
-        ok = lo <= ratio <= hi
-        text = (
-            f"NIS / expected {ratio:.4g} inside [{lo:.4g}, {hi:.4g}]: innovations match the measurement model"
-            if ok
-            else f"NIS / expected {ratio:.4g} {'above' if ratio > hi else 'below'} [{lo:.4g}, {hi:.4g}]: innovations are "
-            + ("larger than the filter expects — measurement or process noise under-modelled" if ratio > hi else "smaller than the filter expects — noise over-modelled")
+        checks.append(
+            _band_check(
+                "nis", "NIS / expected", float(nis[valid].sum() / expected.sum()), lo / k, hi / k,
+                "innovations match the measurement model",
+                "innovations are larger than the filter expects — measurement or process noise under-modelled",
+                "innovations are smaller than the filter expects — noise over-modelled",
+            )
         )
-        checks.append(Check("nis", ratio, (lo, hi), ok, text))
         # whiteness: lag-1 autocorrelation of the standardised NIS per run
         z = np.where(valid, (nis - tangent_fraction * nis_dof) / np.sqrt(2.0 * np.maximum(tangent_fraction * nis_dof, 1e-300)), np.nan)
         rows = [z[valid[:, b], b] for b in range(z.shape[1])]  # the frames of each run (a loop over runs in numpy: a report, not the filter)
@@ -104,6 +101,14 @@ def consistency_checks(
             )
             checks.append(Check("whiteness", rho, (-bound, bound), ok, text))
     return checks
+
+
+def _band_check(key: str, label: str, v: float, lo: float, hi: float, inside: str, above: str, below: str) -> Check:
+    """A value judged against ``[lo, hi]``, with the sentence for each outcome."""
+    if lo <= v <= hi:
+        return Check(key, v, (lo, hi), True, f"{label} {v:.4g} inside [{lo:.4g}, {hi:.4g}]: {inside}")
+    where, meaning = ("above", above) if v > hi else ("below", below)
+    return Check(key, v, (lo, hi), False, f"{label} {v:.4g} {where} [{lo:.4g}, {hi:.4g}]: {meaning}")
 
 
 def format_report(name: str, checks: list[Check], fpke: tuple[float, float] | None = None) -> str:

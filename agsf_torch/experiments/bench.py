@@ -212,10 +212,11 @@ def bench_matmul_peak(size: int = 2048) -> float:
 
 
 def propagation_flops(n: int) -> float:
-    """FLOPs of one component's RK4 step as written: per stage ``A P`` (2n³), ``AP + PAᵀ + GQGᵀ``
-    (3n²), the closed-form Jacobian and drift (~60) and the state/covariance increments (4n² + 4n)."""
-    stage = 2 * n**3 + 3 * n**2 + 60 + 4 * n**2 + 4 * n
-    return 4 * stage + 2 * n**2
+    """FLOPs of one component's RK4 step as written (transition-matrix form): per stage the
+    products ``AΦ`` and ``AS`` (4n³), ``AS + (AS)ᵀ + gQgᵀ`` (2n²), the closed-form Jacobian and
+    drift (~60) and the increments of μ, Φ, S (4n + 8n²); then ``ΦPΦᵀ + S`` (4n³ + 3n²)."""
+    stage = 4 * n**3 + 2 * n**2 + 60 + 4 * n + 8 * n**2
+    return 4 * stage + 4 * n**3 + 3 * n**2
 
 
 def lmatrix_flops(n: int, N: int, nodes: int) -> float:

@@ -20,8 +20,9 @@ def test_filterpy_baseline_runs_the_same_model():
 
 
 def test_flop_counts_follow_the_algorithm():
-    # one RK4 stage of a 3-state component: 2n³ + 3n² + 60 + 4n² + 4n = 54 + 27 + 60 + 36 + 12 = 189
-    assert bench.propagation_flops(3) == 4 * 189 + 2 * 9
+    # one RK4 stage of a 3-state component: 4n³ + 2n² + 60 + 4n + 8n² = 108 + 18 + 60 + 12 + 72 = 270,
+    # then ΦPΦᵀ + S: 4n³ + 3n² = 108 + 27
+    assert bench.propagation_flops(3) == 4 * 270 + 135
     # 15 pairs for N = 5; per node 2n² + 40 + 2(4n² + 10n) + 3 = 18 + 40 + 132 + 3 = 193 for n = 3
     assert bench.lmatrix_flops(3, 5, 343) == 15 * 343 * 193
 
