@@ -81,15 +81,16 @@ def consistency_checks(
         )
         # whiteness: lag-1 autocorrelation of the standardised NIS per run
         z = np.where(valid, (nis - tangent_fraction * nis_dof) / np.sqrt(2.0 * np.maximum(tangent_fraction * nis_dof, 1e-300)), np.nan)
-        rows = [z[valid[:, b], b] for b in range(z.shape[1])]  # the frames of each run (a loop over runs in numpy: a report, not the filter)
-        num, n_pairs = 0.0, 0
-        for r in rows:
-            if r.size > 2:
-                r = r - r.mean()
-                den = float((r * r).sum())
-                if den > 0:
-                    num += float((r[1:] * r[:-1]).sum() / den) * (r.size - 1)
-                    n_pairs += r.size - 1
+        frames = valid.any(1)
+        Z, V = z[frames], valid[frames]  # [F, B]
+        count_b = V.sum(0)
+        mean_b = np.where(V, Z, 0.0).sum(0) / np.maximum(count_b, 1)
+        Zc = np.where(V, Z - mean_b, 0.0)
+        den_b = (Zc * Zc).sum(0)
+        pairs_b = (V[1:] & V[:-1]).sum(0)
+        use = (count_b > 2) & (den_b > 0)
+        num = float(((Zc[1:] * Zc[:-1]).sum(0)[use] / den_b[use] * pairs_b[use]).sum())
+        n_pairs = int(pairs_b[use].sum())
         if n_pairs:
             rho = num / n_pairs
             bound = 1.959963984540054 / math.sqrt(n_pairs)

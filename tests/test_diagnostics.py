@@ -30,3 +30,24 @@ def test_learn_command_flags_the_configured_gyro_noise(tmp_path, capsys):
     assert abs(res["learned"]["sigma_v"] / 2e-5 - 1) < 0.15
     assert res["inside"]["sigma_v"] is False
     assert "mis-modelled" in capsys.readouterr().out
+
+
+def test_whiteness_check_on_synthetic_innovations():
+    import numpy as np
+
+    from agsf_torch.diagnostics import consistency_checks
+
+    rng = np.random.default_rng(0)
+    T, B, dof = 200, 20, 15
+    k = 10.0  # expected NIS = 2/3 · 15
+    white = rng.chisquare(k, size=(T, B))
+    e = np.zeros((T, B))
+    for t in range(1, T):  # AR(1), φ = 0.8, on the standardised scale
+        e[t] = 0.8 * e[t - 1] + 0.6 * rng.normal(size=B)
+    correlated = k + np.sqrt(2 * k) * e
+    dofs = np.full((T, B), float(dof))
+    by_name = lambda cs: {c.name: c for c in cs}  # noqa: E731
+    w = by_name(consistency_checks(nees=None, state_dim=3, nis=white, nis_dof=dofs))
+    c = by_name(consistency_checks(nees=None, state_dim=3, nis=correlated, nis_dof=dofs))
+    assert w["whiteness"].passed and w["nis"].passed
+    assert not c["whiteness"].passed and c["whiteness"].value > 0.5
