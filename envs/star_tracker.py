@@ -300,6 +300,29 @@ class StarTrackerSimulator:
         self.rate: Tensor | None = None
         self.last_gyro: Tensor | None = None
 
+    # --------------------------------------------------------------- checkpoints
+    _STATE = ("seeds", "q", "bias", "rate", "last_gyro")
+
+    def state_dict(self) -> dict[str, Any]:
+        """The simulation's full state (tensors and the step index); with the counter-based
+        random numbers this is everything a bit-identical continuation needs."""
+        state: dict[str, Any] = {"step_index": int(self.step_index)}
+        for key in self._STATE:
+            value = getattr(self, key)
+            state[key] = None if value is None else value.clone()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`; shapes must match this simulator's batch."""
+        for key in self._STATE:
+            value = state[key]
+            if value is not None and value.shape[0] != self.num_envs:
+                raise ValueError(f"state {key!r} has batch {value.shape[0]}, this simulator {self.num_envs}")
+        self.step_index = int(state["step_index"])
+        for key in self._STATE:
+            value = state[key]
+            setattr(self, key, None if value is None else value.to(self.device).clone())
+
     # ------------------------------------------------------------------ helpers
     def _time(self, k: int) -> float:
         return k * self.config.dt
@@ -641,6 +664,16 @@ class StarTrackerAttitudeVectorEnv(VectorEnv):
         self._seeded = True
         self._needs_reset = False
         return self.sim.reset(seeds)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Checkpointable state: the simulator's plus the episode bookkeeping."""
+        return {"sim": self.sim.state_dict(), "seeded": self._seeded, "needs_reset": self._needs_reset}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` (a resumed run continues bit for bit)."""
+        self.sim.load_state_dict(state["sim"])
+        self._seeded = bool(state["seeded"])
+        self._needs_reset = bool(state["needs_reset"])
 
     def _action_tensor(self, actions: Any) -> Tensor:
         a = torch.as_tensor(actions, dtype=torch.float64, device=self.device)
