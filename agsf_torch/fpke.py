@@ -193,7 +193,7 @@ def fpke_matrix(
     Returns:
         :class:`FPKEMatrix` (``[..., N, N]``).
     """
-    mu, L = rates.means, rates.chol
+    mu = rates.means
     N, n = mu.shape[-2], mu.shape[-1]
     iu = torch.triu_indices(N, N, device=mu.device)
     ri, rj = rates.select(iu[0]), rates.select(iu[1])  # [..., Pc, ...]

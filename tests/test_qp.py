@@ -89,7 +89,7 @@ def test_batched_over_leading_dims(gen):
     H, c = _random_problems(gen, 12, 4)
     res = solve_simplex_qp(H.reshape(3, 4, 4, 4), c.reshape(3, 4, 4), chunk_size=5)
     torch.testing.assert_close(res.w.reshape(12, 4), solve_simplex_qp(H, c).w, rtol=0, atol=0)
-    assert 1 <= res.iterations <= 2 * 4 + 2 or res.iterations > 2**4 - 1
+    assert 1 <= res.iterations <= 2 * 4 + 2  # settled by the active-set phase, no enumeration needed
 
 
 def test_enumeration_path_matches_clarabel(gen):
