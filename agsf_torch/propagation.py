@@ -53,7 +53,7 @@ def moment_derivatives(model: ContinuousModel, mean: Tensor, cov: Tensor, u: Ten
 def propagate_moments(
     model: ContinuousModel, mean: Tensor, cov: Tensor, u: Tensor | None, dt: float, substeps: int = 1
 ) -> tuple[Tensor, Tensor]:
-    """Advance ``(μ, P)`` by ``dt`` with ``substeps`` RK4 steps.
+    r"""Advance ``(μ, P)`` by ``dt`` with ``substeps`` RK4 steps.
 
     Each RK4 step integrates, from ``Φ = I`` and ``S = 0``,
 

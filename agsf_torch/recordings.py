@@ -12,6 +12,7 @@ key                 shape               dtype   meaning
 ``star_body``       ``[B, T, M, 3]``    float   measured star unit vectors, body frame
 ``star_inertial``   ``[B, T, M, 3]``    float   catalogue unit vectors, inertial frame
 ``star_mask``       ``[B, T, M]``       bool    valid stars (all false between frames)
+``gyro_valid``      ``[B, T]``          bool    optional: false for a missing or saturated gyro sample (default all true)
 ``truth_mrp``       ``[B, T, 3]``       float   optional: true attitude (MRP) at ``time``
 ``truth_bias``      ``[B, T, 3]``       float   optional: true gyro bias (rad/s)
 ``format``          ``[]``              str     ``"agsf-recording-1"``
@@ -38,7 +39,7 @@ FORMAT = "agsf-recording-1"
 #: Largest |‖v‖ − 1| of a star vector that is normalised (with a warning) instead of rejected.
 UNIT_TOLERANCE = 1e-3
 _REQUIRED = ("time", "gyro", "star_body", "star_inertial", "star_mask")
-_OPTIONAL = ("truth_mrp", "truth_bias")
+_OPTIONAL = ("gyro_valid", "truth_mrp", "truth_bias")
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,7 @@ class Recording:
     star_body: np.ndarray
     star_inertial: np.ndarray
     star_mask: np.ndarray
+    gyro_valid: np.ndarray | None = None
     truth_mrp: np.ndarray | None = None
     truth_bias: np.ndarray | None = None
 
@@ -121,6 +123,13 @@ def _validate(a: dict[str, np.ndarray | None]) -> None:
     if mask.ndim != 3 or mask.shape[:2] != (B, T):
         raise ValueError(f"recording: column 'star_mask' must have shape [{B}, {T}, M], got {mask.shape}")
     M = mask.shape[2]
+    if a.get("gyro_valid") is not None:
+        gv = np.asarray(a["gyro_valid"])
+        if gv.dtype != np.bool_:
+            raise ValueError(f"recording: column 'gyro_valid' must be boolean, got {gv.dtype}")
+        if gv.shape != (B, T):
+            raise ValueError(f"recording: column 'gyro_valid' must have shape [{B}, {T}], got {gv.shape}")
+        a["gyro_valid"] = gv
     for key in ("star_body", "star_inertial"):
         v = np.asarray(a[key], dtype=np.float64)
         if v.shape != (B, T, M, 3):

@@ -79,6 +79,7 @@ def kalman_update(
     y: Tensor,
     measurement: MeasurementModel,
     iterations: int = 1,
+    mask: Tensor | None = None,
 ) -> ComponentUpdate:
     """Joseph-form EKF update of all components and Bayes' rule on the weights.
 
@@ -100,12 +101,15 @@ def kalman_update(
         y: measurement ``[..., d]``.
         measurement: the measurement model (``h``, ``H``, ``R``, mask).
         iterations: linearisations (≥ 1).
+        mask: entry validity ``[..., d]`` bool to use instead of the model's
+            ``measurement.mask()`` (e.g. after innovation gating).
 
     Returns:
         :class:`ComponentUpdate`.
     """
     R = measurement.noise_cov().to(means)
-    mask = measurement.mask()
+    if mask is None:
+        mask = measurement.mask()
     y = y.unsqueeze(-2)  # [..., 1, d]
     R = R.unsqueeze(-3) if R.dim() > 2 else R
     n = means.shape[-1]

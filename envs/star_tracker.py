@@ -65,6 +65,7 @@ from ._checks import check_real
 from .camera import NOISE_MODES, StarCamera
 from .catalog import DEFAULT_MAX_MAGNITUDE, StarCatalog
 from .dynamics import DEFAULT_RATE, AttitudeDynamics, RateLike
+from .faults import SensorFault, apply_gyro_faults, apply_star_faults, parse_faults
 from .gyro import DEFAULT_INITIAL_BIAS, DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, Gyro
 from .random import CounterKey, as_int64, counter_normal, random_bits
 
@@ -151,6 +152,8 @@ class StarTrackerConfig:
         initial_attitude: ``"random"`` (uniform on SO(3), from the episode seed) or an
             MRP (3 numbers).
         max_steps: episode length in steps, ≥ 1.
+        faults: injected sensor faults (:mod:`envs.faults`): :class:`~envs.faults.SensorFault`
+            objects or dicts such as ``{"kind": "star_outage", "start": 60, "end": 180}``.
     """
 
     dt: float = 0.1
@@ -168,6 +171,7 @@ class StarTrackerConfig:
     rate: RateLike = field(default=DEFAULT_RATE)
     initial_attitude: Any = "random"
     max_steps: int = 1000
+    faults: Any = ()
 
     def __post_init__(self) -> None:
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -212,6 +216,10 @@ class StarTrackerConfig:
         else:
             put("initial_attitude", _finite_tuple("initial_attitude", self.initial_attitude, 3, False))
         put("max_steps", _count("max_steps", self.max_steps))
+        try:
+            put("faults", parse_faults(self.faults))
+        except ValueError as exc:
+            raise ValueError(f"StarTrackerConfig: {exc}") from None
 
     @property
     def steps_per_star_frame(self) -> int:
@@ -298,7 +306,7 @@ class StarTrackerSimulator:
         self.q: Tensor | None = None
         self.bias: Tensor | None = None
         self.rate: Tensor | None = None
-        self.last_gyro: Tensor | None = None
+        self.last_gyro: Tensor | None = None  # fault-free reading of the last step
 
     # --------------------------------------------------------------- checkpoints
     _STATE = ("seeds", "q", "bias", "rate", "last_gyro")
@@ -337,8 +345,13 @@ class StarTrackerSimulator:
         return k >= 1 and k % self.config.steps_per_star_frame == 0
 
     def _obs(self, gyro: Tensor, k: int, stars: tuple[Tensor, Tensor, Tensor]) -> dict[str, Tensor]:
+        t = torch.tensor(self._time(k), dtype=self.dtype, device=self.device)
+        gyro, valid = apply_gyro_faults(self.config.faults, gyro, t)
+        if self.config.faults and bool(stars[2].any()):
+            stars = apply_star_faults(self.config.faults, self.camera.catalog.r, *stars, t)
         return {
             "gyro": gyro,
+            "gyro_valid": valid[:, None],
             "star_body": stars[0],
             "star_inertial": stars[1],
             "star_mask": stars[2],
@@ -431,7 +444,8 @@ class StarTrackerSimulator:
             a dict, batch-first (``T = num_steps``, ``F`` star frames among steps
             ``k₀+1 … k₀+T``, ``k₀`` the step index on entry):
             ``time [T+1]`` (s), ``step [T+1]`` (int64), ``gyro [B, T+1, 3]`` (rad/s; index 0
-            is the reading on entry, i.e. the reset reading after a reset),
+            is the reading on entry, i.e. the reset reading after a reset), ``gyro_valid
+            [B, T+1]`` (bool, false for missing or saturated samples, :mod:`envs.faults`),
             ``truth_mrp / truth_bias / truth_rate [B, T+1, 3]``, ``star_steps [F]``
             (int64 step indices), ``star_time [F]`` (s), ``star_body / star_inertial
             [B, F, M, 3]``, ``star_mask [B, F, M]``.
@@ -499,15 +513,21 @@ class StarTrackerSimulator:
                 q_star[:, f0 : f0 + len(cols)], self.seeds[:, None], star_steps[None, f0 : f0 + len(cols)]
             )
             sb[:, f0 : f0 + len(cols)], si[:, f0 : f0 + len(cols)], sm[:, f0 : f0 + len(cols)] = frame
+        star_time = star_steps.to(self.dtype) * self.config.dt
+        if self.config.faults and n_frames:
+            sb, si, sm = apply_star_faults(self.config.faults, self.camera.catalog.r, sb, si, sm, star_time[None, :])
+        times = torch.tensor([self._time(int(k)) for k in steps.tolist()], dtype=self.dtype, device=self.device)
+        gyro_out, gyro_valid = apply_gyro_faults(self.config.faults, gyro_out, times[None, :])
         out = {
             "time": steps.to(self.dtype) * self.config.dt,
             "step": steps,
             "gyro": gyro_out,
+            "gyro_valid": gyro_valid,
             "truth_mrp": mrp_out,
             "truth_bias": bias_out,
             "truth_rate": rate_out,
             "star_steps": star_steps,
-            "star_time": star_steps.to(self.dtype) * self.config.dt,
+            "star_time": star_time,
             "star_body": sb,
             "star_inertial": si,
             "star_mask": sm,
@@ -521,6 +541,7 @@ def _single_spaces(config: StarTrackerConfig) -> tuple[spaces.Dict, spaces.Box]:
     obs = spaces.Dict(
         {
             "gyro": spaces.Box(-np.inf, np.inf, (3,), dtype=np.float64),
+            "gyro_valid": spaces.Box(0, 1, (1,), dtype=np.bool_),
             "star_body": spaces.Box(-1.0, 1.0, (m, 3), dtype=np.float64),
             "star_inertial": spaces.Box(-1.0, 1.0, (m, 3), dtype=np.float64),
             "star_mask": spaces.Box(0, 1, (m,), dtype=np.bool_),
@@ -551,7 +572,8 @@ class StarTrackerAttitudeEnv(gym.Env):
         render_mode: must be ``None`` (no rendering).
         **overrides: config fields to replace, e.g. ``dt=0.05, max_stars=8``.
 
-    Observation (dict of numpy arrays): ``gyro [3]`` (rad/s), ``star_body [M, 3]``,
+    Observation (dict of numpy arrays): ``gyro [3]`` (rad/s), ``gyro_valid [1]`` (bool:
+    false for a missing or saturated sample, see :mod:`envs.faults`), ``star_body [M, 3]``,
     ``star_inertial [M, 3]`` (unit vectors, zeros where masked), ``star_mask [M]``
     (bool), ``time [1]`` (s).  Action: MRP estimate ``[3]``.  Reward: ``−θ`` (rad).
     Info: ``truth_mrp [3]``, ``truth_bias [3]`` (rad/s), ``truth_rate [3]`` (rad/s).

@@ -61,6 +61,10 @@ class ExperimentConfig:
         filter_sigma_v_scale: likewise for σ_v.
         star_noise_model: the filters' star-vector noise model, ``"isotropic"`` (σ_s²I₃,
             the method) or ``"tangent"`` (noise across the star direction only).
+        gate_probability: innovation gate of every filter (:mod:`agsf_torch.gating`):
+            0 = off (the method), else ``p`` in (0, 1), e.g. 0.9999.
+        faults: sensor faults injected by the environment (:mod:`envs.faults`), a list
+            of tables such as ``{kind = "star_outage", start = 60.0, end = 180.0}``.
     """
 
     name: str = "experiment"
@@ -92,6 +96,8 @@ class ExperimentConfig:
     filter_sigma_s_scale: float = 1.0
     filter_sigma_v_scale: float = 1.0
     star_noise_model: str = "isotropic"
+    gate_probability: float = 0.0
+    faults: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
         types = {f.name: f.type for f in dataclasses.fields(self)}
@@ -138,6 +144,14 @@ class ExperimentConfig:
             raise ValueError(f"config key 'scaling' must be 'trace' or 'none', got {self.scaling!r}")
         if self.star_noise_model not in ("isotropic", "tangent"):
             raise ValueError(f"config key 'star_noise_model' must be 'isotropic' or 'tangent', got {self.star_noise_model!r}")
+        if not 0.0 <= self.gate_probability < 1.0:
+            raise ValueError(f"config key 'gate_probability' must be 0 (off) or lie in (0, 1), got {self.gate_probability!r}")
+        from envs.faults import parse_faults
+
+        try:
+            parse_faults(self.faults)
+        except ValueError as exc:
+            raise ValueError(f"config key 'faults': {exc}") from None
         if self.weight_ref not in ("update", "previous"):
             raise ValueError(f"config key 'weight_ref' must be 'update' or 'previous', got {self.weight_ref!r}")
         if len(self.rate_axes) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes):

@@ -68,13 +68,14 @@ def make_env(cfg: ExperimentConfig):
         focal_length=cfg.focal_length,
         max_stars=cfg.max_stars,
         rate=[cfg.omega0 * a for a in cfg.rate_axes],
+        faults=cfg.faults,
     )
 
 
 def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:
     """EKF / GSF / AGSF of a configuration, all on the same attitude model."""
     model = AttitudeModel(estimate_bias=cfg.estimate_bias, sigma_v=cfg.sigma_v * cfg.filter_sigma_v_scale, sigma_u=cfg.sigma_u)
-    kw = {"update_iterations": cfg.update_iterations}
+    kw = {"update_iterations": cfg.update_iterations, "gate_probability": cfg.gate_probability or None}
     made = {
         "EKF": lambda: FilterSetup(ExtendedKalmanFilter(model, **kw), 1),
         "GSF": lambda: FilterSetup(GaussianSumFilter(model, **kw), cfg.components, cfg.spread),
@@ -106,7 +107,7 @@ def _save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
         data[f"{name}/nis_dof"] = tr.nis_dof
         data[f"{name}/weights"] = tr.weights
         data[f"{name}/weight_entropy"] = tr.weight_entropy
-        for key in ("fpke_error_before", "fpke_error_after"):
+        for key in ("fpke_error_before", "fpke_error_after", "gate_rejected", "gyro_held"):
             if key in tr.extra:
                 data[f"{name}/{key}"] = tr.extra[key]
     np.savez_compressed(path, **data)
@@ -153,6 +154,9 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
         for key in ("fpke_error_before", "fpke_error_after"):
             if f"{name}/{key}" in data:
                 entry[f"{key}_mean"] = data[f"{name}/{key}"].mean(1).tolist()
+        for key in ("gate_rejected", "gyro_held"):
+            if f"{name}/{key}" in data:
+                entry[f"{key}_total"] = int(data[f"{name}/{key}"].sum())
         per_run[name] = {}
         for wname, mask in windows.items():
             if mask.any():

@@ -18,7 +18,7 @@ def record_environment(env, num_steps: int, seed: int) -> Recording:
     Sample 0 is the reset (t = 0); sample k the observation after step k.
     """
     obs, info = env.reset(seed=seed)
-    keys = ("gyro", "star_body", "star_inertial", "star_mask")
+    keys = ("gyro", "gyro_valid", "star_body", "star_inertial", "star_mask")
     rows = {k: [torch.as_tensor(obs[k])] for k in keys}
     truth = {"truth_mrp": [torch.as_tensor(info["truth_mrp"])], "truth_bias": [torch.as_tensor(info["truth_bias"])]}
     times = [float(torch.as_tensor(obs["time"]).reshape(-1)[0])]
@@ -31,6 +31,7 @@ def record_environment(env, num_steps: int, seed: int) -> Recording:
             truth[k].append(torch.as_tensor(info[k]))
         times.append(float(torch.as_tensor(obs["time"]).reshape(-1)[0]))
     arrays = {k: torch.stack(v, 1).numpy() for k, v in {**rows, **truth}.items()}
+    arrays["gyro_valid"] = arrays["gyro_valid"].reshape(env.num_envs, -1)
     return Recording(time=np.array(times), **arrays)
 
 
@@ -57,6 +58,9 @@ class RecordingEnv:
         t = torch.as_tensor
         obs = {
             "gyro": t(r.gyro[:, k]),
+            "gyro_valid": (
+                torch.ones(self.num_envs, 1, dtype=torch.bool) if r.gyro_valid is None else t(r.gyro_valid[:, k, None])
+            ),
             "star_body": t(r.star_body[:, k]),
             "star_inertial": t(r.star_inertial[:, k]),
             "star_mask": t(r.star_mask[:, k]),

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from ..filters.gaussian_sum import GaussianSumFilter
+from ..input_gaps import GyroHold
 from ..metrics import nees
 from ..mixture import GaussianMixture
 from ..models.star_vectors import StarVectorMeasurement
@@ -95,6 +96,13 @@ def _as_tensor(x, dtype=torch.float64) -> Tensor:
     return torch.as_tensor(np.asarray(x) if not torch.is_tensor(x) else x, dtype=dtype)
 
 
+def _gyro_valid(obs, B: int) -> Tensor:
+    """``obs["gyro_valid"]`` as ``[B]`` bool (all true when the source has no such key)."""
+    if "gyro_valid" not in obs:
+        return torch.ones(B, dtype=torch.bool)
+    return _as_tensor(obs["gyro_valid"], torch.bool).reshape(B)
+
+
 def run_monte_carlo(
     env,
     filters: Mapping[str, FilterSetup],
@@ -107,6 +115,7 @@ def run_monte_carlo(
     progress: bool = False,
     callback=None,
     noise_model: str = "isotropic",
+    gyro_hold_sigma: float | None = None,
 ) -> MonteCarloResult:
     """Run every filter over ``num_steps`` gyro periods of a batched environment.
 
@@ -123,6 +132,13 @@ def run_monte_carlo(
         progress: show a progress bar.
         callback: optional ``callback(step, name, filter, mixture)`` after each step.
         noise_model: star-vector noise model of the filters (``"isotropic"`` or ``"tangent"``).
+        gyro_hold_sigma: σ_h of :class:`~agsf_torch.input_gaps.GyroHold`, which bridges
+            gyro samples the environment marks invalid (``gyro_valid``); default
+            ``σ_v/√Δt`` of the first filter's model.
+
+    Per-step extras of every trace (besides the filter's own diagnostics):
+    ``gate_rejected [T, B]`` (star blocks rejected by the filter's innovation gate;
+    0 without gating) and ``gyro_held [T, B]`` (1 where the gyro sample was bridged).
     """
     n = 6 if estimate_bias else 3
     prior_cov = torch.as_tensor(prior_cov, dtype=torch.float64)
@@ -147,6 +163,10 @@ def run_monte_carlo(
     if env.config.max_steps < num_steps:
         raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
     prev_bias = truth_b
+    if gyro_hold_sigma is None:
+        gyro_hold_sigma = float(filters[next(iter(filters))].filter.model.sigma_v) / dt**0.5
+    hold = GyroHold(gyro_hold_sigma)
+    hold.step(_as_tensor(obs["gyro"]), _gyro_valid(obs, B), dt)  # primes the hold with the reset reading
     steps = range(num_steps)
     if progress:
         from tqdm import tqdm
@@ -159,7 +179,9 @@ def run_monte_carlo(
         truth_p = _as_tensor(info["truth_mrp"])
         truth_b = _as_tensor(info["truth_bias"])
         x_true = torch.cat((truth_p, truth_b), -1)[:, :n]
-        gyro = _as_tensor(obs["gyro"])
+        gyro_valid = _gyro_valid(obs, B)
+        gyro, held_var = hold.step(_as_tensor(obs["gyro"]), gyro_valid, dt)
+        any_held = bool((~gyro_valid).any())
         # known bias: remove exactly the bias term ½(b_k + b_{k+1}) of the gyro model
         u = gyro if estimate_bias else gyro - 0.5 * (prev_bias + truth_b)
         prev_bias = truth_b
@@ -177,12 +199,18 @@ def run_monte_carlo(
             filt = setup.filter
             mix = filt.predict(mixtures[name], u, dt)
             extra = {key: v for key, v in filt.diagnostics.items() if torch.is_tensor(v) and key != "weight_entropy"}
+            if any_held:
+                mix = GyroHold.inflate(mix, held_var)
+            extra["gyro_held"] = (~gyro_valid).to(torch.int64)
+            extra["gate_rejected"] = torch.zeros(B, dtype=torch.int64)
             nis = torch.full((B,), float("nan"), dtype=torch.float64)
             dof = torch.zeros(B, dtype=torch.float64)
             if has_stars:
                 mix = filt.update(mix, y, meas)
                 nis = torch.where(filt.diagnostics["dof"] > 0, filt.diagnostics["nis_mixture"], nis)
                 dof = filt.diagnostics["dof"]
+                if "gate_rejected" in filt.diagnostics:
+                    extra["gate_rejected"] = filt.diagnostics["gate_rejected"]
             mixtures[name] = mix
             mean, cov = filt.estimate(mix)
             err = filt.model.state_error(mean, x_true)

@@ -7,6 +7,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..gating import chi2_threshold, innovation_gate
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
@@ -31,7 +32,10 @@ class GaussianSumFilter:
     * predict: ``weight_entropy [...]``, ``covariance_repairs`` (int, this call);
     * update: ``log_likelihood [...]`` (``log Σ wᵢβᵢ``), ``nis [..., N]``,
       ``nis_mixture [...]`` (moment-matched innovation of the mixture), ``dof [...]``
-      (valid measurement entries), ``weight_entropy [...]``, ``covariance_repairs``.
+      (valid measurement entries), ``weight_entropy [...]``, ``covariance_repairs``;
+      with gating also ``gate_rejected [...]`` (blocks rejected by this update, int64),
+      ``gate_nis [..., G]`` (each block's mixture NIS), ``gate_accepted [..., G]`` and
+      ``gate_overridden [...]`` (failing blocks kept by the consistency rule).
 
     Args:
         model: the continuous-time model.
@@ -45,6 +49,12 @@ class GaussianSumFilter:
         update_iterations: linearisations per measurement update; 1 (default) is
             the EKF update of the method, more give the iterated EKF update
             (:func:`agsf_torch.update.kalman_update`).
+        gate_probability: ``None`` (default, the method: every measurement is
+            used) or ``p`` in (0, 1): each measurement block (a star) whose mixture
+            NIS exceeds ``χ²_s(p)`` (s = the model's ``block_size``) is rejected
+            before the update and counted in the diagnostics, unless fewer than
+            ``min(2, V − 1)`` of the ``V`` valid blocks pass, in which case the
+            prediction is distrusted and all are kept (:mod:`agsf_torch.gating`).  ``1 − 1e-4`` is a sensible choice.
     """
 
     def __init__(
@@ -55,6 +65,7 @@ class GaussianSumFilter:
         repair_covariance: bool = False,
         min_eigenvalue: float = 1e-12,
         update_iterations: int = 1,
+        gate_probability: float | None = None,
     ) -> None:
         if not isinstance(model, ContinuousModel):
             raise TypeError(f"model must be a ContinuousModel, got {type(model).__name__}")
@@ -65,6 +76,9 @@ class GaussianSumFilter:
         if int(update_iterations) != update_iterations or update_iterations < 1:
             raise ValueError(f"update_iterations must be a positive integer, got {update_iterations}")
         self.update_iterations = int(update_iterations)
+        if gate_probability is not None:
+            chi2_threshold(gate_probability, 1)  # validates p
+        self.gate_probability = None if gate_probability is None else float(gate_probability)
         self.model = model
         self.substeps = int(substeps)
         self.repair_covariance = bool(repair_covariance)
@@ -158,7 +172,23 @@ class GaussianSumFilter:
             raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
         y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
         self._check_batched("y", y, mixture.batch_shape)
-        res = kalman_update(mixture.log_weights, mixture.means, mixture.covs, y, measurement, self.update_iterations)
+        gate: dict[str, Tensor] = {}
+        mask = None
+        if self.gate_probability is not None:
+            block = measurement.block_size or y.shape[-1]
+            threshold = chi2_threshold(self.gate_probability, block)
+            accepted, gate_nis, mask, overridden = innovation_gate(
+                mixture.log_weights, mixture.means, mixture.covs, y, measurement, threshold
+            )
+            gate = {
+                "gate_rejected": (~accepted).sum(-1),
+                "gate_nis": gate_nis,
+                "gate_accepted": accepted,
+                "gate_overridden": overridden,
+            }
+        res = kalman_update(
+            mixture.log_weights, mixture.means, mixture.covs, y, measurement, self.update_iterations, mask=mask
+        )
         means, covs = self.model.canonicalize(res.means, res.covs)
         covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
         posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs, ref_log_weights=res.log_weights)
@@ -169,6 +199,7 @@ class GaussianSumFilter:
             "dof": res.dof,
             "weight_entropy": posterior.entropy_of_weights(),
             "covariance_repairs": repairs,
+            **gate,
         }
         return posterior
 

@@ -191,8 +191,13 @@ class MeasurementModel(nn.Module):
     Subclasses implement :meth:`predict` and :meth:`noise_cov`; :meth:`jacobian`
     defaults to ``torch.func``.  :meth:`mask` marks which of the ``d``
     measurement entries are valid (``None``: all); invalid entries contribute
-    nothing to an update.
+    nothing to an update.  :attr:`block_size` is the number of entries of one
+    independent measurement (e.g. 3 for a star vector): innovation gating
+    (:mod:`agsf_torch.gating`) accepts or rejects whole blocks; ``None`` (default)
+    gates the vector as one block.
     """
+
+    block_size: int | None = None
 
     def predict(self, x: Tensor) -> Tensor:
         """Predicted measurement ``h(x)``: ``[..., n]`` → ``[..., d]``."""

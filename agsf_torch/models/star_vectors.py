@@ -38,6 +38,8 @@ class StarVectorMeasurement(MeasurementModel):
         sigma: σ_s, per-axis unit-vector noise (rad), > 0.
     """
 
+    block_size = 3  # one star: gated as a whole
+
     def __init__(
         self,
         r_inertial: Tensor,

@@ -1,0 +1,113 @@
+"""Innovation gating: reject outlying measurements before they enter the update.
+
+A measurement vector is split into independent blocks (a star vector: 3
+entries; :attr:`MeasurementModel.block_size`).  For each block ``b`` the
+mixture's predicted innovation is moment-matched over the components,
+
+.. math::
+
+    \\bar ν_b = \\sum_i w_i ν_{i,b},\\qquad
+    \\bar S_b = \\sum_i w_i \\left(S_{i,bb} + (ν_{i,b} - \\bar ν_b)(ν_{i,b} - \\bar ν_b)^T\\right),
+
+with ``ν_{i,b} = ỹ_b − h_b(μᵢ)`` and ``S_{i,bb}`` the block's diagonal block of
+``Hᵢ Pᵢ Hᵢᵀ + R`` (the marginal innovation covariance of the block), and the block
+is accepted when
+
+.. math:: \\bar ν_b^T \\bar S_b^{-1} \\bar ν_b \\le χ^2_{s}(p),
+
+the ``p`` quantile of the χ² distribution with ``s`` = block size degrees of
+freedom.  **Consistency rule**: with ``V`` valid blocks in the measurement, failing
+blocks are rejected only if at least ``min(2, V − 1)`` blocks pass; otherwise the
+whole measurement is kept (``overridden``).  When every star of a frame disagrees
+with the prediction, the prediction is what is wrong (the first frame after a wide
+prior, a filter that has lost track), and gating it away would lock the filter
+out for good; a misidentified star is one star that disagrees with the others.
+A single-block measurement (V = 1) is gated as it stands.  With ``p = 1 − 10⁻⁴`` and a star block (s = 3) the threshold is 21.11: a
+correct star is rejected about once in 10⁴ (less for the two-dimensional noise
+of a real camera), while a misidentified star (a wrong catalogue vector, ≳ 0.05°
+away) sits thousands of σ out once the filter has converged.  Gating is
+**not** able to reject an outlier smaller than the current uncertainty (e.g. in
+the first frame after a 7° prior); and an overconfident filter may reject good
+stars, which is why gaps must inflate the covariance honestly
+(:mod:`agsf_torch.input_gaps`).
+"""
+
+from __future__ import annotations
+
+import torch
+from scipy.stats import chi2
+from torch import Tensor
+
+from .models.base import MeasurementModel
+from .update import evaluate_measurement
+
+__all__ = ["chi2_threshold", "innovation_gate"]
+
+
+def chi2_threshold(probability: float, dof: int) -> float:
+    """``χ²_dof(p)``: the gate on a block's NIS that a correct measurement passes with probability ``p``.
+
+    Raises:
+        ValueError: for ``p`` outside (0, 1) or ``dof < 1``.
+    """
+    if not 0.0 < float(probability) < 1.0:
+        raise ValueError(f"gate probability must lie in (0, 1), got {probability}")
+    if int(dof) != dof or dof < 1:
+        raise ValueError(f"gate degrees of freedom must be a positive integer, got {dof}")
+    return float(chi2.ppf(float(probability), int(dof)))
+
+
+def innovation_gate(
+    log_weights: Tensor,
+    means: Tensor,
+    covs: Tensor,
+    y: Tensor,
+    measurement: MeasurementModel,
+    threshold: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-block χ² gate of the mixture's predicted innovation (module docstring).
+
+    Args:
+        log_weights: ``[..., N]``; means: ``[..., N, n]``; covs: ``[..., N, n, n]``.
+        y: measurement ``[..., d]``.
+        measurement: the model; its :attr:`block_size` ``s`` must divide ``d``
+            (``None``: the whole vector is one block).
+        threshold: gate on each block's NIS (e.g. :func:`chi2_threshold`).
+
+    Returns:
+        ``(accepted [..., G] bool, nis [..., G], entry_mask [..., d] bool, overridden [...] bool)``:
+        blocks kept (invalid blocks count as accepted: they carry nothing), their
+        NIS (0 for invalid blocks), the entry validity to update with (the model's
+        mask and the gate) and where the consistency rule kept failing blocks.
+    """
+    h, H = evaluate_measurement(measurement, means)  # [..., N, d], [..., N, d, n]
+    d = h.shape[-1]
+    s = measurement.block_size or d
+    if d % s:
+        raise ValueError(f"measurement block_size {s} does not divide its dimension {d}")
+    G = d // s
+    model_mask = measurement.mask()
+    valid = torch.ones(h.shape[:-2] + (d,), dtype=torch.bool, device=h.device) if model_mask is None else model_mask
+    valid = valid.expand(h.shape[:-2] + (d,))
+    R = measurement.noise_cov().to(means)
+    S = H @ covs @ H.transpose(-1, -2) + (R.unsqueeze(-3) if R.dim() > 2 else R)  # [..., N, d, d]
+    blocks = S.reshape(*S.shape[:-2], G, s, G, s).diagonal(dim1=-4, dim2=-2).movedim(-1, -3)  # [..., N, G, s, s]
+    nu = (y.unsqueeze(-2) - h).reshape(*h.shape[:-1], G, s)  # [..., N, G, s]
+    w = log_weights.exp()[..., None, None]
+    nu_bar = (w * nu).sum(-3)  # [..., G, s]
+    dn = nu - nu_bar.unsqueeze(-3)
+    S_bar = (w[..., None] * (blocks + dn[..., :, None] * dn[..., None, :])).sum(-4)  # [..., G, s, s]
+    block_valid = valid.reshape(*valid.shape[:-1], G, s).all(-1)
+    eye = torch.eye(s, dtype=S_bar.dtype, device=S_bar.device)
+    S_bar = torch.where(block_valid[..., None, None], S_bar, eye)
+    L = torch.linalg.cholesky(0.5 * (S_bar + S_bar.transpose(-1, -2)))
+    z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False).squeeze(-1)
+    nis = torch.where(block_valid, (z * z).sum(-1), torch.zeros_like(z[..., 0]))
+    passing = block_valid & (nis <= threshold)
+    n_valid = block_valid.sum(-1)
+    needed = torch.clamp(n_valid - 1, max=2)
+    failing = (block_valid & ~passing).any(-1)
+    overridden = failing & (passing.sum(-1) < needed)
+    accepted = ~block_valid | passing | overridden[..., None]
+    entry_mask = valid & accepted.repeat_interleave(s, dim=-1)
+    return accepted, nis, entry_mask, overridden
