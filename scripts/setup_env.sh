@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create (or reuse) the project's virtual environment in .venv and install the
-# package with its dev extra, every version pinned by constraints.txt.
+# package with its dev and ray extras, every version pinned by constraints.txt.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$here"
@@ -9,9 +9,10 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 stamp=.venv/.agsf-installed
-want="$(cat constraints.txt pyproject.toml | sha256sum | cut -d' ' -f1)"
+extras="dev,ray"
+want="$( (cat constraints.txt pyproject.toml; echo "extras=$extras") | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     .venv/bin/python -m pip install --quiet --upgrade pip
-    .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[dev]"
+    .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[$extras]"
     echo "$want" > "$stamp"
 fi
