@@ -9,7 +9,8 @@ Subcommands:
   file or a preset name): EKF, classic GSF and adaptive GSF batched over the runs,
   all seeing the same truth and measurements.
 * ``agsf reproduce --case {1,2,3,all} [--runs R] --out DIR`` — the paper's cases.
-* ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR`` — a resumable grid.
+* ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
+  resumable grid, in this process or as Ray tasks.
 
 Every experiment writes ``summary.json``, ``runs.npz``, PNG figures and
 TensorBoard events (see :mod:`agsf_torch.experiments.experiment`).
@@ -96,12 +97,22 @@ def _reproduce(args: argparse.Namespace) -> int:
 
 def _sweep(args: argparse.Namespace) -> int:
     from .config import load_config
-    from .sweep import parse_grid, run_sweep
+    from .sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
 
+    if args.address is not None and args.backend != "ray":
+        raise ValueError("--address needs --backend ray")
     base = load_config(args.config, args.set)
     grid = parse_grid(args.grid)
-    _threads(args)
-    rows = run_sweep(base, grid, Path(args.out), progress=not args.quiet)
+    if args.backend == "ray":
+        kw = {"address": args.address, "cpus_per_task": max(1, args.threads or 1)}
+    else:
+        _threads(args)
+        kw = {}
+    try:
+        rows = run_sweep(base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, **kw)
+    except (RayUnavailable, SweepFailed) as exc:
+        print(f"agsf: error: {exc}", file=sys.stderr)
+        return 1
     print(f"{len(rows)} configurations in {args.out}/results.jsonl; TensorBoard hparams: tensorboard --logdir {args.out}")
     return 0
 
@@ -192,6 +203,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", help="base TOML file or preset")
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...", help="a swept key")
     p.add_argument("--out", required=True)
+    p.add_argument(
+        "--backend", choices=["local", "ray"], default="local",
+        help="local: one configuration after another in this process; ray: one Ray task per configuration "
+        "(needs agsf-torch[ray]; --threads then sets each task's CPUs, default 1)",
+    )
+    p.add_argument(
+        "--address", default=None,
+        help="Ray cluster to use (with --backend ray): 'auto' (this node's cluster) or ray://HEAD:10001; "
+        "default: RAY_ADDRESS if set, else a new local Ray instance",
+    )
     common(p)
     p.set_defaults(func=_sweep)
     p = sub.add_parser("diagnose", help="consistency checks (NEES, NIS, whiteness) of one configuration, in words")

@@ -1,10 +1,29 @@
 """``agsf sweep``: a resumable grid of configurations, each a batched Monte Carlo.
 
 Every finished configuration is appended as one JSON line to ``results.jsonl``
-(with the configuration's digest) before the next starts; a rerun with the same
+(with the configuration's digest) as soon as it finishes; a rerun with the same
 base and grid skips the digests already there, so an interrupted sweep loses
-at most the configuration that was running.  TensorBoard's hparams view gets one
+only the configurations that were running.  TensorBoard's hparams view gets one
 entry per configuration under ``out/tensorboard``.
+
+Two backends run the pending configurations:
+
+* ``"local"`` (default): one after another in this process.
+* ``"ray"``: one Ray task per configuration (``num_cpus=cpus_per_task``), run
+  in parallel on a local Ray instance or on an existing cluster.  Each task runs
+  the configuration's Monte Carlo into a temporary folder *on its worker* and
+  returns the folder's files; the driver (this process) is the only writer of
+  ``out``: it unpacks each configuration's folder to ``out/configs/<digest>`` and
+  appends its row in the order the tasks finish.  ``out`` therefore needs no
+  shared filesystem.  A task whose worker or node dies is retried by Ray
+  (``max_retries``); a configuration that still fails does not stop the others:
+  the driver records every configuration that finishes, then raises
+  :class:`SweepFailed` naming the failed ones, and a rerun runs only those.
+
+Both backends give the same rows for the same seeds: a configuration's numbers
+depend only on its fields (counter-based random streams seeded by ``seed``) and
+not on the process or the number of torch threads that computes them (tested
+bit for bit).  Only the order of the rows in ``results.jsonl`` may differ.
 """
 
 from __future__ import annotations
@@ -12,6 +31,9 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import os
+import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -19,7 +41,32 @@ from typing import Any
 from .config import ExperimentConfig, parse_override
 from .experiment import prepare_output, run_experiment
 
-__all__ = ["parse_grid", "run_sweep"]
+__all__ = ["parse_grid", "run_sweep", "SweepFailed", "RayUnavailable", "BACKENDS"]
+
+BACKENDS = ("local", "ray")
+RAY_INSTALL_HINT = (
+    "pip install 'agsf-torch[ray]' with the project's constraints.txt "
+    "(in a checkout: .venv/bin/pip install -c constraints.txt -e '.[ray]', or bash scripts/setup_env.sh)"
+)
+
+
+class SweepFailed(RuntimeError):
+    """Some configurations of a sweep failed; every other one was recorded.
+
+    ``failures`` lists ``(digest, params, message)`` of the failed configurations.
+    """
+
+    def __init__(self, failures: list[tuple[str, dict[str, Any], str]], total: int):
+        self.failures = failures
+        lines = [f"{len(failures)} of {total} sweep configurations failed (the others are recorded; a rerun runs only these):"]
+        for digest, params, message in failures:
+            first = message.strip().splitlines()[-1] if message.strip() else "(no message)"
+            lines.append(f"  {digest} {json.dumps(params, sort_keys=True)}: {first}")
+        super().__init__("\n".join(lines))
+
+
+class RayUnavailable(ImportError):
+    """``backend="ray"`` without Ray installed."""
 
 
 def parse_grid(items: list[str]) -> dict[str, list[Any]]:
@@ -56,8 +103,47 @@ def run_sweep(
     *,
     progress: bool = True,
     runner: Callable[..., dict[str, Any]] = run_experiment,
+    backend: str = "local",
+    address: str | None = None,
+    cpus_per_task: int = 1,
+    max_retries: int = 3,
 ) -> list[dict[str, Any]]:
-    """Run every combination of ``grid`` on top of ``base``; returns all result rows."""
+    """Run every combination of ``grid`` on top of ``base``; returns all result rows.
+
+    Every configuration is validated before any work starts.  ``out`` holds
+    ``experiment.json``, ``results.jsonl`` (one row ``{"digest", "params",
+    "metrics"}`` per finished configuration), ``configs/<digest>/`` (that
+    configuration's experiment folder) and ``tensorboard/`` (hparams).  Digests
+    already in ``results.jsonl`` are skipped.
+
+    Args:
+        runner: runs one configuration, ``runner(cfg, out, progress=, kind=)`` →
+            summary (:func:`run_experiment`; tests inject failures through it).
+            With ``backend="ray"`` it runs on the workers, so it must be picklable.
+        backend: ``"local"`` (in this process, one configuration after another)
+            or ``"ray"`` (one Ray task per configuration, see the module docstring).
+        address: Ray only.  ``None``: the cluster named by ``RAY_ADDRESS`` if set,
+            else a new local Ray instance (shut down at the end); ``"auto"``: the
+            cluster this machine belongs to (``ray start``); ``"ray://HOST:10001"``:
+            a remote cluster through Ray Client.  If Ray is already initialised in
+            this process, that connection is used and ``address`` is ignored.
+        cpus_per_task: Ray only: CPUs each task reserves; its torch threads are set
+            to the same number.
+        max_retries: Ray only: retries of a task whose worker or node died
+            (exceptions raised by the runner are not retried: they are deterministic).
+
+    Raises:
+        SweepFailed: (Ray) some configurations failed; all others were recorded.
+        RayUnavailable: ``backend="ray"`` without Ray installed.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown sweep backend {backend!r}; choose from {', '.join(BACKENDS)}")
+    if address is not None and backend != "ray":
+        raise ValueError("a Ray address needs backend='ray' (--backend ray)")
+    if cpus_per_task < 1:
+        raise ValueError(f"cpus_per_task must be ≥ 1, got {cpus_per_task}")
+    if backend == "ray":
+        _import_ray()  # fail before any work or folder if the extra is missing
     configs = []
     for values in itertools.product(*grid.values()):
         params = dict(zip(grid, values))
@@ -67,20 +153,132 @@ def run_sweep(
     results = out / "results.jsonl"
     rows = [json.loads(line) for line in results.read_text().splitlines()] if results.exists() else []
     done = {r["digest"] for r in rows}
+    pending = [(params, cfg) for params, cfg in configs if cfg.digest() not in done]
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(str(out / "tensorboard"))
+
+    def record(params: dict[str, Any], cfg: ExperimentConfig, summary_metrics: dict[str, float]) -> None:
+        row = {"digest": cfg.digest(), "params": params, "metrics": summary_metrics}
+        with results.open("a") as fh:
+            fh.write(json.dumps(row) + "\n")
+        rows.append(row)
+        hp = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in params.items()}
+        writer.add_hparams(hp, row["metrics"], run_name=cfg.digest())
+
     try:
-        for params, cfg in configs:
-            if cfg.digest() in done:
-                continue
-            summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
-            row = {"digest": cfg.digest(), "params": params, "metrics": _metrics(summary)}
-            with results.open("a") as fh:
-                fh.write(json.dumps(row) + "\n")
-            rows.append(row)
-            hp = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in params.items()}
-            writer.add_hparams(hp, row["metrics"], run_name=cfg.digest())
+        if backend == "local":
+            for params, cfg in pending:
+                summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
+                record(params, cfg, _metrics(summary))
+        elif pending:
+            _run_on_ray(pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs))
     finally:
         writer.close()
     return rows
+
+
+# ----------------------------------------------------------------------------
+# Ray backend
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as exc:
+        raise RayUnavailable(f"the Ray sweep backend needs Ray: {RAY_INSTALL_HINT} ({exc})") from None
+    return ray
+
+
+def _config_on_worker(runner: Callable[..., dict[str, Any]], cfg: ExperimentConfig, threads: int) -> dict[str, Any]:
+    """Body of one Ray task: run ``cfg`` into a temporary folder on the worker.
+
+    Returns the row's metrics and the folder's files (relative path → bytes), so
+    that the driver writes them: the worker needs no access to the output folder.
+    """
+    import torch
+
+    torch.set_num_threads(threads)  # the task's CPUs: no oversubscription by parallel tasks
+    with tempfile.TemporaryDirectory(prefix="agsf-sweep-") as tmp:
+        folder = Path(tmp) / cfg.digest()
+        summary = runner(cfg, folder, progress=False, kind="sweep-config")
+        files = {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {"metrics": _metrics(summary), "files": files}
+
+
+def _write_config_folder(configs_dir: Path, digest: str, files: dict[str, bytes]) -> None:
+    """Write a configuration's files to ``configs_dir/digest``, replacing a leftover of an interrupted run."""
+    target = configs_dir / digest
+    staging = configs_dir / f".{digest}.partial"
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
+    for rel, data in files.items():
+        if Path(rel).is_absolute() or ".." in Path(rel).parts:
+            raise ValueError(f"refusing to write {rel!r} outside {target}")
+        path = staging / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    if target.exists():  # a folder without a results row: left by an interrupted run
+        shutil.rmtree(target)
+    staging.rename(target)
+
+
+def _run_on_ray(
+    pending: list[tuple[dict[str, Any], ExperimentConfig]],
+    out: Path,
+    record: Callable[[dict[str, Any], ExperimentConfig, dict[str, float]], None],
+    runner: Callable[..., dict[str, Any]],
+    address: str | None,
+    cpus_per_task: int,
+    max_retries: int,
+    progress: bool,
+    total: int,
+) -> None:
+    ray = _import_ray()
+    from tqdm.auto import tqdm
+
+    started = not ray.is_initialized()
+    if started:
+        if address is None and not os.environ.get("RAY_ADDRESS"):
+            ray.init(address="local", include_dashboard=False)  # a fresh instance, never someone else's cluster
+        else:
+            ray.init(address=address)
+    try:
+        task = ray.remote(num_cpus=cpus_per_task, max_retries=max_retries, retry_exceptions=False)(_config_on_worker)
+        runner_ref = ray.put(runner)
+        submitted: dict[Any, tuple[dict[str, Any], ExperimentConfig]] = {}
+        seen: set[str] = set()
+        for params, cfg in pending:
+            if cfg.digest() in seen:
+                continue  # the same configuration twice in the grid: run it once
+            seen.add(cfg.digest())
+            submitted[task.remote(runner_ref, cfg, cpus_per_task)] = (params, cfg)
+        failures: list[tuple[str, dict[str, Any], str]] = []
+        waiting = list(submitted)
+        bar = tqdm(total=len(waiting), desc="sweep (ray)", unit="config", disable=not progress)
+        try:
+            while waiting:
+                ready, waiting = ray.wait(waiting, num_returns=1)
+                for ref in ready:
+                    params, cfg = submitted[ref]
+                    try:
+                        result = ray.get(ref)
+                    except ray.exceptions.RayError as exc:  # the runner raised, or the worker died past its retries
+                        failures.append((cfg.digest(), params, str(exc)))
+                    else:
+                        _write_config_folder(out / "configs", cfg.digest(), result["files"])
+                        record(params, cfg, result["metrics"])
+                    bar.update(1)
+        finally:
+            bar.close()
+            for ref in waiting:  # interrupted driver: stop what is still running (a rerun redoes it)
+                try:
+                    ray.cancel(ref, force=True)
+                except Exception:  # noqa: BLE001 - best effort; the interruption itself propagates
+                    pass
+        if failures:
+            raise SweepFailed(failures, total)
+    finally:
+        if started:
+            ray.shutdown()
