@@ -21,7 +21,9 @@ from ..mixture import GaussianMixture
 from ..models.star_vectors import StarVectorMeasurement
 from ..rotations import attitude_error_angle
 
-__all__ = ["FilterSetup", "FilterTrace", "MonteCarloResult", "run_monte_carlo", "sample_prior"]
+__all__ = [
+    "FilterSetup", "FilterStep", "FilterTrace", "MonteCarloResult", "Step", "monte_carlo_steps", "run_monte_carlo", "sample_prior",
+]
 
 
 @dataclass(frozen=True)
@@ -103,6 +105,127 @@ def _gyro_valid(obs, B: int) -> Tensor:
     return _as_tensor(obs["gyro_valid"], torch.bool).reshape(B)
 
 
+@dataclass
+class FilterStep:
+    """One filter after one step: its belief and what the step produced.
+
+    Attributes:
+        mixture: the belief at the step's time.
+        mean, cov: its point estimate and covariance (``filter.estimate``), ``[B, n]``, ``[B, n, n]``.
+        error: state error against the truth in the estimate's chart, ``[B, n]``
+            (MRP and rad/s; multiply the attitude part by 4 for radians).
+        nis: mixture NIS at a star frame, NaN elsewhere, ``[B]``; dof: its valid entries ``[B]``.
+        extra: per-step diagnostics ``[B]`` (the filter's own, plus ``gate_rejected`` and ``gyro_held``).
+    """
+
+    mixture: GaussianMixture
+    mean: Tensor
+    cov: Tensor
+    error: Tensor
+    nis: Tensor
+    dof: Tensor
+    extra: dict[str, Tensor]
+
+
+@dataclass
+class Step:
+    """Everything of one step for every filter: ``time`` (s), ``star_frame``, the truth
+    ``x_true [B, n]`` / ``truth_mrp [B, 3]``, and ``filters``: name → :class:`FilterStep`."""
+
+    index: int
+    time: float
+    star_frame: bool
+    x_true: Tensor
+    truth_mrp: Tensor
+    filters: dict[str, FilterStep]
+
+
+def monte_carlo_steps(
+    env,
+    filters: Mapping[str, FilterSetup],
+    *,
+    num_steps: int,
+    prior_cov: Tensor,
+    sigma_s: float,
+    seed: int = 0,
+    estimate_bias: bool = False,
+    noise_model: str = "isotropic",
+    gyro_hold_sigma: float | None = None,
+):
+    """Drive every filter over ``num_steps`` gyro periods, yielding one :class:`Step` per period.
+
+    The generator behind :func:`run_monte_carlo` (which keeps every step) and the
+    soak test (which keeps running statistics only); arguments as there.
+    """
+    n = 6 if estimate_bias else 3
+    prior_cov = torch.as_tensor(prior_cov, dtype=torch.float64)
+    if prior_cov.shape != (n, n):
+        raise ValueError(f"prior_cov must be [{n}, {n}] for estimate_bias={estimate_bias}, got {tuple(prior_cov.shape)}")
+    if env.config.max_steps < num_steps:
+        raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
+    obs, info = env.reset(seed=seed)
+    truth_p = _as_tensor(info["truth_mrp"])
+    truth_b = _as_tensor(info["truth_bias"])
+    B = truth_p.shape[0]
+    gen = torch.Generator().manual_seed(int(seed) + 7919)
+    x_true = torch.cat((truth_p, truth_b), -1)[:, :n]
+    mean0 = sample_prior(x_true, prior_cov, gen)
+    mixtures: dict[str, GaussianMixture] = {}
+    for name, setup in filters.items():
+        mix = GaussianMixture.from_gaussian(mean0, prior_cov.expand(B, n, n), setup.num_components, setup.spread)
+        m, P = setup.filter.model.canonicalize(mix.means, mix.covs)
+        mixtures[name] = mix.replace(means=m, covs=P)
+    dt = float(env.config.dt)
+    prev_bias = truth_b
+    first = next(iter(filters))
+    if gyro_hold_sigma is None:
+        gyro_hold_sigma = float(filters[first].filter.model.sigma_v) / dt**0.5
+    hold = GyroHold(gyro_hold_sigma)
+    hold.step(_as_tensor(obs["gyro"]), _gyro_valid(obs, B), dt)  # primes the hold with the reset reading
+    for k in range(num_steps):
+        action = filters[first].filter.estimate(mixtures[first])[0][:, :3]
+        obs, _, _, _, info = env.step(action)
+        truth_p = _as_tensor(info["truth_mrp"])
+        truth_b = _as_tensor(info["truth_bias"])
+        x_true = torch.cat((truth_p, truth_b), -1)[:, :n]
+        gyro_valid = _gyro_valid(obs, B)
+        gyro, held_var = hold.step(_as_tensor(obs["gyro"]), gyro_valid, dt)
+        any_held = bool((~gyro_valid).any())
+        # known bias: remove exactly the bias term ½(b_k + b_{k+1}) of the gyro model
+        u = gyro if estimate_bias else gyro - 0.5 * (prev_bias + truth_b)
+        prev_bias = truth_b
+        mask = torch.as_tensor(obs["star_mask"], dtype=torch.bool)
+        has_stars = bool(mask.any())
+        if has_stars:
+            y, meas = StarVectorMeasurement.from_observation(
+                {"star_body": _as_tensor(obs["star_body"]), "star_inertial": _as_tensor(obs["star_inertial"]), "star_mask": mask},
+                sigma_s,
+                noise_model=noise_model,
+            )
+        time = float(_as_tensor(obs["time"]).reshape(B, -1)[0, 0])
+        out: dict[str, FilterStep] = {}
+        for name, setup in filters.items():
+            filt = setup.filter
+            mix = filt.predict(mixtures[name], u, dt)
+            extra = {key: v for key, v in filt.diagnostics.items() if torch.is_tensor(v) and key != "weight_entropy"}
+            if any_held:
+                mix = GyroHold.inflate(mix, held_var)
+            extra["gyro_held"] = (~gyro_valid).to(torch.int64)
+            extra["gate_rejected"] = torch.zeros(B, dtype=torch.int64)
+            nis = torch.full((B,), float("nan"), dtype=torch.float64)
+            dof = torch.zeros(B, dtype=torch.float64)
+            if has_stars:
+                mix = filt.update(mix, y, meas)
+                nis = torch.where(filt.diagnostics["dof"] > 0, filt.diagnostics["nis_mixture"], nis)
+                dof = filt.diagnostics["dof"]
+                if "gate_rejected" in filt.diagnostics:
+                    extra["gate_rejected"] = filt.diagnostics["gate_rejected"]
+            mixtures[name] = mix
+            mean, cov = filt.estimate(mix)
+            out[name] = FilterStep(mix, mean, cov, filt.model.state_error(mean, x_true), nis, dof, extra)
+        yield Step(k, time, has_stars, x_true, truth_p, out)
+
+
 def run_monte_carlo(
     env,
     filters: Mapping[str, FilterSetup],
@@ -141,93 +264,34 @@ def run_monte_carlo(
     0 without gating) and ``gyro_held [T, B]`` (1 where the gyro sample was bridged).
     """
     n = 6 if estimate_bias else 3
-    prior_cov = torch.as_tensor(prior_cov, dtype=torch.float64)
-    if prior_cov.shape != (n, n):
-        raise ValueError(f"prior_cov must be [{n}, {n}] for estimate_bias={estimate_bias}, got {tuple(prior_cov.shape)}")
-    obs, info = env.reset(seed=seed)
-    truth_p = _as_tensor(info["truth_mrp"])
-    truth_b = _as_tensor(info["truth_bias"])
-    B = truth_p.shape[0]
-    gen = torch.Generator().manual_seed(int(seed) + 7919)
-    x_true = torch.cat((truth_p, truth_b), -1)[:, :n]
-    mean0 = sample_prior(x_true, prior_cov, gen)
-    mixtures: dict[str, GaussianMixture] = {}
-    for name, setup in filters.items():
-        mix = GaussianMixture.from_gaussian(mean0, prior_cov.expand(B, n, n), setup.num_components, setup.spread)
-        m, P = setup.filter.model.canonicalize(mix.means, mix.covs)
-        mixtures[name] = mix.replace(means=m, covs=P)
-
     records: dict[str, dict[str, list]] = {name: {k: [] for k in FilterTrace.__dataclass_fields__} for name in filters}
     times, frames = [], []
-    dt = float(env.config.dt)
-    if env.config.max_steps < num_steps:
-        raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
-    prev_bias = truth_b
-    if gyro_hold_sigma is None:
-        gyro_hold_sigma = float(filters[next(iter(filters))].filter.model.sigma_v) / dt**0.5
-    hold = GyroHold(gyro_hold_sigma)
-    hold.step(_as_tensor(obs["gyro"]), _gyro_valid(obs, B), dt)  # primes the hold with the reset reading
-    steps = range(num_steps)
+    steps = monte_carlo_steps(
+        env, filters, num_steps=num_steps, prior_cov=prior_cov, sigma_s=sigma_s, seed=seed,
+        estimate_bias=estimate_bias, noise_model=noise_model, gyro_hold_sigma=gyro_hold_sigma,
+    )
     if progress:
         from tqdm import tqdm
 
-        steps = tqdm(steps, desc="monte carlo", unit="step")
-    first = next(iter(filters))
-    for k in steps:
-        action = filters[first].filter.estimate(mixtures[first])[0][:, :3]
-        obs, _, _, _, info = env.step(action)
-        truth_p = _as_tensor(info["truth_mrp"])
-        truth_b = _as_tensor(info["truth_bias"])
-        x_true = torch.cat((truth_p, truth_b), -1)[:, :n]
-        gyro_valid = _gyro_valid(obs, B)
-        gyro, held_var = hold.step(_as_tensor(obs["gyro"]), gyro_valid, dt)
-        any_held = bool((~gyro_valid).any())
-        # known bias: remove exactly the bias term ½(b_k + b_{k+1}) of the gyro model
-        u = gyro if estimate_bias else gyro - 0.5 * (prev_bias + truth_b)
-        prev_bias = truth_b
-        mask = torch.as_tensor(obs["star_mask"], dtype=torch.bool)
-        has_stars = bool(mask.any())
-        if has_stars:
-            y, meas = StarVectorMeasurement.from_observation(
-                {"star_body": _as_tensor(obs["star_body"]), "star_inertial": _as_tensor(obs["star_inertial"]), "star_mask": mask},
-                sigma_s,
-                noise_model=noise_model,
-            )
-        times.append(float(_as_tensor(obs["time"]).reshape(B, -1)[0, 0]))
-        frames.append(has_stars)
-        for name, setup in filters.items():
-            filt = setup.filter
-            mix = filt.predict(mixtures[name], u, dt)
-            extra = {key: v for key, v in filt.diagnostics.items() if torch.is_tensor(v) and key != "weight_entropy"}
-            if any_held:
-                mix = GyroHold.inflate(mix, held_var)
-            extra["gyro_held"] = (~gyro_valid).to(torch.int64)
-            extra["gate_rejected"] = torch.zeros(B, dtype=torch.int64)
-            nis = torch.full((B,), float("nan"), dtype=torch.float64)
-            dof = torch.zeros(B, dtype=torch.float64)
-            if has_stars:
-                mix = filt.update(mix, y, meas)
-                nis = torch.where(filt.diagnostics["dof"] > 0, filt.diagnostics["nis_mixture"], nis)
-                dof = filt.diagnostics["dof"]
-                if "gate_rejected" in filt.diagnostics:
-                    extra["gate_rejected"] = filt.diagnostics["gate_rejected"]
-            mixtures[name] = mix
-            mean, cov = filt.estimate(mix)
-            err = filt.model.state_error(mean, x_true)
-            scale = torch.ones(n, dtype=torch.float64)
-            scale[:3] = 4.0  # δθ ≈ 4 δp for small MRP errors
+        steps = tqdm(steps, desc="monte carlo", unit="step", total=num_steps)
+    scale = torch.ones(n, dtype=torch.float64)
+    scale[:3] = 4.0  # δθ ≈ 4 δp for small MRP errors
+    for step in steps:
+        times.append(step.time)
+        frames.append(step.star_frame)
+        for name, fs in step.filters.items():
             rec = records[name]
-            rec["error_angle"].append(attitude_error_angle(mean[:, :3], truth_p))
-            rec["error"].append(err * scale)
-            rec["sigma"].append(cov.diagonal(dim1=-2, dim2=-1).sqrt() * scale)
-            rec["nees"].append(nees(err, cov))
-            rec["nis"].append(nis)
-            rec["nis_dof"].append(dof)
-            rec["weights"].append(mix.weights)
-            rec["weight_entropy"].append(mix.entropy_of_weights())
-            rec["extra"].append(extra)
+            rec["error_angle"].append(attitude_error_angle(fs.mean[:, :3], step.truth_mrp))
+            rec["error"].append(fs.error * scale)
+            rec["sigma"].append(fs.cov.diagonal(dim1=-2, dim2=-1).sqrt() * scale)
+            rec["nees"].append(nees(fs.error, fs.cov))
+            rec["nis"].append(fs.nis)
+            rec["nis_dof"].append(fs.dof)
+            rec["weights"].append(fs.mixture.weights)
+            rec["weight_entropy"].append(fs.mixture.entropy_of_weights())
+            rec["extra"].append(fs.extra)
             if callback is not None:
-                callback(k, name, filt, mix)
+                callback(step.index, name, filters[name].filter, fs.mixture)
 
     traces = {}
     for name, rec in records.items():

@@ -77,3 +77,15 @@ def test_bad_overrides_and_files(tmp_path):
 
 def test_defaults_validate():
     assert ExperimentConfig().num_steps == 300
+
+
+def test_faults_preset_and_fault_validation():
+    cfg = load_preset("faults")
+    assert cfg.gate_probability == 0.9999 and cfg.estimate_bias and len(cfg.faults) == 4
+    assert {f["kind"] for f in cfg.faults} == {"misidentified_star", "star_outage", "gyro_dropout", "gyro_saturation"}
+    assert all(f["end"] <= cfg.duration for f in cfg.faults)
+    with pytest.raises(ValueError, match=r"config key 'faults': faults\[0\]: SensorFault: end \(1.0\) must be after start"):
+        ExperimentConfig(faults=[{"kind": "star_outage", "start": 2.0, "end": 1.0}])
+    for p in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="config key 'gate_probability' must be 0"):
+            ExperimentConfig(gate_probability=p)

@@ -3,8 +3,9 @@
 Each faulty run is compared with the same seeds without the fault.  Criterion
 (fixed before measuring): over t ∈ [200, 220) s — 40 s or more after every fault
 has ended — the RMS attitude error is within 10 % of the fault-free run's.
-Measured (this configuration): ratios 1.000 (misidentified star), ≈ 1.04 (2-minute
-star outage), ≈ 1.01 (1-minute gyro dropout / saturation).
+Measured (this configuration): ratios 1.000 (misidentified star), 0.999 (2-minute
+star outage), 1.001 (1-minute gyro dropout / saturation); without the gate the
+misidentified star raises the RMS during the fault from 0.50″ to 160″.
 """
 
 from __future__ import annotations
