@@ -113,6 +113,11 @@ def _sweep(args: argparse.Namespace) -> int:
     except (RayUnavailable, SweepFailed) as exc:
         print(f"agsf: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        results = Path(args.out) / "results.jsonl"
+        done = len(results.read_text().splitlines()) if results.exists() else 0
+        print(f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume", file=sys.stderr)
+        return 130
     print(f"{len(rows)} configurations in {args.out}/results.jsonl; TensorBoard hparams: tensorboard --logdir {args.out}")
     return 0
 

@@ -9,7 +9,9 @@ under pytest 9.2)."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 import json
 import os
 import sys
@@ -57,13 +59,17 @@ def metrics(rows):
     return {r["digest"]: r["metrics"] for r in rows}
 
 
-def test_ray_backend(tmp_path):
+def test_ray_backend(tmp_path, monkeypatch):
     """One local Ray instance for every check below (see the module docstring)."""
+    # Ray on Linux puts even a local instance on the machine's network address; this keeps it on loopback
+    # (read when ray is imported: this module is the only one that imports it)
+    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     ray = pytest.importorskip("ray")  # the ray extra (scripts/setup_env.sh installs it)
     local_out = tmp_path / "local"
     local_rows = by_digest(run_sweep(load_config("case1", BASE), parse_grid(GRID), local_out, progress=False))
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
+        assert [n["NodeManagerAddress"] for n in ray.nodes()] == ["127.0.0.1"]
         check_rows_and_files_equal_local(local_out, local_rows, tmp_path / "equal")
         check_failed_task_keeps_the_others_and_the_rerun_runs_only_it(local_rows, tmp_path / "failed")
         check_interrupted_driver_keeps_what_finished(ray, local_rows, tmp_path / "interrupted")
@@ -128,9 +134,16 @@ def check_interrupted_driver_keeps_what_finished(ray, local_rows, tmp_path):
         with pytest.raises(KeyboardInterrupt):
             run_sweep(base, grid, out, progress=False, backend="ray")
     assert len((out / "results.jsonl").read_text().splitlines()) == 1
-    # the rerun, through the CLI on the running Ray instance, adds only the missing configuration
+    assert len(list((out / "configs").iterdir())) == 1  # the cancelled configuration left no folder
+    # through the CLI (on the running Ray instance): Ctrl-C again at once, then the rerun
     args = ["sweep", "case1", *sum((["--set", s] for s in BASE), []), "--grid", "scaling=trace,none"]
-    assert cli.main([*args, "--out", str(out), "--backend", "ray", "--quiet"]) == 0
+    args += ["--out", str(out), "--backend", "ray", "--quiet"]
+    stderr = io.StringIO()
+    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stderr(stderr):
+        mp.setattr(ray, "wait", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+        assert cli.main(args) == 130
+    assert "1 finished configurations" in stderr.getvalue() and "rerun the same command" in stderr.getvalue()
+    assert cli.main(args) == 0  # adds only the missing configuration
     rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     digests = [base.replace(scaling=s).digest() for s in ("trace", "none")]
     assert len(rows) == 2 and metrics(rows) == {d: local_rows[d]["metrics"] for d in digests}
