@@ -11,6 +11,10 @@ Subcommands:
 * ``agsf reproduce --case {1,2,3,all} [--runs R] --out DIR`` — the paper's cases.
 * ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
   resumable grid, in this process or as Ray tasks.
+* ``agsf soak [--filter GSF|AGSF] [--runs B] [--duration S] --out DIR`` — a long run
+  (default one simulated hour, 256 runs, 6-state) with running statistics and a
+  pass/fail verdict: no NaN, covariances positive definite, errors inside ±3σ,
+  flat memory (:mod:`agsf_torch.experiments.soak`).
 
 Every experiment writes ``summary.json``, ``runs.npz``, PNG figures and
 TensorBoard events (see :mod:`agsf_torch.experiments.experiment`).
@@ -134,6 +138,24 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _soak(args: argparse.Namespace) -> int:
+    from .config import parse_override
+    from .soak import run_soak, soak_config, soak_verdict
+
+    changes = dict(parse_override(item) for item in args.set or [])
+    changes.update(runs=args.runs, duration=args.duration, seed=args.seed)
+    if args.no_compile:
+        changes["compile"] = False
+    cfg = soak_config(args.filter, **changes)
+    _threads(args)
+    out = Path(args.out)
+    rows = run_soak(cfg, out, report_every=args.report_every, progress=not args.quiet)
+    verdict = soak_verdict(rows, warmup=args.warmup)
+    (out / "verdict.json").write_text(json.dumps(verdict, indent=2))
+    print(json.dumps(verdict, indent=2))
+    return 0 if verdict["passed"] else 1
+
+
 def _diagnose(args: argparse.Namespace) -> int:
     from .config import load_config
     from .diagnose import diagnose
@@ -190,7 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     p = sub.add_parser("run", help="one configuration (a TOML file or a preset name)")
-    p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior)")
+    p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior, faults)")
     p.add_argument("--recording", default=None, help="replay a recorded .npz file (with truth) instead of simulating")
     p.add_argument("--out", required=True)
     common(p)
@@ -234,6 +256,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     common(p)
     p.set_defaults(func=_learn)
+
+    p = sub.add_parser("soak", help="a long run checking NaN, positive definiteness, 3σ consistency and flat memory")
+    p.add_argument("--filter", choices=("EKF", "GSF", "AGSF"), default="GSF")
+    p.add_argument("--runs", type=_positive_int, default=256)
+    p.add_argument("--duration", type=_positive_float, default=3600.0, help="simulated seconds (default one hour)")
+    p.add_argument("--report-every", type=_positive_float, default=60.0, help="simulated seconds per report row")
+    p.add_argument("--warmup", type=float, default=60.0, help="seconds excluded from the verdict (prior convergence)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--no-compile", action="store_true", help="eager FPKE quadrature (AGSF)")
+    p.add_argument("--out", required=True)
+    common(p)
+    p.set_defaults(func=_soak)
 
     p = sub.add_parser("bench", help="throughput, peers (filterpy, Clarabel), FLOP rates, memory")
     p.add_argument("--out", default="runs/bench")

@@ -53,6 +53,7 @@ class ExperimentConfig:
         scaling: ``"trace"`` or ``"none"`` (the paper's L + λI).
         weight_ref: ``"update"`` (paper) or ``"previous"``.
         update_iterations: linearisations per measurement update (1: EKF update).
+        adapt_cadence: the AGSF adapts its weights every ``adapt_cadence``-th propagation step.
         filters: which of EKF, GSF, AGSF to run.
         seed: seeds truth, noise and prior draws.
         compile: ``torch.compile`` the FPKE quadrature kernel.
@@ -90,6 +91,7 @@ class ExperimentConfig:
     scaling: str = "trace"
     weight_ref: str = "update"
     update_iterations: int = 1
+    adapt_cadence: int = 1
     filters: list = field(default_factory=lambda: list(FILTER_NAMES))
     seed: int = 0
     compile: bool = False
@@ -133,7 +135,7 @@ class ExperimentConfig:
                 raise ValueError(f"config key '{key}' must be finite and ≥ 0, got {v!r}")
         if not math.isfinite(self.gyro_bias_deg_per_hr):
             raise ValueError(f"config key 'gyro_bias_deg_per_hr' must be finite, got {self.gyro_bias_deg_per_hr!r}")
-        for key in ("runs", "max_stars", "components", "update_iterations"):
+        for key in ("runs", "max_stars", "components", "update_iterations", "adapt_cadence"):
             if getattr(self, key) < 1:
                 raise ValueError(f"config key '{key}' must be ≥ 1, got {getattr(self, key)!r}")
         if not 0.0 < self.spread < 1.0:

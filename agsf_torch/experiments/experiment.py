@@ -81,7 +81,8 @@ def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:
         "GSF": lambda: FilterSetup(GaussianSumFilter(model, **kw), cfg.components, cfg.spread),
         "AGSF": lambda: FilterSetup(
             AdaptiveGaussianSumFilter(
-                model, reg=cfg.reg, scaling=cfg.scaling, weight_ref=cfg.weight_ref, compile=cfg.compile, **kw
+                model, reg=cfg.reg, scaling=cfg.scaling, weight_ref=cfg.weight_ref, compile=cfg.compile,
+                cadence=cfg.adapt_cadence, **kw
             ),
             cfg.components,
             cfg.spread,
