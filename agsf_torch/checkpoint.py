@@ -4,7 +4,8 @@ A checkpoint is a ``torch.save`` file holding only tensors, numbers, strings,
 lists and dicts, so it loads with ``torch.load(weights_only=True)`` (no code
 execution).  It holds, per filter, the mixture (log-weights, means, covariances
 and the adaptive filter's reference weights) and the filter's step counter, plus
-any caller state (for example an environment's ``state_dict()``).  Restoring it
+any caller state (for example an environment's ``state_dict()`` and a
+:class:`~agsf_torch.input_gaps.GyroHold`'s).  Restoring it
 and continuing gives the same numbers, bit for bit, as never stopping.
 """
 

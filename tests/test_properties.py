@@ -62,9 +62,11 @@ def test_split_preserves_moments_and_validity(n, N, batch, log_scale, spread, se
     log_sigma=st.floats(-7, -2),
     log_prior=st.floats(-8, -3),
     seed=st.integers(0, 2**31 - 1),
+    gate=st.sampled_from([None, 0.99, 0.9999]),
+    outlier=st.floats(0.0, 0.2),
     data=st.data(),
 )
-def test_gsf_steps_keep_the_belief_valid(B, N, estimate_bias, log_sigma, log_prior, seed, data):
+def test_gsf_steps_keep_the_belief_valid(B, N, estimate_bias, log_sigma, log_prior, seed, gate, outlier, data):
     g = torch.Generator().manual_seed(seed)
     model = AttitudeModel(estimate_bias=estimate_bias)
     n = model.state_dim
@@ -72,7 +74,7 @@ def test_gsf_steps_keep_the_belief_valid(B, N, estimate_bias, log_sigma, log_pri
     mean = torch.cat((p, torch.zeros(B, 3, dtype=F64)), -1)[:, :n]
     P0 = torch.diag(torch.tensor([10.0**log_prior] * 3 + [1e-12] * 3, dtype=F64)[:n])
     mix = GaussianMixture.from_gaussian(mean, P0.expand(B, n, n), N)
-    filt = GaussianSumFilter(model)
+    filt = GaussianSumFilter(model, gate_probability=gate)
     u = 0.1 * torch.randn(B, 3, generator=g, dtype=F64)
     r = torch.randn(B, 5, 3, generator=g, dtype=F64)
     r = r / r.norm(dim=-1, keepdim=True)
@@ -80,11 +82,18 @@ def test_gsf_steps_keep_the_belief_valid(B, N, estimate_bias, log_sigma, log_pri
     sigma = 10.0**log_sigma
     meas = StarVectorMeasurement(r, mask, sigma)
     y = meas.predict(p) + sigma * torch.randn(B, 15, generator=g, dtype=F64)
+    y[:, :3] += outlier  # star 0 may be an outlier of any size
     for _ in range(2):
         mix = filt.predict(mix, u, 0.1)
         _assert_valid(mix)
         mix = filt.update(mix, y, meas)
         _assert_valid(mix)
+        if gate is not None:
+            d = filt.diagnostics
+            assert d["gate_accepted"].shape == (B, 5) and d["gate_nis"].shape == (B, 5)
+            assert bool(torch.isfinite(d["gate_nis"]).all()) and bool((d["gate_nis"] >= 0).all())
+            assert bool((d["gate_rejected"] <= mask.sum(-1)).all())
+            assert bool(d["gate_accepted"][~mask].all())  # masked stars are never counted as rejected
 
 
 @SETTINGS
