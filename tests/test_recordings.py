@@ -103,3 +103,23 @@ def test_cli_simulate_then_run_on_the_file(tmp_path):
     assert cli.main(["simulate", "--runs", "3", "--steps", "20", "--out", str(tmp_path / "sim")]) == 0
     assert Recording.load(tmp_path / "sim" / "recording.npz").num_samples == 21
     assert cli.main(args[:4] + ["--set", "runs=7", "--out", str(tmp_path / "x")]) == 2  # shape mismatch named
+
+
+def test_gyro_valid_column_round_trips_replays_and_is_validated(tmp_path):
+    faults = [{"kind": "gyro_dropout", "start": 1.0, "end": 1.5}]
+    live_env = envs.StarTrackerAttitudeVectorEnv(num_envs=4, max_steps=40, faults=faults)
+    rec = record_environment(envs.StarTrackerAttitudeVectorEnv(num_envs=4, max_steps=40, faults=faults), 30, seed=5)
+    assert rec.gyro_valid.shape == (4, 31) and rec.gyro_valid.dtype == np.bool_
+    assert (~rec.gyro_valid).any(0).tolist() == [10 <= k < 15 for k in range(31)]
+    back = Recording.load(rec.save(tmp_path / "faulty.npz"))
+    assert np.array_equal(back.gyro_valid, rec.gyro_valid)
+    live, replay = _run(live_env), _run(RecordingEnv(back))
+    assert np.array_equal(live.error, replay.error)
+    assert replay.extra["gyro_held"].sum() == 4 * 5
+    a = _arrays(rec)
+    with pytest.raises(ValueError, match=r"column 'gyro_valid' must be boolean"):
+        Recording(**a, gyro_valid=rec.gyro_valid.astype(np.int8))
+    with pytest.raises(ValueError, match=r"column 'gyro_valid' must have shape \[4, 31\]"):
+        Recording(**a, gyro_valid=rec.gyro_valid[:, :30])
+    # without the column every sample counts as valid
+    assert _run(RecordingEnv(Recording(**a, truth_mrp=rec.truth_mrp, truth_bias=rec.truth_bias))).extra["gyro_held"].sum() == 0
