@@ -22,8 +22,8 @@ import gymnasium
 
 from .camera import StarCamera, StarObservation, random_attitude_quat, star_count_distribution
 from .catalog import DEFAULT_MAX_MAGNITUDE, StarCatalog, cache_dir, load_hipparcos_table
-from .faults import FAULT_KINDS, SensorFault
 from .dynamics import DEFAULT_OMEGA0, DEFAULT_RATE, AttitudeDynamics, propagate_quat
+from .faults import FAULT_KINDS, SensorFault
 from .gyro import DEFAULT_INITIAL_BIAS, DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR, Gyro
 from .random import CounterKey, counter_normal, counter_uniform
 from .star_tracker import (
