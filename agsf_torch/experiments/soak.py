@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..metrics import nees
 from .config import ExperimentConfig, load_preset
 from .experiment import make_env, make_filters, prior_covariance
 from .runner import monte_carlo_steps
@@ -85,9 +86,7 @@ class _Stats:
         bad = ~torch.isfinite(err).all(-1) | ~torch.isfinite(cov).flatten(-2).all(-1)
         self.nonfinite += int(bad.sum()) + int((~torch.isfinite(fs.mixture.covs)).sum())
         self.sq_angle += float(((4.0 * err[:, :3].norm(dim=-1)) ** 2).sum())
-        L = torch.linalg.cholesky_ex(cov)[0]
-        z = torch.linalg.solve_triangular(L, err.unsqueeze(-1), upper=False).squeeze(-1)
-        self.nees += float((z * z).sum())
+        self.nees += float(nees(err, cov).sum())
         self.inside += (err.abs() <= 3.0 * sigma).sum(0).double().numpy()
         if check_eigs:
             ev = torch.linalg.eigvalsh(fs.mixture.covs)
