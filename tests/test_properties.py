@@ -22,7 +22,8 @@ SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[Healt
 def _spd(seed: int, shape: tuple[int, ...], n: int, scale: float) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     A = torch.randn(*shape, n, n, generator=g, dtype=F64)
-    return scale * (A @ A.transpose(-1, -2) / n + 0.05 * torch.eye(n, dtype=F64))
+    S = scale * (A @ A.transpose(-1, -2) / n + 0.05 * torch.eye(n, dtype=F64))
+    return 0.5 * (S + S.transpose(-1, -2))  # a rounded A @ Aᵀ is not exactly symmetric; a covariance must be
 
 
 def _assert_valid(mix: GaussianMixture) -> None:
