@@ -2,9 +2,9 @@
 
 A checkpoint is a ``torch.save`` file holding only tensors, numbers, strings,
 lists and dicts, so it loads with ``torch.load(weights_only=True)`` (no code
-execution).  It holds, per filter, the mixture (log-weights, means, covariances
-and the adaptive filter's reference weights) and the filter's step counter, plus
-any caller state (for example an environment's ``state_dict()`` and a
+execution).  It holds, per filter, the mixture (log-weights, means, covariances)
+and the filter's run state (``filter.state_dict()``: the adaptive filter's
+weight-update counter and reference weights), plus any caller state (for example an environment's ``state_dict()`` and a
 :class:`~agsf_torch.input_gaps.GyroHold`'s).  Restoring it
 and continuing gives the same numbers, bit for bit, as never stopping.
 """
@@ -22,11 +22,12 @@ from .mixture import GaussianMixture
 
 __all__ = ["save_checkpoint", "load_checkpoint", "FORMAT"]
 
-FORMAT = "agsf-checkpoint-1"
+FORMAT = "agsf-checkpoint-2"
+_OLD_FORMAT = "agsf-checkpoint-1"  # counter and reference weights beside the mixture; still read
 
 
 def _mixture_state(m: GaussianMixture) -> dict[str, Any]:
-    return {"log_weights": m.log_weights, "means": m.means, "covs": m.covs, "ref_log_weights": m.ref_log_weights}
+    return {"log_weights": m.log_weights, "means": m.means, "covs": m.covs}
 
 
 def save_checkpoint(
@@ -46,7 +47,7 @@ def save_checkpoint(
     state = {
         "format": FORMAT,
         "filters": {
-            name: {"mixture": _mixture_state(mixtures[name]), "step": int(getattr(filters[name], "_step", 0))}
+            name: {"mixture": _mixture_state(mixtures[name]), "filter": filters[name].state_dict()}
             for name in mixtures
         },
         "extra": dict(extra or {}),
@@ -58,20 +59,39 @@ def save_checkpoint(
     return path
 
 
+def _filter_state(s: dict[str, Any], fmt: str) -> dict[str, Any]:
+    """The filter's ``state_dict`` from a checkpoint entry (format 1: counter and reference beside the mixture)."""
+    if fmt == FORMAT:
+        return s["filter"]
+    ref = s["mixture"].get("ref_log_weights")
+    step = int(s["step"])
+    return {} if step == 0 and ref is None else {"weight_update": {"step": step, "elapsed": 0.0, "ref_log_weights": ref}}
+
+
 def load_checkpoint(path: str | Path, filters: Mapping[str, GaussianSumFilter]) -> tuple[dict[str, GaussianMixture], dict[str, Any]]:
-    """Read a checkpoint (``weights_only=True``), restore the filters' counters, return
-    ``(mixtures, extra)``."""
+    """Read a checkpoint (``weights_only=True``), restore the filters' run state, return
+    ``(mixtures, extra)``.  Everything is validated before any filter changes."""
     state = torch.load(Path(path), weights_only=True)
-    if state.get("format") != FORMAT:
-        raise ValueError(f"{path} is not an {FORMAT} file (format {state.get('format')!r})")
+    fmt = state.get("format") if isinstance(state, dict) else None
+    if fmt not in (FORMAT, _OLD_FORMAT):
+        raise ValueError(f"{path} is not an {FORMAT} file (format {fmt!r})")
     if set(state["filters"]) != set(filters):
         raise ValueError(f"checkpoint holds filters {sorted(state['filters'])}, got {sorted(filters)}")
-    mixtures = {}
+    mixtures, restored = {}, {}
     for name, s in state["filters"].items():
         m = s["mixture"]
-        mixtures[name] = GaussianMixture(
-            log_weights=m["log_weights"], means=m["means"], covs=m["covs"], ref_log_weights=m["ref_log_weights"], validate=False
-        )
-        if hasattr(filters[name], "_step"):
-            filters[name]._step = int(s["step"])
+        try:
+            mixtures[name] = GaussianMixture(log_weights=m["log_weights"], means=m["means"], covs=m["covs"])
+        except ValueError as exc:
+            raise ValueError(f"{path}: filter {name!r}: {exc}") from None
+        restored[name] = _filter_state(s, fmt)
+    previous = {name: filt.state_dict() for name, filt in filters.items()}
+    current = None
+    try:
+        for current, filt in filters.items():
+            filt.load_state_dict(restored[current])
+    except ValueError as exc:  # put every filter back as it was
+        for name, filt in filters.items():
+            filt.load_state_dict(previous[name])
+        raise ValueError(f"{path}: filter {current!r}: {exc}") from None
     return mixtures, state["extra"]

@@ -25,8 +25,12 @@ import torch
 from torch import Tensor
 
 from .models.base import ContinuousModel, FokkerPlanckTerms
+from .quadrature import gauss_hermite, smolyak_gauss_hermite
 
-__all__ = ["ComponentRates", "residual_factor", "fpke_residual", "fpke_matrix", "FPKEMatrix"]
+__all__ = [
+    "ComponentRates", "residual_factor", "fpke_residual", "ProductGaussians", "product_gaussians",
+    "fpke_matrix", "FPKEMatrix", "galerkin_matrices", "GalerkinMatrices", "residual_rule",
+]
 
 
 @dataclass(frozen=True)
@@ -121,6 +125,47 @@ def _log_normal(x: Tensor, mean: Tensor, chol: Tensor) -> Tensor:
     return -0.5 * (z * z).sum(-1) - logdet - 0.5 * x.shape[-1] * math.log(2.0 * math.pi)
 
 
+@dataclass(frozen=True)
+class ProductGaussians:
+    """The products ``pᵢ pⱼ = z_ij N(x; m_ij, S_ij)`` of every pair ``i ≤ j`` of components.
+
+    Attributes:
+        index: ``[2, P]`` the pairs ``(i, j)``, ``P = N(N+1)/2`` (``torch.triu_indices``).
+        mean: ``m_ij`` ``[..., P, n]``; chol: lower Cholesky factor of ``S_ij`` ``[..., P, n, n]``.
+        log_z: ``log z_ij = log N(μᵢ; μⱼ, Pᵢ + Pⱼ)`` ``[..., P]``.
+        first, second: the components ``i`` and ``j`` of each pair (:class:`ComponentRates`, ``[..., P, ...]``).
+    """
+
+    index: Tensor
+    mean: Tensor
+    chol: Tensor
+    log_z: Tensor
+    first: ComponentRates
+    second: ComponentRates
+
+
+def product_gaussians(rates: ComponentRates) -> ProductGaussians:
+    """``m_ij``, ``chol(S_ij)`` and ``log z_ij`` for every pair ``i ≤ j`` (method.md §3).
+
+    With ``Σ = Pᵢ + Pⱼ`` (Cholesky factor ``L_Σ``): ``Kᵀ = Σ⁻¹Pᵢ``,
+    ``m_ij = μᵢ + K(μⱼ − μᵢ)``, ``S_ij = Pᵢ − K Pᵢ`` — the same as
+    ``S_ij = (Πᵢ + Πⱼ)⁻¹``, ``m_ij = S_ij(Πᵢμᵢ + Πⱼμⱼ)`` without inverting a covariance.
+    """
+    mu = rates.means
+    N = mu.shape[-2]
+    iu = torch.triu_indices(N, N, device=mu.device)
+    ri, rj = rates.select(iu[0]), rates.select(iu[1])  # [..., P, ...]
+    Pi = ri.chol @ ri.chol.transpose(-1, -2)
+    Pj = rj.chol @ rj.chol.transpose(-1, -2)
+    Ls = torch.linalg.cholesky(Pi + Pj)
+    Kt = torch.cholesky_solve(Pi, Ls)  # Σ⁻¹ Pᵢ = Kᵀ
+    m = ri.means + (Kt.transpose(-1, -2) @ (rj.means - ri.means).unsqueeze(-1)).squeeze(-1)
+    S = Pi - Kt.transpose(-1, -2) @ Pi
+    LS = torch.linalg.cholesky(0.5 * (S + S.transpose(-1, -2)))
+    log_z = _log_normal(ri.means, rj.means, Ls)  # [..., P]
+    return ProductGaussians(iu, m, LS, log_z, ri, rj)
+
+
 def _pair_chunk(
     model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, wq: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
 ) -> Tensor:
@@ -130,14 +175,52 @@ def _pair_chunk(
     return (residual_factor(terms, x, ri) * residual_factor(terms, x, rj) * wq).sum(-1)
 
 
-_COMPILED = None
+def _galerkin_chunk(
+    model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, wq: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
+) -> Tensor:
+    """``(Σ_k w_k ℓᵢ(x_k), Σ_k w_k ℓⱼ(x_k))`` over one chunk of nodes, stacked ``[2, ..., Pc]``."""
+    x = m.unsqueeze(-2) + xi @ LS.transpose(-1, -2)  # [..., Pc, K, n]
+    terms = model.fokker_planck_terms(x, u)
+    return torch.stack(((residual_factor(terms, x, ri) * wq).sum(-1), (residual_factor(terms, x, rj) * wq).sum(-1)))
 
 
-def _compiled_pair_chunk():
-    global _COMPILED
-    if _COMPILED is None:
-        _COMPILED = torch.compile(_pair_chunk)  # static first, dynamic after a shape change (no recompile storm)
-    return _COMPILED
+_COMPILED: dict[str, object] = {}
+
+
+def _kernel(name: str, compile: bool):
+    """The chunk kernel ``name``, eager or ``torch.compile``-d once per process
+    (static first, dynamic after a shape change: no recompile storm)."""
+    fn = {"pair": _pair_chunk, "galerkin": _galerkin_chunk}[name]
+    if not compile:
+        return fn
+    if name not in _COMPILED:
+        _COMPILED[name] = torch.compile(fn)
+    return _COMPILED[name]
+
+
+def _check_chunk_size(chunk_size: int | None) -> None:
+    if chunk_size is not None and (int(chunk_size) != chunk_size or chunk_size < 1):
+        raise ValueError(f"chunk_size must be a positive integer or None, got {chunk_size}")
+
+
+def _integrate_pairs(
+    kernel, model: ContinuousModel, u: Tensor | None, prod: ProductGaussians, nodes: Tensor, node_weights: Tensor,
+    chunk_size: int | None, max_chunk_elements: int, out_shape: tuple[int, ...],
+) -> Tensor:
+    """Accumulate ``kernel`` over the rule's nodes in chunks that bound memory."""
+    m = prod.mean
+    n = m.shape[-1]
+    if u is not None:
+        u = u[..., None, None, :]
+    if chunk_size is None:
+        per_node = max(1, int(m[..., 0].numel()) * n * n)
+        chunk_size = max(1, max_chunk_elements // per_node)
+    acc = torch.zeros(*out_shape, *m.shape[:-1], dtype=m.dtype, device=m.device)
+    for start in range(0, nodes.shape[0], chunk_size):
+        xi = nodes[start : start + chunk_size].to(m)
+        wq = node_weights[start : start + chunk_size].to(m)
+        acc = acc + kernel(model, m, prod.chol, xi, wq, u, prod.first, prod.second)
+    return acc
 
 
 @dataclass(frozen=True)
@@ -162,6 +245,13 @@ class FPKEMatrix:
         return q * torch.exp(self.log_scale)
 
 
+def _symmetric_from_pairs(vals: Tensor, index: Tensor, N: int) -> Tensor:
+    out = torch.zeros(*vals.shape[:-1], N, N, dtype=vals.dtype, device=vals.device)
+    out[..., index[0], index[1]] = vals
+    out[..., index[1], index[0]] = vals
+    return out
+
+
 def fpke_matrix(
     model: ContinuousModel,
     u: Tensor | None,
@@ -174,18 +264,17 @@ def fpke_matrix(
 ) -> FPKEMatrix:
     """``L_ij = ∫ Lᵢ Lⱼ dx`` for every pair of components (method.md §3).
 
-    Only the ``N(N+1)/2`` pairs ``i ≤ j`` are evaluated.  ``S_ij`` and ``m_ij``
-    come from ``Σ = Pᵢ + Pⱼ`` by Cholesky solves: ``Kᵀ = Σ⁻¹Pᵢ``,
-    ``m_ij = μᵢ + K(μⱼ − μᵢ)``, ``S_ij = Pᵢ − K Pᵢ``.  Quadrature points
-    ``x = m_ij + chol(S_ij) ξ`` are processed in chunks (``chunk_size`` nodes, or
-    as many as keep a ``[..., pairs, chunk, n, n]`` tensor under
-    ``max_chunk_elements``) to bound memory.
+    Only the ``N(N+1)/2`` pairs ``i ≤ j`` are evaluated (:func:`product_gaussians`).
+    Quadrature points ``x = m_ij + chol(S_ij) ξ`` are processed in chunks
+    (``chunk_size`` nodes, or as many as keep a ``[..., pairs, chunk, n, n]``
+    tensor under ``max_chunk_elements``) to bound memory.
 
     Args:
         model: the continuous-time model.
         u: input ``[..., m]`` (broadcast against the trajectory dims) or ``None``.
         rates: components ``[..., N, ...]`` with their moment rates.
         nodes, node_weights: a rule for ``N(0, I_n)`` (:mod:`agsf_torch.quadrature`).
+        chunk_size: nodes per chunk, a positive integer, or ``None`` (automatic).
         compile: evaluate the per-chunk products with a ``torch.compile``-d
             kernel (fused elementwise work; measured 6× faster on the 3-state
             attitude model, after a one-off compilation of ~20 s per shape).
@@ -193,33 +282,113 @@ def fpke_matrix(
     Returns:
         :class:`FPKEMatrix` (``[..., N, N]``).
     """
-    mu = rates.means
-    N, n = mu.shape[-2], mu.shape[-1]
-    iu = torch.triu_indices(N, N, device=mu.device)
-    ri, rj = rates.select(iu[0]), rates.select(iu[1])  # [..., Pc, ...]
-    Pi = ri.chol @ ri.chol.transpose(-1, -2)
-    Pj = rj.chol @ rj.chol.transpose(-1, -2)
-    Ls = torch.linalg.cholesky(Pi + Pj)
-    Kt = torch.cholesky_solve(Pi, Ls)  # Σ⁻¹ Pᵢ = Kᵀ
-    m = ri.means + (Kt.transpose(-1, -2) @ (rj.means - ri.means).unsqueeze(-1)).squeeze(-1)
-    S = Pi - Kt.transpose(-1, -2) @ Pi
-    LS = torch.linalg.cholesky(0.5 * (S + S.transpose(-1, -2)))
-    log_z = _log_normal(ri.means, rj.means, Ls)  # [..., Pc]
-    log_scale = log_z.amax(-1)
+    _check_chunk_size(chunk_size)
+    N = rates.means.shape[-2]
+    prod = product_gaussians(rates)
+    log_scale = prod.log_z.amax(-1)
+    acc = _integrate_pairs(_kernel("pair", compile), model, u, prod, nodes, node_weights, chunk_size, max_chunk_elements, ())
+    vals = torch.exp(prod.log_z - log_scale[..., None]) * acc
+    return FPKEMatrix(_symmetric_from_pairs(vals, prod.index, N), log_scale)
 
-    if u is not None:
-        u = u[..., None, None, :]
-    if chunk_size is None:
-        per_node = max(1, int(m[..., 0].numel()) * n * n)
-        chunk_size = max(1, max_chunk_elements // per_node)
-    kernel = _compiled_pair_chunk() if compile else _pair_chunk
-    acc = torch.zeros(m.shape[:-1], dtype=mu.dtype, device=mu.device)
-    for start in range(0, nodes.shape[0], chunk_size):
-        xi = nodes[start : start + chunk_size].to(mu)
-        wq = node_weights[start : start + chunk_size].to(mu)
-        acc = acc + kernel(model, m, LS, xi, wq, u, ri, rj)
-    vals = torch.exp(log_z - log_scale[..., None]) * acc
-    scaled = torch.zeros(*vals.shape[:-1], N, N, dtype=mu.dtype, device=mu.device)
-    scaled[..., iu[0], iu[1]] = vals
-    scaled[..., iu[1], iu[0]] = vals
-    return FPKEMatrix(scaled, log_scale)
+
+@dataclass(frozen=True)
+class GalerkinMatrices:
+    """The Galerkin weight update's matrices (method.md §3b), scaled by ``exp(−log_scale)``.
+
+    Attributes:
+        mass: ``M̃_ij = z_ij / max z`` ``[..., N, N]`` (symmetric PSD, closed form).
+        drift: ``K̃_ij = z_ij E_{N(m_ij, S_ij)}[ℓⱼ] / max z`` ``[..., N, N]`` (``K_ij = ∫ pᵢ Lⱼ dx``).
+        log_scale: ``log max_ij z_ij`` ``[...]``.
+    """
+
+    mass: Tensor
+    drift: Tensor
+    log_scale: Tensor
+
+
+def galerkin_matrices(
+    model: ContinuousModel,
+    u: Tensor | None,
+    rates: ComponentRates,
+    nodes: Tensor,
+    node_weights: Tensor,
+    chunk_size: int | None = None,
+    max_chunk_elements: int = 2**24,
+    compile: bool = False,
+) -> GalerkinMatrices:
+    """``M_ij = ∫ pᵢpⱼ dx`` and ``K_ij = ∫ pᵢ Lⱼ dx`` for every pair of components (method.md §3b).
+
+    ``M_ij = z_ij`` in closed form; ``K_ij = z_ij E_{N(m_ij, S_ij)}[ℓⱼ]`` by the
+    rule, evaluated once per unordered pair ``i ≤ j`` (the product Gaussian is
+    symmetric in ``i, j``): the same nodes give ``E[ℓⱼ]`` for ``K_ij`` and ``E[ℓᵢ]`` for
+    ``K_ji``.  Arguments as :func:`fpke_matrix`.
+
+    Returns:
+        :class:`GalerkinMatrices` (``[..., N, N]``).
+    """
+    _check_chunk_size(chunk_size)
+    N = rates.means.shape[-2]
+    prod = product_gaussians(rates)
+    log_scale = prod.log_z.amax(-1)
+    acc = _integrate_pairs(_kernel("galerkin", compile), model, u, prod, nodes, node_weights, chunk_size, max_chunk_elements, (2,))
+    z = torch.exp(prod.log_z - log_scale[..., None])
+    mass = _symmetric_from_pairs(z, prod.index, N)
+    drift = torch.zeros_like(mass)
+    i, j = prod.index
+    drift[..., j, i] = z * acc[0]  # K_ji = z_ij E[ℓᵢ]
+    drift[..., i, j] = z * acc[1]  # K_ij = z_ij E[ℓⱼ] (on the diagonal both are E[ℓᵢ])
+    return GalerkinMatrices(mass, drift, log_scale)
+
+
+def residual_rule(model: ContinuousModel, quadrature, factors: int) -> tuple[Tensor, Tensor]:
+    """The quadrature rule for ``E[ℓᵢ]`` (``factors = 1``, Galerkin) or ``E[ℓᵢℓⱼ]`` (``factors = 2``, penalty).
+
+    Args:
+        model: supplies its exact rule through ``model.fpke_quadrature_points(factors)`` when
+            ``quadrature`` is ``None``.
+        quadrature: ``None`` (the model's exact rule if it has one, else 7 Gauss–Hermite
+            points per axis for ``n ≤ 4`` and a level-7 Smolyak grid above); an int
+            (points per axis); a tuple of ints (points per axis); or ``(nodes [K, n],
+            weights [K])`` for ``N(0, I_n)``, finite, weights summing to 1 — applied as
+            ``x = m + chol(S) ξ`` with the lower Cholesky factor.
+
+    Returns:
+        ``(nodes [K, n], weights [K])`` float64.
+
+    Raises:
+        ValueError: naming what is wrong with a rule.
+    """
+    n = model.state_dim
+    if quadrature is None:
+        pts = model.fpke_quadrature_points(factors)
+        if pts is not None:
+            return gauss_hermite(tuple(pts))
+        return gauss_hermite(7, n) if n <= 4 else smolyak_gauss_hermite(n, 7)
+    if isinstance(quadrature, bool):
+        raise ValueError(f"quadrature must be None, an int, a tuple of ints or (nodes, weights), got {quadrature!r}")
+    if isinstance(quadrature, int):
+        if quadrature < 1:
+            raise ValueError(f"quadrature points per axis must be ≥ 1, got {quadrature}")
+        return gauss_hermite(quadrature, n)
+    if isinstance(quadrature, tuple) and quadrature and all(isinstance(q, int) and not isinstance(q, bool) for q in quadrature):
+        if len(quadrature) != n:
+            raise ValueError(f"quadrature needs one point count per state axis ({n}), got {quadrature}")
+        return gauss_hermite(quadrature)
+    try:
+        nodes, weights = quadrature
+        nodes = torch.as_tensor(nodes, dtype=torch.float64)
+        weights = torch.as_tensor(weights, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(
+            f"quadrature must be None, an int, a tuple of ints or (nodes [K, {n}], weights [K]), got {type(quadrature).__name__}"
+        ) from None
+    if nodes.dim() != 2 or nodes.shape[1] != n or weights.shape != nodes.shape[:1] or nodes.shape[0] == 0:
+        raise ValueError(f"quadrature (nodes [K, {n}], weights [K]) has shapes {tuple(nodes.shape)}, {tuple(weights.shape)}")
+    if not bool(torch.isfinite(nodes).all()):
+        raise ValueError("quadrature nodes must be finite")
+    if not bool(torch.isfinite(weights).all()):
+        raise ValueError("quadrature weights must be finite")
+    total = float(weights.sum())
+    if abs(total - 1.0) > 1e-10:
+        raise ValueError(f"quadrature weights must sum to 1 (a rule for N(0, I)), got {total!r}")
+    return nodes, weights

@@ -55,9 +55,6 @@ class GaussianMixture:
     log_weights: Tensor
     means: Tensor
     covs: Tensor
-    #: Log-weights after the last measurement update (``[..., N]``), the
-    #: reference of the adaptive weight update; ``None`` until a filter sets it.
-    ref_log_weights: Tensor | None = None
 
     def __init__(
         self,
@@ -66,7 +63,6 @@ class GaussianMixture:
         covs: Tensor,
         weights: Tensor | None = None,
         log_weights: Tensor | None = None,
-        ref_log_weights: Tensor | None = None,
         validate: bool = True,
     ) -> None:
         means = torch.as_tensor(means)
@@ -102,7 +98,6 @@ class GaussianMixture:
         object.__setattr__(self, "log_weights", log_weights)
         object.__setattr__(self, "means", means)
         object.__setattr__(self, "covs", covs)
-        object.__setattr__(self, "ref_log_weights", ref_log_weights)
 
     # ------------------------------------------------------------ properties
     @property
@@ -123,13 +118,8 @@ class GaussianMixture:
         return self.means.shape[:-2]
 
     def replace(self, **kwargs: Tensor) -> GaussianMixture:
-        """A copy with some of ``log_weights``, ``means``, ``covs``, ``ref_log_weights`` replaced (no validation)."""
-        fields = {
-            "log_weights": self.log_weights,
-            "means": self.means,
-            "covs": self.covs,
-            "ref_log_weights": self.ref_log_weights,
-        }
+        """A copy with some of ``log_weights``, ``means``, ``covs`` replaced (no validation)."""
+        fields = {"log_weights": self.log_weights, "means": self.means, "covs": self.covs}
         fields.update(kwargs)
         return GaussianMixture(validate=False, **fields)
 

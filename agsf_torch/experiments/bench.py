@@ -245,7 +245,7 @@ def bench_flop_rates(peak: float, B: int = 1024, N: int = 5, compile: bool = Tru
         rates = moment_derivatives(model, mix.means, mix.covs, u)
         comp = ComponentRates(mix.means, torch.linalg.cholesky(mix.covs), rates.mean_rate, rates.cov_rate)
         agsf = AdaptiveGaussianSumFilter(model)
-        nodes, weights = agsf.nodes, agsf.node_weights
+        nodes, weights = agsf.weight_update.nodes, agsf.weight_update.node_weights
         Bl = B if n == 3 else 64  # the 6-D rule has 9261 nodes: a smaller batch keeps the bench short
         sub = ComponentRates(*(t[:Bl] for t in (comp.means, comp.chol, comp.mean_rates, comp.cov_rates)))
         t_l = _median_time(lambda: fpke_matrix(model, u[:Bl, 0], sub, nodes, weights, compile=compile), repeats=3, budget=60.0)

@@ -191,7 +191,8 @@ class GaussianSumFilter:
         )
         means, covs = self.model.canonicalize(res.means, res.covs)
         covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
-        posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs, ref_log_weights=res.log_weights)
+        posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs)
+        self._after_update(posterior)
         self.diagnostics = {
             "log_likelihood": res.log_likelihood,
             "nis": res.nis,
@@ -202,6 +203,22 @@ class GaussianSumFilter:
             **gate,
         }
         return posterior
+
+    def _after_update(self, posterior: GaussianMixture) -> None:
+        """Hook after a measurement update (the adaptive filter records its reference weights)."""
+
+    # ------------------------------------------------------------- run state
+    def reset(self) -> None:
+        """Start a new run (the classic filter keeps no run state)."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """The filter's run state, for checkpoints (the classic filter has none: ``{}``)."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`."""
+        if state != {}:
+            raise ValueError(f"{type(self).__name__} keeps no run state; got {sorted(state) if isinstance(state, dict) else state!r}")
 
     def estimate(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor]:
         """Point estimate and covariance of the belief: the mixture's moments, after the

@@ -170,18 +170,24 @@ class AttitudeModel(ContinuousModel):
             diffusion_second_divergence=(4.0 * c) * (3.0 + 5.0 * s.squeeze(-1)),
         )
 
-    def fpke_quadrature_points(self) -> tuple[int, ...]:
-        """Exact rule for ``ℓᵢℓⱼ``: 7 points per MRP axis, 3 per bias axis.
+    def fpke_quadrature_points(self, factors: int = 2) -> tuple[int, ...]:
+        """Exact rule for ``ℓⱼ`` (``factors = 1``: 4 points per MRP axis, 2 per bias axis)
+        or ``ℓᵢℓⱼ`` (``factors = 2``: 7 and 3).
 
-        ``ℓ`` is a polynomial of total degree 6 (the term ``zᵀDz`` with
-        ``D ∝ (1+s)²``), so ``ℓᵢℓⱼ`` has degree 12 (7 Gauss–Hermite points). In
-        the 6-state model ``ℓ`` is at most quadratic in the bias for fixed ``p``;
-        with the quadrature points ``x = m + Lξ`` (``L`` lower-triangular, MRP
-        first) the bias coordinates are linear in ``ξ_b`` and the MRP
-        coordinates do not depend on ``ξ_b``, so ``ℓᵢℓⱼ`` has degree ≤ 4 in
-        ``ξ_b`` (3 points).  The 6-D rule has 7³·3³ = 9261 nodes and is exact.
+        ``ℓ`` is a polynomial of total degree 6 in ``p`` (the term ``zᵀDz`` with
+        ``D ∝ (1+s)²``), so ``ℓⱼ`` needs 4 Gauss–Hermite points per MRP axis
+        (degree 7 ≥ 6) and ``ℓᵢℓⱼ``, of degree 12, needs 7 (degree 13).  In
+        the 6-state model ``ℓ`` is at most quadratic in the bias for fixed ``p``
+        (``fᵀz`` and ``zᵀDz``); with the quadrature points ``x = m + Lξ`` (``L``
+        lower-triangular, MRP first) the bias coordinates are linear in ``ξ_b`` and
+        the MRP coordinates do not depend on ``ξ_b``, so ``ℓⱼ`` has degree ≤ 2 in
+        each ``ξ_b`` axis (2 points) and ``ℓᵢℓⱼ`` degree ≤ 4 (3 points).  The 6-D
+        rules have 4³·2³ = 512 and 7³·3³ = 9261 nodes and are exact.
         """
-        return (7, 7, 7, 3, 3, 3) if self.estimate_bias else (7, 7, 7)
+        if factors not in (1, 2):
+            raise ValueError(f"factors must be 1 or 2, got {factors}")
+        p, b = (4, 2) if factors == 1 else (7, 3)
+        return (p, p, p, b, b, b) if self.estimate_bias else (p, p, p)
 
     # ------------------------------------------------------- MRP manifold
     def _switch(self, mean: Tensor, cov: Tensor, switch: Tensor) -> tuple[Tensor, Tensor]:

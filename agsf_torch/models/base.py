@@ -155,9 +155,13 @@ class ContinuousModel(nn.Module):
             diffusion_second_divergence=c,
         )
 
-    def fpke_quadrature_points(self) -> tuple[int, ...] | None:
-        """Gauss–Hermite points per axis that integrate ``ℓᵢℓⱼ`` exactly, if known.
+    def fpke_quadrature_points(self, factors: int = 2) -> tuple[int, ...] | None:
+        """Gauss–Hermite points per axis that integrate a product of ``factors`` residual
+        factors exactly, if known: ``ℓⱼ`` (``factors = 1``, the Galerkin weight update,
+        method.md §3b) or ``ℓᵢℓⱼ`` (``factors = 2``, the paper's matrix ``L``, §3).
 
+        A polynomial ``ℓ`` of degree ``d`` in a coordinate needs ``⌈(factors·d + 1)/2⌉``
+        points on that axis (``m`` points integrate degree ``2m − 1`` exactly).
         ``None`` (default) lets the adaptive filter choose a generic rule.
         """
         return None
