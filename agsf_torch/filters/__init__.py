@@ -1,14 +1,16 @@
-"""Filters sharing one predict/update contract: EKF, GSF and the adaptive GSF, and the
-adaptive filter's weight updates."""
+"""Filters sharing one predict/update contract: EKF, GSF, the adaptive GSF (with its weight
+updates) and the multiplicative EKF."""
 
 from .adaptive import AdaptiveGaussianSumFilter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
+from .multiplicative import MultiplicativeEKF
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
 
 __all__ = [
     "ExtendedKalmanFilter",
     "GaussianSumFilter",
     "AdaptiveGaussianSumFilter",
+    "MultiplicativeEKF",
     "WeightUpdate",
     "PenaltyWeightUpdate",
     "GalerkinWeightUpdate",

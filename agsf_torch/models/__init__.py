@@ -2,6 +2,7 @@
 
 from .attitude import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, AttitudeModel
 from .base import ContinuousModel, FunctionMeasurement, MeasurementModel, batched_jacobian
+from .benchmarks import LorenzModel, SineDriftModel
 from .linear import LinearModel
 from .star_vectors import StarVectorMeasurement
 
@@ -11,6 +12,8 @@ __all__ = [
     "FunctionMeasurement",
     "batched_jacobian",
     "LinearModel",
+    "LorenzModel",
+    "SineDriftModel",
     "AttitudeModel",
     "StarVectorMeasurement",
     "DEFAULT_SIGMA_V",
