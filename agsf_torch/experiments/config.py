@@ -19,9 +19,14 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES"]
+__all__ = ["ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES", "DEFAULT_FILTERS"]
 
-FILTER_NAMES = ("EKF", "GSF", "AGSF")
+#: Filters an experiment can run: the EKF, the classic GSF, the adaptive GSF with the
+#: paper's weight update (``AGSF``) and with the authors' later Galerkin update
+#: (``AGSF-galerkin``), and the multiplicative EKF (``MEKF``, the industry baseline).
+FILTER_NAMES = ("EKF", "GSF", "AGSF", "AGSF-galerkin", "MEKF")
+#: The filters of a configuration that names none (the paper's three).
+DEFAULT_FILTERS = ("EKF", "GSF", "AGSF")
 DEG_PER_HOUR = math.pi / 180.0 / 3600.0
 
 
@@ -54,7 +59,7 @@ class ExperimentConfig:
         weight_ref: ``"update"`` (paper) or ``"previous"``.
         update_iterations: linearisations per measurement update (1: EKF update).
         adapt_cadence: the AGSF adapts its weights every ``adapt_cadence``-th propagation step.
-        filters: which of EKF, GSF, AGSF to run.
+        filters: which of ``FILTER_NAMES`` to run (EKF, GSF, AGSF, AGSF-galerkin, MEKF).
         seed: seeds truth, noise and prior draws.
         compile: ``torch.compile`` the FPKE quadrature kernel.
         filter_sigma_s_scale: the filters assume ``σ_s × scale`` (1: the simulated value;
@@ -92,7 +97,7 @@ class ExperimentConfig:
     weight_ref: str = "update"
     update_iterations: int = 1
     adapt_cadence: int = 1
-    filters: list = field(default_factory=lambda: list(FILTER_NAMES))
+    filters: list = field(default_factory=lambda: list(DEFAULT_FILTERS))
     seed: int = 0
     compile: bool = False
     filter_sigma_s_scale: float = 1.0
@@ -158,8 +163,8 @@ class ExperimentConfig:
             raise ValueError(f"config key 'weight_ref' must be 'update' or 'previous', got {self.weight_ref!r}")
         if len(self.rate_axes) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes):
             raise ValueError(f"config key 'rate_axes' must be 3 finite numbers, got {self.rate_axes!r}")
-        if not self.filters or any(f not in FILTER_NAMES for f in self.filters):
-            raise ValueError(f"config key 'filters' must be a non-empty list from {FILTER_NAMES}, got {self.filters!r}")
+        if not self.filters or any(f not in FILTER_NAMES for f in self.filters) or len(set(self.filters)) != len(self.filters):
+            raise ValueError(f"config key 'filters' must be a non-empty list of distinct names from {FILTER_NAMES}, got {self.filters!r}")
         ratio = self.star_period / self.dt
         if abs(ratio - round(ratio)) > 1e-9 * ratio:
             raise ValueError(f"config key 'star_period' must be a multiple of dt={self.dt}, got {self.star_period!r}")

@@ -20,13 +20,15 @@ import numpy as np
 import torch
 from scipy.stats import t as student_t
 
-from ..filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter
+from ..filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, MultiplicativeEKF
 from ..metrics import chi2_band
 from ..models import AttitudeModel
-from .config import DEG_PER_HOUR, ExperimentConfig
+from .config import DEG_PER_HOUR, FILTER_NAMES, ExperimentConfig
 from .runner import FilterSetup, MonteCarloResult, run_monte_carlo
 
-__all__ = ["make_env", "make_filters", "run_experiment", "summarize", "prepare_output", "OutputConflict"]
+__all__ = [
+    "make_env", "make_filters", "run_experiment", "summarize", "prepare_output", "OutputConflict", "mean_ci95", "paired_difference",
+]
 
 
 class OutputConflict(ValueError):
@@ -73,7 +75,7 @@ def make_env(cfg: ExperimentConfig):
 
 
 def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:
-    """EKF / GSF / AGSF of a configuration, all on the same attitude model."""
+    """The filters a configuration names (``FILTER_NAMES``), all on the same attitude model."""
     model = AttitudeModel(estimate_bias=cfg.estimate_bias, sigma_v=cfg.sigma_v * cfg.filter_sigma_v_scale, sigma_u=cfg.sigma_u)
     kw = {"update_iterations": cfg.update_iterations, "gate_probability": cfg.gate_probability or None}
     made = {
@@ -87,6 +89,12 @@ def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:
             cfg.components,
             cfg.spread,
         ),
+        "AGSF-galerkin": lambda: FilterSetup(
+            AdaptiveGaussianSumFilter(model, weight_update="galerkin", compile=cfg.compile, cadence=cfg.adapt_cadence, **kw),
+            cfg.components,
+            cfg.spread,
+        ),
+        "MEKF": lambda: FilterSetup(MultiplicativeEKF(model, **kw), 1),
     }
     return {name: made[name]() for name in cfg.filters}
 
@@ -108,7 +116,7 @@ def _save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
         data[f"{name}/nis_dof"] = tr.nis_dof
         data[f"{name}/weights"] = tr.weights
         data[f"{name}/weight_entropy"] = tr.weight_entropy
-        for key in ("fpke_error_before", "fpke_error_after", "gate_rejected", "gyro_held"):
+        for key in ("fpke_error_before", "fpke_error_after", "galerkin_residual_change", "gate_rejected", "gyro_held"):
             if key in tr.extra:
                 data[f"{name}/{key}"] = tr.extra[key]
     np.savez_compressed(path, **data)
@@ -122,14 +130,16 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     * ``between_updates``: per run ``r_b = sqrt(mean_{t ∉ frames} θ_b(t)²)`` over the
       steps that are not star frames; ``mean_rms_deg`` is ``mean_b r_b``;
     * ``before_first_update``: the same over the steps before the first frame;
-    * ``agsf_minus_gsf``: paired differences ``r_b(AGSF) − r_b(GSF)``, mean and a
-      Student-t 95 % confidence interval.
+    * ``agsf_minus_gsf`` (``agsf_galerkin_minus_gsf``): paired differences
+      ``r_b(AGSF) − r_b(GSF)`` (the Galerkin filter's), mean and a Student-t 95 %
+      confidence interval; every per-run mean above carries its own interval
+      (``ci95_rms_deg``, ``time_averaged_nees_ci95``, over runs).
     """
     time = data["time"]
     frames = data["star_frame"].astype(bool)
     first = int(np.argmax(frames)) if frames.any() else len(frames)
     windows = {"between_updates": ~frames, "before_first_update": np.arange(len(frames)) < first}
-    names = [n for n in ("EKF", "GSF", "AGSF") if f"{n}/error_angle" in data]
+    names = [n for n in FILTER_NAMES if f"{n}/error_angle" in data]
     n_state = data[f"{names[0]}/error"].shape[-1]
     runs = data[f"{names[0]}/error_angle"].shape[1]
     lo, hi = chi2_band(n_state, runs)
@@ -147,6 +157,7 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
             "rms_deg": np.degrees(np.sqrt((theta**2).mean(1))).tolist(),
             "nees_mean": data[f"{name}/nees"].mean(1).tolist(),
             "time_averaged_nees": float(data[f"{name}/nees"].mean()),
+            "time_averaged_nees_ci95": list(mean_ci95(data[f"{name}/nees"].mean(0))[1:]),
             "weights_run0": data[f"{name}/weights"][:, 0].tolist(),
             "error_run0_rad": data[f"{name}/error"][:, 0].tolist(),
             "sigma_run0_rad": data[f"{name}/sigma"][:, 0].tolist(),
@@ -163,20 +174,36 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
             if mask.any():
                 r = np.degrees(np.sqrt((theta[mask] ** 2).mean(0)))  # [B]
                 per_run[name][wname] = r
-                entry[wname] = {"mean_rms_deg": float(r.mean()), "std_rms_deg": float(r.std(ddof=1)) if runs > 1 else 0.0}
-        out["filters"][name] = entry
-    if "GSF" in per_run and "AGSF" in per_run:
-        out["agsf_minus_gsf"] = {}
-        for wname in windows:
-            if wname in per_run["GSF"]:
-                d = per_run["AGSF"][wname] - per_run["GSF"][wname]
-                half = float(student_t.ppf(0.975, runs - 1) * d.std(ddof=1) / math.sqrt(runs)) if runs > 1 else float("nan")
-                out["agsf_minus_gsf"][wname] = {
-                    "mean_deg": float(d.mean()),
-                    "ci95_deg": [float(d.mean()) - half, float(d.mean()) + half],
-                    "relative": float(d.mean() / per_run["GSF"][wname].mean()),
+                entry[wname] = {
+                    "mean_rms_deg": float(r.mean()),
+                    "std_rms_deg": float(r.std(ddof=1)) if runs > 1 else 0.0,
+                    "ci95_rms_deg": list(mean_ci95(r)[1:]),
                 }
+        out["filters"][name] = entry
+    for adaptive, key in (("AGSF", "agsf_minus_gsf"), ("AGSF-galerkin", "agsf_galerkin_minus_gsf")):
+        if "GSF" in per_run and adaptive in per_run:
+            out[key] = {
+                wname: paired_difference(per_run[adaptive][wname], per_run["GSF"][wname])
+                for wname in windows
+                if wname in per_run["GSF"]
+            }
     return out
+
+
+def mean_ci95(values: np.ndarray) -> tuple[float, float, float]:
+    """Mean of per-run values ``[B]`` and its Student-t 95 % interval ``(mean, low, high)``."""
+    values = np.asarray(values, dtype=np.float64)
+    m = float(values.mean())
+    if values.size < 2:
+        return m, float("nan"), float("nan")
+    half = float(student_t.ppf(0.975, values.size - 1) * values.std(ddof=1) / math.sqrt(values.size))
+    return m, m - half, m + half
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
+    """Paired per-run difference ``a − b`` (deg): mean, Student-t 95 % interval and relative to ``mean(b)``."""
+    m, lo, hi = mean_ci95(np.asarray(a) - np.asarray(b))
+    return {"mean_deg": m, "ci95_deg": [lo, hi], "relative": float(m / np.mean(b))}
 
 
 def _figures(out: Path, summary: dict[str, Any]) -> None:
@@ -199,7 +226,7 @@ def _figures(out: Path, summary: dict[str, Any]) -> None:
     fig.savefig(out / "rms.png", dpi=110)
     plt.close(fig)
 
-    shown = [n for n in ("GSF", "AGSF") if n in filters] or list(filters)
+    shown = [n for n in ("GSF", "AGSF", "AGSF-galerkin") if n in filters] or list(filters)
     fig, axes = plt.subplots(len(shown), 3, figsize=(11, 3 * len(shown)), squeeze=False)
     for row, name in enumerate(shown):
         err = np.degrees(np.array(filters[name]["error_run0_rad"]))[:, :3] * 3600

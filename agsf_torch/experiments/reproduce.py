@@ -34,6 +34,7 @@ def reproduce(cases: list[int], out: Path, overrides: list[str] | None = None, *
                 for f, s in summary["filters"].items()
             },
             "agsf_minus_gsf": summary.get("agsf_minus_gsf"),
+            "agsf_galerkin_minus_gsf": summary.get("agsf_galerkin_minus_gsf"),
         }
     (out / "summary.json").write_text(json.dumps(combined, indent=2))
     table = results_table(combined)
@@ -53,9 +54,12 @@ def results_table(combined: dict) -> str:
                 f"| {case} | {1 / c['star_period_s']:g} Hz | {f} | {s['between_updates_mean_rms_deg']:.5g} | "
                 f"{s['before_first_update_mean_rms_deg']:.5g} | {s['final_rms_deg']:.3g} | {s['time_averaged_nees']:.4g} |"
             )
-    lines += ["", "| case | window | AGSF − GSF mean RMS (deg) | 95% CI | relative |", "| --- | --- | --- | --- | --- |"]
-    for case, c in combined.items():
-        for window, d in (c.get("agsf_minus_gsf") or {}).items():
+    for key, label in (("agsf_minus_gsf", "AGSF"), ("agsf_galerkin_minus_gsf", "AGSF-galerkin")):
+        rows = [(case, w, d) for case, c in combined.items() for w, d in (c.get(key) or {}).items()]
+        if not rows:
+            continue
+        lines += ["", f"| case | window | {label} − GSF mean RMS (deg) | 95% CI | relative |", "| --- | --- | --- | --- | --- |"]
+        for case, window, d in rows:
             lines.append(
                 f"| {case} | {window.replace('_', ' ')} | {d['mean_deg']:.3g} | [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}] | {100 * d['relative']:.2f} % |"
             )
