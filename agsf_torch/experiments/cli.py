@@ -9,6 +9,9 @@ Subcommands:
   file or a preset name): EKF, classic GSF and adaptive GSF batched over the runs,
   all seeing the same truth and measurements.
 * ``agsf reproduce --case {1,2,3,all} [--runs R] --out DIR`` — the paper's cases.
+* ``agsf adaptation [--scenario …] [--runs R] [--samples K] --out DIR`` — where adapting
+  the weights pays: RMS, NEES and the density score against an exact-density reference
+  for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.adaptation`).
 * ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
   resumable grid, in this process or as Ray tasks.
 * ``agsf soak [--filter GSF|AGSF] [--runs B] [--duration S] --out DIR`` — a long run
@@ -96,6 +99,20 @@ def _reproduce(args: argparse.Namespace) -> int:
     print(table)
     print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/case*/ (figures, runs.npz)")
     print(f"TensorBoard: tensorboard --logdir {args.out}")
+    return 0
+
+
+def _adaptation(args: argparse.Namespace) -> int:
+    from .adaptation import SCENARIOS, run_adaptation_study, study_table
+
+    _threads(args)
+    names = list(SCENARIOS) if "all" in args.scenario else list(dict.fromkeys(args.scenario))
+    summaries = run_adaptation_study(
+        names, Path(args.out), runs=args.runs, samples=args.samples, overrides=list(args.set), progress=not args.quiet
+    )
+    for window in ("before_first_frame", "between_frames", "all"):
+        print(f"\n{window.replace('_', ' ')}:\n{study_table(summaries, window)}")
+    print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/*.png, {args.out}/tensorboard/")
     return 0
 
 
@@ -225,6 +242,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/reproduce")
     common(p)
     p.set_defaults(func=_reproduce)
+
+    from .adaptation import SCENARIOS
+
+    p = sub.add_parser(
+        "adaptation",
+        help="where adapting the weights pays: RMS, NEES and density score of EKF, GSF, AGSF, AGSF-galerkin and MEKF",
+    )
+    p.add_argument(
+        "--scenario", nargs="+", default=["all"],
+        choices=["all", *SCENARIOS],
+        help="scenarios to run (default: all)",
+    )
+    p.add_argument("--runs", type=_positive_int, default=32, help="Monte Carlo runs per scenario")
+    p.add_argument("--samples", type=_positive_int, default=1024, help="exact-density reference samples per run")
+    p.add_argument("--out", default="runs/adaptation", help="output folder")
+    common(p)
+    p.set_defaults(func=_adaptation)
 
     p = sub.add_parser("sweep", help="a grid of configurations, each one batched Monte Carlo")
     p.add_argument("config", help="base TOML file or preset")

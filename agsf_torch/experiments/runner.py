@@ -130,7 +130,11 @@ class FilterStep:
 @dataclass
 class Step:
     """Everything of one step for every filter: ``time`` (s), ``star_frame``, the truth
-    ``x_true [B, n]`` / ``truth_mrp [B, 3]``, and ``filters``: name → :class:`FilterStep`."""
+    ``x_true [B, n]`` / ``truth_mrp [B, 3]``, ``filters``: name → :class:`FilterStep`, and
+    what the filters were given: ``u [B, 3]`` (the gyro input of the interval, bias-compensated
+    in the 3-state model; held samples bridged) and, at a star frame, ``measurement``
+    ``(y [B, d], StarVectorMeasurement)``; ``prior_mean [B, n]`` is the mean of the Gaussian prior
+    ``N(prior_mean, prior_cov)`` every filter's initial mixture was split from."""
 
     index: int
     time: float
@@ -138,6 +142,9 @@ class Step:
     x_true: Tensor
     truth_mrp: Tensor
     filters: dict[str, FilterStep]
+    u: Tensor | None = None
+    measurement: tuple | None = None
+    prior_mean: Tensor | None = None
 
 
 def monte_carlo_steps(
@@ -223,7 +230,7 @@ def monte_carlo_steps(
             mixtures[name] = mix
             mean, cov = filt.estimate(mix)
             out[name] = FilterStep(mix, mean, cov, filt.model.state_error(mean, x_true), nis, dof, extra)
-        yield Step(k, time, has_stars, x_true, truth_p, out)
+        yield Step(k, time, has_stars, x_true, truth_p, out, u, (y, meas) if has_stars else None, mean0)
 
 
 def run_monte_carlo(
