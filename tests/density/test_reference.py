@@ -171,6 +171,9 @@ def test_bad_inputs_raise_clear_errors():
         make(chart="mrp")
     with pytest.raises(ValueError, match="redraw_threshold"):
         make(redraw_threshold=1.5)
+    with pytest.raises(ValueError, match="lineage_threshold"):
+        make(lineage_threshold=-0.1)
+    assert make().lineage_threshold == 0.1 and make(lineage_threshold=0.02).lineage_threshold == 0.02
     with pytest.raises(ValueError, match="substeps"):
         make(substeps=0)
     with pytest.raises(ValueError, match="not both"):
