@@ -145,23 +145,27 @@ def test_residual_matches_autograd_operator(gen):
     torch.testing.assert_close(e, ref, rtol=1e-12, atol=1e-14)
 
 
-def test_fpke_matrix_equals_brute_force_integral(gen):
-    """L_ij by the product-Gaussian identity + exact Gauss–Hermite equals a dense grid integral."""
+def _grid_residuals(gen):
+    """Three attitude components and their pointwise residuals ``Lⱼ(x)`` on a fine grid covering ±7σ."""
     model = AttitudeModel(sigma_v=0.05)
     N = 3
     mean = 0.05 * torch.randn(N, 3, generator=gen, dtype=F64)
     cov = torch.diag_embed(0.002 + 0.002 * torch.rand(N, 3, generator=gen, dtype=F64))
     u = torch.tensor([0.3, -0.2, 0.5], dtype=F64)
     rates = _rates(model, mean, cov, u)
-    nodes, w = gauss_hermite(7, 3)
-    Lm = fpke_matrix(model, u, rates, nodes, w).full()
-    # brute force: ∫ Lᵢ Lⱼ over a fine grid covering ±7σ of every component
     g = torch.linspace(-0.4, 0.4, 121, dtype=F64)
     X = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     dv = float(g[1] - g[0]) ** 3
-    Ls = torch.stack(
-        [fpke_residual(model, X, u, torch.zeros(1, dtype=F64), ComponentRates(*(t[i : i + 1] for t in (rates.means, rates.chol, rates.mean_rates, rates.cov_rates)))) for i in range(N)]
-    )
+    one = lambda i: ComponentRates(*(t[i : i + 1] for t in (rates.means, rates.chol, rates.mean_rates, rates.cov_rates)))  # noqa: E731
+    Ls = torch.stack([fpke_residual(model, X, u, torch.zeros(1, dtype=F64), one(i)) for i in range(N)])
+    return model, mean, cov, u, rates, X, dv, Ls
+
+
+def test_fpke_matrix_equals_brute_force_integral(gen):
+    """L_ij by the product-Gaussian identity + exact Gauss–Hermite equals a dense grid integral."""
+    model, mean, cov, u, rates, X, dv, Ls = _grid_residuals(gen)
+    nodes, w = gauss_hermite(7, 3)
+    Lm = fpke_matrix(model, u, rates, nodes, w).full()
     ref = (Ls[:, None, :] * Ls[None, :, :]).sum(-1) * dv
     torch.testing.assert_close(Lm, ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()))
 
@@ -219,20 +223,10 @@ def test_three_state_rule_against_dense_quadrature(gen):
 def test_galerkin_matrices_equal_brute_force_integrals(gen):
     """M_ij = ∫pᵢpⱼ and K_ij = ∫pᵢLⱼ by the product-Gaussian identity and the exact 4-point rule
     equal dense grid integrals of the pointwise densities and residuals."""
-    model = AttitudeModel(sigma_v=0.05)
-    N = 3
-    mean = 0.05 * torch.randn(N, 3, generator=gen, dtype=F64)
-    cov = torch.diag_embed(0.002 + 0.002 * torch.rand(N, 3, generator=gen, dtype=F64))
-    u = torch.tensor([0.3, -0.2, 0.5], dtype=F64)
-    rates = _rates(model, mean, cov, u)
+    model, mean, cov, u, rates, X, dv, Ls = _grid_residuals(gen)
     G = galerkin_matrices(model, u, rates, *gauss_hermite(model.fpke_quadrature_points(1)))
     scale = torch.exp(G.log_scale)
-    g = torch.linspace(-0.4, 0.4, 121, dtype=F64)
-    X = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    dv = float(g[1] - g[0]) ** 3
-    one = lambda i: ComponentRates(*(t[i : i + 1] for t in (rates.means, rates.chol, rates.mean_rates, rates.cov_rates)))  # noqa: E731
-    Ls = torch.stack([fpke_residual(model, X, u, torch.zeros(1, dtype=F64), one(i)) for i in range(N)])  # Lⱼ(x)
-    dens = torch.stack([torch.distributions.MultivariateNormal(mean[i], cov[i]).log_prob(X).exp() for i in range(N)])
+    dens = torch.stack([torch.distributions.MultivariateNormal(mean[i], cov[i]).log_prob(X).exp() for i in range(3)])
     M_ref = (dens[:, None, :] * dens[None, :, :]).sum(-1) * dv
     K_ref = (dens[:, None, :] * Ls[None, :, :]).sum(-1) * dv
     torch.testing.assert_close(G.mass * scale, M_ref, rtol=1e-6, atol=0)

@@ -13,7 +13,24 @@ from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
 from ..update import kalman_update
 
-__all__ = ["GaussianSumFilter", "ExtendedKalmanFilter"]
+__all__ = ["GaussianSumFilter", "ExtendedKalmanFilter", "check_batched"]
+
+
+def check_batched(name: str, value: Tensor, batch_shape: torch.Size, last: int | None = None) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value [..., last]`` is finite and its leading
+    dims broadcast with the mixture's ``batch_shape`` (``last``: the required size of the last dim, if any)."""
+    if last is not None and (value.dim() < 1 or value.shape[-1] != last):
+        raise ValueError(f"{name} must have shape [..., {last}], got {tuple(value.shape)}")
+    if not bool(torch.isfinite(value).all()):
+        idx = (~torch.isfinite(value)).nonzero()[0].tolist()
+        raise ValueError(f"{name} must be finite; non-finite value at index {tuple(idx)}")
+    try:
+        torch.broadcast_shapes(value.shape[:-1], batch_shape)
+    except RuntimeError:
+        raise ValueError(
+            f"{name} has shape {tuple(value.shape)}, whose leading dims do not broadcast with "
+            f"the mixture's batch shape {tuple(batch_shape)}"
+        ) from None
 
 
 class GaussianSumFilter:
@@ -92,19 +109,6 @@ class GaussianSumFilter:
         if mixture.state_dim != self.model.state_dim:
             raise ValueError(f"mixture state dimension {mixture.state_dim} != model state_dim {self.model.state_dim}")
 
-    @staticmethod
-    def _check_batched(name: str, value: Tensor, batch_shape: torch.Size) -> None:
-        if not bool(torch.isfinite(value).all()):
-            idx = (~torch.isfinite(value)).nonzero()[0].tolist()
-            raise ValueError(f"{name} must be finite; non-finite value at index {tuple(idx)}")
-        try:
-            torch.broadcast_shapes(value.shape[:-1], batch_shape)
-        except RuntimeError:
-            raise ValueError(
-                f"{name} has shape {tuple(value.shape)}, whose leading dims do not broadcast with "
-                f"the mixture's batch shape {tuple(batch_shape)}"
-            ) from None
-
     def _ensure_positive_definite(self, covs: Tensor, where: str) -> tuple[Tensor, int]:
         info = torch.linalg.cholesky_ex(covs).info
         bad = info != 0
@@ -139,7 +143,7 @@ class GaussianSumFilter:
             raise ValueError(f"dt must be a finite positive number, got {dt}")
         if u is not None:
             u = torch.as_tensor(u, dtype=mixture.means.dtype, device=mixture.means.device)
-            self._check_batched("u", u, mixture.batch_shape)
+            check_batched("u", u, mixture.batch_shape)
             u = u.unsqueeze(-2)  # broadcast over components
         means, covs = propagate_moments(self.model, mixture.means, mixture.covs, u, float(dt), self.substeps)
         means, covs = self.model.canonicalize(means, covs)
@@ -171,7 +175,7 @@ class GaussianSumFilter:
         if not isinstance(measurement, MeasurementModel):
             raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
         y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
-        self._check_batched("y", y, mixture.batch_shape)
+        check_batched("y", y, mixture.batch_shape)
         gate: dict[str, Tensor] = {}
         mask = None
         if self.gate_probability is not None:

@@ -49,6 +49,7 @@ from ..rotations import (
     rotvec_to_quat,
 )
 from ..update import kalman_update
+from .gaussian_sum import check_batched
 
 __all__ = ["MultiplicativeEKF", "mrp_to_error_state", "error_state_to_mrp", "rotation_series"]
 
@@ -317,21 +318,6 @@ class MultiplicativeEKF:
             raise ValueError(f"mixture state dimension {mixture.state_dim} != model state_dim {self.model.state_dim}")
 
     @staticmethod
-    def _check_batched(name: str, value: Tensor, batch_shape: torch.Size, last: int | None = None) -> None:
-        if last is not None and (value.dim() < 1 or value.shape[-1] != last):
-            raise ValueError(f"{name} must have shape [..., {last}], got {tuple(value.shape)}")
-        if not bool(torch.isfinite(value).all()):
-            idx = (~torch.isfinite(value)).nonzero()[0].tolist()
-            raise ValueError(f"{name} must be finite; non-finite value at index {tuple(idx)}")
-        try:
-            torch.broadcast_shapes(value.shape[:-1], batch_shape)
-        except RuntimeError:
-            raise ValueError(
-                f"{name} has shape {tuple(value.shape)}, whose leading dims do not broadcast with "
-                f"the mixture's batch shape {tuple(batch_shape)}"
-            ) from None
-
-    @staticmethod
     def _check_positive_definite(P: Tensor, where: str) -> None:
         info = torch.linalg.cholesky_ex(P).info
         if bool((info != 0).any()):
@@ -402,7 +388,7 @@ class MultiplicativeEKF:
         if u is None:
             raise ValueError("u (the gyro reading, [..., 3] rad/s) is required by the attitude model")
         u = torch.as_tensor(u, dtype=mixture.means.dtype, device=mixture.means.device)
-        self._check_batched("u", u, mixture.batch_shape, last=3)
+        check_batched("u", u, mixture.batch_shape, last=3)
         q, b, P = self._to_error_state(mixture)
         omega = u - (b if self.model.estimate_bias else self.model.bias.to(u))
         q = quat_multiply(*torch.broadcast_tensors(rotvec_to_quat(omega * dt), q))
@@ -430,7 +416,7 @@ class MultiplicativeEKF:
         if not isinstance(measurement, MeasurementModel):
             raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
         y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
-        self._check_batched("y", y, mixture.batch_shape)
+        check_batched("y", y, mixture.batch_shape)
         q, b, P = self._to_error_state(mixture)
         n = mixture.state_dim
         err_meas = _ErrorStateMeasurement(measurement, q, b)

@@ -16,6 +16,7 @@ from agsf_torch.models import AttitudeModel, LinearModel, LorenzModel, StarVecto
 from agsf_torch.models.benchmarks import SineDriftModel
 from agsf_torch.quadrature import gauss_hermite, six_n_plus_one
 from tests.conftest import random_mrps
+from tests.filters.test_adaptive import _attitude_setup
 
 F64 = torch.float64
 
@@ -147,17 +148,7 @@ def test_lorenz_against_a_million_sample_ensemble():
 
 
 def _attitude(gen, estimate_bias, B=16, N=4):
-    model = AttitudeModel(estimate_bias=estimate_bias)
-    n = model.state_dim
-    p = random_mrps(B, gen, max_norm=0.9)
-    mean = torch.cat((p, torch.zeros(B, 3, dtype=F64)), -1)[:, :n]
-    prior = torch.diag(torch.tensor([1e-3] * 3 + [1e-12] * 3, dtype=F64)[:n])
-    mix = GaussianMixture.from_gaussian(mean, prior.expand(B, n, n), N)
-    u = (2 * torch.pi / 100) * torch.tensor([1.0, 1.0, 0.0], dtype=F64).expand(B, 3)
-    r = torch.randn(B, 5, 3, generator=gen, dtype=F64)
-    r = r / r.norm(dim=-1, keepdim=True)
-    meas = StarVectorMeasurement(r, sigma=1e-5)
-    return model, mix, u, meas, meas.predict(p)
+    return _attitude_setup(gen, estimate_bias, B=B, N=N)
 
 
 @pytest.mark.parametrize("estimate_bias", [False, True])
