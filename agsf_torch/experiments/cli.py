@@ -14,7 +14,7 @@ Subcommands:
   for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.adaptation`).
 * ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
   resumable grid, in this process or as Ray tasks.
-* ``agsf soak [--filter GSF|AGSF] [--runs B] [--duration S] --out DIR`` — a long run
+* ``agsf soak [--filter NAME] [--runs B] [--duration S] --out DIR`` — a long run
   (default one simulated hour, 256 runs, 6-state) with running statistics and a
   pass/fail verdict: no NaN, covariances positive definite, errors inside ±3σ,
   flat memory (:mod:`agsf_torch.experiments.soak`).
@@ -244,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_reproduce)
 
     from .adaptation import SCENARIOS
+    from .config import FILTER_NAMES
 
     p = sub.add_parser(
         "adaptation",
@@ -292,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_learn)
 
     p = sub.add_parser("soak", help="a long run checking NaN, positive definiteness, 3σ consistency and flat memory")
-    p.add_argument("--filter", choices=("EKF", "GSF", "AGSF"), default="GSF")
+    p.add_argument("--filter", choices=FILTER_NAMES, default="GSF", help="the filter to soak")
     p.add_argument("--runs", type=_positive_int, default=256)
     p.add_argument("--duration", type=_positive_float, default=3600.0, help="simulated seconds (default one hour)")
     p.add_argument("--report-every", type=_positive_float, default=60.0, help="simulated seconds per report row")

@@ -57,7 +57,7 @@ def soak_config(filter_name: str = "GSF", **changes: Any) -> ExperimentConfig:
     """The soak's default configuration: case 1, 6-state, iterated update, 256 runs, one hour."""
     base = load_preset("case1").replace(
         name=f"soak-{filter_name}", runs=256, duration=3600.0, estimate_bias=True, update_iterations=3,
-        filters=[filter_name], compile=filter_name == "AGSF",
+        filters=[filter_name], compile=filter_name.startswith("AGSF"),
     )
     return base.replace(**changes) if changes else base
 
