@@ -59,32 +59,53 @@ def save_checkpoint(
     return path
 
 
-def _filter_state(s: dict[str, Any], fmt: str) -> dict[str, Any]:
-    """The filter's ``state_dict`` from a checkpoint entry (format 1: counter and reference beside the mixture)."""
+def _filter_state(s: dict[str, Any], fmt: str, filt: GaussianSumFilter) -> dict[str, Any]:
+    """The ``state_dict`` for ``filt`` from a checkpoint entry.
+
+    Format 1 kept the step counter beside the mixture and the reference weights in it
+    (for every filter, adaptive or not): they become the adaptive filter's weight-update
+    state (the reference only for the paper's penalty update, the one that uses it) and
+    are dropped for the other filters, which never used them.
+    """
     if fmt == FORMAT:
         return s["filter"]
-    ref = s["mixture"].get("ref_log_weights")
-    step = int(s["step"])
-    return {} if step == 0 and ref is None else {"weight_update": {"step": step, "elapsed": 0.0, "ref_log_weights": ref}}
+    update = getattr(filt, "weight_update", None)
+    if update is None:
+        return {}
+    state = {"kind": update.name, "step": int(s["step"]), "elapsed": 0.0}
+    if "ref_log_weights" in update.extra_state_keys:
+        state["ref_log_weights"] = s["mixture"].get("ref_log_weights")
+    return {"weight_update": state}
 
 
 def load_checkpoint(path: str | Path, filters: Mapping[str, GaussianSumFilter]) -> tuple[dict[str, GaussianMixture], dict[str, Any]]:
     """Read a checkpoint (``weights_only=True``), restore the filters' run state, return
-    ``(mixtures, extra)``.  Everything is validated before any filter changes."""
+    ``(mixtures, extra)``.  Everything is validated first; if a filter refuses its state,
+    the filters restored before it are put back as they were.
+
+    Raises:
+        ValueError: naming the file (and the filter) for any malformed or mismatched content.
+    """
     state = torch.load(Path(path), weights_only=True)
     fmt = state.get("format") if isinstance(state, dict) else None
     if fmt not in (FORMAT, _OLD_FORMAT):
         raise ValueError(f"{path} is not an {FORMAT} file (format {fmt!r})")
-    if set(state["filters"]) != set(filters):
-        raise ValueError(f"checkpoint holds filters {sorted(state['filters'])}, got {sorted(filters)}")
-    mixtures, restored = {}, {}
-    for name, s in state["filters"].items():
-        m = s["mixture"]
-        try:
-            mixtures[name] = GaussianMixture(log_weights=m["log_weights"], means=m["means"], covs=m["covs"])
-        except ValueError as exc:
-            raise ValueError(f"{path}: filter {name!r}: {exc}") from None
-        restored[name] = _filter_state(s, fmt)
+    try:
+        entries, extra = state["filters"], state["extra"]
+        if set(entries) != set(filters):
+            raise ValueError(f"checkpoint holds filters {sorted(entries)}, got {sorted(filters)}")
+        mixtures, restored = {}, {}
+        for name, s in entries.items():
+            m = s["mixture"]
+            try:
+                mixtures[name] = GaussianMixture(log_weights=m["log_weights"], means=m["means"], covs=m["covs"])
+            except ValueError as exc:
+                raise ValueError(f"filter {name!r}: {exc}") from None
+            restored[name] = _filter_state(s, fmt, filters[name])
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{path}: malformed checkpoint ({type(exc).__name__}: {exc})") from None
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
     previous = {name: filt.state_dict() for name, filt in filters.items()}
     current = None
     try:

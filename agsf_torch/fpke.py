@@ -360,7 +360,10 @@ def residual_rule(model: ContinuousModel, quadrature, factors: int) -> tuple[Ten
     """
     n = model.state_dim
     if quadrature is None:
-        pts = model.fpke_quadrature_points(factors)
+        try:
+            pts = model.fpke_quadrature_points(factors)
+        except TypeError:  # a model written for the one-argument form, which declared the ℓᵢℓⱼ rule
+            pts = model.fpke_quadrature_points() if factors == 2 else None
         if pts is not None:
             return gauss_hermite(tuple(pts))
         return gauss_hermite(7, n) if n <= 4 else smolyak_gauss_hermite(n, 7)

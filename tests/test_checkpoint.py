@@ -71,3 +71,62 @@ def test_bad_checkpoints(tmp_path):
     path = save_checkpoint(tmp_path / "z.pt", {"gsf": mix, "agsf": mix}, filters)
     with pytest.raises(ValueError, match="holds filters"):
         load_checkpoint(path, {"gsf": filters["gsf"]})
+
+
+def _format1_file(path, mixtures, steps, refs):
+    """A checkpoint as format 1 wrote it: counter beside the mixture, reference weights inside it."""
+    torch.save(
+        {
+            "format": "agsf-checkpoint-1",
+            "filters": {
+                name: {
+                    "mixture": {"log_weights": m.log_weights, "means": m.means, "covs": m.covs, "ref_log_weights": refs[name]},
+                    "step": steps[name],
+                }
+                for name, m in mixtures.items()
+            },
+            "extra": {},
+        },
+        path,
+    )
+    return path
+
+
+def test_format1_checkpoints_still_load(tmp_path):
+    """Format 1 stored a reference for every filter (the GSF's too) and nothing at t₀: both load,
+    the adaptive filter gets its counter and reference, the GSF drops what it never used."""
+    env, filters = _setup()
+    mix = _start(env)
+    ref = mix.log_weights - 1.0
+    path = _format1_file(tmp_path / "old.pt", {"gsf": mix, "agsf": mix}, {"gsf": 0, "agsf": 7}, {"gsf": ref, "agsf": ref})
+    mixtures, _ = load_checkpoint(path, filters)
+    state = filters["agsf"].state_dict()["weight_update"]
+    assert state["step"] == 7 and torch.equal(state["ref_log_weights"], ref)
+    assert filters["gsf"].state_dict() == {}
+    assert torch.equal(mixtures["agsf"].means, mix.means)
+    env, filters = _setup()
+    path = _format1_file(tmp_path / "t0.pt", {"gsf": mix, "agsf": mix}, {"gsf": 0, "agsf": 0}, {"gsf": None, "agsf": None})
+    load_checkpoint(path, filters)
+    assert filters["agsf"].state_dict()["weight_update"]["ref_log_weights"] is None
+
+
+def test_malformed_or_mismatched_checkpoints_are_named_and_change_nothing(tmp_path):
+    env, filters = _setup()
+    mix = _start(env)
+    path = save_checkpoint(tmp_path / "ok.pt", {"gsf": mix, "agsf": mix}, filters)
+    state = torch.load(path, weights_only=True)
+    del state["filters"]["agsf"]["filter"]
+    torch.save(state, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match=r"bad\.pt: malformed checkpoint"):
+        load_checkpoint(tmp_path / "bad.pt", filters)
+    # a Galerkin filter under the name of the penalty one: refused, and the GSF put back as it was
+    galerkin = {"gsf": GaussianSumFilter(filters["gsf"].model), "agsf": AdaptiveGaussianSumFilter(filters["agsf"].model, weight_update="galerkin")}
+    before = {k: f.state_dict() for k, f in galerkin.items()}
+    with pytest.raises(ValueError, match="filter 'agsf'.*penalty"):
+        load_checkpoint(path, galerkin)
+    assert {k: f.state_dict() for k, f in galerkin.items()} == before
+    nan = torch.load(path, weights_only=True)
+    nan["filters"]["gsf"]["mixture"]["means"][0, 0, 0] = float("nan")
+    torch.save(nan, tmp_path / "nan.pt")
+    with pytest.raises(ValueError, match="nan.pt: filter 'gsf': means must be finite"):
+        load_checkpoint(tmp_path / "nan.pt", filters)

@@ -132,7 +132,8 @@ class Step:
     """Everything of one step for every filter: ``time`` (s), ``star_frame``, the truth
     ``x_true [B, n]`` / ``truth_mrp [B, 3]``, ``filters``: name → :class:`FilterStep`, and
     what the filters were given: ``u [B, 3]`` (the gyro input of the interval, bias-compensated
-    in the 3-state model; held samples bridged) and, at a star frame, ``measurement``
+    in the 3-state model; invalid samples bridged by the last valid one, whose extra
+    uncertainty the filters add to their covariance but ``u`` itself does not carry) and, at a star frame, ``measurement``
     ``(y [B, d], StarVectorMeasurement)``; ``prior_mean [B, n]`` is the mean of the Gaussian prior
     ``N(prior_mean, prior_cov)`` every filter's initial mixture was split from."""
 
@@ -179,6 +180,7 @@ def monte_carlo_steps(
     mean0 = sample_prior(x_true, prior_cov, gen)
     mixtures: dict[str, GaussianMixture] = {}
     for name, setup in filters.items():
+        setup.filter.reset()  # a filter follows one run: forget any earlier one
         mix = GaussianMixture.from_gaussian(mean0, prior_cov.expand(B, n, n), setup.num_components, setup.spread)
         m, P = setup.filter.model.canonicalize(mix.means, mix.covs)
         mixtures[name] = mix.replace(means=m, covs=P)

@@ -21,7 +21,7 @@ from .weight_updates import WeightUpdate, make_weight_update
 __all__ = ["AdaptiveGaussianSumFilter"]
 
 _UNSET: Any = object()
-_PENALTY_DEFAULTS = {"reg": 1.0, "scaling": "trace", "weight_ref": "update"}
+_PENALTY_ONLY = frozenset({"reg", "scaling", "weight_ref"})
 
 
 class AdaptiveGaussianSumFilter(GaussianSumFilter):
@@ -63,7 +63,8 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
     for ``"penalty"`` ``fpke_error_before``, ``fpke_error_after`` (unscaled ``wᵀLw``
     with the propagated and the new weights, ``[...]``), ``qp_kkt_residual [...]``,
     ``qp_iterations`` (int); for ``"galerkin"`` ``galerkin_residual_change``,
-    ``qp_kkt_residual``, ``qp_iterations``.
+    ``qp_kkt_residual``, ``qp_iterations`` (and, with ``residual_diagnostics``,
+    ``fpke_error_before`` and ``fpke_error_with_rate``).
     """
 
     def __init__(
@@ -91,7 +92,7 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
             if v is not _UNSET
         }
         if weight_update == "galerkin":
-            penalty_only = sorted(set(given) & set(_PENALTY_DEFAULTS))
+            penalty_only = sorted(set(given) & _PENALTY_ONLY)
             if penalty_only:
                 raise ValueError(f"{', '.join(penalty_only)} configure(s) the penalty weight update, not weight_update='galerkin'")
         update = make_weight_update(weight_update, **given)

@@ -196,7 +196,6 @@ class GaussianSumFilter:
         means, covs = self.model.canonicalize(res.means, res.covs)
         covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
         posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs)
-        self._after_update(posterior)
         self.diagnostics = {
             "log_likelihood": res.log_likelihood,
             "nis": res.nis,
@@ -206,6 +205,7 @@ class GaussianSumFilter:
             "covariance_repairs": repairs,
             **gate,
         }
+        self._after_update(posterior)  # last: nothing above can fail after the run state moves
         return posterior
 
     def _after_update(self, posterior: GaussianMixture) -> None:

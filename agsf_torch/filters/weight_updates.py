@@ -18,6 +18,7 @@ own by subclassing :class:`WeightUpdate` and implementing :meth:`WeightUpdate.co
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 import torch
@@ -55,7 +56,9 @@ class WeightUpdate:
     """A correction of the forecast weights after each propagation interval.
 
     Subclasses implement :meth:`compute`; this base class runs it every
-    ``cadence``-th interval and keeps the counter.  State changes only after a
+    ``cadence``-th interval and keeps the counter.  One object serves one filter:
+    its state is that filter's run state (passing the same object to two filters
+    shares it, and :meth:`bind` rebinds it to the last filter's model).  State changes only after a
     step succeeds: an error leaves the update as it was.
 
     Args:
@@ -105,25 +108,34 @@ class WeightUpdate:
         raise NotImplementedError
 
     def observe_update(self, log_weights: Tensor) -> None:
-        """Called by the filter after each measurement update with the posterior log-weights ``[..., N]``."""
+        """Called by the filter after each measurement update with the posterior log-weights ``[..., N]``:
+        the weights are new, so the time over which they are held restarts (``elapsed = 0``)."""
+        self._elapsed = 0.0
 
     def reset(self) -> None:
         """Forget the run: restart the cadence counter (and any reference)."""
         self._step, self._elapsed = 0, 0.0
 
+    #: Keys of :meth:`state_dict` beyond ``kind``, ``step`` and ``elapsed``.
+    extra_state_keys: tuple[str, ...] = ()
+
     def state_dict(self) -> dict[str, Any]:
-        """The update's run state (numbers and tensors only)."""
-        return {"step": self._step, "elapsed": self._elapsed}
+        """The update's run state (numbers, strings and tensors only), tagged with its ``kind``."""
+        return {"kind": self.name, "step": self._step, "elapsed": self._elapsed}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`; validated before anything changes."""
         step, elapsed = self._parse_counter(state)
         self._step, self._elapsed = step, elapsed
 
-    @staticmethod
-    def _parse_counter(state: Any) -> tuple[int, float]:
-        if not isinstance(state, dict) or "step" not in state or "elapsed" not in state:
-            raise ValueError(f"weight-update state must be a dict with 'step' and 'elapsed', got {state!r}")
+    def _parse_counter(self, state: Any) -> tuple[int, float]:
+        """Check ``state`` is this kind's state with exactly the expected keys; return ``(step, elapsed)``."""
+        keys = {"kind", "step", "elapsed", *self.extra_state_keys}
+        if isinstance(state, dict) and "kind" in state and state["kind"] != self.name:
+            raise ValueError(f"the state is a {state['kind']!r} weight update's, not this {self.name!r} one's")
+        if not isinstance(state, dict) or set(state) != keys:
+            got = sorted(state) if isinstance(state, dict) else state
+            raise ValueError(f"{type(self).__name__} state must have the keys {sorted(keys)}, got {got!r}")
         step, elapsed = state["step"], state["elapsed"]
         if isinstance(step, bool) or not isinstance(step, int) or step < 0:
             raise ValueError(f"weight-update state 'step' must be an integer ≥ 0, got {step!r}")
@@ -205,7 +217,10 @@ class PenaltyWeightUpdate(_QuadratureUpdate):
         self.weight_ref = weight_ref
         self._ref: Tensor | None = None
 
+    extra_state_keys = ("ref_log_weights",)
+
     def observe_update(self, log_weights: Tensor) -> None:
+        super().observe_update(log_weights)
         self._ref = log_weights
 
     def reset(self) -> None:
@@ -217,7 +232,7 @@ class PenaltyWeightUpdate(_QuadratureUpdate):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         step, elapsed = self._parse_counter(state)
-        ref = state.get("ref_log_weights")
+        ref = state["ref_log_weights"]
         if ref is not None and (not torch.is_tensor(ref) or ref.dim() < 1 or bool(torch.isnan(ref).any())):
             raise ValueError("weight-update state 'ref_log_weights' must be None or a tensor [..., N] without NaN")
         self._step, self._elapsed, self._ref = step, elapsed, ref
@@ -260,17 +275,18 @@ class PenaltyWeightUpdate(_QuadratureUpdate):
         w_new = res.w.clamp_min(0.0)
         w_new = w_new / w_new.sum(-1, keepdim=True)
         log_w = torch.log(w_new)
-        if self._ref is None:
-            self._ref = prior.log_weights
-            # the first adaptation of a run normalised its log-weights once more in the original
-            # implementation (1 ulp); kept so that the paper's numbers stay bit for bit
-            log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
-        return log_w, {
+        extra = {
             "fpke_error_before": Lmat.error(w_prop),
             "fpke_error_after": Lmat.error(w_new),
             "qp_kkt_residual": res.kkt_residual,
             "qp_iterations": res.iterations,
         }
+        if self._ref is None:  # nothing can fail from here on: commit the reference
+            self._ref = prior.log_weights
+            # the first adaptation of a run normalised its log-weights once more in the original
+            # implementation (1 ulp); kept so that the paper's numbers stay bit for bit
+            log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
+        return log_w, extra
 
 
 class GalerkinWeightUpdate(_QuadratureUpdate):
@@ -301,9 +317,10 @@ class GalerkinWeightUpdate(_QuadratureUpdate):
 
     Args:
         cadence, quadrature, chunk_size, compile: see :class:`AdaptiveGaussianSumFilter`.
-        tikhonov: the relative ε above (≥ 0; default 1e-9).
-        residual_diagnostics: also evaluate the FPKE residual ``∫e²`` before and after
-            (``fpke_error_before``, ``fpke_error_after``); this needs the paper's
+        tikhonov: the relative ε above (> 0; default 1e-9).
+        residual_diagnostics: also evaluate the FPKE residual ``∫e²`` with the weights
+            held (``fpke_error_before = w⁻ᵀLw⁻``, as the penalty update's) and with the
+            chosen weight rate over the step (``fpke_error_with_rate``); this needs the paper's
             ``ℓᵢℓⱼ`` integrals (with the model's rule for them, as the penalty
             update's default) and costs as much as the penalty update.
 
@@ -311,6 +328,9 @@ class GalerkinWeightUpdate(_QuadratureUpdate):
     exact and cheap: ``[(w − w⁻)ᵀM(w − w⁻) + 2Δt(w − w⁻)ᵀKw⁻]/Δt²``, ≤ 0),
     ``qp_kkt_residual [...]`` (of the problem without the proximal term),
     ``qp_iterations``; with ``residual_diagnostics`` also the two errors.
+
+    ``Δt`` restarts at each measurement update (:meth:`WeightUpdate.observe_update`):
+    the posterior weights are the ``w⁻`` of the next adaptation.
     """
 
     name = "galerkin"
@@ -321,8 +341,8 @@ class GalerkinWeightUpdate(_QuadratureUpdate):
         self, *, cadence: int = 1, quadrature: Any = None, chunk_size: int | None = None, compile: bool = False,
         tikhonov: float = 1e-9, residual_diagnostics: bool = False,
     ) -> None:
-        if isinstance(tikhonov, bool) or not isinstance(tikhonov, (int, float)) or not 0.0 <= tikhonov < float("inf"):
-            raise ValueError(f"tikhonov must be a finite number ≥ 0, got {tikhonov!r}")
+        if isinstance(tikhonov, bool) or not isinstance(tikhonov, (int, float)) or not 0.0 < tikhonov < float("inf"):
+            raise ValueError(f"tikhonov must be a finite number > 0 (it selects the minimiser nearest w⁻), got {tikhonov!r}")
         super().__init__(cadence=cadence, quadrature=quadrature, chunk_size=chunk_size, compile=compile)
         if not isinstance(residual_diagnostics, bool):
             raise ValueError(f"residual_diagnostics must be True or False, got {residual_diagnostics!r}")
@@ -364,7 +384,7 @@ class GalerkinWeightUpdate(_QuadratureUpdate):
             Lmat = fpke_matrix(model, u_traj, comp, *self._residual_rule, self.chunk_size, compile=self.compile)
             before = Lmat.error(w0)
             extra["fpke_error_before"] = before
-            extra["fpke_error_after"] = before + change
+            extra["fpke_error_with_rate"] = before + change
         return torch.log(w_new), extra
 
 
@@ -385,8 +405,6 @@ def make_weight_update(spec: str | WeightUpdate, **options: Any) -> WeightUpdate
     if not isinstance(spec, str) or spec not in WEIGHT_UPDATES:
         raise ValueError(f"weight_update must be one of {sorted(WEIGHT_UPDATES)} or a WeightUpdate, got {spec!r}")
     cls = WEIGHT_UPDATES[spec]
-    import inspect
-
     accepted = set(inspect.signature(cls.__init__).parameters) - {"self"}
     unknown = sorted(set(options) - accepted)
     if unknown:

@@ -164,7 +164,7 @@ def test_attitude_weights_on_simplex_and_residual_reduced(gen, estimate_bias):
         assert bool((w >= 0).all())
         torch.testing.assert_close(w.sum(-1), torch.ones_like(w[:, 0]), rtol=0, atol=1e-12)
         assert float(d["qp_kkt_residual"].max()) < 1e-9
-        before, after, change = d["fpke_error_before"], d["fpke_error_after"], d["galerkin_residual_change"]
+        before, after, change = d["fpke_error_before"], d["fpke_error_with_rate"], d["galerkin_residual_change"]
         assert bool((change <= 1e-12 * before).all())
         assert bool((after >= -1e-9 * before).all())  # ∫e² ≥ 0 up to rounding
         if k == 1:
@@ -221,7 +221,7 @@ def test_cadence_uses_the_time_since_the_last_adaptation(gen):
     b = GaussianSumFilter(model).predict(GaussianSumFilter(model).predict(mix, None, 0.05), None, 0.05)
     b = b.replace(log_weights=once.weight_update(model, mix, b, None, 0.1)[0])
     torch.testing.assert_close(a.weights, b.weights, rtol=0, atol=1e-14)
-    assert every2.weight_update.state_dict() == {"step": 2, "elapsed": 0.0}
+    assert every2.weight_update.state_dict() == {"kind": "galerkin", "step": 2, "elapsed": 0.0}
 
 
 # ------------------------------------------------------------------ the step as a plug-in
@@ -260,7 +260,7 @@ def test_state_dict_round_trip_and_reset(gen):
         assert torch.equal(ma.log_weights, mb.log_weights)
         m = ma
     a.reset()
-    assert a.state_dict()["weight_update"] == {"step": 0, "elapsed": 0.0, "ref_log_weights": None}
+    assert a.state_dict()["weight_update"] == {"kind": "penalty", "step": 0, "elapsed": 0.0, "ref_log_weights": None}
     assert GaussianSumFilter(model).state_dict() == {}
 
 
@@ -300,6 +300,8 @@ def test_bad_update_objects_raise():
         PenaltyWeightUpdate(reg=-1.0)
     with pytest.raises(ValueError, match="residual_diagnostics"):
         GalerkinWeightUpdate(residual_diagnostics="yes")
+    with pytest.raises(ValueError, match="tikhonov must be a finite number > 0"):
+        GalerkinWeightUpdate(tikhonov=0.0)
 
 
 def test_error_in_a_step_changes_no_state(gen):
@@ -311,15 +313,24 @@ def test_error_in_a_step_changes_no_state(gen):
     bad = prop.replace(means=torch.tensor([[float("nan")], [1.0]], dtype=F64))
     with pytest.raises((ValueError, RuntimeError)):
         filt.weight_update(model, mix, bad, None, 0.1)
-    assert filt.weight_update.state_dict() == {"step": 0, "elapsed": 0.0}
+    assert filt.weight_update.state_dict() == {"kind": "galerkin", "step": 0, "elapsed": 0.0}
 
 
 def test_bad_state_dict_is_refused_without_change(gen):
     filt = AdaptiveGaussianSumFilter(AttitudeModel(), weight_update="galerkin")
-    for bad in ({"weight_update": {"step": -1, "elapsed": 0.0}}, {"weight_update": {"step": 1}}, {"other": 1}):
+    penalty_state = AdaptiveGaussianSumFilter(AttitudeModel()).state_dict()
+    for bad in (
+        {"weight_update": {"kind": "galerkin", "step": -1, "elapsed": 0.0}},
+        {"weight_update": {"kind": "galerkin", "step": 1}},
+        {"weight_update": {"kind": "galerkin", "step": 1, "elapsed": 0.0, "extra": 2}},
+        penalty_state,  # another kind of update: refused, not half-loaded
+        {"other": 1},
+    ):
         with pytest.raises(ValueError):
             filt.load_state_dict(bad)
-        assert filt.state_dict() == {"weight_update": {"step": 0, "elapsed": 0.0}}
+        assert filt.state_dict() == {"weight_update": {"kind": "galerkin", "step": 0, "elapsed": 0.0}}
+    with pytest.raises(ValueError, match="not this 'penalty'"):
+        AdaptiveGaussianSumFilter(AttitudeModel()).load_state_dict({"weight_update": {"kind": "galerkin", "step": 0, "elapsed": 0.0, "ref_log_weights": None}})
 
 
 def test_six_n_plus_one_rule_moments():
@@ -335,3 +346,22 @@ def test_six_n_plus_one_rule_moments():
     assert abs(float((ref[1] * ref[0][:, 0] ** 4).sum()) - 3.0) < 1e-12 and abs(fourth - 3.0) > 0.05
     with pytest.raises(ValueError, match="dim"):
         six_n_plus_one(0)
+
+
+def test_a_measurement_update_restarts_the_galerkin_interval(gen):
+    """With cadence 2 and an update in between, the adaptation integrates the weights' rate over
+    the time since the update (one interval), not since the last adaptation (two)."""
+    model, mix, u, meas, y = _attitude(gen, False, B=4, N=3)
+    filt = AdaptiveGaussianSumFilter(model, weight_update="galerkin", cadence=2)
+    one = filt.update(filt.predict(mix, u, 0.1), y, meas)
+    assert filt.weight_update.state_dict()["elapsed"] == 0.0
+    seen = {}
+    original = filt.weight_update.compute
+
+    def spy(model, prior, propagated, u, elapsed):
+        seen["elapsed"] = elapsed
+        return original(model, prior, propagated, u, elapsed)
+
+    filt.weight_update.compute = spy
+    filt.predict(one, u, 0.1)
+    assert seen["elapsed"] == pytest.approx(0.1, abs=1e-15)
