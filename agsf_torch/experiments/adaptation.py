@@ -235,6 +235,7 @@ def _figure(path: Path, name: str, summary: dict[str, Any]) -> None:
     axes[0].set(xlabel="time (s)", ylabel="RMS attitude error (deg)", title=f"{name}: RMS over runs")
     axes[1].set(xlabel="time (s)", ylabel=f"mean NEES (ideal {n})", title="consistency")
     axes[2].set(xlabel="time (s)", ylabel="mean log-density of exact samples (nats)", title="density score (higher is better)")
+    axes[2].set_yscale("symlog", linthresh=10.0)  # scores span a few nats to −10⁵ for overconfident filters
     for a in axes:
         a.grid(True, which="both", alpha=0.3)
     for a in axes:
