@@ -115,4 +115,4 @@ def load_checkpoint(path: str | Path, filters: Mapping[str, GaussianSumFilter]) 
         for name, filt in filters.items():
             filt.load_state_dict(previous[name])
         raise ValueError(f"{path}: filter {current!r}: {exc}") from None
-    return mixtures, state["extra"]
+    return mixtures, extra

@@ -335,7 +335,7 @@ def study_table(summaries: dict[str, Any], window: str = "all") -> str:
     """Markdown: per scenario and filter, RMS (deg), NEES and density score (nats) with 95 % intervals
     over the ``window`` (``all``, ``before_first_frame``, ``between_frames``), and the score relative to the GSF."""
     lines = [
-        f"| scenario | filter | RMS (deg) | NEES | density score (nats) | score − GSF (nats) |",
+        "| scenario | filter | RMS (deg) | NEES | density score (nats) | score − GSF (nats) |",
         "| --- | --- | --- | --- | --- | --- |",
     ]
     for sname, s in summaries.items():

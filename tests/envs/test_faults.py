@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from envs.faults import SensorFault, apply_gyro_faults, apply_star_faults, nearest_other_star, parse_faults
+from envs.faults import SensorFault, apply_gyro_faults, nearest_other_star, parse_faults
 from envs.star_tracker import StarTrackerAttitudeVectorEnv, StarTrackerConfig
 
 FAULTS = [

@@ -12,7 +12,7 @@ import torch
 from agsf_torch import GaussianMixture
 from agsf_torch.experiments.sine_benchmark import run_sine_benchmark
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GalerkinWeightUpdate, GaussianSumFilter, PenaltyWeightUpdate, WeightUpdate
-from agsf_torch.models import AttitudeModel, LinearModel, LorenzModel, StarVectorMeasurement
+from agsf_torch.models import AttitudeModel, LinearModel, LorenzModel
 from agsf_torch.models.benchmarks import SineDriftModel
 from agsf_torch.quadrature import gauss_hermite, six_n_plus_one
 from tests.conftest import random_mrps
