@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up .venv (pinned) and run the main job: the paper's three cases (star frames
-# at 1, 0.5 and 0.2 Hz), 100 Monte Carlo runs each, EKF / GSF / adaptive GSF on
-# identical truth and measurements (about 1–2 minutes on 2 cores).
+# at 1, 0.5 and 0.2 Hz), 100 Monte Carlo runs each, EKF / GSF / adaptive GSF with the
+# paper's and with the Galerkin weight update on identical truth and measurements
+# (about 5 minutes on 2 cores).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$here"
