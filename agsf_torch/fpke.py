@@ -204,10 +204,14 @@ def _check_chunk_size(chunk_size: int | None) -> None:
 
 
 def _integrate_pairs(
-    kernel, model: ContinuousModel, u: Tensor | None, prod: ProductGaussians, nodes: Tensor, node_weights: Tensor,
+    kernel, model: ContinuousModel, u: Tensor | None, rates: ComponentRates, nodes: Tensor, node_weights: Tensor,
     chunk_size: int | None, max_chunk_elements: int, out_shape: tuple[int, ...],
-) -> Tensor:
-    """Accumulate ``kernel`` over the rule's nodes in chunks that bound memory."""
+) -> tuple[ProductGaussians, Tensor, Tensor]:
+    """The pairs' product Gaussians, ``log max z_ij`` ``[...]`` and ``kernel`` accumulated over the
+    rule's nodes in chunks that bound memory."""
+    _check_chunk_size(chunk_size)
+    prod = product_gaussians(rates)
+    log_scale = prod.log_z.amax(-1)
     m = prod.mean
     n = m.shape[-1]
     if u is not None:
@@ -220,7 +224,7 @@ def _integrate_pairs(
         xi = nodes[start : start + chunk_size].to(m)
         wq = node_weights[start : start + chunk_size].to(m)
         acc = acc + kernel(model, m, prod.chol, xi, wq, u, prod.first, prod.second)
-    return acc
+    return prod, log_scale, acc
 
 
 @dataclass(frozen=True)
@@ -282,11 +286,10 @@ def fpke_matrix(
     Returns:
         :class:`FPKEMatrix` (``[..., N, N]``).
     """
-    _check_chunk_size(chunk_size)
     N = rates.means.shape[-2]
-    prod = product_gaussians(rates)
-    log_scale = prod.log_z.amax(-1)
-    acc = _integrate_pairs(_kernel("pair", compile), model, u, prod, nodes, node_weights, chunk_size, max_chunk_elements, ())
+    prod, log_scale, acc = _integrate_pairs(
+        _kernel("pair", compile), model, u, rates, nodes, node_weights, chunk_size, max_chunk_elements, ()
+    )
     vals = torch.exp(prod.log_z - log_scale[..., None]) * acc
     return FPKEMatrix(_symmetric_from_pairs(vals, prod.index, N), log_scale)
 
@@ -326,11 +329,10 @@ def galerkin_matrices(
     Returns:
         :class:`GalerkinMatrices` (``[..., N, N]``).
     """
-    _check_chunk_size(chunk_size)
     N = rates.means.shape[-2]
-    prod = product_gaussians(rates)
-    log_scale = prod.log_z.amax(-1)
-    acc = _integrate_pairs(_kernel("galerkin", compile), model, u, prod, nodes, node_weights, chunk_size, max_chunk_elements, (2,))
+    prod, log_scale, acc = _integrate_pairs(
+        _kernel("galerkin", compile), model, u, rates, nodes, node_weights, chunk_size, max_chunk_elements, (2,)
+    )
     z = torch.exp(prod.log_z - log_scale[..., None])
     mass = _symmetric_from_pairs(z, prod.index, N)
     drift = torch.zeros_like(mass)

@@ -27,7 +27,8 @@ One concept per module:
 
 from .charts import CHARTS, canonical_points, chart_for, mixture_log_density
 from .proposal import InitialStateProposal
-from .reference import PosteriorReference, StepRecord
+from .frames import StepRecord
+from .reference import PosteriorReference
 from .score import density_score, effective_sample_size
 
 __all__ = [

@@ -1,4 +1,5 @@
-"""A measurement frame as :class:`~agsf_torch.density.PosteriorReference` records it."""
+"""What :class:`~agsf_torch.density.PosteriorReference` records: its measurement frames and the
+diagnostics of every step (:class:`StepRecord`)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ from dataclasses import dataclass
 from torch import Tensor
 
 from ..models.base import MeasurementModel
+
+__all__ = ["StepRecord"]
 
 
 @dataclass(frozen=True)
@@ -27,3 +30,30 @@ def _point_eval(measurement: MeasurementModel, x: Tensor, jacobian: bool = False
     if not jacobian:
         return h
     return h, measurement.jacobian(xm).movedim(0, 1)
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """Diagnostics of one :class:`PosteriorReference` step (``predict`` or ``update``).
+
+    Attributes:
+        time: time after the step (s).
+        frame: ``True`` for an ``update``.
+        ess: effective sample size of the weights at the end of the step, before any
+            resampling ``[B]``.
+        lineages: distinct lineages (ancestors at the last independent draw) ``[B]``.
+        redrawn: the particles were replaced by a path-space redraw ``[B]`` bool.
+        resampled: systematic resampling after the step ``[B]`` bool.
+        bootstrap_ess: ESS the bootstrap reweighting would have had (``update``; NaN
+            for ``predict``) ``[B]``.
+        redraw_ess: ESS of the redraw where one was computed, NaN elsewhere ``[B]``.
+    """
+
+    time: float
+    frame: bool
+    ess: Tensor
+    lineages: Tensor
+    redrawn: Tensor
+    resampled: Tensor
+    bootstrap_ess: Tensor
+    redraw_ess: Tensor

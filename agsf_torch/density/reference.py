@@ -27,46 +27,17 @@ Every step is an exact importance-sampling or SMC step for that chain, so for fi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
 from ..mixture import GaussianMixture, check_covariance
 from ..models.base import ContinuousModel, MeasurementModel
 from .charts import _check_chart, canonical_points, chart_for
-from .frames import _Frame, _point_eval
+from .frames import StepRecord, _Frame, _point_eval
 from .redraw import _PathSpaceRedraw
 from .score import density_score, effective_sample_size
 
-__all__ = ["StepRecord", "PosteriorReference"]
-
-
-@dataclass(frozen=True)
-class StepRecord:
-    """Diagnostics of one :class:`PosteriorReference` step (``predict`` or ``update``).
-
-    Attributes:
-        time: time after the step (s).
-        frame: ``True`` for an ``update``.
-        ess: effective sample size of the weights at the end of the step, before any
-            resampling ``[B]``.
-        lineages: distinct lineages (ancestors at the last independent draw) ``[B]``.
-        redrawn: the particles were replaced by a path-space redraw ``[B]`` bool.
-        resampled: systematic resampling after the step ``[B]`` bool.
-        bootstrap_ess: ESS the bootstrap reweighting would have had (``update``; NaN
-            for ``predict``) ``[B]``.
-        redraw_ess: ESS of the redraw where one was computed, NaN elsewhere ``[B]``.
-    """
-
-    time: float
-    frame: bool
-    ess: Tensor
-    lineages: Tensor
-    redrawn: Tensor
-    resampled: Tensor
-    bootstrap_ess: Tensor
-    redraw_ess: Tensor
+__all__ = ["PosteriorReference"]
 
 
 def _sqrt_psd(Q: Tensor) -> Tensor:
