@@ -46,6 +46,11 @@ def component_rates(model: ContinuousModel, mixture: GaussianMixture, u: Tensor 
     return ComponentRates(mixture.means, chol, rates.mean_rate, rates.cov_rate)
 
 
+def has_gaussian_moments(model: ContinuousModel) -> bool:
+    """Whether ``model`` gives closed-form Gaussian moments of its Fokker–Planck terms."""
+    return type(model).fokker_planck_moments is not ContinuousModel.fokker_planck_moments
+
+
 def _check_finite_matrix(name: str, value: Tensor) -> None:
     bad = ~torch.isfinite(value).flatten(-2).all(-1)
     if bool(bad.any()):
@@ -351,7 +356,10 @@ class GalerkinWeightUpdate(_QuadratureUpdate):
         self._residual_rule: tuple[Tensor, Tensor] | None = None
 
     def bind(self, model: ContinuousModel) -> None:
-        super().bind(model)
+        if self.quadrature is None and has_gaussian_moments(model):
+            self.nodes = self.node_weights = None  # K in closed form (fpke.moments)
+        else:
+            super().bind(model)
         if self.residual_diagnostics:
             self._residual_rule = residual_rule(model, None, 2)  # the model's rule for ℓᵢℓⱼ
 

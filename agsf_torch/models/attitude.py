@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
-from .base import ContinuousModel, FokkerPlanckTerms, check_nonnegative
+from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
 
@@ -188,6 +188,75 @@ class AttitudeModel(ContinuousModel):
             raise ValueError(f"factors must be 1 or 2, got {factors}")
         p, b = (4, 2) if factors == 1 else (7, 3)
         return (p, p, p, b, b, b) if self.estimate_bias else (p, p, p)
+
+    def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor) -> FokkerPlanckMoments:
+        """Exact Gaussian expectations of the Fokker–Planck terms under ``x ~ N(mean, cov)``.
+
+        With ``m, M`` the MRP mean and covariance, ``ω = ω̃ − b`` (mean ``m_ω``),
+        ``C = Cov(p, ω) = −S_pb`` (0 in the 3-state model), ``c = σ_v²/32`` and
+        ``s = pᵀp``, the Gaussian moments are ``E[s] = mᵀm + tr M``,
+        ``E[ppᵀ] = mmᵀ + M``, ``E[sp] = E[s]m + 2Mm``,
+        ``E[s²] = E[s]² + 2tr M² + 4mᵀMm``, ``E[sω] = E[s]m_ω + 2Cᵀm``,
+        ``E[p×ω] = m×m_ω + ε:C``, ``E[(pᵀω)p] = m(mᵀm_ω + tr C) + Cm + Mm_ω``.  The
+        diffusion is ``D = φ D₁ + D₀`` with ``φ = (1+s)²``, ``D₁ = c`` on the MRP axes and
+        ``D₀ = σ_u²/2`` on the bias axes; ``v = f − 2a`` with ``v_p = ¼B(p)ω − 8c(1+s)p``,
+        ``∂v_p/∂p = F − 8c((1+s)I + 2ppᵀ)`` (``F`` of :meth:`drift_jacobian`) and
+        ``∂v_p/∂b = −¼B(p)``.
+
+        Args:
+            mean: ``[..., n]``; cov: ``[..., n, n]``; u: ``ω̃`` ``[..., 3]``.
+        """
+        n = self.state_dim
+        m = mean[..., :3]
+        M = cov[..., :3, :3]
+        eye = torch.eye(3, dtype=mean.dtype, device=mean.device)
+        if self.estimate_bias:
+            m_w = u - mean[..., 3:]
+            C = -cov[..., :3, 3:]
+        else:
+            m_w = (u - self.bias.to(u)).expand_as(m)
+            C = torch.zeros_like(M)
+        c = self.sigma_v.to(mean) ** 2 / 32.0
+
+        def dot(a: Tensor, b: Tensor) -> Tensor:
+            return (a * b).sum(-1, keepdim=True)
+
+        Mm = (M @ m.unsqueeze(-1)).squeeze(-1)
+        Es = dot(m, m) + M.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)  # [..., 1]
+        Epp = m.unsqueeze(-1) * m.unsqueeze(-2) + M
+        Esp = Es * m + 2.0 * Mm
+        Es2 = Es * Es + 2.0 * (M * M).sum((-2, -1)).unsqueeze(-1) + 4.0 * dot(m, Mm)
+        trC = C.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)
+        Cm = (C @ m.unsqueeze(-1)).squeeze(-1)
+        CTm = (C.transpose(-1, -2) @ m.unsqueeze(-1)).squeeze(-1)
+        eps_C = torch.stack((C[..., 1, 2] - C[..., 2, 1], C[..., 2, 0] - C[..., 0, 2], C[..., 0, 1] - C[..., 1, 0]), -1)
+        E_sw = Es * m_w + 2.0 * CTm
+        E_cross = torch.linalg.cross(m, m_w, dim=-1) + eps_C
+        E_pwp = m * (dot(m, m_w) + trC) + Cm + (M @ m_w.unsqueeze(-1)).squeeze(-1)
+        E_pw = dot(m, m_w) + trC
+        v_p = 0.25 * (m_w - E_sw + 2.0 * E_cross + 2.0 * E_pwp) - 8.0 * c * (m + Esp)
+        E_pwT = m.unsqueeze(-1) * m_w.unsqueeze(-2) + C  # E[p ωᵀ]
+        F = 0.5 * (E_pwT - E_pwT.transpose(-1, -2) - cross_matrix(m_w) + E_pw.unsqueeze(-1) * eye)
+        J_pp = F - 8.0 * c * ((1.0 + Es).unsqueeze(-1) * eye + 2.0 * Epp)
+        field_grad = 4.0 * (m + Esp)
+        field_hess = 4.0 * (1.0 + Es).unsqueeze(-1) * eye + 8.0 * Epp
+        scalar = (1.5 * E_pw - 4.0 * c * (3.0 + 5.0 * Es)).squeeze(-1)
+        pattern = torch.cat((c.expand(3), torch.zeros(n - 3, dtype=mean.dtype, device=mean.device)))
+        constant = torch.zeros(n, dtype=mean.dtype, device=mean.device)
+        if self.estimate_bias:
+            E_B = (1.0 - Es).unsqueeze(-1) * eye + 2.0 * cross_matrix(m) + 2.0 * Epp
+            zero = torch.zeros_like(J_pp)
+            J = torch.cat((torch.cat((J_pp, -0.25 * E_B), -1), torch.cat((zero, zero), -1)), -2)
+            v = torch.cat((v_p, torch.zeros_like(v_p)), -1)
+            field_grad = torch.cat((field_grad, torch.zeros_like(field_grad)), -1)
+            field_hess = torch.cat((torch.cat((field_hess, zero), -1), torch.cat((zero, zero), -1)), -2)
+            constant[3:] = 0.5 * self.sigma_u.to(mean) ** 2
+        else:
+            J, v = J_pp, v_p
+        return FokkerPlanckMoments(
+            scalar=scalar, transport=v, transport_jacobian=J, field=(1.0 + 2.0 * Es + Es2).squeeze(-1),
+            field_gradient=field_grad, field_hessian=field_hess, pattern=pattern, constant=constant,
+        )
 
     # ------------------------------------------------------- MRP manifold
     def _switch(self, mean: Tensor, cov: Tensor, switch: Tensor) -> tuple[Tensor, Tensor]:

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 __all__ = [
     "FokkerPlanckTerms",
+    "FokkerPlanckMoments",
     "batched_jacobian",
     "ContinuousModel",
     "MeasurementModel",
@@ -95,6 +96,31 @@ class FokkerPlanckTerms:
     diffusion_second_divergence: Tensor
 
 
+@dataclass(frozen=True)
+class FokkerPlanckMoments:
+    """Gaussian expectations of the model's Fokker–Planck terms, for the closed-form ``E[ℓᵢ]`` (method.md §3b).
+
+    Under ``x ~ N(m, S)``, for a model whose diffusion is a scalar field times a fixed
+    matrix plus a constant, ``D(x) = φ(x) D₁ + D₀`` (``D₁``, ``D₀`` given by their
+    diagonals when diagonal), and with ``v = f − 2a`` (``aₖ = Σⱼ ∂Dⱼₖ/∂xⱼ``):
+
+    Attributes:
+        scalar: ``E[div f − Σⱼₖ ∂²Dⱼₖ/∂xⱼ∂xₖ]`` ``[...]``.
+        transport: ``E[v]`` ``[..., n]``; transport_jacobian: ``E[∂v/∂x]`` ``[..., n, n]``.
+        field: ``E[φ]`` ``[...]``; field_gradient: ``E[∇φ]`` ``[..., n]``; field_hessian: ``E[∇²φ]`` ``[..., n, n]``.
+        pattern: ``D₁`` ``[n]`` (diagonal) or ``[n, n]``; constant: ``D₀`` ``[n]`` or ``[n, n]``.
+    """
+
+    scalar: Tensor
+    transport: Tensor
+    transport_jacobian: Tensor
+    field: Tensor
+    field_gradient: Tensor
+    field_hessian: Tensor
+    pattern: Tensor
+    constant: Tensor
+
+
 class ContinuousModel(nn.Module):
     """Continuous-time stochastic model ``dx = f(x, u) dt + g(x) dβ``, ``E[dβdβᵀ] = Q dt``.
 
@@ -163,6 +189,15 @@ class ContinuousModel(nn.Module):
         A polynomial ``ℓ`` of degree ``d`` in a coordinate needs ``⌈(factors·d + 1)/2⌉``
         points on that axis (``m`` points integrate degree ``2m − 1`` exactly).
         ``None`` (default) lets the adaptive filter choose a generic rule.
+        """
+        return None
+
+    def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor | None) -> FokkerPlanckMoments | None:
+        """Closed-form Gaussian expectations of the Fokker–Planck terms under ``N(mean, cov)``
+        (``mean [..., n]``, ``cov [..., n, n]``, ``u [..., m]``), or ``None`` (default): then
+        the Galerkin weight update integrates ``ℓⱼ`` by quadrature.  A model with
+        polynomial ``f`` and ``D`` of the form of :class:`FokkerPlanckMoments` can give
+        them exactly, which makes the Galerkin update cost ``O(n³)`` per pair of components.
         """
         return None
 
