@@ -6,12 +6,12 @@ import torch
 from torch import Tensor
 
 from ..models.base import ContinuousModel
-from ..quadrature import gauss_hermite, smolyak_gauss_hermite
+from ..quadrature import ProductRule, gauss_hermite, product_rule, smolyak_gauss_hermite
 
 __all__ = ["residual_rule"]
 
 
-def residual_rule(model: ContinuousModel, quadrature, factors: int) -> tuple[Tensor, Tensor]:
+def residual_rule(model: ContinuousModel, quadrature, factors: int) -> tuple[Tensor | ProductRule, Tensor | None]:
     """The quadrature rule for ``E[ℓᵢ]`` (``factors = 1``, Galerkin) or ``E[ℓᵢℓⱼ]`` (``factors = 2``, penalty).
 
     Args:
@@ -24,12 +24,17 @@ def residual_rule(model: ContinuousModel, quadrature, factors: int) -> tuple[Ten
             ``x = m + chol(S) ξ`` with the lower Cholesky factor.
 
     Returns:
-        ``(nodes [K, n], weights [K])`` float64.
+        ``(nodes [K, n], weights [K])`` float64; for ``factors = 2`` and ``quadrature = None`` with a
+        model that declares the polynomial space of ``ℓ`` (``fpke_polynomial_space``), ``(ProductRule, None)``.
 
     Raises:
         ValueError: naming what is wrong with a rule.
     """
     n = model.state_dim
+    if quadrature is None and factors == 2:
+        space = model.fpke_polynomial_space()
+        if space is not None:
+            return product_rule(space, n), None
     if quadrature is None:
         try:
             pts = model.fpke_quadrature_points(factors)

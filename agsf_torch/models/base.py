@@ -192,6 +192,15 @@ class ContinuousModel(nn.Module):
         """
         return None
 
+    def fpke_polynomial_space(self) -> tuple[tuple[tuple[int, ...], int], ...] | None:
+        """The polynomial space of ``ℓᵢ(m + Lξ)`` in ``ξ`` (``L`` lower-triangular), if ``ℓ`` is polynomial:
+        ``((axes, total degree), ...)``, one group per block of coordinates, ``ℓ`` lying in the
+        tensor product of the groups' total-degree spaces.  The paper's matrix ``E[ℓᵢℓⱼ]`` is
+        then computed exactly by interpolation at a unisolvent node set
+        (:func:`agsf_torch.quadrature.product_rule`).  ``None`` (default): a quadrature rule.
+        """
+        return None
+
     def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor | None) -> FokkerPlanckMoments | None:
         """Closed-form Gaussian expectations of the Fokker–Planck terms under ``N(mean, cov)``
         (``mean [..., n]``, ``cov [..., n, n]``, ``u [..., m]``), or ``None`` (default): then

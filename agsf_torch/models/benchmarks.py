@@ -103,6 +103,10 @@ class LorenzModel(ContinuousModel):
             diffusion_second_divergence=torch.zeros_like(x[..., 0]),
         )
 
+    def fpke_polynomial_space(self) -> tuple[tuple[tuple[int, ...], int], ...]:
+        """``ℓ`` is a cubic in ``(x, y, z)``: ``P₃``, 20 interpolation nodes."""
+        return (((0, 1, 2), 3),)
+
     def fpke_quadrature_points(self, factors: int = 2) -> tuple[int, ...]:
         """``ℓ`` is cubic: ``⌈(3·factors + 1)/2⌉`` points per axis (2 for ``ℓⱼ``, 4 for ``ℓᵢℓⱼ``)."""
         if factors not in (1, 2):
