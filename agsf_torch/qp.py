@@ -43,8 +43,10 @@ __all__ = [
     "solve_simplex_qp_cvxpy",
 ]
 
-#: Largest problem size of the enumeration solver (2^N − 1 supports).
-MAX_COMPONENTS = 12
+#: Largest problem size :func:`solve_simplex_qp` accepts.
+MAX_COMPONENTS = 64
+#: Largest problem size settled by support enumeration (``2^N − 1`` supports); above it, an interior-point method.
+MAX_ENUMERATION = 12
 
 
 @dataclass(frozen=True)
@@ -54,7 +56,8 @@ class QPResult:
     Attributes:
         w: ``[..., N]`` on the simplex (``w ≥ 0``, ``Σw = 1`` to rounding).
         kkt_residual: ``[...]`` scaled KKT residual (see :func:`kkt_residual`).
-        iterations: supports examined per problem (``2^N − 1``).
+        iterations: active-set iterations run, plus ``2^N − 1`` if any problem needed the
+            support enumeration, or plus the interior-point iterations if any needed those.
     """
 
     w: Tensor
@@ -107,7 +110,9 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 40
     multiplier ``μᵢ`` is negative, stop when the KKT conditions hold (typically
     1–3 iterations for the filter's ``L + λI``).  Problems it has not settled
     after ``2N + 2`` iterations — it may cycle on hard problems — are solved by
-    support enumeration (module docstring), so the answer is always exact.
+    support enumeration (module docstring) for ``N ≤ MAX_ENUMERATION``, exact by
+    construction, and above by a batched Mehrotra interior-point method whose
+    support is then polished by one KKT solve (:func:`_interior_point`).
 
     Args:
         H: ``[..., N, N]`` symmetric positive semidefinite.
@@ -119,7 +124,7 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 40
         ``2^N − 1`` if any problem needed the enumeration).
 
     Raises:
-        ValueError: non-finite entries (naming the batch index), bad shapes, or ``N > MAX_COMPONENTS``.
+        ValueError: non-finite entries (naming the batch index), bad shapes, or ``N > MAX_COMPONENTS`` (64).
     """
     H = torch.as_tensor(H)
     if c is None:
@@ -134,11 +139,16 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 40
     w, done, iterations = _active_set(Hf, cf)
     if not bool(done.all()):
         idx = (~done).nonzero().squeeze(-1)
-        S = torch.as_tensor(_supports(N), device=H.device)  # [K, N]
         Hr, cr = Hf[idx], cf[idx]
-        out = [_solve_chunk(Hr[i : i + chunk_size], cr[i : i + chunk_size], S) for i in range(0, idx.numel(), chunk_size)]
-        w = w.index_copy(0, idx, torch.cat(out))
-        iterations += S.shape[0]
+        if N <= MAX_ENUMERATION:
+            S = torch.as_tensor(_supports(N), device=H.device)  # [K, N]
+            out = [_solve_chunk(Hr[i : i + chunk_size], cr[i : i + chunk_size], S) for i in range(0, idx.numel(), chunk_size)]
+            w = w.index_copy(0, idx, torch.cat(out))
+            iterations += S.shape[0]
+        else:
+            w_ip, ip_iterations = _interior_point(Hr, cr)
+            w = w.index_copy(0, idx, w_ip)
+            iterations += ip_iterations
     w = w.reshape(*batch, N)
     return QPResult(w, kkt_residual(H.expand(*batch, N, N), c.expand(*batch, N), w), iterations)
 
@@ -200,6 +210,63 @@ def _active_set(H: Tensor, c: Tensor) -> tuple[Tensor, Tensor, int]:
         m = new.to(H.dtype).unsqueeze(1)
         active = active[keep]
     return w_out, done, it
+
+
+def _interior_point(H: Tensor, c: Tensor, max_iterations: int = 60, tol: float = 1e-13) -> tuple[Tensor, int]:
+    """Batched Mehrotra predictor–corrector for ``[B, N]`` simplex QPs, then a KKT solve on
+    the identified support (kept where it satisfies the KKT conditions).
+
+    With slacks ``s`` (the multipliers of ``w ≥ 0``), ``ν`` (of ``Σw = 1``) and
+    ``D = diag(s/w)``, each Newton step solves ``(H + D)Δw − 1Δν = r`` with
+    ``1ᵀΔw = −r_p`` by one Cholesky factorisation per problem and iteration, shared
+    by the predictor and the corrector.  Returns ``(w [B, N], iterations)``.
+    """
+    B, N = c.shape
+    one = torch.ones(B, N, 1, dtype=H.dtype, device=H.device)
+    w = torch.full((B, N), 1.0 / N, dtype=H.dtype, device=H.device)
+    g = (H @ w.unsqueeze(-1)).squeeze(-1) + c
+    nu = g.amin(-1, keepdim=True) - 1.0
+    s = g - nu  # ≥ 1
+    scale = 1.0 + H.abs().flatten(-2).amax(-1, keepdim=True) + c.abs().amax(-1, keepdim=True)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        r_d = (H @ w.unsqueeze(-1)).squeeze(-1) + c - nu - s
+        r_p = w.sum(-1, keepdim=True) - 1.0
+        mu = (w * s).mean(-1, keepdim=True)
+        if bool(((r_d.abs().amax(-1, keepdim=True) / scale <= tol) & (r_p.abs() <= tol) & (mu / scale <= tol)).all()):
+            break
+        L, info = torch.linalg.cholesky_ex(H + torch.diag_embed(s / w))
+        bad = info != 0
+        if bool(bad.any()):  # H + D lost definiteness to rounding: regularise those problems
+            L2 = torch.linalg.cholesky(H[bad] + torch.diag_embed(s[bad] / w[bad]) + 1e-12 * scale[bad, :, None] * torch.eye(N, dtype=H.dtype))
+            L = L.index_put((bad.nonzero().squeeze(-1),), L2)
+        Kone = torch.cholesky_solve(one, L).squeeze(-1)  # K⁻¹1
+
+        def newton(r_c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            rhs = -r_d - r_c / w
+            Kr = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
+            dnu = (-r_p - Kr.sum(-1, keepdim=True)) / Kone.sum(-1, keepdim=True)
+            dw = Kr + dnu * Kone
+            ds = -(r_c + s * dw) / w
+            return dw, dnu, ds
+
+        def step_length(v: Tensor, dv: Tensor) -> Tensor:
+            ratio = torch.where(dv < 0, -v / dv, torch.full_like(v, float("inf")))
+            return ratio.amin(-1, keepdim=True)  # largest step keeping v + α dv ≥ 0
+
+        dw, dnu, ds = newton(w * s)  # affine scaling (predictor)
+        a_aff = torch.minimum(step_length(w, dw), step_length(s, ds)).clamp(max=1.0)
+        mu_aff = ((w + a_aff * dw) * (s + a_aff * ds)).mean(-1, keepdim=True)
+        sigma = (mu_aff / mu).clamp(0.0, 1.0) ** 3
+        dw, dnu, ds = newton(w * s + dw * ds - sigma * mu)  # corrector
+        alpha = (0.995 * torch.minimum(step_length(w, dw), step_length(s, ds))).clamp(max=1.0)
+        w, nu, s = w + alpha * dw, nu + alpha * dnu, s + alpha * ds
+    # polish: the equality-constrained KKT solution on the support {w > 1e-9·max w}
+    support = (w > 1e-9 * w.amax(-1, keepdim=True)).to(H.dtype).unsqueeze(1)
+    wp, violation, _ = _support_solve(H, c, support)
+    ok = (violation[:, 0] <= _KKT_TOL).unsqueeze(-1)
+    w_final = torch.where(ok, wp[:, 0].clamp_min(0.0), w.clamp_min(0.0))
+    return w_final / w_final.sum(-1, keepdim=True), it
 
 
 def _solve_chunk(H: Tensor, c: Tensor, S: Tensor) -> Tensor:

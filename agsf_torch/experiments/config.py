@@ -165,6 +165,13 @@ class ExperimentConfig:
             raise ValueError(f"config key 'rate_axes' must be 3 finite numbers, got {self.rate_axes!r}")
         if not self.filters or any(f not in FILTER_NAMES for f in self.filters) or len(set(self.filters)) != len(self.filters):
             raise ValueError(f"config key 'filters' must be a non-empty list of distinct names from {FILTER_NAMES}, got {self.filters!r}")
+        from ..qp import MAX_COMPONENTS
+
+        if self.components > MAX_COMPONENTS and any(f.startswith("AGSF") for f in self.filters):
+            raise ValueError(
+                f"config key 'components' must be ≤ {MAX_COMPONENTS} with an adaptive filter (the weight QP's limit), "
+                f"got {self.components}"
+            )
         ratio = self.star_period / self.dt
         if abs(ratio - round(ratio)) > 1e-9 * ratio:
             raise ValueError(f"config key 'star_period' must be a multiple of dt={self.dt}, got {self.star_period!r}")

@@ -13,6 +13,7 @@ from typing import Any
 from torch import Tensor
 
 from ..mixture import GaussianMixture
+from ..qp import MAX_COMPONENTS
 from ..models.base import ContinuousModel
 from .gaussian_sum import GaussianSumFilter
 from .weight_updates import WeightUpdate, make_weight_update
@@ -112,6 +113,14 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
         if not isinstance(state, dict) or set(state) != {"weight_update"}:
             raise ValueError(f"adaptive filter state must be {{'weight_update': ...}}, got keys {sorted(state) if isinstance(state, dict) else state!r}")
         self.weight_update.load_state_dict(state["weight_update"])
+
+    def _check_mixture(self, mixture: GaussianMixture) -> None:
+        super()._check_mixture(mixture)
+        if self.adapt and mixture.num_components > MAX_COMPONENTS:
+            raise ValueError(
+                f"the adaptive filter's weight QP handles N ≤ {MAX_COMPONENTS} components, got a mixture of "
+                f"{mixture.num_components}"
+            )
 
     def _after_update(self, posterior: GaussianMixture) -> None:
         self.weight_update.observe_update(posterior.log_weights)

@@ -153,3 +153,20 @@ def test_non_finite_fpke_matrix_names_the_trajectory(gen):
     with pytest.raises(ValueError, match=r"FPKE matrix L is not finite at trajectory index \(2,\)"):
         AdaptiveGaussianSumFilter(Broken()).predict(mix, u, 0.1)
     assert torch.equal(mix.log_weights, before)
+
+
+def test_components_beyond_the_qp_limit_are_refused_before_any_work():
+    """N > 64 names the limit at the first predict, before the state changes; the config refuses it up front."""
+    from agsf_torch.experiments.config import load_preset
+    from agsf_torch.mixture import GaussianMixture
+    from agsf_torch.qp import MAX_COMPONENTS
+
+    filt = AdaptiveGaussianSumFilter(AttitudeModel(), weight_update="galerkin")
+    mix = GaussianMixture.from_gaussian(torch.zeros(2, 3, dtype=torch.float64), 1e-3 * torch.eye(3, dtype=torch.float64).expand(2, 3, 3), MAX_COMPONENTS + 1)
+    before = filt.weight_update.state_dict()
+    with pytest.raises(ValueError, match=r"N ≤ 64 components, got a mixture of 65"):
+        filt.predict(mix, torch.zeros(2, 3, dtype=torch.float64), 0.1)
+    assert filt.weight_update.state_dict() == before
+    with pytest.raises(ValueError, match=r"'components' must be ≤ 64 with an adaptive filter"):
+        load_preset("case1").replace(components=65)
+    assert load_preset("case1").replace(components=65, filters=["GSF"]).components == 65
