@@ -1,0 +1,48 @@
+"""Peak resident memory of one workload, run as its own process (``python -m agsf_torch.experiments.memory_probe``).
+
+``gsf --batch B --chunk C``: a B × N = 5 6-state GSF sweep of 100 predict steps, in chunks of C trajectories.
+``adaptive --update NAME --batch B``: one adaptive predict step (6-state, N = 5) with the weight update NAME.
+Prints one JSON line: the workload and ``peak_rss_mib`` (``getrusage`` max RSS).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+
+import torch
+
+from ..filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+from ..models import AttitudeModel
+from .bench import _mixture
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m agsf_torch.experiments.memory_probe")
+    parser.add_argument("workload", choices=("gsf", "adaptive"))
+    parser.add_argument("--batch", type=int, required=True)
+    parser.add_argument("--chunk", type=int, default=16384)
+    parser.add_argument("--update", choices=("galerkin", "penalty"), default="galerkin")
+    args = parser.parse_args(argv)
+    gen = torch.Generator().manual_seed(4)
+    model = AttitudeModel(estimate_bias=True)
+    if args.workload == "gsf":
+        filt = GaussianSumFilter(model)
+        for start in range(0, args.batch, args.chunk):
+            size = min(args.chunk, args.batch - start)
+            mix = _mixture(size, 5, True, gen)
+            u = torch.full((size, 3), 0.06, dtype=torch.float64)
+            for _ in range(100):
+                mix = filt.predict(mix, u, 0.1)
+        what = f"GSF sweep B={args.batch} N=5 6-state, 100 steps, chunks of {args.chunk}"
+        row = {"what": what, "batch": args.batch, "chunk": args.chunk}
+    else:
+        filt = AdaptiveGaussianSumFilter(model, weight_update=args.update)
+        filt.predict(_mixture(args.batch, 5, True, gen), torch.full((args.batch, 3), 0.06, dtype=torch.float64), 0.1)
+        row = {"what": f"{args.update} adaptive predict B={args.batch} N=5 6-state", "batch": args.batch, "update": args.update}
+    print(json.dumps({**row, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+
+
+if __name__ == "__main__":
+    main()
