@@ -247,7 +247,7 @@ def galerkin_matrices(
         moments = model.fokker_planck_moments(prod.mean, prod.cov, None if u is None else u.unsqueeze(-2))
         if moments is None:
             raise ValueError(f"{type(model).__name__} gives no Gaussian moments (fokker_planck_moments); pass a quadrature rule")
-        acc = residual_mean(moments, prod.mean, prod.cov, prod.sides)  # [2, ..., P]: E[ℓᵢ], E[ℓⱼ]
+        acc = residual_mean(moments, prod.cov, prod.sides, *prod.side_moments())  # [2, ..., P]: E[ℓᵢ], E[ℓⱼ]
     else:
         prod, log_scale, acc = _integrate_pairs(
             _kernel("galerkin", compile), model, u, rates, nodes, node_weights, chunk_size, max_chunk_elements, (2,)

@@ -26,28 +26,37 @@ from torch import Tensor
 from ..models.base import FokkerPlanckMoments
 from .residual import ComponentRates
 
-__all__ = ["residual_mean"]
+__all__ = ["component_moments", "residual_mean"]
 
 
 def _diagonal_or_full(d: Tensor) -> tuple[Tensor, bool]:
     return d, d.dim() == 1
 
 
-def residual_mean(moments: FokkerPlanckMoments, mean: Tensor, cov: Tensor, rates: ComponentRates) -> Tensor:
+def component_moments(mean: Tensor, cov: Tensor, rates: ComponentRates) -> tuple[Tensor, Tensor, Tensor]:
+    """``(w̄ = Πδ, ΠS, ΠSΠ − Π)`` of a Gaussian ``N(mean, cov)`` seen from the component(s) ``rates``,
+    formed directly (for product Gaussians :meth:`ProductGaussians.side_moments` keeps every digit)."""
+    Pi = rates.precision
+    wbar = (Pi * (mean - rates.means).unsqueeze(-2)).sum(-1)
+    PiS = Pi @ cov
+    return wbar, PiS, PiS @ Pi - Pi
+
+
+def residual_mean(
+    moments: FokkerPlanckMoments, cov: Tensor, rates: ComponentRates, wbar: Tensor, PiS: Tensor, PiSPi_minus_Pi: Tensor
+) -> Tensor:
     """``E_{N(mean, cov)}[ℓ]`` of the component(s) ``rates`` (module equation).
 
     Args:
         moments: the model's moments under ``N(mean, cov)`` (leading dims broadcastable to ``[...]``).
-        mean: ``[..., n]``; cov: ``[..., n, n]`` (broadcastable).
-        rates: the components, ``means [..., n]`` etc.
+        cov: ``S`` ``[..., n, n]``; rates: the components, ``means [..., n]`` etc.
+        wbar, PiS, PiSPi_minus_Pi: ``Π(mean − μ)`` ``[..., n]``, ``ΠS`` and ``ΠSΠ − Π`` ``[..., n, n]``
+            (:func:`component_moments`, or :meth:`~agsf_torch.fpke.pairs.ProductGaussians.side_moments`).
 
     Returns:
         ``[...]``.
     """
-    Pi, Pdot = rates.precision, rates.cov_rates
-    wbar = (Pi * (mean - rates.means).unsqueeze(-2)).sum(-1)  # Πδ (Π symmetric)
-    PiS = Pi @ cov
-    PiSPi = PiS @ Pi
+    Pdot = rates.cov_rates
 
     def quad(A: Tensor, x: Tensor) -> Tensor:  # xᵀAx
         return (A * x.unsqueeze(-1) * x.unsqueeze(-2)).sum((-2, -1))
@@ -55,22 +64,22 @@ def residual_mean(moments: FokkerPlanckMoments, mean: Tensor, cov: Tensor, rates
     def inner(A: Tensor, B: Tensor) -> Tensor:  # tr(AᵀB)
         return (A * B).sum((-2, -1))
 
-    rate_terms = (wbar * rates.mean_rates).sum(-1) + 0.5 * (quad(Pdot, wbar) + inner(Pdot, PiSPi - Pi))
+    rate_terms = (wbar * rates.mean_rates).sum(-1) + 0.5 * (quad(Pdot, wbar) + inner(Pdot, PiSPi_minus_Pi))
     transport = (moments.transport * wbar).sum(-1) + inner(moments.transport_jacobian, PiS)  # tr(J SΠ) = Σ J∘(ΠS)
     g = (PiS * moments.field_gradient.unsqueeze(-2)).sum(-1)  # ΠS E[∇φ]
     Y = PiS @ moments.field_hessian  # ΠS E[∇²φ]; tr(D₁ΠS H SΠ) = Σ D₁ ∘ (Y (ΠS)ᵀ)
-    D1, D0 = moments.pattern.to(mean), moments.constant.to(mean)
+    D1, D0 = moments.pattern.to(cov), moments.constant.to(cov)
     if D1.dim() == 1 and D0.dim() == 1:  # diagonal D₁, D₀: elementwise
-        diag_PiSPi, diag_Pi = PiSPi.diagonal(dim1=-2, dim2=-1), Pi.diagonal(dim1=-2, dim2=-1)
-        field_part = (D1 * (wbar * wbar + diag_PiSPi - diag_Pi)).sum(-1)
+        base = wbar * wbar + PiSPi_minus_Pi.diagonal(dim1=-2, dim2=-1)
+        field_part = (D1 * base).sum(-1)
         field_extra = 2.0 * (D1 * wbar * g).sum(-1) + (D1.unsqueeze(-1) * Y * PiS).sum((-2, -1))
-        constant_part = (D0 * (wbar * wbar + diag_PiSPi - diag_Pi)).sum(-1)
+        constant_part = (D0 * base).sum(-1)
     else:
         D1 = torch.diag_embed(D1) if D1.dim() == 1 else D1
         D0 = torch.diag_embed(D0) if D0.dim() == 1 else D0
-        field_part = quad(D1, wbar) + inner(D1, PiSPi - Pi)
+        field_part = quad(D1, wbar) + inner(D1, PiSPi_minus_Pi)
         field_extra = 2.0 * (wbar * (D1 @ g.unsqueeze(-1)).squeeze(-1)).sum(-1) + inner(D1, Y @ PiS.transpose(-1, -2))
-        constant_part = quad(D0, wbar) + inner(D0, PiSPi - Pi)
+        constant_part = quad(D0, wbar) + inner(D0, PiSPi_minus_Pi)
     # −E[zᵀDz] + E[tr(DΠ)]
     diffusion = moments.field * field_part + field_extra + constant_part
     return rate_terms + moments.scalar - transport - diffusion

@@ -24,6 +24,12 @@ class ProductGaussians:
         log_z: ``log z_ij = log N(μᵢ; μⱼ, Pᵢ + Pⱼ)`` ``[..., P]``.
         first, second: the components ``i`` and ``j`` of each pair (:class:`ComponentRates`, ``[..., P, ...]``).
         sides: both, stacked in front as ``[2, ..., P, ...]`` (``first`` then ``second``; views).
+        sum_precision: ``Σ⁻¹ = (Pᵢ + Pⱼ)⁻¹`` ``[..., P, n, n]``; gain: ``Kᵀ = Σ⁻¹Pᵢ``; y: ``Σ⁻¹(μᵢ − μⱼ)`` ``[..., P, n]``.
+
+    The pair's moments seen from each component follow from these without
+    multiplying by a component's precision (which loses every digit in the directions
+    where ``Pᵢ`` is tiny): ``Πᵢ(m − μᵢ) = −y``, ``Πⱼ(m − μⱼ) = y``, ``ΠᵢS = I − Kᵀ``,
+    ``ΠⱼS = Kᵀ`` and ``ΠSΠ − Π = −Σ⁻¹`` for both (:meth:`side_moments`).
     """
 
     index: Tensor
@@ -33,6 +39,14 @@ class ProductGaussians:
     first: ComponentRates
     second: ComponentRates
     sides: ComponentRates
+    sum_precision: Tensor
+    gain: Tensor
+    y: Tensor
+
+    def side_moments(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``(Πδ [2, ..., P, n], ΠS [2, ..., P, n, n], ΠSΠ − Π [..., P, n, n])`` for the two sides (class docstring)."""
+        eye = torch.eye(self.gain.shape[-1], dtype=self.gain.dtype, device=self.gain.device)
+        return torch.stack((-self.y, self.y)), torch.stack((eye - self.gain, self.gain)), -self.sum_precision
 
     @cached_property
     def chol(self) -> Tensor:
@@ -57,12 +71,13 @@ def product_gaussians(rates: ComponentRates) -> ProductGaussians:
     Pi = ri.covs
     d = ri.means - rj.means
     Ls = torch.linalg.cholesky(Pi + rj.covs)
-    X = torch.cholesky_solve(torch.cat((Pi, d.unsqueeze(-1)), -1), Ls)
-    Kt, y = X[..., :n], X[..., n]
+    eye = torch.eye(n, dtype=mu.dtype, device=mu.device).expand_as(Pi)
+    X = torch.cholesky_solve(torch.cat((Pi, d.unsqueeze(-1), eye), -1), Ls)
+    Kt, y, Sinv = X[..., :n], X[..., n], X[..., n + 1 :]
     m = ri.means - (Pi * y.unsqueeze(-2)).sum(-1)
     S = Pi - Pi @ Kt
     S = 0.5 * (S + S.transpose(-1, -2))
     log_det = 2.0 * torch.log(Ls.diagonal(dim1=-2, dim2=-1)).sum(-1)
     log_z = -0.5 * ((d * y).sum(-1) + log_det + n * math.log(2.0 * math.pi))
     sides = both.map(lambda t, dim: t.unflatten(t.dim() + dim, (2, P)).movedim(t.dim() + dim, 0))
-    return ProductGaussians(iu, m, S, log_z, ri, rj, sides)
+    return ProductGaussians(iu, m, S, log_z, ri, rj, sides, 0.5 * (Sinv + Sinv.transpose(-1, -2)), Kt, y)
