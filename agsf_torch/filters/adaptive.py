@@ -39,18 +39,24 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
             configure it there, not here).
         cadence: adapt the weights every ``cadence``-th ``predict`` call (1: every step).
         adapt: ``False`` switches the weight update off (the filter is then the GSF).
-        quadrature: rule for the residual integrals under each product Gaussian:
-            ``None`` (the model's exact rule if it declares one through
-            ``fpke_quadrature_points``, else 7 Gauss–Hermite points per axis for
-            ``n ≤ 4`` and a level-7 Smolyak grid above), an int (points per axis), a
+        quadrature: how the residual integrals under each product Gaussian are computed.
+            ``None`` (default) takes the fastest exact route the model offers: for the
+            Galerkin ``K``, closed-form Gaussian moments (``fokker_planck_moments``;
+            the attitude models have them), for the paper's ``L`` an interpolatory
+            product rule on the polynomial space of ``ℓ`` (``fpke_polynomial_space``:
+            840 nodes per pair for 6-state attitude instead of 9261); otherwise the
+            model's exact Gauss–Hermite rule (``fpke_quadrature_points``), else 7
+            points per axis for ``n ≤ 4`` and a level-7 Smolyak grid above.  Or an int (points per axis), a
             tuple (points per axis), or ``(nodes [K, n], weights [K])`` for ``N(0, I)``
             (finite, weights summing to 1), applied as ``x = m + chol(S) ξ`` with the
             lower Cholesky factor — e.g. :func:`agsf_torch.quadrature.six_n_plus_one`,
             the authors' own rule.
-        chunk_size: quadrature nodes per batched evaluation, a positive integer
-            (``None``: sized automatically to bound memory).
-        compile: evaluate the quadrature with a ``torch.compile``-d kernel
-            (several times faster for long runs; ~20 s compilation per shape).
+        chunk_size: quadrature nodes (or, with a product rule, component pairs) per
+            batched evaluation, a positive integer (``None``: sized automatically to
+            bound memory); zero, negative or fractional values are a ``ValueError``.
+        compile: evaluate the node kernels with ``torch.compile`` (fused elementwise
+            work; a one-off compilation of 10–20 s per shape, kept in the on-disk
+            inductor cache); unused by the closed-form Galerkin path.
         **kwargs: passed to :class:`GaussianSumFilter`.
 
     The filter follows one run (one batch of trajectories) at a time: the weight

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..models.base import FokkerPlanckMoments
+from ..models.base import FokkerPlanckMoments, sum_last
 from .residual import ComponentRates
 
 __all__ = ["component_moments", "residual_mean"]
@@ -37,7 +37,7 @@ def component_moments(mean: Tensor, cov: Tensor, rates: ComponentRates) -> tuple
     """``(w̄ = Πδ, ΠS, ΠSΠ − Π)`` of a Gaussian ``N(mean, cov)`` seen from the component(s) ``rates``,
     formed directly (for product Gaussians :meth:`ProductGaussians.side_moments` keeps every digit)."""
     Pi = rates.precision
-    wbar = (Pi * (mean - rates.means).unsqueeze(-2)).sum(-1)
+    wbar = sum_last(Pi * (mean - rates.means).unsqueeze(-2))
     PiS = Pi @ cov
     return wbar, PiS, PiS @ Pi - Pi
 
@@ -59,21 +59,21 @@ def residual_mean(
     Pdot = rates.cov_rates
 
     def quad(A: Tensor, x: Tensor) -> Tensor:  # xᵀAx
-        return (A * x.unsqueeze(-1) * x.unsqueeze(-2)).sum((-2, -1))
+        return sum_last((A * x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2))
 
     def inner(A: Tensor, B: Tensor) -> Tensor:  # tr(AᵀB)
-        return (A * B).sum((-2, -1))
+        return sum_last((A * B).flatten(-2))
 
-    rate_terms = (wbar * rates.mean_rates).sum(-1) + 0.5 * (quad(Pdot, wbar) + inner(Pdot, PiSPi_minus_Pi))
-    transport = (moments.transport * wbar).sum(-1) + inner(moments.transport_jacobian, PiS)  # tr(J SΠ) = Σ J∘(ΠS)
-    g = (PiS * moments.field_gradient.unsqueeze(-2)).sum(-1)  # ΠS E[∇φ]
+    rate_terms = sum_last(wbar * rates.mean_rates) + 0.5 * (quad(Pdot, wbar) + inner(Pdot, PiSPi_minus_Pi))
+    transport = sum_last(moments.transport * wbar) + inner(moments.transport_jacobian, PiS)  # tr(J SΠ) = Σ J∘(ΠS)
+    g = sum_last(PiS * moments.field_gradient.unsqueeze(-2))  # ΠS E[∇φ]
     Y = PiS @ moments.field_hessian  # ΠS E[∇²φ]; tr(D₁ΠS H SΠ) = Σ D₁ ∘ (Y (ΠS)ᵀ)
     D1, D0 = moments.pattern.to(cov), moments.constant.to(cov)
     if D1.dim() == 1 and D0.dim() == 1:  # diagonal D₁, D₀: elementwise
         base = wbar * wbar + PiSPi_minus_Pi.diagonal(dim1=-2, dim2=-1)
-        field_part = (D1 * base).sum(-1)
-        field_extra = 2.0 * (D1 * wbar * g).sum(-1) + (D1.unsqueeze(-1) * Y * PiS).sum((-2, -1))
-        constant_part = (D0 * base).sum(-1)
+        field_part = sum_last(D1 * base)
+        field_extra = 2.0 * sum_last(D1 * wbar * g) + sum_last((D1.unsqueeze(-1) * Y * PiS).flatten(-2))
+        constant_part = sum_last(D0 * base)
     else:
         D1 = torch.diag_embed(D1) if D1.dim() == 1 else D1
         D0 = torch.diag_embed(D0) if D0.dim() == 1 else D0

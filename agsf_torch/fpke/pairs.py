@@ -9,6 +9,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from ..models.base import sum_last
 from .residual import ComponentRates
 
 __all__ = ["ProductGaussians", "product_gaussians"]
@@ -74,10 +75,10 @@ def product_gaussians(rates: ComponentRates) -> ProductGaussians:
     eye = torch.eye(n, dtype=mu.dtype, device=mu.device).expand_as(Pi)
     X = torch.cholesky_solve(torch.cat((Pi, d.unsqueeze(-1), eye), -1), Ls)
     Kt, y, Sinv = X[..., :n], X[..., n], X[..., n + 1 :]
-    m = ri.means - (Pi * y.unsqueeze(-2)).sum(-1)
+    m = ri.means - sum_last(Pi * y.unsqueeze(-2))
     S = Pi - Pi @ Kt
     S = 0.5 * (S + S.transpose(-1, -2))
-    log_det = 2.0 * torch.log(Ls.diagonal(dim1=-2, dim2=-1)).sum(-1)
-    log_z = -0.5 * ((d * y).sum(-1) + log_det + n * math.log(2.0 * math.pi))
+    log_det = 2.0 * sum_last(torch.log(Ls.diagonal(dim1=-2, dim2=-1)))
+    log_z = -0.5 * (sum_last(d * y) + log_det + n * math.log(2.0 * math.pi))
     sides = both.map(lambda t, dim: t.unflatten(t.dim() + dim, (2, P)).movedim(t.dim() + dim, 0))
     return ProductGaussians(iu, m, S, log_z, ri, rj, sides, 0.5 * (Sinv + Sinv.transpose(-1, -2)), Kt, y)

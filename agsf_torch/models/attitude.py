@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
-from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative
+from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative, sum_last
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
 
@@ -71,8 +71,8 @@ class AttitudeModel(ContinuousModel):
     @staticmethod
     def _mrp_rate(p: Tensor, w: Tensor) -> Tensor:
         """``¼B(p)ω = ¼[(1 − s)ω + 2 p×ω + 2p(pᵀω)]`` without forming ``B``."""
-        s = (p * p).sum(-1, keepdim=True)
-        pw = (p * w).sum(-1, keepdim=True)
+        s = sum_last(p * p, keepdim=True)
+        pw = sum_last(p * w.expand_as(p) if w.dim() < p.dim() else p * w, keepdim=True)
         return 0.25 * ((1.0 - s) * w + 2.0 * torch.linalg.cross(p, w.expand_as(p) if w.dim() < p.dim() else w, dim=-1) + 2.0 * pw * p)
 
     # ------------------------------------------------------------ protocol
@@ -114,7 +114,7 @@ class AttitudeModel(ContinuousModel):
             p[..., :, None] * w[..., None, :]
             - w[..., :, None] * p[..., None, :]
             - cross_matrix(w)
-            + (w * p).sum(-1)[..., None, None] * eye
+            + sum_last(w * p)[..., None, None] * eye
         )
         if not self.estimate_bias:
             return F
@@ -124,7 +124,7 @@ class AttitudeModel(ContinuousModel):
     def process_noise(self, x: Tensor) -> Tensor:
         """Closed form ``g Q gᵀ``: ``(σ_v²/16)(1 + s)² I₃`` on the MRP block (``B Bᵀ = (1+s)² I``)."""
         p = x[..., :3]
-        s = (p * p).sum(-1)[..., None, None]
+        s = sum_last(p * p)[..., None, None]
         eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
         Gp = (self.sigma_v**2 / 16.0) * (1.0 + s) ** 2 * eye3
         if not self.estimate_bias:
@@ -136,7 +136,7 @@ class AttitudeModel(ContinuousModel):
     def _diffusion_diagonal(self, x: Tensor) -> Tensor:
         """Diagonal of ``D = ½gQgᵀ``: ``(σ_v²/32)(1+s)²`` on the MRP axes, ``σ_u²/2`` on the bias axes."""
         p = x[..., :3]
-        s = (p * p).sum(-1, keepdim=True)
+        s = sum_last(p * p, keepdim=True)
         dp = (self.sigma_v**2 / 32.0) * (1.0 + s) ** 2 * torch.ones_like(p)
         if not self.estimate_bias:
             return dp
@@ -151,8 +151,8 @@ class AttitudeModel(ContinuousModel):
         """
         p = x[..., :3]
         p_b, w_b = torch.broadcast_tensors(p, self._rate(x, u))
-        s = (p_b * p_b).sum(-1, keepdim=True)
-        pw = (p_b * w_b).sum(-1, keepdim=True)
+        s = sum_last(p_b * p_b, keepdim=True)
+        pw = sum_last(p_b * w_b, keepdim=True)
         c = self.sigma_v**2 / 32.0
         pdot = 0.25 * ((1.0 - s) * w_b + 2.0 * torch.linalg.cross(p_b, w_b, dim=-1) + 2.0 * pw * p_b)
         a = (4.0 * c) * (1.0 + s) * p_b
@@ -219,13 +219,13 @@ class AttitudeModel(ContinuousModel):
         c = self.sigma_v.to(mean) ** 2 / 32.0
 
         def dot(a: Tensor, b: Tensor) -> Tensor:
-            return (a * b).sum(-1, keepdim=True)
+            return sum_last(a * b, keepdim=True)
 
         Mm = (M @ m.unsqueeze(-1)).squeeze(-1)
         Es = dot(m, m) + M.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)  # [..., 1]
         Epp = m.unsqueeze(-1) * m.unsqueeze(-2) + M
         Esp = Es * m + 2.0 * Mm
-        Es2 = Es * Es + 2.0 * (M * M).sum((-2, -1)).unsqueeze(-1) + 4.0 * dot(m, Mm)
+        Es2 = Es * Es + 2.0 * sum_last((M * M).flatten(-2), keepdim=True) + 4.0 * dot(m, Mm)
         trC = C.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)
         Cm = (C @ m.unsqueeze(-1)).squeeze(-1)
         CTm = (C.transpose(-1, -2) @ m.unsqueeze(-1)).squeeze(-1)

@@ -30,8 +30,16 @@ __all__ = [
     "MeasurementModel",
     "FunctionMeasurement",
     "check_finite",
+    "sum_last",
     "check_nonnegative",
 ]
+
+
+def sum_last(x: Tensor, keepdim: bool = False) -> Tensor:
+    """``x.sum(-1)`` as a product with a vector of ones: the same sum, several times faster on CPU for
+    a short last dimension (torch's reduction kernel is slow over 3–6 contiguous entries)."""
+    out = x @ x.new_ones(x.shape[-1])
+    return out.unsqueeze(-1) if keepdim else out
 
 
 def check_finite(name: str, value: Tensor) -> None:
