@@ -47,7 +47,7 @@ def test_flop_counts_follow_the_algorithm():
 
 def test_table_marks_targets():
     seconds = {"GSF": 0.01, "AGSF-galerkin": 0.04, "AGSF-penalty": 0.5}
-    adaptive = {"state_dim": 6, "N": 5, "B": 256, "seconds": seconds, "galerkin_ratio": 4.0, "penalty_ratio": 50.0}
+    adaptive = {"state_dim": 6, "N": 5, "B": 256, "seconds": seconds, "galerkin_ratio": 4.0, "penalty_ratio": 50.0, "penalty_seconds": 0.5}
     qp = {"N": 5, "B": 64, "torch_seconds_per_problem": 1e-5, "clarabel_seconds_per_problem": 2e-3, "speedup": 200.0,
           "torch_max_kkt_residual": 1e-16, "clarabel_max_kkt_residual": 1e-13, "max_abs_difference": 1e-11}
     report = {
