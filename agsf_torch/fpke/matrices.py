@@ -39,7 +39,7 @@ def _galerkin_chunk(
 
 
 def _product_chunk(
-    model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, T: tuple[Tensor, ...], u: Tensor | None, ri: ComponentRates, rj: ComponentRates
+    model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
 ) -> tuple[Tensor, Tensor]:
     """``(ℓᵢ, ℓⱼ)`` at the nodes ``x_k = m + LS ξ_k`` of a chunk of pairs, ``[Q, K]`` each."""
     x = m.unsqueeze(-2) + xi @ LS.transpose(-1, -2)  # [Q, K, n]
@@ -113,7 +113,7 @@ def _product_rule_pairs(
     out = []
     for a in range(0, m.shape[0], chunk_size):
         sl = slice(a, a + chunk_size)
-        vi, vj = kernel(model, m[sl], LS[sl], xi, (), None if uf is None else uf[sl],
+        vi, vj = kernel(model, m[sl], LS[sl], xi, None if uf is None else uf[sl],
                         ri.map(lambda t, dim: t[sl]), rj.map(lambda t, dim: t[sl]))
         c = rule.coefficients(torch.stack((vi, vj)))
         out.append((c[0] * c[1]).sum(-1))

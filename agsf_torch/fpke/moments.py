@@ -29,10 +29,6 @@ from .residual import ComponentRates
 __all__ = ["component_moments", "residual_mean"]
 
 
-def _diagonal_or_full(d: Tensor) -> tuple[Tensor, bool]:
-    return d, d.dim() == 1
-
-
 def component_moments(mean: Tensor, cov: Tensor, rates: ComponentRates) -> tuple[Tensor, Tensor, Tensor]:
     """``(w̄ = Πδ, ΠS, ΠSΠ − Π)`` of a Gaussian ``N(mean, cov)`` seen from the component(s) ``rates``,
     formed directly (for product Gaussians :meth:`ProductGaussians.side_moments` keeps every digit)."""
