@@ -1,4 +1,4 @@
-"""The weight-update matrices by quadrature: the paper's ``L_ij = ∫LᵢLⱼ dx`` and the Galerkin ``K_ij = ∫pᵢLⱼ dx``.
+"""The weight-update matrices: the paper's ``L_ij = ∫LᵢLⱼ dx`` and the Galerkin ``K_ij = ∫pᵢLⱼ dx``.
 
 ``pᵢ pⱼ = z_ij N(x; m_ij, S_ij)`` (:mod:`.pairs`), so ``L_ij = z_ij E_{N(m_ij, S_ij)}[ℓᵢℓⱼ]``
 and ``K_ij = z_ij E[ℓⱼ]``, each evaluated over the ``N(N+1)/2`` unordered pairs.
@@ -20,31 +20,29 @@ from .residual import ComponentRates, residual_factor
 __all__ = ["FPKEMatrix", "fpke_matrix", "GalerkinMatrices", "galerkin_matrices"]
 
 
+def _product_chunk(
+    model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
+) -> tuple[Tensor, Tensor]:
+    """``(ℓᵢ, ℓⱼ)`` at the nodes ``x_k = m + LS ξ_k`` of the pairs, ``[..., Pc, K]`` each."""
+    x = m.unsqueeze(-2) + xi @ LS.transpose(-1, -2)  # [..., Pc, K, n]
+    terms = model.fokker_planck_terms(x, u)
+    return residual_factor(terms, x, ri), residual_factor(terms, x, rj)
+
+
 def _pair_chunk(
     model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, wq: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
 ) -> Tensor:
-    """``Σ_k w_k ℓᵢ(x_k) ℓⱼ(x_k)`` over one chunk of nodes ``x_k = m + LS ξ_k``, ``[..., Pc]``."""
-    x = m.unsqueeze(-2) + xi @ LS.transpose(-1, -2)  # [..., Pc, K, n]
-    terms = model.fokker_planck_terms(x, u)
-    return (residual_factor(terms, x, ri) * residual_factor(terms, x, rj) * wq).sum(-1)
+    """``Σ_k w_k ℓᵢ(x_k) ℓⱼ(x_k)`` over one chunk of nodes, ``[..., Pc]``."""
+    vi, vj = _product_chunk(model, m, LS, xi, u, ri, rj)
+    return (vi * vj * wq).sum(-1)
 
 
 def _galerkin_chunk(
     model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, wq: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
 ) -> Tensor:
     """``(Σ_k w_k ℓᵢ(x_k), Σ_k w_k ℓⱼ(x_k))`` over one chunk of nodes, stacked ``[2, ..., Pc]``."""
-    x = m.unsqueeze(-2) + xi @ LS.transpose(-1, -2)  # [..., Pc, K, n]
-    terms = model.fokker_planck_terms(x, u)
-    return torch.stack(((residual_factor(terms, x, ri) * wq).sum(-1), (residual_factor(terms, x, rj) * wq).sum(-1)))
-
-
-def _product_chunk(
-    model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
-) -> tuple[Tensor, Tensor]:
-    """``(ℓᵢ, ℓⱼ)`` at the nodes ``x_k = m + LS ξ_k`` of a chunk of pairs, ``[Q, K]`` each."""
-    x = m.unsqueeze(-2) + xi @ LS.transpose(-1, -2)  # [Q, K, n]
-    terms = model.fokker_planck_terms(x, u)
-    return residual_factor(terms, x, ri), residual_factor(terms, x, rj)
+    vi, vj = _product_chunk(model, m, LS, xi, u, ri, rj)
+    return torch.stack(((vi * wq).sum(-1), (vj * wq).sum(-1)))
 
 
 _COMPILED: dict[str, object] = {}
@@ -66,15 +64,20 @@ def _check_chunk_size(chunk_size: int | None) -> None:
         raise ValueError(f"chunk_size must be a positive integer or None, got {chunk_size}")
 
 
+def _pairs(rates: ComponentRates, chunk_size: int | None) -> tuple[ProductGaussians, Tensor]:
+    """The prologue of every matrix: the chunk size checked, the product Gaussians and ``log max z_ij`` ``[...]``."""
+    _check_chunk_size(chunk_size)
+    prod = product_gaussians(rates)
+    return prod, prod.log_z.amax(-1)
+
+
 def _integrate_pairs(
     kernel, model: ContinuousModel, u: Tensor | None, rates: ComponentRates, nodes: Tensor, node_weights: Tensor,
     chunk_size: int | None, max_chunk_elements: int, out_shape: tuple[int, ...],
 ) -> tuple[ProductGaussians, Tensor, Tensor]:
     """The pairs' product Gaussians, ``log max z_ij`` ``[...]`` and ``kernel`` accumulated over the
     rule's nodes in chunks that bound memory."""
-    _check_chunk_size(chunk_size)
-    prod = product_gaussians(rates)
-    log_scale = prod.log_z.amax(-1)
+    prod, log_scale = _pairs(rates, chunk_size)
     m = prod.mean
     n = m.shape[-1]
     if u is not None:
@@ -185,9 +188,7 @@ def fpke_matrix(
     """
     N = rates.means.shape[-2]
     if isinstance(nodes, ProductRule):
-        _check_chunk_size(chunk_size)
-        prod = product_gaussians(rates)
-        log_scale = prod.log_z.amax(-1)
+        prod, log_scale = _pairs(rates, chunk_size)
         acc = _product_rule_pairs(_kernel("product", compile), model, u, prod, nodes, chunk_size, max_chunk_elements)
     else:
         prod, log_scale, acc = _integrate_pairs(
@@ -241,9 +242,7 @@ def galerkin_matrices(
     """
     N = rates.means.shape[-2]
     if nodes is None:
-        _check_chunk_size(chunk_size)
-        prod = product_gaussians(rates)
-        log_scale = prod.log_z.amax(-1)
+        prod, log_scale = _pairs(rates, chunk_size)
         moments = model.fokker_planck_moments(prod.mean, prod.cov, None if u is None else u.unsqueeze(-2))
         if moments is None:
             raise ValueError(f"{type(model).__name__} gives no Gaussian moments (fokker_planck_moments); pass a quadrature rule")
