@@ -35,7 +35,8 @@ class GyroHold:
     """Hold the last valid gyro reading over gaps, with the matching covariance inflation.
 
     Args:
-        rate_sigma: ``σ_h``, per-axis 1σ error of a held reading (rad/s), ≥ 0.
+        rate_sigma: ``σ_h``, per-axis 1σ error of a held reading (rad/s), ≥ 0; a float, or a
+            0-d tensor (which may require grad: the inflation is then differentiable in it).
 
     State: ``last [B, 3]`` (the last valid reading; zeros before any) and
     ``held_steps [B]`` (consecutive held samples so far), saved by
@@ -43,9 +44,10 @@ class GyroHold:
     """
 
     def __init__(self, rate_sigma: float) -> None:
-        if not math.isfinite(float(rate_sigma)) or float(rate_sigma) < 0:
+        value = float(rate_sigma.detach()) if torch.is_tensor(rate_sigma) else float(rate_sigma)
+        if not math.isfinite(value) or value < 0:
             raise ValueError(f"rate_sigma must be finite and ≥ 0 (rad/s), got {rate_sigma!r}")
-        self.rate_sigma = float(rate_sigma)
+        self.rate_sigma = rate_sigma if torch.is_tensor(rate_sigma) else float(rate_sigma)
         self.last: Tensor | None = None
         self.held_steps: Tensor | None = None
 
@@ -99,7 +101,7 @@ class GyroHold:
     def state_dict(self) -> dict[str, Any]:
         """The hold's state (for checkpoints)."""
         return {
-            "rate_sigma": self.rate_sigma,
+            "rate_sigma": float(self.rate_sigma),
             "last": None if self.last is None else self.last.clone(),
             "held_steps": None if self.held_steps is None else self.held_steps.clone(),
         }

@@ -24,9 +24,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter
-from .mixture import GaussianMixture
-from .models import AttitudeModel, StarVectorMeasurement
+from .attitude_inputs import AttitudeInputs, recording_inputs
+from .filter_loop import FilterSetup, filter_steps, initial_mixtures
+from .filters.registry import filter_spec, make_filter
+from .models import AttitudeModel
 from .recordings import Recording
 
 __all__ = ["PARAMETERS", "FitResult", "attitude_log_likelihood", "fit_attitude_parameters"]
@@ -73,49 +74,47 @@ def attitude_log_likelihood(
     estimate_bias: bool = False,
     update_iterations: int = 1,
     noise_model: str = "isotropic",
+    gyro_hold_sigma: float | Tensor | None = None,
+    gate_probability: float | None = None,
 ) -> Tensor:
     """``Σ_b Σ_updates log Σᵢ wᵢβᵢ`` of a recording under the parameters ``params``.
+
+    The recording drives the one filter loop (:func:`agsf_torch.filter_loop.filter_steps`)
+    through the attitude adapter, as ``agsf run`` does: invalid gyro samples
+    (``gyro_valid``) are held with the covariance inflation of
+    :class:`~agsf_torch.input_gaps.GyroHold`; the 3-state model subtracts its ``bias``
+    parameter (the bias is learned here, not known).
 
     Args:
         rec: the recording (``B`` trajectories; sample 0 is the prior's time).
         params: ``sigma_v``, ``sigma_u``, ``sigma_s``, ``bias``, ``reg``, ``prior_scale``
             (tensors; any may require grad).
         prior_mean: ``[B, n]``; prior_cov: ``[n, n]`` (scaled by ``prior_scale``).
+        filter_kind: a registered filter name (:data:`~agsf_torch.filters.registry.FILTER_NAMES`).
+        num_components: components of a mixture filter (one-component filters ignore it).
         noise_model: the star-vector noise model (:class:`~agsf_torch.models.StarVectorMeasurement`).
+        gate_probability: the filter's innovation gate (:mod:`agsf_torch.gating`), ``None``: off.
+        gyro_hold_sigma: σ_h of the gyro hold (rad/s); default ``σ_v/√Δt`` of the first interval.
     """
     model = AttitudeModel(
         estimate_bias=estimate_bias, sigma_v=params["sigma_v"], sigma_u=params["sigma_u"], bias=params["bias"]
     )
-    kw = {"update_iterations": update_iterations}
-    if filter_kind == "EKF":
-        filt, N = ExtendedKalmanFilter(model, **kw), 1
-    elif filter_kind == "GSF":
-        filt, N = GaussianSumFilter(model, **kw), num_components
-    elif filter_kind == "AGSF":
-        filt, N = AdaptiveGaussianSumFilter(model, reg=params["reg"], **kw), num_components
-    else:
-        raise ValueError(f"filter_kind must be EKF, GSF or AGSF, got {filter_kind!r}")
-    B = rec.num_trajectories
-    n = model.state_dim
+    spec = filter_spec(filter_kind)
+    options = {"update_iterations": update_iterations, "gate_probability": gate_probability}
+    if filter_kind == "AGSF":
+        options["reg"] = params["reg"]
+    setup = FilterSetup(make_filter(filter_kind, model, **options), num_components if spec.mixture else 1)
     cov0 = params["prior_scale"] * torch.as_tensor(prior_cov, dtype=F64)
-    mix = GaussianMixture.from_gaussian(torch.as_tensor(prior_mean, dtype=F64), cov0.expand(B, n, n), N)
-    times = rec.time
+    mixtures = initial_mixtures({"filter": setup}, torch.as_tensor(prior_mean, dtype=F64), cov0)
+    if gyro_hold_sigma is None:
+        dt0 = float(rec.time[1] - rec.time[0]) if rec.num_samples > 1 else 1.0
+        gyro_hold_sigma = params["sigma_v"] / dt0**0.5
+    adapter = AttitudeInputs(sigma_s=params["sigma_s"], gyro_hold_sigma=gyro_hold_sigma, noise_model=noise_model)
     total = torch.zeros((), dtype=F64)
-    frames = rec.star_frames()
-    for k in range(1, rec.num_samples):
-        mix = filt.predict(mix, torch.as_tensor(rec.gyro[:, k]), float(times[k] - times[k - 1]))
-        if frames[k]:
-            y, meas = StarVectorMeasurement.from_observation(
-                {
-                    "star_body": torch.as_tensor(rec.star_body[:, k]),
-                    "star_inertial": torch.as_tensor(rec.star_inertial[:, k]),
-                    "star_mask": torch.as_tensor(rec.star_mask[:, k]),
-                },
-                params["sigma_s"],
-                noise_model=noise_model,
-            )
-            mix = filt.update(mix, y, meas)
-            total = total + filt.diagnostics["log_likelihood"].sum()
+    for step in filter_steps({"filter": setup.filter}, mixtures, recording_inputs(rec, adapter)):
+        ll = step.filters["filter"].log_likelihood
+        if ll is not None:
+            total = total + ll.sum()
     return total
 
 

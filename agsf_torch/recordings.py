@@ -32,6 +32,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
+import torch
 
 __all__ = ["Recording", "FORMAT", "UNIT_TOLERANCE"]
 
@@ -72,6 +73,20 @@ class Recording:
     @property
     def num_samples(self) -> int:
         return int(self.time.shape[0])
+
+    def observation(self, k: int) -> dict:
+        """Sample ``k`` as the environment's observation dict (torch tensors, batch first):
+        ``gyro [B, 3]``, ``gyro_valid [B, 1]`` (all true without the column), ``star_body`` /
+        ``star_inertial [B, M, 3]``, ``star_mask [B, M]``, ``time [B, 1]`` (s)."""
+        B, t = self.num_trajectories, torch.as_tensor
+        return {
+            "gyro": t(self.gyro[:, k]),
+            "gyro_valid": torch.ones(B, 1, dtype=torch.bool) if self.gyro_valid is None else t(self.gyro_valid[:, k, None]),
+            "star_body": t(self.star_body[:, k]),
+            "star_inertial": t(self.star_inertial[:, k]),
+            "star_mask": t(self.star_mask[:, k]),
+            "time": torch.full((B, 1), float(self.time[k]), dtype=torch.float64),
+        }
 
     def star_frames(self) -> np.ndarray:
         """``[T]`` bool: samples at which any trajectory has a valid star."""

@@ -139,7 +139,7 @@ def run_scenario(
         for name, fs in step.filters.items():
             r = per[name]
             r["error_angle"].append(attitude_error_angle(fs.mean[:, :3], step.truth_mrp))
-            r["nees"].append(nees(fs.error, fs.cov))
+            r["nees"].append(nees(step.chart_error[name], fs.cov))
             score, se = refs[0].score(fs.mixture)
             r["score"].append(score)
             r["score_se"].append(se)

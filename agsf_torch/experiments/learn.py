@@ -6,32 +6,36 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
 from ..learning import fit_attitude_parameters
 from ..recordings import Recording
 from .config import DEG_PER_HOUR, ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
 from .recorded import record_environment
 
-__all__ = ["learn"]
+__all__ = ["learn", "learning_problem"]
 
 
-def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str | None = None, max_iter: int = 40) -> str:
-    """Fit ``names`` by maximum likelihood (EKF, ``cfg.update_iterations``); report learned vs configured.
+def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]:
+    """What ``agsf learn`` fits a recording with, the same filter setup as ``agsf run``.
 
-    Data: ``recording`` if given, else ``cfg.runs`` simulated trajectories.  The
-    configured values are the filter's (σ scaled by the ``filter_*_scale`` keys).
+    Returns:
+        ``(configured, likelihood_kwargs)``: the configured parameter values (the
+        filter's: σ scaled by the ``filter_*_scale`` keys) and the keyword arguments of
+        :func:`~agsf_torch.learning.attitude_log_likelihood` — the EKF with the
+        configuration's update iterations, innovation gate and star noise model, the prior
+        drawn as the runner draws it (:func:`~agsf_torch.filter_loop.sample_prior`).
     """
-    out = prepare_output(Path(out), "learn", cfg.digest() + ",".join(names) + str(recording), cfg.to_dict())
-    rec = Recording.load(recording) if recording else record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
     if rec.truth_mrp is None:
         raise ValueError("learning needs a prior mean: the recording has no truth_mrp (column)")
-    gen = torch.Generator().manual_seed(cfg.seed + 7919)
-    n = 6 if cfg.estimate_bias else 3
     P0 = prior_covariance(cfg)
-    truth0 = torch.cat((torch.as_tensor(rec.truth_mrp[:, 0]), torch.as_tensor(rec.truth_bias[:, 0]) if rec.truth_bias is not None else torch.zeros(rec.num_trajectories, 3, dtype=torch.float64)), -1)[:, :n]
-    mean0 = truth0 + torch.randn(truth0.shape, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(P0).T
+    n = P0.shape[0]
+    zeros = np.zeros_like(rec.truth_mrp[:, 0])
+    truth0 = torch.cat((torch.as_tensor(rec.truth_mrp[:, 0]), torch.as_tensor(rec.truth_bias[:, 0] if rec.truth_bias is not None else zeros)), -1)[:, :n]
+    mean0 = sample_prior(truth0, P0, torch.Generator().manual_seed(cfg.seed + PRIOR_SEED_OFFSET))
     configured = {
         "sigma_v": cfg.sigma_v * cfg.filter_sigma_v_scale,
         "sigma_u": cfg.sigma_u,
@@ -40,6 +44,24 @@ def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str 
         "reg": cfg.reg,
         "prior_scale": 1.0,
     }
+    kwargs = {
+        "prior_mean": mean0, "prior_cov": P0, "filter_kind": "EKF", "estimate_bias": cfg.estimate_bias,
+        "update_iterations": cfg.update_iterations, "noise_model": cfg.star_noise_model,
+        "gate_probability": cfg.gate_probability or None,
+    }
+    return configured, kwargs
+
+
+def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str | None = None, max_iter: int = 40) -> str:
+    """Fit ``names`` by maximum likelihood (EKF, ``cfg.update_iterations``); report learned vs configured.
+
+    Data: ``recording`` if given, else ``cfg.runs`` simulated trajectories.  The
+    configured values are the filter's (σ scaled by the ``filter_*_scale`` keys);
+    the filter is set up as ``agsf run`` sets it up (:func:`learning_problem`).
+    """
+    out = prepare_output(Path(out), "learn", cfg.digest() + ",".join(names) + str(recording), cfg.to_dict())
+    rec = Recording.load(recording) if recording else record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
+    configured, kwargs = learning_problem(cfg, rec)
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(str(out / "tensorboard"))
@@ -52,8 +74,7 @@ def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str 
 
     try:
         res = fit_attitude_parameters(
-            rec, configured, names, prior_mean=mean0, prior_cov=P0, max_iter=max_iter, log=log,
-            estimate_bias=cfg.estimate_bias, update_iterations=cfg.update_iterations, noise_model=cfg.star_noise_model,
+            rec, configured, names, max_iter=max_iter, log=log, **kwargs
         )
     finally:
         writer.close()

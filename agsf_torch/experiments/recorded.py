@@ -54,18 +54,8 @@ class RecordingEnv:
         self._k = 0
 
     def _sample(self, k: int):
-        r = self.rec
-        t = torch.as_tensor
-        obs = {
-            "gyro": t(r.gyro[:, k]),
-            "gyro_valid": (
-                torch.ones(self.num_envs, 1, dtype=torch.bool) if r.gyro_valid is None else t(r.gyro_valid[:, k, None])
-            ),
-            "star_body": t(r.star_body[:, k]),
-            "star_inertial": t(r.star_inertial[:, k]),
-            "star_mask": t(r.star_mask[:, k]),
-            "time": torch.full((self.num_envs, 1), float(r.time[k]), dtype=torch.float64),
-        }
+        r, t = self.rec, torch.as_tensor
+        obs = r.observation(k)
         info = {"truth_mrp": t(r.truth_mrp[:, k]), "truth_bias": t(r.truth_bias[:, k])}
         return obs, info
 

@@ -14,31 +14,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..filters.gaussian_sum import GaussianSumFilter
-from ..input_gaps import GyroHold
+from ..attitude_inputs import AttitudeInputs, as_float64
+from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
 from ..metrics import nees
-from ..mixture import GaussianMixture
-from ..models.star_vectors import StarVectorMeasurement
 from ..rotations import attitude_error_angle
 
 __all__ = [
     "FilterSetup", "FilterStep", "FilterTrace", "MonteCarloResult", "Step", "monte_carlo_steps", "run_monte_carlo", "sample_prior",
+    "ATTITUDE_RADIANS_PER_MRP",
 ]
 
-
-@dataclass(frozen=True)
-class FilterSetup:
-    """A filter in a Monte Carlo run and its initial mixture size.
-
-    Attributes:
-        filter: any filter with the predict/update/estimate contract.
-        num_components: components of the initial split of the prior.
-        spread: share of the principal prior variance carried by the component means.
-    """
-
-    filter: GaussianSumFilter
-    num_components: int = 1
-    spread: float = 0.5
+#: Small-angle scale of an MRP error: ``δθ ≈ 4 δp`` (rad per MRP unit).
+ATTITUDE_RADIANS_PER_MRP = 4.0
 
 
 @dataclass
@@ -83,50 +70,6 @@ class MonteCarloResult:
     state_dim: int
 
 
-def sample_prior(truth: Tensor, cov: Tensor, gen: torch.Generator) -> Tensor:
-    """Prior means drawn consistently with the prior covariance: ``x̂₀ = x + L z``, ``z ~ N(0, I)``.
-
-    Args:
-        truth: ``[B, n]``; cov: ``[n, n]``; gen: the run's generator.
-    """
-    L = torch.linalg.cholesky(cov)
-    z = torch.randn(truth.shape, generator=gen, dtype=truth.dtype, device=truth.device)
-    return truth + z @ L.T
-
-
-def _as_tensor(x, dtype=torch.float64) -> Tensor:
-    return torch.as_tensor(np.asarray(x) if not torch.is_tensor(x) else x, dtype=dtype)
-
-
-def _gyro_valid(obs, B: int) -> Tensor:
-    """``obs["gyro_valid"]`` as ``[B]`` bool (all true when the source has no such key)."""
-    if "gyro_valid" not in obs:
-        return torch.ones(B, dtype=torch.bool)
-    return _as_tensor(obs["gyro_valid"], torch.bool).reshape(B)
-
-
-@dataclass
-class FilterStep:
-    """One filter after one step: its belief and what the step produced.
-
-    Attributes:
-        mixture: the belief at the step's time.
-        mean, cov: its point estimate and covariance (``filter.estimate``), ``[B, n]``, ``[B, n, n]``.
-        error: state error against the truth in the estimate's chart, ``[B, n]``
-            (MRP and rad/s; multiply the attitude part by 4 for radians).
-        nis: mixture NIS at a star frame, NaN elsewhere, ``[B]``; dof: its valid entries ``[B]``.
-        extra: per-step diagnostics ``[B]`` (the filter's own, plus ``gate_rejected`` and ``gyro_held``).
-    """
-
-    mixture: GaussianMixture
-    mean: Tensor
-    cov: Tensor
-    error: Tensor
-    nis: Tensor
-    dof: Tensor
-    extra: dict[str, Tensor]
-
-
 @dataclass
 class Step:
     """Everything of one step for every filter: ``time`` (s), ``star_frame``, the truth
@@ -135,7 +78,10 @@ class Step:
     in the 3-state model; invalid samples bridged by the last valid one, whose extra
     uncertainty the filters add to their covariance but ``u`` itself does not carry) and, at a star frame, ``measurement``
     ``(y [B, d], StarVectorMeasurement)``; ``prior_mean [B, n]`` is the mean of the Gaussian prior
-    ``N(prior_mean, prior_cov)`` every filter's initial mixture was split from."""
+    ``N(prior_mean, prior_cov)`` every filter's initial mixture was split from; ``chart_error``:
+    name → the state error of the filter's estimate against the truth in the estimate's chart
+    ``[B, n]`` (MRP and rad/s: the units of the covariance, for NEES; multiply the attitude part by
+    :data:`ATTITUDE_RADIANS_PER_MRP` for radians, as :class:`FilterTrace` stores it)."""
 
     index: int
     time: float
@@ -146,6 +92,7 @@ class Step:
     u: Tensor | None = None
     measurement: tuple | None = None
     prior_mean: Tensor | None = None
+    chart_error: dict[str, Tensor] = field(default_factory=dict)
 
 
 def monte_carlo_steps(
@@ -162,77 +109,49 @@ def monte_carlo_steps(
 ):
     """Drive every filter over ``num_steps`` gyro periods, yielding one :class:`Step` per period.
 
-    The generator behind :func:`run_monte_carlo` (which keeps every step) and the
-    soak test (which keeps running statistics only); arguments as there.
+    The environment side of the one filter loop (:func:`agsf_torch.filter_loop.filter_steps`):
+    the attitude adapter (:class:`~agsf_torch.attitude_inputs.AttitudeInputs`) turns each
+    observation into the filters' input, and the environment is stepped with the first
+    filter's estimate as action.  Behind :func:`run_monte_carlo` (which keeps every step),
+    the soak and the adaptation study (which keep running statistics); arguments as there.
     """
-    n = 6 if estimate_bias else 3
+    first = next(iter(filters))
+    n = filters[first].filter.model.state_dim
+    if n != (6 if estimate_bias else 3):
+        raise ValueError(f"the filters' model has {n} states, but estimate_bias={estimate_bias}")
     prior_cov = torch.as_tensor(prior_cov, dtype=torch.float64)
     if prior_cov.shape != (n, n):
         raise ValueError(f"prior_cov must be [{n}, {n}] for estimate_bias={estimate_bias}, got {tuple(prior_cov.shape)}")
     if env.config.max_steps < num_steps:
         raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
     obs, info = env.reset(seed=seed)
-    truth_p = _as_tensor(info["truth_mrp"])
-    truth_b = _as_tensor(info["truth_bias"])
-    B = truth_p.shape[0]
-    gen = torch.Generator().manual_seed(int(seed) + 7919)
-    x_true = torch.cat((truth_p, truth_b), -1)[:, :n]
-    mean0 = sample_prior(x_true, prior_cov, gen)
-    mixtures: dict[str, GaussianMixture] = {}
-    for name, setup in filters.items():
+    truth_p, truth_b = as_float64(info["truth_mrp"]), as_float64(info["truth_bias"])
+    gen = torch.Generator().manual_seed(int(seed) + PRIOR_SEED_OFFSET)
+    mean0 = sample_prior(torch.cat((truth_p, truth_b), -1)[:, :n], prior_cov, gen)
+    for setup in filters.values():
         setup.filter.reset()  # a filter follows one run: forget any earlier one
-        mix = GaussianMixture.from_gaussian(mean0, prior_cov.expand(B, n, n), setup.num_components, setup.spread)
-        m, P = setup.filter.model.canonicalize(mix.means, mix.covs)
-        mixtures[name] = mix.replace(means=m, covs=P)
+    mixtures = initial_mixtures(filters, mean0, prior_cov)
     dt = float(env.config.dt)
-    prev_bias = truth_b
-    first = next(iter(filters))
     if gyro_hold_sigma is None:
         gyro_hold_sigma = float(filters[first].filter.model.sigma_v) / dt**0.5
-    hold = GyroHold(gyro_hold_sigma)
-    hold.step(_as_tensor(obs["gyro"]), _gyro_valid(obs, B), dt)  # primes the hold with the reset reading
-    for k in range(num_steps):
-        action = filters[first].filter.estimate(mixtures[first])[0][:, :3]
-        obs, _, _, _, info = env.step(action)
-        truth_p = _as_tensor(info["truth_mrp"])
-        truth_b = _as_tensor(info["truth_bias"])
-        x_true = torch.cat((truth_p, truth_b), -1)[:, :n]
-        gyro_valid = _gyro_valid(obs, B)
-        gyro, held_var = hold.step(_as_tensor(obs["gyro"]), gyro_valid, dt)
-        any_held = bool((~gyro_valid).any())
-        # known bias: remove exactly the bias term ½(b_k + b_{k+1}) of the gyro model
-        u = gyro if estimate_bias else gyro - 0.5 * (prev_bias + truth_b)
-        prev_bias = truth_b
-        mask = torch.as_tensor(obs["star_mask"], dtype=torch.bool)
-        has_stars = bool(mask.any())
-        if has_stars:
-            y, meas = StarVectorMeasurement.from_observation(
-                {"star_body": _as_tensor(obs["star_body"]), "star_inertial": _as_tensor(obs["star_inertial"]), "star_mask": mask},
-                sigma_s,
-                noise_model=noise_model,
-            )
-        time = float(_as_tensor(obs["time"]).reshape(B, -1)[0, 0])
-        out: dict[str, FilterStep] = {}
-        for name, setup in filters.items():
-            filt = setup.filter
-            mix = filt.predict(mixtures[name], u, dt)
-            extra = {key: v for key, v in filt.diagnostics.items() if torch.is_tensor(v) and key != "weight_entropy"}
-            if any_held:
-                mix = GyroHold.inflate(mix, held_var)
-            extra["gyro_held"] = (~gyro_valid).to(torch.int64)
-            extra["gate_rejected"] = torch.zeros(B, dtype=torch.int64)
-            nis = torch.full((B,), float("nan"), dtype=torch.float64)
-            dof = torch.zeros(B, dtype=torch.float64)
-            if has_stars:
-                mix = filt.update(mix, y, meas)
-                nis = torch.where(filt.diagnostics["dof"] > 0, filt.diagnostics["nis_mixture"], nis)
-                dof = filt.diagnostics["dof"]
-                if "gate_rejected" in filt.diagnostics:
-                    extra["gate_rejected"] = filt.diagnostics["gate_rejected"]
-            mixtures[name] = mix
-            mean, cov = filt.estimate(mix)
-            out[name] = FilterStep(mix, mean, cov, filt.model.state_error(mean, x_true), nis, dof, extra)
-        yield Step(k, time, has_stars, x_true, truth_p, out, u, (y, meas) if has_stars else None, mean0)
+    adapter = AttitudeInputs(sigma_s=sigma_s, gyro_hold_sigma=gyro_hold_sigma, known_bias=not estimate_bias,
+                             noise_model=noise_model)
+    adapter.start(obs, dt, truth_b)
+    action = {"mrp": filters[first].filter.estimate(mixtures[first])[0][:, :3]}
+
+    def inputs():
+        for _ in range(num_steps):
+            obs, _, _, _, info = env.step(action["mrp"])
+            truth_p, truth_b = as_float64(info["truth_mrp"]), as_float64(info["truth_bias"])
+            time = float(as_float64(obs["time"]).reshape(truth_p.shape[0], -1)[0, 0])
+            yield adapter(obs, dt, truth_b, context=(time, truth_p, torch.cat((truth_p, truth_b), -1)[:, :n]))
+
+    for step in filter_steps({k: s.filter for k, s in filters.items()}, mixtures, inputs()):
+        action["mrp"] = step.filters[first].mean[:, :3]
+        time, truth_p, x_true = step.input.context
+        errors = {name: fs.filter.model.state_error(fs.mean, x_true) for name, fs in step.filters.items()}
+        yield Step(step.index, time, step.input.measurement is not None, x_true, truth_p, step.filters,
+                   step.input.u, step.input.measurement, mean0, errors)
 
 
 def run_monte_carlo(
@@ -272,7 +191,6 @@ def run_monte_carlo(
     ``gate_rejected [T, B]`` (star blocks rejected by the filter's innovation gate;
     0 without gating) and ``gyro_held [T, B]`` (1 where the gyro sample was bridged).
     """
-    n = 6 if estimate_bias else 3
     records: dict[str, dict[str, list]] = {name: {k: [] for k in FilterTrace.__dataclass_fields__} for name in filters}
     times, frames = [], []
     steps = monte_carlo_steps(
@@ -283,17 +201,20 @@ def run_monte_carlo(
         from tqdm import tqdm
 
         steps = tqdm(steps, desc="monte carlo", unit="step", total=num_steps)
-    scale = torch.ones(n, dtype=torch.float64)
-    scale[:3] = 4.0  # δθ ≈ 4 δp for small MRP errors
+    scale: Tensor | None = None
     for step in steps:
         times.append(step.time)
         frames.append(step.star_frame)
+        if scale is None:
+            n = step.x_true.shape[-1]
+            scale = torch.ones(n, dtype=torch.float64)
+            scale[:3] = ATTITUDE_RADIANS_PER_MRP
         for name, fs in step.filters.items():
             rec = records[name]
             rec["error_angle"].append(attitude_error_angle(fs.mean[:, :3], step.truth_mrp))
-            rec["error"].append(fs.error * scale)
+            rec["error"].append(step.chart_error[name] * scale)
             rec["sigma"].append(fs.cov.diagonal(dim1=-2, dim2=-1).sqrt() * scale)
-            rec["nees"].append(nees(fs.error, fs.cov))
+            rec["nees"].append(nees(step.chart_error[name], fs.cov))
             rec["nis"].append(fs.nis)
             rec["nis_dof"].append(fs.dof)
             rec["weights"].append(fs.mixture.weights)
@@ -308,4 +229,5 @@ def run_monte_carlo(
         extra_keys = rec["extra"][0].keys() if rec["extra"] else []
         stacked["extra"] = {k: torch.stack([e[k] for e in rec["extra"]]).numpy() for k in extra_keys}
         traces[name] = FilterTrace(**stacked)
-    return MonteCarloResult(np.array(times), np.array(frames), traces, n)
+    state_dim = next(iter(filters.values())).filter.model.state_dim
+    return MonteCarloResult(np.array(times), np.array(frames), traces, state_dim)

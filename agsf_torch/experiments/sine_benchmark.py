@@ -15,6 +15,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
+from ..filter_loop import StepInput, filter_steps
 from ..filters.gaussian_sum import GaussianSumFilter
 from ..mixture import GaussianMixture
 from ..models.base import FunctionMeasurement
@@ -78,15 +79,16 @@ def run_sine_benchmark(
             p = solver.normalise(p * np.exp(-0.5 * (ys[k] - grid**2) ** 2))
         refs.append(p.copy())
     out: dict[str, np.ndarray] = {"time": DT * np.arange(1, NUM_STEPS + 1)}
-    for name, filt in filters.items():
-        if hasattr(filt, "reset"):
-            filt.reset()
-        mix = sine_prior()
-        ise = np.empty(NUM_STEPS)
-        for k in range(NUM_STEPS):
-            mix = filt.predict(mix, None, DT)
-            if measure_every and (k + 1) % measure_every == 0:
-                mix = filt.update(mix, torch.tensor([ys[k]], dtype=torch.float64), meas)
-            ise[k] = integrated_squared_error(torch.exp(mix.log_prob(xg)).numpy(), refs[k], grid)
-        out[name] = ise
+    y = torch.tensor(ys, dtype=torch.float64)[:, None]
+    inputs = [
+        StepInput(DT, None, (y[k], meas) if measure_every and (k + 1) % measure_every == 0 else None) for k in range(NUM_STEPS)
+    ]
+    for filt in filters.values():
+        filt.reset()
+    ise = {name: np.empty(NUM_STEPS) for name in filters}
+    mixtures = {name: sine_prior() for name in filters}
+    for step in filter_steps(filters, mixtures, inputs):
+        for name, fs in step.filters.items():
+            ise[name][step.index] = integrated_squared_error(torch.exp(fs.mixture.log_prob(xg)).numpy(), refs[step.index], grid)
+    out.update(ise)
     return out

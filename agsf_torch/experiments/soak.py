@@ -35,7 +35,7 @@ import torch
 from ..metrics import nees
 from .config import ExperimentConfig, load_preset
 from .experiment import make_env, make_filters, prior_covariance
-from .runner import monte_carlo_steps
+from .runner import ATTITUDE_RADIANS_PER_MRP, monte_carlo_steps
 
 __all__ = ["soak_config", "run_soak", "soak_verdict", "rss_mb"]
 
@@ -78,14 +78,16 @@ class _Stats:
         self.nonfinite = 0
         self.min_eig_ratio = math.inf
 
-    def add(self, fs, check_eigs: bool) -> None:
-        err, cov = fs.error, fs.cov
+    def add(self, fs, err, check_eigs: bool) -> None:
+        """Add one step of one filter: ``fs`` (:class:`~agsf_torch.filter_loop.FilterStep`) and its
+        chart error ``err [B, n]`` (MRP, rad/s)."""
+        cov = fs.cov
         sigma = cov.diagonal(dim1=-2, dim2=-1).sqrt()
         self.steps += 1
         self.count += err.shape[0]
         bad = ~torch.isfinite(err).all(-1) | ~torch.isfinite(cov).flatten(-2).all(-1)
         self.nonfinite += int(bad.sum()) + int((~torch.isfinite(fs.mixture.covs)).sum())
-        self.sq_angle += float(((4.0 * err[:, :3].norm(dim=-1)) ** 2).sum())
+        self.sq_angle += float(((ATTITUDE_RADIANS_PER_MRP * err[:, :3].norm(dim=-1)) ** 2).sum())
         self.nees += float(nees(err, cov).sum())
         self.inside += (err.abs() <= 3.0 * sigma).sum(0).double().numpy()
         if check_eigs:
@@ -122,7 +124,7 @@ def run_soak(
     if per_report < 1 or abs(per_report * cfg.dt - report_every) > 1e-9 * report_every:
         raise ValueError(f"report_every must be a positive multiple of dt={cfg.dt}, got {report_every}")
     setups = make_filters(cfg)
-    n = 6 if cfg.estimate_bias else 3
+    n = next(iter(setups.values())).filter.model.state_dim
     stats = {name: _Stats(n) for name in setups}
     log = None
     if out is not None:
@@ -141,7 +143,7 @@ def run_soak(
         for step in steps:
             last = (step.index + 1) % per_report == 0 or step.index + 1 == cfg.num_steps
             for name, fs in step.filters.items():
-                stats[name].add(fs, check_eigs=last)
+                stats[name].add(fs, step.chart_error[name], check_eigs=last)
             if not last:
                 continue
             row = {
