@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from ..density import PosteriorReference
+from ..filters.registry import FILTER_NAMES
 from ..metrics import nees
 from ..rotations import attitude_error_angle
 from .config import ExperimentConfig, load_config
@@ -62,8 +63,8 @@ SCENARIOS: dict[str, tuple[str, list[str]]] = {
     "ambiguous": ("case1", ["max_stars=1", "update_iterations=3"]),
 }
 
-#: The filters compared, in table order.
-STUDY_FILTERS = ("EKF", "GSF", "AGSF", "AGSF-galerkin", "MEKF")
+#: The filters compared, in table order: every registered filter.
+STUDY_FILTERS = FILTER_NAMES
 
 
 def scenario_config(name: str, runs: int, overrides: list[str] | None = None) -> ExperimentConfig:

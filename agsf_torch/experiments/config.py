@@ -19,15 +19,12 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
+
 __all__ = ["ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES", "DEFAULT_FILTERS"]
 
-#: Filters an experiment can run: the EKF, the classic GSF, the adaptive GSF with the
-#: paper's weight update (``AGSF``) and with the authors' later Galerkin update
-#: (``AGSF-galerkin``), and the multiplicative EKF (``MEKF``, the industry baseline).
-FILTER_NAMES = ("EKF", "GSF", "AGSF", "AGSF-galerkin", "MEKF")
 #: The filters of a configuration that names none (the paper's three).
 DEFAULT_FILTERS = ("EKF", "GSF", "AGSF")
-DEG_PER_HOUR = math.pi / 180.0 / 3600.0
 
 
 @dataclass(frozen=True)
@@ -167,7 +164,7 @@ class ExperimentConfig:
             raise ValueError(f"config key 'filters' must be a non-empty list of distinct names from {FILTER_NAMES}, got {self.filters!r}")
         from ..qp import MAX_COMPONENTS
 
-        if self.components > MAX_COMPONENTS and any(f.startswith("AGSF") for f in self.filters):
+        if self.components > MAX_COMPONENTS and any(f in ADAPTIVE_FILTERS for f in self.filters):
             raise ValueError(
                 f"config key 'components' must be ≤ {MAX_COMPONENTS} with an adaptive filter (the weight QP's limit), "
                 f"got {self.components}"

@@ -12,7 +12,8 @@ import torch
 from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
 from ..learning import fit_attitude_parameters
 from ..recordings import Recording
-from .config import DEG_PER_HOUR, ExperimentConfig
+from ..constants import DEG_PER_HOUR
+from .config import ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
 from .recorded import record_environment
 

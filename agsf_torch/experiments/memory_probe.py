@@ -13,9 +13,9 @@ import resource
 
 import torch
 
-from ..filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+from ..filters.registry import make_filter
 from ..models import AttitudeModel
-from .bench import _mixture
+from .bench_harness import WEIGHT_UPDATE_FILTERS, attitude_mixture
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -23,23 +23,23 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("workload", choices=("gsf", "adaptive"))
     parser.add_argument("--batch", type=int, required=True)
     parser.add_argument("--chunk", type=int, default=16384)
-    parser.add_argument("--update", choices=("galerkin", "penalty"), default="galerkin")
+    parser.add_argument("--update", choices=tuple(WEIGHT_UPDATE_FILTERS), default="galerkin")
     args = parser.parse_args(argv)
     gen = torch.Generator().manual_seed(4)
     model = AttitudeModel(estimate_bias=True)
     if args.workload == "gsf":
-        filt = GaussianSumFilter(model)
+        filt = make_filter("GSF", model)
         for start in range(0, args.batch, args.chunk):
             size = min(args.chunk, args.batch - start)
-            mix = _mixture(size, 5, True, gen)
+            mix = attitude_mixture(size, 5, True, gen)
             u = torch.full((size, 3), 0.06, dtype=torch.float64)
             for _ in range(100):
                 mix = filt.predict(mix, u, 0.1)
         what = f"GSF sweep B={args.batch} N=5 6-state, 100 steps, chunks of {args.chunk}"
         row = {"what": what, "batch": args.batch, "chunk": args.chunk}
     else:
-        filt = AdaptiveGaussianSumFilter(model, weight_update=args.update)
-        filt.predict(_mixture(args.batch, 5, True, gen), torch.full((args.batch, 3), 0.06, dtype=torch.float64), 0.1)
+        filt = make_filter(WEIGHT_UPDATE_FILTERS[args.update], model)
+        filt.predict(attitude_mixture(args.batch, 5, True, gen), torch.full((args.batch, 3), 0.06, dtype=torch.float64), 0.1)
         row = {"what": f"{args.update} adaptive predict B={args.batch} N=5 6-state", "batch": args.batch, "update": args.update}
     print(json.dumps({**row, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 

@@ -6,8 +6,10 @@ import hashlib
 import json
 from pathlib import Path
 
+from ..filters.registry import ADAPTIVE_FILTERS
 from .config import load_config
 from .experiment import prepare_output, run_experiment
+from .statistics import minus_gsf_key
 
 __all__ = ["reproduce", "results_table"]
 
@@ -54,7 +56,8 @@ def results_table(combined: dict) -> str:
                 f"| {case} | {1 / c['star_period_s']:g} Hz | {f} | {s['between_updates_mean_rms_deg']:.5g} | "
                 f"{s['before_first_update_mean_rms_deg']:.5g} | {s['final_rms_deg']:.3g} | {s['time_averaged_nees']:.4g} |"
             )
-    for key, label in (("agsf_minus_gsf", "AGSF"), ("agsf_galerkin_minus_gsf", "AGSF-galerkin")):
+    for label in ADAPTIVE_FILTERS:
+        key = minus_gsf_key(label)
         rows = [(case, w, d) for case, c in combined.items() for w, d in (c.get(key) or {}).items()]
         if not rows:
             continue

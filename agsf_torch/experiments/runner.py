@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..constants import ATTITUDE_RADIANS_PER_MRP
 from ..attitude_inputs import AttitudeInputs, as_float64
 from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
 from ..metrics import nees
@@ -21,11 +22,7 @@ from ..rotations import attitude_error_angle
 
 __all__ = [
     "FilterSetup", "FilterStep", "FilterTrace", "MonteCarloResult", "Step", "monte_carlo_steps", "run_monte_carlo", "sample_prior",
-    "ATTITUDE_RADIANS_PER_MRP",
 ]
-
-#: Small-angle scale of an MRP error: ``δθ ≈ 4 δp`` (rad per MRP unit).
-ATTITUDE_RADIANS_PER_MRP = 4.0
 
 
 @dataclass

@@ -35,11 +35,12 @@ import torch
 from ..metrics import nees
 from .config import ExperimentConfig, load_preset
 from .experiment import make_env, make_filters, prior_covariance
-from .runner import ATTITUDE_RADIANS_PER_MRP, monte_carlo_steps
+from ..constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
+from ..filters.registry import ADAPTIVE_FILTERS
+from .runner import monte_carlo_steps
 
 __all__ = ["soak_config", "run_soak", "soak_verdict", "rss_mb"]
 
-ARCSEC = math.degrees(1.0) * 3600.0
 
 
 def rss_mb() -> float:
@@ -57,7 +58,7 @@ def soak_config(filter_name: str = "GSF", **changes: Any) -> ExperimentConfig:
     """The soak's default configuration: case 1, 6-state, iterated update, 256 runs, one hour."""
     base = load_preset("case1").replace(
         name=f"soak-{filter_name}", runs=256, duration=3600.0, estimate_bias=True, update_iterations=3,
-        filters=[filter_name], compile=filter_name.startswith("AGSF"),
+        filters=[filter_name], compile=filter_name in ADAPTIVE_FILTERS,
     )
     return base.replace(**changes) if changes else base
 
@@ -97,7 +98,7 @@ class _Stats:
     def row(self) -> dict[str, Any]:
         c = max(self.count, 1)
         return {
-            "rms_arcsec": math.sqrt(self.sq_angle / c) * ARCSEC,
+            "rms_arcsec": math.sqrt(self.sq_angle / c) * ARCSEC_PER_RAD,
             "mean_nees": self.nees / c,
             "inside_3sigma": (self.inside / c).tolist(),
             "nonfinite": self.nonfinite,

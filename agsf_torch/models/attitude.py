@@ -17,14 +17,11 @@ import torch
 from torch import Tensor
 
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
+from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
 from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative, sum_last
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
 
-#: Angle random walk, rad/s^½ (method.md §4).
-DEFAULT_SIGMA_V = 10.0**0.5 * 1e-7
-#: Rate random walk, rad/s^{3/2} (method.md §4).
-DEFAULT_SIGMA_U = 10.0**0.5 * 1e-10
 
 
 class AttitudeModel(ContinuousModel):

@@ -62,7 +62,7 @@ def test_table_marks_targets():
         "memory_adaptive": [{"what": "adaptive", "update": "galerkin", "batch": 8192, "peak_rss_mib": 9000.0, "seconds": 1.0}],
         "total_seconds": 1.0,
     }
-    report["targets"] = bench._targets(report)
+    report["targets"] = bench.targets(report)
     table = bench.format_table(report)
     met = {line.split("|")[1].strip(): line.split("|")[4].strip() for line in table.splitlines() if line.startswith("| ") and line.count("|") == 5}
     assert met["Galerkin AGSF predict ÷ GSF, 6-state N=5 B=256"] == "yes"

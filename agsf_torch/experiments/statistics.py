@@ -1,0 +1,107 @@
+"""Summary statistics of an experiment, from its per-run data alone (``runs.npz``)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from scipy.stats import t as student_t
+
+from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
+from ..metrics import chi2_band
+from .config import ExperimentConfig
+
+__all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key"]
+
+
+def minus_gsf_key(adaptive: str) -> str:
+    """The summary key of an adaptive filter's paired difference against the GSF
+    (``AGSF`` → ``agsf_minus_gsf``, ``AGSF-galerkin`` → ``agsf_galerkin_minus_gsf``)."""
+    return adaptive.lower().replace("-", "_") + "_minus_gsf"
+
+
+def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, Any]:
+    """Summary statistics from the per-run data alone (``runs.npz``).
+
+    * ``rms_deg [T]``: ``sqrt(mean_b θ_b(t)²)`` in degrees;
+    * ``between_updates``: per run ``r_b = sqrt(mean_{t ∉ frames} θ_b(t)²)`` over the
+      steps that are not star frames; ``mean_rms_deg`` is ``mean_b r_b``;
+    * ``before_first_update``: the same over the steps before the first frame;
+    * ``agsf_minus_gsf`` (``agsf_galerkin_minus_gsf``): paired differences
+      ``r_b(AGSF) − r_b(GSF)`` (the Galerkin filter's), mean and a Student-t 95 %
+      confidence interval; every per-run mean above carries its own interval
+      (``ci95_rms_deg``, ``time_averaged_nees_ci95``, over runs).
+    """
+    time = data["time"]
+    frames = data["star_frame"].astype(bool)
+    first = int(np.argmax(frames)) if frames.any() else len(frames)
+    windows = {"between_updates": ~frames, "before_first_update": np.arange(len(frames)) < first}
+    names = [n for n in FILTER_NAMES if f"{n}/error_angle" in data]
+    n_state = data[f"{names[0]}/error"].shape[-1]
+    runs = data[f"{names[0]}/error_angle"].shape[1]
+    lo, hi = chi2_band(n_state, runs)
+    out: dict[str, Any] = {
+        "config": cfg.to_dict(),
+        "time_s": time.tolist(),
+        "star_frame": frames.tolist(),
+        "nees_band_95": [lo, hi],
+        "filters": {},
+    }
+    per_run: dict[str, dict[str, np.ndarray]] = {}
+    for name in names:
+        theta = data[f"{name}/error_angle"]  # [T, B]
+        entry: dict[str, Any] = {
+            "rms_deg": np.degrees(np.sqrt((theta**2).mean(1))).tolist(),
+            "nees_mean": data[f"{name}/nees"].mean(1).tolist(),
+            "time_averaged_nees": float(data[f"{name}/nees"].mean()),
+            "time_averaged_nees_ci95": list(mean_ci95(data[f"{name}/nees"].mean(0))[1:]),
+            "weights_run0": data[f"{name}/weights"][:, 0].tolist(),
+            "error_run0_rad": data[f"{name}/error"][:, 0].tolist(),
+            "sigma_run0_rad": data[f"{name}/sigma"][:, 0].tolist(),
+            "mean_weight_entropy": float(data[f"{name}/weight_entropy"].mean()),
+        }
+        for key in ("fpke_error_before", "fpke_error_after"):
+            if f"{name}/{key}" in data:
+                entry[f"{key}_mean"] = data[f"{name}/{key}"].mean(1).tolist()
+        for key in ("gate_rejected", "gyro_held"):
+            if f"{name}/{key}" in data:
+                entry[f"{key}_total"] = int(data[f"{name}/{key}"].sum())
+        per_run[name] = {}
+        for wname, mask in windows.items():
+            if mask.any():
+                r = np.degrees(np.sqrt((theta[mask] ** 2).mean(0)))  # [B]
+                per_run[name][wname] = r
+                entry[wname] = {
+                    "mean_rms_deg": float(r.mean()),
+                    "std_rms_deg": float(r.std(ddof=1)) if runs > 1 else 0.0,
+                    "ci95_rms_deg": list(mean_ci95(r)[1:]),
+                }
+        out["filters"][name] = entry
+    for adaptive in ADAPTIVE_FILTERS:
+        key = minus_gsf_key(adaptive)
+        if "GSF" in per_run and adaptive in per_run:
+            out[key] = {
+                wname: paired_difference(per_run[adaptive][wname], per_run["GSF"][wname])
+                for wname in windows
+                if wname in per_run["GSF"]
+            }
+    return out
+
+
+def mean_ci95(values: np.ndarray) -> tuple[float, float, float]:
+    """Mean of per-run values ``[B]`` and its Student-t 95 % interval ``(mean, low, high)``."""
+    values = np.asarray(values, dtype=np.float64)
+    m = float(values.mean())
+    if values.size < 2:
+        return m, float("nan"), float("nan")
+    half = float(student_t.ppf(0.975, values.size - 1) * values.std(ddof=1) / math.sqrt(values.size))
+    return m, m - half, m + half
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
+    """Paired per-run difference ``a − b`` (deg): mean, Student-t 95 % interval and relative to ``mean(b)``."""
+    m, lo, hi = mean_ci95(np.asarray(a) - np.asarray(b))
+    return {"mean_deg": m, "ci95_deg": [lo, hi], "relative": float(m / np.mean(b))}
+
+
