@@ -39,7 +39,7 @@ from scipy.stats import chi2
 from torch import Tensor
 
 from .models.base import MeasurementModel
-from .update import evaluate_measurement
+from .update import evaluate_measurement, moment_matched_innovation
 
 __all__ = ["chi2_threshold", "innovation_gate"]
 
@@ -93,10 +93,8 @@ def innovation_gate(
     S = H @ covs @ H.transpose(-1, -2) + (R.unsqueeze(-3) if R.dim() > 2 else R)  # [..., N, d, d]
     blocks = S.reshape(*S.shape[:-2], G, s, G, s).diagonal(dim1=-4, dim2=-2).movedim(-1, -3)  # [..., N, G, s, s]
     nu = (y.unsqueeze(-2) - h).reshape(*h.shape[:-1], G, s)  # [..., N, G, s]
-    w = log_weights.exp()[..., None, None]
-    nu_bar = (w * nu).sum(-3)  # [..., G, s]
-    dn = nu - nu_bar.unsqueeze(-3)
-    S_bar = (w[..., None] * (blocks + dn[..., :, None] * dn[..., None, :])).sum(-4)  # [..., G, s, s]
+    # per block: components to the second-to-last axis, [..., G, N, s] and [..., G, N, s, s]
+    nu_bar, S_bar = moment_matched_innovation(log_weights.unsqueeze(-2), nu.movedim(-3, -2), blocks.movedim(-4, -3))
     block_valid = valid.reshape(*valid.shape[:-1], G, s).all(-1)
     eye = torch.eye(s, dtype=S_bar.dtype, device=S_bar.device)
     S_bar = torch.where(block_valid[..., None, None], S_bar, eye)

@@ -1,7 +1,12 @@
-"""Error and consistency metrics: RMS error, NEES/NIS with χ² bands, weight entropy."""
+"""Error and consistency metrics: RMS, NEES and the χ² band of an averaged NEES or NIS.
+
+(The NIS itself comes with each measurement update, ``filt.diagnostics``; the weight
+entropy is :meth:`agsf_torch.GaussianMixture.entropy_of_weights`.)
+"""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from scipy.stats import chi2
 from torch import Tensor
@@ -23,9 +28,12 @@ def nees(error: Tensor, cov: Tensor) -> Tensor:
     return (z * z).sum(-1)
 
 
-def rms(values: Tensor, dim: int = 0) -> Tensor:
-    """Root mean square along ``dim``: ``sqrt(mean(v²))``."""
-    return torch.sqrt((values * values).mean(dim))
+def rms(values, dim: int = 0):
+    """Root mean square along ``dim``: ``sqrt(mean(v²))``, of a tensor or a NumPy array (same type back)."""
+    if torch.is_tensor(values):
+        return torch.sqrt((values * values).mean(dim))
+    values = np.asarray(values)
+    return np.sqrt((values * values).mean(dim))
 
 
 def chi2_band(dof: float, num_samples: int, confidence: float = 0.95) -> tuple[float, float]:

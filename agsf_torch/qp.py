@@ -56,8 +56,9 @@ class QPResult:
     Attributes:
         w: ``[..., N]`` on the simplex (``w ≥ 0``, ``Σw = 1`` to rounding).
         kkt_residual: ``[...]`` scaled KKT residual (see :func:`kkt_residual`).
-        iterations: active-set iterations run, plus ``2^N − 1`` if any problem needed the
-            support enumeration, or plus the interior-point iterations if any needed those.
+        iterations: active-set iterations run (batch-wide, not per problem), plus the
+            ``2^N − 1`` candidate supports if any problem needed the support enumeration
+            (N ≤ ``MAX_ENUMERATION``), or plus the interior-point iterations if any needed those.
     """
 
     w: Tensor
@@ -120,8 +121,7 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 40
         chunk_size: problems per batched enumeration call (bounds memory).
 
     Returns:
-        :class:`QPResult` (``iterations``: active-set iterations run, plus
-        ``2^N − 1`` if any problem needed the enumeration).
+        :class:`QPResult` (its ``iterations`` counts the work of all three stages, see there).
 
     Raises:
         ValueError: non-finite entries (naming the batch index), bad shapes, or ``N > MAX_COMPONENTS`` (64).

@@ -1,6 +1,6 @@
 """Attitude parametrisations: MRP, quaternion, attitude matrix, shadow set.
 
-Conventions (see ``design.md``):
+Conventions (the package's, stated in the README's *Conventions*):
 
 * The attitude matrix ``C`` maps inertial to body coordinates, ``b = C r``.
   It is the *transpose* of scipy's ``Rotation.as_matrix()`` for the same

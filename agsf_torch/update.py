@@ -27,7 +27,7 @@ from torch import Tensor
 
 from .models.base import MeasurementModel
 
-__all__ = ["ComponentUpdate", "kalman_update", "evaluate_measurement"]
+__all__ = ["ComponentUpdate", "kalman_update", "evaluate_measurement", "moment_matched_innovation"]
 
 
 @dataclass(frozen=True)
@@ -51,6 +51,28 @@ class ComponentUpdate:
     dof: Tensor
     innovation: Tensor
     innovation_cov: Tensor
+
+
+def moment_matched_innovation(log_weights: Tensor, nu: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
+    """The mixture's predicted innovation, moment-matched over its components:
+
+    .. math:: \\bar ν = \\sum_i w_i ν_i,\\qquad
+              \\bar S = \\sum_i w_i \\left(S_i + (ν_i - \\bar ν)(ν_i - \\bar ν)^T\\right).
+
+    Used for the mixture NIS of an update and by the innovation gate (per block).
+
+    Args:
+        log_weights: ``[..., N]``; nu: component innovations ``[..., N, k]``;
+        S: their covariances ``[..., N, k, k]``.
+
+    Returns:
+        ``(ν̄ [..., k], S̄ [..., k, k])``.
+    """
+    w = log_weights.exp()
+    nu_bar = (w[..., None] * nu).sum(-2)
+    dn = nu - nu_bar.unsqueeze(-2)
+    S_bar = (w[..., None, None] * (S + dn[..., :, None] * dn[..., None, :])).sum(-3)
+    return nu_bar, S_bar
 
 
 def evaluate_measurement(measurement: MeasurementModel, means: Tensor) -> tuple[Tensor, Tensor]:

@@ -41,10 +41,11 @@ import torch
 
 from ..density import PosteriorReference
 from ..filters.registry import FILTER_NAMES
-from ..metrics import nees
+from ..metrics import nees, rms
 from ..rotations import attitude_error_angle
 from .config import ExperimentConfig, load_config
 from .experiment import make_env, make_filters, mean_ci95, prepare_output, prior_covariance
+from .factories import filter_model
 from .runner import monte_carlo_steps
 
 __all__ = ["SCENARIOS", "STUDY_FILTERS", "run_scenario", "run_adaptation_study", "study_table"]
@@ -161,7 +162,7 @@ def summarize_scenario(res: dict[str, Any], cfg: ExperimentConfig) -> dict[str, 
     """Window means over time, then mean and 95 % interval over runs; paired differences against the GSF."""
     frames = res["frame"]
     windows = _windows(frames)
-    n = 6 if cfg.estimate_bias else 3
+    n = filter_model(cfg).state_dim
     out: dict[str, Any] = {
         "config": cfg.to_dict(),
         "state_dim": n,
@@ -182,12 +183,12 @@ def summarize_scenario(res: dict[str, Any], cfg: ExperimentConfig) -> dict[str, 
         for wname, mask in windows.items():
             if not mask.any():
                 continue
-            rms = np.degrees(np.sqrt((r["error_angle"][mask] ** 2).mean(0)))  # [B]
+            rms_deg = np.degrees(rms(r["error_angle"][mask], 0))  # [B]
             ne = r["nees"][mask].mean(0)
             sc = r["score"][mask].mean(0)
             sc_small = r["score_small"][mask].mean(0)
-            per_run[name][wname] = {"rms_deg": rms, "nees": ne, "score": sc}
-            m, lo, hi = mean_ci95(rms)
+            per_run[name][wname] = {"rms_deg": rms_deg, "nees": ne, "score": sc}
+            m, lo, hi = mean_ci95(rms_deg)
             mn, lon, hin = mean_ci95(ne)
             ms, los, his = mean_ci95(sc)
             dc, dlo, dhi = mean_ci95(sc - sc_small)
@@ -197,7 +198,7 @@ def summarize_scenario(res: dict[str, Any], cfg: ExperimentConfig) -> dict[str, 
                 "density_score": ms, "density_score_ci95": [los, his],
                 "density_score_minus_small_reference": dc, "density_score_minus_small_reference_ci95": [dlo, dhi],
             }
-        entry["rms_deg_t"] = np.degrees(np.sqrt((r["error_angle"] ** 2).mean(1))).tolist()
+        entry["rms_deg_t"] = np.degrees(rms(r["error_angle"], 1)).tolist()
         entry["nees_t"] = r["nees"].mean(1).tolist()
         entry["density_score_t"] = r["score"].mean(1).tolist()
         out["filters"][name] = entry

@@ -10,6 +10,7 @@ import numpy as np
 from ..diagnostics import consistency_checks, format_report
 from .config import ExperimentConfig
 from .experiment import run_experiment
+from .factories import filter_model
 
 __all__ = ["diagnose"]
 
@@ -22,7 +23,7 @@ def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True) -> tupl
     """
     run_experiment(cfg, out, progress=progress, kind="diagnose")
     data = np.load(Path(out) / "runs.npz")
-    n = 6 if cfg.estimate_bias else 3
+    n = filter_model(cfg).state_dim
     texts, result, passed = [], {}, True
     for name in cfg.filters:
         checks = consistency_checks(

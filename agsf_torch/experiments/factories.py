@@ -58,6 +58,6 @@ def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:
 def prior_covariance(cfg: ExperimentConfig) -> torch.Tensor:
     """The prior covariance ``[n, n]``: ``prior_var`` (MRP²) per attitude axis and, with the bias
     estimated, ``prior_bias_sigma_deg_per_hr`` squared (in (rad/s)²) per bias axis."""
-    n = 6 if cfg.estimate_bias else 3
+    n = filter_model(cfg).state_dim
     sb = (cfg.prior_bias_sigma_deg_per_hr * DEG_PER_HOUR) ** 2
     return torch.diag(torch.tensor([cfg.prior_var] * 3 + [sb] * 3, dtype=torch.float64)[:n])

@@ -17,7 +17,7 @@ from torch import Tensor
 from ..constants import ATTITUDE_RADIANS_PER_MRP
 from ..attitude_inputs import AttitudeInputs, as_float64
 from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
-from ..metrics import nees
+from ..metrics import nees, rms
 from ..rotations import attitude_error_angle
 
 __all__ = [
@@ -54,7 +54,7 @@ class FilterTrace:
 
     def rms_error(self) -> np.ndarray:
         """RMS attitude error angle over trajectories, ``[T]`` (rad)."""
-        return np.sqrt((self.error_angle**2).mean(1))
+        return rms(self.error_angle, 1)
 
 
 @dataclass

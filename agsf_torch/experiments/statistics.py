@@ -9,7 +9,7 @@ import numpy as np
 from scipy.stats import t as student_t
 
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
-from ..metrics import chi2_band
+from ..metrics import chi2_band, rms
 from .config import ExperimentConfig
 
 __all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key"]
@@ -52,7 +52,7 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     for name in names:
         theta = data[f"{name}/error_angle"]  # [T, B]
         entry: dict[str, Any] = {
-            "rms_deg": np.degrees(np.sqrt((theta**2).mean(1))).tolist(),
+            "rms_deg": np.degrees(rms(theta, 1)).tolist(),
             "nees_mean": data[f"{name}/nees"].mean(1).tolist(),
             "time_averaged_nees": float(data[f"{name}/nees"].mean()),
             "time_averaged_nees_ci95": list(mean_ci95(data[f"{name}/nees"].mean(0))[1:]),
@@ -70,7 +70,7 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
         per_run[name] = {}
         for wname, mask in windows.items():
             if mask.any():
-                r = np.degrees(np.sqrt((theta[mask] ** 2).mean(0)))  # [B]
+                r = np.degrees(rms(theta[mask], 0))  # [B]
                 per_run[name][wname] = r
                 entry[wname] = {
                     "mean_rms_deg": float(r.mean()),

@@ -106,6 +106,12 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
         self.weight_update = update
         self.adapt = bool(adapt)
 
+    def diagnostic_keys(self, step: str) -> tuple[str, ...]:
+        """As the GSF's; after ``predict`` also ``weights_adapted`` and, on steps that adapt, the weight
+        update's own (``weight_update.diagnostic_keys``)."""
+        keys = super().diagnostic_keys(step)
+        return keys + ("weights_adapted",) + tuple(self.weight_update.diagnostic_keys) if step == "predict" else keys
+
     def reset(self) -> None:
         """Start a new run: the weight update forgets its counter and reference."""
         self.weight_update.reset()

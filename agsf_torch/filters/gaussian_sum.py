@@ -11,7 +11,7 @@ from ..gating import chi2_threshold, innovation_gate
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
-from ..update import kalman_update
+from ..update import kalman_update, moment_matched_innovation
 
 __all__ = ["GaussianSumFilter", "ExtendedKalmanFilter", "check_batched"]
 
@@ -31,6 +31,23 @@ def check_batched(name: str, value: Tensor, batch_shape: torch.Size, last: int |
             f"{name} has shape {tuple(value.shape)}, whose leading dims do not broadcast with "
             f"the mixture's batch shape {tuple(batch_shape)}"
         ) from None
+
+
+#: Keys of ``filt.diagnostics`` after ``predict`` (every filter).
+PREDICT_DIAGNOSTICS = ("weight_entropy", "covariance_repairs")
+#: Keys after ``update`` (every filter).
+UPDATE_DIAGNOSTICS = ("log_likelihood", "nis", "nis_mixture", "dof", "weight_entropy", "covariance_repairs")
+#: Keys an update adds when the innovation gate is on.
+GATE_DIAGNOSTICS = ("gate_rejected", "gate_nis", "gate_accepted", "gate_overridden")
+
+
+def diagnostic_keys(step: str, gated: bool) -> tuple[str, ...]:
+    """The keys of ``filt.diagnostics`` after a ``"predict"`` or an ``"update"`` (``gated``: the gate is on)."""
+    if step == "predict":
+        return PREDICT_DIAGNOSTICS
+    if step == "update":
+        return UPDATE_DIAGNOSTICS + (GATE_DIAGNOSTICS if gated else ())
+    raise ValueError(f"step must be 'predict' or 'update', got {step!r}")
 
 
 class GaussianSumFilter:
@@ -153,6 +170,11 @@ class GaussianSumFilter:
         self.diagnostics = {"weight_entropy": propagated.entropy_of_weights(), "covariance_repairs": repairs, **extra}
         return propagated
 
+    def diagnostic_keys(self, step: str) -> tuple[str, ...]:
+        """The keys ``filt.diagnostics`` holds after a ``"predict"`` or an ``"update"`` of this filter
+        (declared here once; the consumers read them, tests check them)."""
+        return diagnostic_keys(step, self.gate_probability is not None)
+
     def _adapt_weights(
         self, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, dt: float
     ) -> tuple[GaussianMixture, dict[str, Any]]:
@@ -239,12 +261,9 @@ class GaussianSumFilter:
 
 
 def _mixture_nis(log_weights: Tensor, nu: Tensor, S: Tensor) -> Tensor:
-    """NIS of the moment-matched mixture prediction: ``ν̄ᵀ S̄⁻¹ ν̄`` with
-    ``ν̄ = Σwᵢνᵢ``, ``S̄ = Σwᵢ(Sᵢ + (νᵢ−ν̄)(νᵢ−ν̄)ᵀ)``.  ``[...]``."""
-    w = log_weights.exp()
-    nu_bar = (w[..., None] * nu).sum(-2)
-    dn = nu - nu_bar.unsqueeze(-2)
-    S_bar = (w[..., None, None] * (S + dn[..., :, None] * dn[..., None, :])).sum(-3)
+    """NIS of the moment-matched mixture prediction ``ν̄ᵀ S̄⁻¹ ν̄``
+    (:func:`~agsf_torch.update.moment_matched_innovation`), ``[...]``."""
+    nu_bar, S_bar = moment_matched_innovation(log_weights, nu, S)
     L = torch.linalg.cholesky(S_bar)
     z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False).squeeze(-1)
     return (z * z).sum(-1)

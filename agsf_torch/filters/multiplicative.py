@@ -47,7 +47,7 @@ from ..rotations import (
 )
 from ..update import kalman_update
 from .error_state import ErrorStateMeasurement, _exp_and_right_jacobian, _sym, error_state_to_mrp, mrp_to_error_state, rotation_series
-from .gaussian_sum import check_batched
+from .gaussian_sum import check_batched, diagnostic_keys
 
 __all__ = ["MultiplicativeEKF", "mrp_to_error_state", "error_state_to_mrp", "rotation_series"]  # helpers from error_state
 
@@ -311,6 +311,10 @@ class MultiplicativeEKF:
             **gate,
         }
         return out
+
+    def diagnostic_keys(self, step: str) -> tuple[str, ...]:
+        """The keys of ``filt.diagnostics`` after a ``"predict"`` or ``"update"`` (the GSF's)."""
+        return diagnostic_keys(step, self.gate_probability is not None)
 
     # ------------------------------------------------------------- run state
     def reset(self) -> None:

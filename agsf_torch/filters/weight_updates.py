@@ -353,6 +353,8 @@ class GalerkinWeightUpdate(_QuadratureUpdate):
             raise ValueError(f"residual_diagnostics must be True or False, got {residual_diagnostics!r}")
         self.tikhonov = float(tikhonov)
         self.residual_diagnostics = residual_diagnostics
+        if residual_diagnostics:
+            self.diagnostic_keys = type(self).diagnostic_keys + ("fpke_error_before", "fpke_error_with_rate")
         self._residual_rule: tuple[Tensor, Tensor] | None = None
 
     def bind(self, model: ContinuousModel) -> None:
