@@ -14,6 +14,18 @@ without ``import envs`` use the module-qualified id
 first.  Keyword arguments are :class:`StarTrackerConfig` fields (or ``config=``).
 
 This package depends on :mod:`agsf_torch.rotations` only (never on the filters).
+
+Modules:
+
+* :mod:`envs.config` — :class:`StarTrackerConfig`, the validated settings.
+* :mod:`envs.simulator` — :class:`StarTrackerSimulator`, the batched state and the
+  one time-step implementation (used by stepping and by ``simulate``).
+* :mod:`envs.star_tracker` — the gymnasium adapters :class:`StarTrackerAttitudeEnv`
+  and :class:`StarTrackerAttitudeVectorEnv` (timeline and seeding documented there).
+* :mod:`envs.dynamics`, :mod:`envs.gyro`, :mod:`envs.camera`, :mod:`envs.faults` —
+  the physics: truth attitude, gyro model, star camera, injected sensor faults.
+* :mod:`envs.catalog` — the Hipparcos catalogue (parsing, disk and in-process caches).
+* :mod:`envs.random` — counter-based random numbers and the simulation's stream ids.
 """
 
 from __future__ import annotations
@@ -22,16 +34,13 @@ import gymnasium
 
 from .camera import StarCamera, StarObservation, random_attitude_quat, star_count_distribution
 from .catalog import DEFAULT_MAX_MAGNITUDE, StarCatalog, cache_dir, load_hipparcos_table
+from .config import StarTrackerConfig
 from .dynamics import DEFAULT_OMEGA0, DEFAULT_RATE, AttitudeDynamics, propagate_quat
 from .faults import FAULT_KINDS, SensorFault
 from .gyro import DEFAULT_INITIAL_BIAS, DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR, Gyro
 from .random import CounterKey, counter_normal, counter_uniform
-from .star_tracker import (
-    StarTrackerAttitudeEnv,
-    StarTrackerAttitudeVectorEnv,
-    StarTrackerConfig,
-    StarTrackerSimulator,
-)
+from .simulator import StarTrackerSimulator
+from .star_tracker import StarTrackerAttitudeEnv, StarTrackerAttitudeVectorEnv
 
 __all__ = [
     "ENV_ID",

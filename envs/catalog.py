@@ -35,6 +35,10 @@ m stars (visible stars capped at M), and the uncapped visible count (2·10⁵ at
 Hp ≤ 7.0 is the smallest of these cuts with 5 stars in 99.97 % of frames (no frame
 of the 10⁶ with fewer than 2; the shortfall sits near the galactic poles, where
 stars are sparsest).
+
+:func:`shared_hipparcos` hands the environments one catalogue object per cut (an
+in-process cache), so that B environments, or many constructions of one, build the
+catalogue and its camera sky index once.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ __all__ = [
     "load_hipparcos_table",
     "radec_to_unit",
     "StarCatalog",
+    "shared_hipparcos",
 ]
 
 DEFAULT_MAX_MAGNITUDE = 7.0
@@ -308,3 +313,32 @@ class StarCatalog:
 
     def __repr__(self) -> str:
         return f"StarCatalog({len(self)} stars, max_magnitude={self.max_magnitude})"
+
+
+@lru_cache(maxsize=8)
+def _shared_cpu_hipparcos(max_magnitude: float) -> StarCatalog:
+    return StarCatalog.from_hipparcos(max_magnitude)
+
+
+def shared_hipparcos(max_magnitude: float = DEFAULT_MAX_MAGNITUDE, device: torch.device | str = "cpu") -> StarCatalog:
+    """The Hipparcos catalogue cut at ``max_magnitude``, shared within the process.
+
+    On the CPU every call with the same cut returns the same object (the last 8 cuts
+    are kept), so the camera's sky index, cached on the catalogue, is built once.  For
+    another device a new catalogue is built there from the shared CPU columns.
+
+    Args:
+        max_magnitude: keep stars with ``Hpmag ≤ max_magnitude`` (mag).
+        device: torch device of the tensors.
+
+    Returns:
+        A :class:`StarCatalog` (float64).  Do not modify it (e.g. with :meth:`StarCatalog.to`):
+        other environments hold the same object.
+    """
+    catalog = _shared_cpu_hipparcos(float(max_magnitude))
+    if torch.device(device).type == "cpu":
+        return catalog
+    return StarCatalog(
+        catalog.ids.numpy(), catalog.ra.numpy(), catalog.dec.numpy(), catalog.magnitude.numpy(),
+        max_magnitude=catalog.max_magnitude, device=device,
+    )

@@ -28,7 +28,7 @@ from agsf_torch.rotations import quat_multiply, rotvec_to_quat
 
 from ._checks import check_real
 
-__all__ = ["DEFAULT_OMEGA0", "DEFAULT_RATE", "RateLike", "AttitudeDynamics", "propagate_quat"]
+__all__ = ["DEFAULT_OMEGA0", "DEFAULT_RATE", "RateLike", "AttitudeDynamics", "propagate_quat", "propagate_quat_block"]
 
 DEFAULT_OMEGA0 = 2.0 * math.pi / 100.0
 """ω₀ = 2π/100 rad/s."""
@@ -39,7 +39,8 @@ RateLike = Union[Sequence[float], Tensor, Callable[[Tensor], Tensor]]
 
 
 def propagate_quat(q: Tensor, omega: Tensor, dt: float) -> Tensor:
-    """Exact attitude step for a body rate held over ``dt``.
+    """Exact attitude step for a body rate held over ``dt``: :func:`propagate_quat_block`
+    with a block of one step.
 
     .. math:: q_{k+1} = q(ωΔt) ⊗ q_k / |q(ωΔt) ⊗ q_k|
 
@@ -51,8 +52,30 @@ def propagate_quat(q: Tensor, omega: Tensor, dt: float) -> Tensor:
     Returns:
         ``[..., 4]``.
     """
-    q_next = quat_multiply(rotvec_to_quat((omega * dt).contiguous()), q)
-    return q_next / torch.linalg.vector_norm(q_next, dim=-1, keepdim=True)
+    return propagate_quat_block(q, omega[None], dt)[0]
+
+
+def propagate_quat_block(q: Tensor, omega: Tensor, dt: float) -> Tensor:
+    """S consecutive exact attitude steps (the step of :func:`propagate_quat`, written once).
+
+    The step quaternions ``q(ω_j Δt)`` are formed for the whole block, then composed
+    in order, renormalising after each product.
+
+    Args:
+        q: ``q_k`` ``[..., 4]`` scalar-last unit quaternions (inertial → body).
+        omega: body rates held over the S steps ``[S, ..., 3]`` (rad/s).
+        dt: step (s).
+
+    Returns:
+        ``q_{k+1} … q_{k+S}`` ``[S, ..., 4]``.
+    """
+    dq = rotvec_to_quat((omega * dt).contiguous())  # [S, ..., 4]
+    out = []
+    for j in range(dq.shape[0]):
+        q = quat_multiply(dq[j], q)
+        q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+        out.append(q)
+    return torch.stack(out)
 
 
 class AttitudeDynamics:
@@ -108,6 +131,25 @@ class AttitudeDynamics:
         """Rate held over ``(t_k, t_k + Δt]``: ``rate(t_k + Δt/2)`` → ``[B, 3]`` (rad/s)."""
         return self.rate(t_start + 0.5 * self.dt)
 
+    def held_rates(
+        self, t_start: Sequence[float], batch: int, dtype: torch.dtype = torch.float64, device=None
+    ) -> Tensor:
+        """Held rates of S consecutive steps for B trajectories: ``[S, B, 3]`` (rad/s).
+
+        Row j is :meth:`held_rate` of ``t_start[j]`` (s) broadcast to the batch; a
+        callable profile is called once per step with ``t [B]``, as in :meth:`held_rate`.
+        Contiguous.
+        """
+        if self.rate_fn is None:
+            w = torch.tensor(self.rate_const, dtype=dtype, device=device)
+            return w.expand(len(t_start), batch, 3).contiguous()
+        rows = [self.held_rate(torch.full((batch,), float(t), dtype=dtype, device=device)) for t in t_start]
+        return torch.stack(rows)
+
     def step(self, q: Tensor, omega: Tensor) -> Tensor:
         """:func:`propagate_quat` with this Δt: ``[B, 4], [B, 3] → [B, 4]``."""
         return propagate_quat(q, omega, self.dt)
+
+    def step_block(self, q: Tensor, omega: Tensor) -> Tensor:
+        """:func:`propagate_quat_block` with this Δt: ``[B, 4], [S, B, 3] → [S, B, 4]``."""
+        return propagate_quat_block(q, omega, self.dt)

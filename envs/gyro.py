@@ -104,7 +104,7 @@ class Gyro:
         return b.expand(*batch_shape, 3).clone()
 
     def step(self, omega: Tensor, bias: Tensor, n_v: Tensor, n_u: Tensor) -> tuple[Tensor, Tensor]:
-        """One gyro period.
+        """One gyro period: :meth:`step_block` with a block of one step.
 
         .. math::
             b_{k+1} = b_k + σ_u\\sqrt{Δt}\\, n_u,\\qquad
@@ -118,9 +118,34 @@ class Gyro:
         Returns:
             ``(ω̃_{k+1} [..., 3], b_{k+1} [..., 3])`` (rad/s).
         """
-        bias_next = bias + self.bias_step_std * n_u
-        measured = omega + 0.5 * (bias_next + bias) + self.rate_noise_std * n_v
-        return measured, bias_next
+        measured, biases = self.step_block(omega[None], bias, n_v[None], n_u[None])
+        return measured[0], biases[0]
+
+    def step_block(self, omega: Tensor, bias: Tensor, n_v: Tensor, n_u: Tensor) -> tuple[Tensor, Tensor]:
+        """S consecutive gyro periods (the model of :meth:`step`, written once).
+
+        The bias walk is accumulated step by step (``b_{j+1} = b_j + σ_u√Δt n_u[j]``, the
+        same additions in the same order as S calls of :meth:`step`, so the numbers are
+        identical); the readings are then formed for the whole block.
+
+        Args:
+            omega: true rates ``ω_{k+1} … ω_{k+S}`` ``[S, ..., 3]`` (rad/s).
+            bias: ``b_k`` ``[..., 3]`` (rad/s).
+            n_v, n_u: standard normals ``[S, ..., 3]`` (row j for the step to ``k+j+1``).
+
+        Returns:
+            ``(ω̃ [S, ..., 3], b [S, ..., 3])``: readings ``ω̃_{k+1} … ω̃_{k+S}`` and biases
+            ``b_{k+1} … b_{k+S}`` (rad/s).
+        """
+        walk = self.bias_step_std * n_u
+        if bias.shape != walk.shape[1:]:
+            bias = torch.broadcast_tensors(bias, walk[0])[0]
+        biases = [bias]
+        for j in range(walk.shape[0]):
+            biases.append(biases[-1] + walk[j])
+        b = torch.stack(biases)  # [S+1, ..., 3]: b_k … b_{k+S}
+        measured = omega + 0.5 * (b[1:] + b[:-1]) + self.rate_noise_std * n_v
+        return measured, b[1:]
 
     def read(self, omega: Tensor, bias: Tensor, n_v: Tensor) -> Tensor:
         """A reading with the bias held: ``ω + b + sqrt(σ_v²/Δt + σ_u²Δt/12) n_v`` (rad/s).

@@ -29,6 +29,11 @@ are ``seed + i`` draws, in one tensor program, exactly the numbers that B separa
 single runs seeded with ``seed + i`` draw.  Seeds are Python ints reduced modulo 2⁶⁴
 (:func:`as_int64`) or ``int64`` tensors (any leading shape; the ``step`` and
 ``stream`` arguments broadcast against it).
+
+The stream ids of the star-tracker simulation (:data:`STREAM_INITIAL_ATTITUDE` …
+:data:`STREAM_NEXT_SEED`) are defined here, in one place, so that no two noise
+sources share a stream; :func:`next_episode_seeds` derives the seed of the next
+episode.  (:func:`envs.camera.random_attitude_quat` uses stream 7001 by default.)
 """
 
 from __future__ import annotations
@@ -48,6 +53,13 @@ __all__ = [
     "counter_uniform",
     "counter_normal",
     "CounterKey",
+    "STREAM_INITIAL_ATTITUDE",
+    "STREAM_GYRO_RATE_NOISE",
+    "STREAM_GYRO_BIAS_WALK",
+    "STREAM_STAR_NOISE",
+    "STREAM_NEXT_SEED",
+    "SEED_MASK",
+    "next_episode_seeds",
 ]
 
 IntLike = Union[int, Tensor]
@@ -72,6 +84,19 @@ _GOLDEN = as_int64(0x9E3779B97F4A7C15)
 _M1 = as_int64(0xBF58476D1CE4E5B9)
 _M2 = as_int64(0x94D049BB133111EB)
 _TWO_POW_M53 = 2.0**-53
+
+STREAM_INITIAL_ATTITUDE = 1
+"""Counter-RNG stream of the random initial attitude (step 0, 4 normals)."""
+STREAM_GYRO_RATE_NOISE = 2
+"""Stream of the gyro measurement noise N_v (step k, 3 normals)."""
+STREAM_GYRO_BIAS_WALK = 3
+"""Stream of the bias random walk N_u (step k, 3 normals)."""
+STREAM_STAR_NOISE = 4
+"""Stream of the star-camera noise (step k, M×3 normals)."""
+STREAM_NEXT_SEED = 5
+"""Stream deriving the next episode's seed on an unseeded reset."""
+SEED_MASK = (1 << 62) - 1
+"""Episode seeds drawn or derived by the environments lie in ``[0, SEED_MASK]`` = ``[0, 2⁶²)``."""
 
 
 def _srl(x: Tensor, k: int) -> Tensor:
@@ -222,3 +247,18 @@ class CounterKey:
     def normal(self, shape: Sequence[int], dtype: torch.dtype = torch.float64) -> Tensor:
         """:func:`counter_normal` of this key → ``[..., *shape]``."""
         return counter_normal(self.seed, self.step, self.stream, shape, dtype)
+
+
+def next_episode_seeds(seeds: Tensor) -> Tensor:
+    """Seeds of the next episodes, derived from the current ones.
+
+    ``next = bits(seed, step 0, STREAM_NEXT_SEED) mod 2⁶²`` (a splitmix64 hash of the
+    seed), so an unseeded reset continues deterministically.
+
+    Args:
+        seeds: int64 episode seeds ``[...]``.
+
+    Returns:
+        int64 ``[...]`` in ``[0, 2⁶²)``.
+    """
+    return random_bits(seeds, 0, STREAM_NEXT_SEED, ()) & SEED_MASK

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from envs import StarTrackerAttitudeVectorEnv, StarTrackerConfig
 from envs.faults import SensorFault, apply_gyro_faults, nearest_other_star, parse_faults
-from envs.star_tracker import StarTrackerAttitudeVectorEnv, StarTrackerConfig
 
 FAULTS = [
     {"kind": "gyro_dropout", "start": 0.5, "end": 0.8},
