@@ -265,7 +265,14 @@ def attitude_error_vector(p_est: Tensor, p_true: Tensor) -> Tensor:
 def attitude_error_angle(p_a: Tensor, p_b: Tensor) -> Tensor:
     """Rotation angle (rad, in ``[0, π]``) between the attitudes of two MRPs.
 
-    .. math:: θ = 2\\,\\operatorname{atan2}(|δq_v|, |δq_4|),\\quad δq = q_a ⊗ q_b^{-1}
+    .. math:: θ = 2 \\arctan(|δq_v| / |δq_4|),\\quad δq = q_a ⊗ q_b^{-1}
+
+    Written with operations whose result for one element does not depend on the
+    batch it is computed in (a trajectory's error is the same bits alone or among
+    10⁵): torch's ``atan2`` evaluates full SIMD vectors and the remainder with two
+    routines that differ in the last bit for a few per cent of arguments, while
+    ``atan`` of a contiguous tensor takes one path for every element.  ``|δq_4| = 0``
+    gives ``atan(∞) = π/2``, θ = π.
 
     Args:
         p_a, p_b: ``[..., 3]`` (broadcast).
@@ -274,4 +281,6 @@ def attitude_error_angle(p_a: Tensor, p_b: Tensor) -> Tensor:
         ``[...]``.
     """
     dq = quat_multiply(mrp_to_quat(p_a), quat_conjugate(mrp_to_quat(p_b)))
-    return 2.0 * torch.atan2(torch.linalg.vector_norm(dq[..., :3], dim=-1), dq[..., 3].abs())
+    x, y, z, w = dq.unbind(-1)
+    n = torch.sqrt(x * x + y * y + z * z)
+    return 2.0 * torch.atan((n / w.abs()).contiguous())

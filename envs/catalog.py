@@ -305,12 +305,6 @@ class StarCatalog:
     def __len__(self) -> int:
         return int(self.ids.shape[0])
 
-    def to(self, device: torch.device | str) -> "StarCatalog":
-        """Move every tensor to ``device`` (returns ``self``)."""
-        for name in ("ids", "ra", "dec", "magnitude", "r"):
-            setattr(self, name, getattr(self, name).to(device))
-        return self
-
     def __repr__(self) -> str:
         return f"StarCatalog({len(self)} stars, max_magnitude={self.max_magnitude})"
 

@@ -19,6 +19,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from agsf_torch.constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR  # shared with the filters
+
 from ._checks import check_real
 
 __all__ = [
@@ -29,12 +31,6 @@ __all__ = [
     "Gyro",
 ]
 
-DEG_PER_HOUR = math.pi / 180.0 / 3600.0
-"""One degree per hour in rad/s."""
-DEFAULT_SIGMA_V = math.sqrt(10.0) * 1e-7
-"""Angle random walk σ_v (rad/s^½)."""
-DEFAULT_SIGMA_U = math.sqrt(10.0) * 1e-10
-"""Rate random walk σ_u (rad/s^{3/2})."""
 DEFAULT_INITIAL_BIAS = (0.1 * DEG_PER_HOUR,) * 3
 """Initial bias, 0.1 deg/hr on each axis (rad/s)."""
 

@@ -13,7 +13,8 @@ of up to ``2²⁰ / B`` steps, and both apply the sensor faults with
 for bit by construction.  The timeline and seeding are described in
 :mod:`envs.star_tracker`; the random-stream ids are in :mod:`envs.random`.
 
-:func:`attitude_error_angle_elementwise` is the reward's error angle.
+The reward's error angle is :func:`agsf_torch.rotations.attitude_error_angle`
+(batch-independent to the bit, so a vector env equals single envs).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from agsf_torch.rotations import mrp_to_quat, quat_conjugate, quat_multiply, quat_to_dcm, quat_to_mrp
+from agsf_torch.rotations import attitude_error_angle, mrp_to_quat, quat_to_dcm, quat_to_mrp
 
 from .camera import StarCamera
 from .catalog import shared_hipparcos
@@ -41,30 +42,11 @@ from .random import (
     next_episode_seeds,
 )
 
-__all__ = ["StarTrackerSimulator", "attitude_error_angle_elementwise"]
+__all__ = ["StarTrackerSimulator"]
 
 _BLOCK_ELEMENTS = 1 << 20  # simulate(): steps × trajectories (and frames × B × M × 4) per block
 
 Stars = tuple[Tensor, Tensor, Tensor]  # (star_body [..., M, 3], star_inertial [..., M, 3], star_mask [..., M])
-
-
-def attitude_error_angle_elementwise(p_a: Tensor, p_b: Tensor) -> Tensor:
-    """Rotation angle (rad, in [0, π]) between two MRP attitudes, ``[..., 3] → [...]``.
-
-    .. math:: θ = 2 \\arctan(|δq_v| / |δq_4|),\\quad δq = q(p_a) ⊗ q(p_b)^{-1}
-
-    The value of :func:`agsf_torch.rotations.attitude_error_angle` (within 2 ulp),
-    written with operations whose result for one element does not depend on the
-    batch it is computed in.  That function's ``torch.atan2`` does: on AVX2/AVX512
-    CPUs torch evaluates full SIMD vectors with SLEEF and the remainder with the
-    scalar ``atan2``, which differ in the last bit for 1–3 % of arguments, so the
-    reward of trajectory i would depend on B.  ``torch.atan`` goes through one
-    vectorised path for every element (tail included); ``.contiguous()`` keeps it there.
-    """
-    dq = quat_multiply(mrp_to_quat(p_a), quat_conjugate(mrp_to_quat(p_b)))
-    x, y, z, w = dq.unbind(-1)
-    n = torch.sqrt(x * x + y * y + z * z)
-    return 2.0 * torch.atan((n / w.abs()).contiguous())
 
 
 class _Block(NamedTuple):
@@ -148,11 +130,6 @@ class StarTrackerSimulator:
     def is_star_step(self, k: int) -> bool:
         """Whether step k (time k·Δt) carries a star frame: ``k ≥ 1`` and ``k % (star_period/Δt) = 0``."""
         return k >= 1 and k % self.config.steps_per_star_frame == 0
-
-    def truth_mrp(self) -> Tensor:
-        """Current truth MRP ``[B, 3]`` (short set)."""
-        assert self.q is not None, "call reset() first"
-        return quat_to_mrp(self.q)
 
     def star_frame(self, q: Tensor, seeds: Tensor, k: Tensor | int) -> Stars:
         """Fault-free star frame of attitudes ``q [..., 4]`` with noise key ``(seeds, k, STREAM_STAR_NOISE)``.
@@ -285,7 +262,7 @@ class StarTrackerSimulator:
     def reward(self, action: Tensor) -> Tensor:
         """``−θ(action, p_k)`` (rad) against the current truth; ``action [B, 3]`` (MRP) → ``[B]``."""
         assert self.q is not None, "call reset() first"
-        return -attitude_error_angle_elementwise(action, quat_to_mrp(self.q))
+        return -attitude_error_angle(action, quat_to_mrp(self.q))
 
     def next_seeds(self) -> Tensor:
         """Seeds of the next episode derived from the current ones: ``[B]`` int64 in [0, 2⁶²)."""

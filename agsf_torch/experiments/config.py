@@ -19,6 +19,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 
 __all__ = ["ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES", "DEFAULT_FILTERS"]
@@ -79,8 +80,8 @@ class ExperimentConfig:
     max_stars: int = 5
     fov_deg: float = 8.0
     focal_length: float = 0.065
-    sigma_v: float = math.sqrt(10.0) * 1e-7
-    sigma_u: float = math.sqrt(10.0) * 1e-10
+    sigma_v: float = DEFAULT_SIGMA_V
+    sigma_u: float = DEFAULT_SIGMA_U
     gyro_bias_deg_per_hr: float = 0.1
     omega0: float = 2.0 * math.pi / 100.0
     rate_axes: list = field(default_factory=lambda: [1.0, 1.0, 0.0])

@@ -19,10 +19,7 @@ import numpy as np
 
 from .runner import MonteCarloResult
 
-__all__ = ["OutputConflict", "prepare_output", "save_runs", "RUN_EXTRAS"]
-
-#: Per-step filter diagnostics saved to ``runs.npz`` when a filter produces them.
-RUN_EXTRAS = ("fpke_error_before", "fpke_error_after", "galerkin_residual_change", "gate_rejected", "gyro_held")
+__all__ = ["OutputConflict", "prepare_output", "save_runs"]
 
 
 class OutputConflict(ValueError):
@@ -49,8 +46,9 @@ def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any]) ->
 
 def save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
     """Write ``runs.npz``: ``time [T]``, ``star_frame [T]`` and per filter ``name/key`` arrays
-    (:class:`~agsf_torch.experiments.runner.FilterTrace` fields, time first, plus :data:`RUN_EXTRAS`);
-    returns what it wrote."""
+    (:class:`~agsf_torch.experiments.runner.FilterTrace` fields, time first), plus every per-trajectory
+    diagnostic ``[T, B]`` the filter reported (its ``diagnostic_keys``, e.g. ``fpke_error_before``,
+    ``qp_kkt_residual``, ``gate_rejected``) and the input's (``gyro_held``); returns what it wrote."""
     data: dict[str, np.ndarray] = {"time": res.time, "star_frame": res.star_frame}
     for name, tr in res.traces.items():
         data[f"{name}/error_angle"] = tr.error_angle
@@ -61,9 +59,9 @@ def save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
         data[f"{name}/nis_dof"] = tr.nis_dof
         data[f"{name}/weights"] = tr.weights
         data[f"{name}/weight_entropy"] = tr.weight_entropy
-        for key in RUN_EXTRAS:
-            if key in tr.extra:
-                data[f"{name}/{key}"] = tr.extra[key]
+        for key, values in tr.extra.items():
+            if values.shape == tr.error_angle.shape:
+                data[f"{name}/{key}"] = values
     np.savez_compressed(path, **data)
     return data
 
