@@ -146,11 +146,11 @@ def propagation_flops(n: int) -> float:
 
 
 def _peak_rss(module_args: list[str]) -> dict[str, Any]:
-    """Run ``python -m agsf_torch.experiments.memory_probe ARGS`` and return its JSON line with the wall time."""
+    """Run ``python -m agsf_torch.experiments.bench_memory ARGS`` and return its JSON line with the wall time."""
     root = str(Path(__file__).resolve().parents[2])
     t = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-m", "agsf_torch.experiments.memory_probe", *module_args],
+    out = subprocess.run([sys.executable, "-m", "agsf_torch.experiments.bench_memory", *module_args],
                          capture_output=True, text=True, check=True, env=env)
     return {**json.loads(out.stdout.strip().splitlines()[-1]), "seconds": time.perf_counter() - t}
 
