@@ -1,7 +1,8 @@
 """Units and the sensor constants shared by the estimator, the simulator and the experiments.
 
-A leaf module (no imports of the package), so the simulator (``envs``) may use it
-as it uses :mod:`agsf_torch.rotations`.
+A leaf module.  The simulator (``envs``, which depends on :mod:`agsf_torch.rotations`
+only) keeps its own copy of the gyro values — the truth it simulates, as opposed to
+the values the filters assume — and a test checks that the defaults agree.
 """
 
 from __future__ import annotations

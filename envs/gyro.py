@@ -19,8 +19,6 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from agsf_torch.constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR  # shared with the filters
-
 from ._checks import check_real
 
 __all__ = [
@@ -31,6 +29,14 @@ __all__ = [
     "Gyro",
 ]
 
+# The simulated gyro's own values (the truth); the filters' assumed values are in
+# agsf_torch.constants (envs depends on agsf_torch.rotations only), equal by a test.
+DEG_PER_HOUR = math.pi / 180.0 / 3600.0
+"""One degree per hour in rad/s."""
+DEFAULT_SIGMA_V = math.sqrt(10.0) * 1e-7
+"""Angle random walk σ_v (rad/s^½)."""
+DEFAULT_SIGMA_U = math.sqrt(10.0) * 1e-10
+"""Rate random walk σ_u (rad/s^{3/2})."""
 DEFAULT_INITIAL_BIAS = (0.1 * DEG_PER_HOUR,) * 3
 """Initial bias, 0.1 deg/hr on each axis (rad/s)."""
 

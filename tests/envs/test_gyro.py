@@ -115,3 +115,12 @@ def test_initial_bias_scalar_or_vector():
 def test_bad_gyro_settings_raise(kwargs, message):
     with pytest.raises(ValueError, match=message):
         Gyro(**kwargs)
+
+
+def test_simulated_gyro_defaults_are_the_filters_assumed_ones():
+    """The simulator keeps its own constants (it depends on agsf_torch.rotations only); they equal the
+    filters' defaults in agsf_torch.constants."""
+    from agsf_torch import constants
+
+    assert DEG_PER_HOUR == constants.DEG_PER_HOUR
+    assert DEFAULT_SIGMA_V == constants.DEFAULT_SIGMA_V and DEFAULT_SIGMA_U == constants.DEFAULT_SIGMA_U
