@@ -71,3 +71,10 @@ def test_longer_than_one_revolution_stays_inside_3_sigma():
     inside = (np.abs(tr.error[100:]) <= 3 * tr.sigma[100:]).mean()
     assert inside >= 0.97
     assert np.isfinite(tr.nees).all() and tr.nees.mean(1)[100:].mean() < 4.0
+
+
+def test_refuses_a_model_that_does_not_match_estimate_bias():
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=2, max_steps=3)
+    filters = {"ekf": FilterSetup(ExtendedKalmanFilter(AttitudeModel(estimate_bias=False)), 1)}
+    with pytest.raises(ValueError, match="the filters' model has 3 states, but estimate_bias=True"):
+        run_monte_carlo(env, filters, num_steps=3, prior_cov=torch.eye(6, dtype=F64), sigma_s=1e-5, estimate_bias=True)
