@@ -18,21 +18,35 @@ key                 shape               dtype   meaning
 ``format``          ``[]``              str     ``"agsf-recording-1"``
 ==================  ==================  ======  =====================================================
 
-Entries of ``star_body`` / ``star_inertial`` under a false mask are ignored but
-must be finite (zeros by convention).  Valid star vectors must have unit norm:
-within ``UNIT_TOLERANCE`` they are normalised with a warning; beyond it the file
-is rejected.  Every error names the key, the trajectory, the row (sample) and
-the column where it found the problem.
+Float columns hold real numbers (integers are converted to float64; bool, complex,
+string and object arrays are refused, naming the column and the dtype).  Entries of
+``star_body`` / ``star_inertial`` under a false mask are ignored but must be finite
+(zeros by convention).  Valid star vectors must have unit norm: within
+``UNIT_TOLERANCE`` they are normalised with a warning; beyond it the file is
+rejected.  Every error names the key, the trajectory, the row (sample) and the
+column where it found the problem; a file that is not a readable ``.npz`` archive
+(missing: ``FileNotFoundError``; a directory, an empty, foreign, truncated or
+corrupt file: ``ValueError``) is named by its path.
+
+:meth:`Recording.save` writes atomically (a temporary file in the destination folder,
+renamed into place), and :meth:`Recording.content_digest` identifies the contents.
 """
 
 from __future__ import annotations
 
+import errno
+import hashlib
+import struct
 import warnings
+import zipfile
+import zlib
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from .files import atomic_open
 
 __all__ = ["Recording", "FORMAT", "UNIT_TOLERANCE"]
 
@@ -41,6 +55,9 @@ FORMAT = "agsf-recording-1"
 UNIT_TOLERANCE = 1e-3
 _REQUIRED = ("time", "gyro", "star_body", "star_inertial", "star_mask")
 _OPTIONAL = ("gyro_valid", "truth_mrp", "truth_bias")
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a member's header, or an empty archive's directory (numpy's test)
+# What reading a damaged archive raises from inside zipfile / zlib / numpy.
+_READ_ERRORS = (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError, struct.error, KeyError)
 
 
 @dataclass(frozen=True)
@@ -93,29 +110,125 @@ class Recording:
         return self.star_mask.any(axis=(0, 2))
 
     def save(self, path: str | Path) -> Path:
-        """Write the archive (``.npz``, compressed); returns the path written."""
+        """Write the archive (``.npz``, compressed) atomically; returns the path written.
+
+        ``.npz`` is appended to a path without it (as :func:`numpy.savez` does).  The
+        archive is written by :func:`agsf_torch.files.atomic_open` (a temporary file in the
+        destination folder, flushed and renamed over the destination), so an interruption leaves
+        either the previous file or the complete new one, never a torn archive (an
+        exception removes the temporary file; a killed process may leave a hidden
+        ``.NAME.*.tmp`` beside the destination).
+        """
         path = Path(path)
+        final = path if path.suffix == ".npz" else path.with_suffix(path.suffix + ".npz")
         data = {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
-        np.savez_compressed(path, format=np.array(FORMAT), **data)
-        return path if path.suffix == ".npz" else path.with_suffix(path.suffix + ".npz")
+        with atomic_open(final) as fh:
+            np.savez_compressed(fh, format=np.array(FORMAT), **data)
+        return final
 
     @classmethod
     def load(cls, path: str | Path) -> "Recording":
-        """Read and validate an archive written by :meth:`save` or by the user's own tools."""
-        with np.load(Path(path), allow_pickle=False) as npz:
-            keys = set(npz.files)
-            missing = [k for k in _REQUIRED if k not in keys]
-            if missing:
-                raise ValueError(f"recording {path}: missing column(s) {', '.join(missing)}")
-            fmt = str(npz["format"]) if "format" in keys else FORMAT
-            if fmt != FORMAT:
-                raise ValueError(f"recording {path}: format {fmt!r} is not {FORMAT!r}")
-            data = {k: npz[k] for k in _REQUIRED + _OPTIONAL if k in keys}
-        return cls(**data)
+        """Read and validate an archive written by :meth:`save` or by the user's own tools.
+
+        Raises:
+            FileNotFoundError: no file at ``path`` (naming it).
+            ValueError: ``"recording {path}: …"`` for a directory, an empty file, a file that
+                is not an ``.npz`` (zip) archive, a truncated or corrupt archive, a column that
+                cannot be read (e.g. pickled objects), a missing column, another format, or
+                any invalid content (:class:`Recording`).
+        """
+        path = Path(path)
+        _check_archive_file(path)
+        data: dict[str, np.ndarray] = {}
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                keys = set(npz.files)
+                missing = [k for k in _REQUIRED if k not in keys]
+                if not missing:
+                    data = {k: _read_column(path, npz, k) for k in ("format",) + _REQUIRED + _OPTIONAL if k in keys}
+        except _ColumnError:
+            raise
+        except _READ_ERRORS as exc:
+            raise ValueError(f"recording {path}: corrupt .npz archive ({type(exc).__name__}: {exc})") from exc
+        if missing:
+            raise ValueError(f"recording {path}: missing column(s) {', '.join(missing)}")
+        fmt = str(data.pop("format")) if "format" in data else FORMAT
+        if fmt != FORMAT:
+            raise ValueError(f"recording {path}: format {fmt!r} is not {FORMAT!r}")
+        try:
+            return cls(**data)
+        except ValueError as exc:  # the content checks: name the file too
+            message = str(exc).removeprefix("recording: ")
+            raise ValueError(f"recording {path}: {message}") from None
+
+    def content_digest(self) -> str:
+        """Short hash of the contents (16 hex digits of a SHA-256).
+
+        Covers the format name and, in the fixed order of the module table, every column
+        present (optional ones included): its name, dtype, shape and bytes.  Two
+        recordings with equal arrays have equal digests wherever they are stored; any
+        changed value (one bit suffices), a column added or removed, or the same values
+        under another column change it.
+        """
+        h = hashlib.sha256(FORMAT.encode())
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is None:
+                continue
+            arr = np.ascontiguousarray(value)
+            h.update(f"\n{f.name}|{arr.dtype.str}|{arr.shape}\n".encode())
+            h.update(arr.tobytes())
+        return h.hexdigest()[:16]
+
+
+def _check_archive_file(path: Path) -> None:
+    """Refuse, naming ``path``, what cannot be an ``.npz`` archive: nothing there
+    (``FileNotFoundError``), a directory, an empty file, or a file without a zip
+    directory (text, ``.npy``, pickle, a truncated archive) (``ValueError``)."""
+    if not path.exists():
+        raise FileNotFoundError(errno.ENOENT, "no such recording file", str(path))
+    if path.is_dir():
+        raise ValueError(f"recording {path}: is a directory, not an .npz archive")
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            head = fh.read(4)
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as exc:
+        raise ValueError(f"recording {path}: cannot be read ({exc.strerror or exc})") from exc
+    if size == 0:
+        raise ValueError(f"recording {path}: empty file, not an .npz archive")
+    if head not in _ZIP_MAGIC:  # numpy would try to unpickle it, or read it as .npy
+        raise ValueError(f"recording {path}: not an .npz archive (it starts with {head!r}, not a zip signature)")
+    if not is_zip:
+        raise ValueError(f"recording {path}: not an .npz archive (a truncated or damaged zip file: no zip directory)")
+
+
+class _ColumnError(ValueError):
+    """A member of an archive that cannot be read (the message names the file and the column)."""
+
+
+def _read_column(path: Path, npz, key: str) -> np.ndarray:
+    """One member of an open archive; a member that cannot be read (damaged, or pickled
+    objects, which are never loaded) becomes a ``ValueError`` naming the file and the column."""
+    try:
+        return npz[key]
+    except _READ_ERRORS as exc:
+        raise _ColumnError(f"recording {path}: column '{key}' cannot be read ({type(exc).__name__}: {exc})") from exc
+
+
+def _real_column(key: str, value) -> np.ndarray:
+    """A float column as float64: integers are converted; bool, complex, string and object
+    arrays are refused naming the column and the dtype (casting complex to float would drop
+    the imaginary part, object or string arrays would fail or be parsed)."""
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"recording: column '{key}' must hold real numbers, got dtype {arr.dtype}")
+    return arr.astype(np.float64, copy=False)
 
 
 def _validate(a: dict[str, np.ndarray | None]) -> None:
-    time = np.asarray(a["time"], dtype=np.float64)
+    time = _real_column("time", a["time"])
     if time.ndim != 1 or time.size == 0:
         raise ValueError(f"recording: column 'time' must be a non-empty 1-D array, got shape {time.shape}")
     T = time.size
@@ -127,7 +240,7 @@ def _validate(a: dict[str, np.ndarray | None]) -> None:
         row = int(np.argmax(steps <= 0)) + 1
         raise ValueError(f"recording: column 'time' is not strictly increasing at row {row} ({time[row - 1]} → {time[row]})")
     a["time"] = time
-    gyro = np.asarray(a["gyro"], dtype=np.float64)
+    gyro = _real_column("gyro", a["gyro"])
     if gyro.ndim != 3 or gyro.shape[1:] != (T, 3):
         raise ValueError(f"recording: column 'gyro' must have shape [B, {T}, 3], got {gyro.shape}")
     B = gyro.shape[0]
@@ -146,13 +259,13 @@ def _validate(a: dict[str, np.ndarray | None]) -> None:
             raise ValueError(f"recording: column 'gyro_valid' must have shape [{B}, {T}], got {gv.shape}")
         a["gyro_valid"] = gv
     for key in ("star_body", "star_inertial"):
-        v = np.asarray(a[key], dtype=np.float64)
+        v = _real_column(key, a[key])
         if v.shape != (B, T, M, 3):
             raise ValueError(f"recording: column '{key}' must have shape [{B}, {T}, {M}, 3], got {v.shape}")
         a[key] = v
     for key in ("truth_mrp", "truth_bias"):
         if a[key] is not None:
-            v = np.asarray(a[key], dtype=np.float64)
+            v = _real_column(key, a[key])
             if v.shape != (B, T, 3):
                 raise ValueError(f"recording: column '{key}' must have shape [{B}, {T}, 3], got {v.shape}")
             a[key] = v

@@ -44,7 +44,7 @@ from torch import Tensor
 
 from agsf_torch.rotations import quat_to_dcm
 
-from ._checks import check_real
+from ._checks import MAX_STARS, check_camera_bounds, check_count, check_real, check_vector
 from .catalog import StarCatalog
 from .random import CounterKey, counter_normal
 
@@ -87,11 +87,12 @@ class StarCamera:
         catalog: the stars (sorted brightest first).
         fov_deg: full field of view ``(fov_x, fov_y)`` in degrees, each in ``(0, 180)``;
             a single number means square.
-        focal_length: f (m), > 0.
-        max_stars: M ≥ 1, the number of brightest visible stars reported.
-        sigma: σ (rad per axis), ≥ 0 and finite.
+        focal_length: f (m), in ``[1e-6, 1e3]``.
+        max_stars: M, the number of brightest visible stars reported, in ``[1, 117 955]``.
+        sigma: σ (rad per axis), in ``[0, 1]``.
         noise: ``"focal_plane"`` or ``"unit_vector"`` (module docstring).
-        principal_point: ``(x₀, y₀)`` (m), finite.
+        principal_point: ``(x₀, y₀)`` (m), within the imaged field (``|x₀| ≤ f tan(fov_x/2)``,
+            likewise y); the ranges are explained in :func:`envs._checks.check_camera_bounds`.
         index: ``"grid"`` (cube-map sky index, default) or ``"dense"`` (test every star).
 
     Raises:
@@ -111,7 +112,7 @@ class StarCamera:
     ) -> None:
         if not isinstance(catalog, StarCatalog):
             raise ValueError(f"StarCamera: catalog must be a StarCatalog, got {type(catalog).__name__}")
-        if isinstance(fov_deg, (int, float)):
+        if isinstance(fov_deg, (int, float)) and not isinstance(fov_deg, bool):
             fov_deg = (fov_deg, fov_deg)
         fov = tuple(fov_deg)
         if len(fov) != 2:
@@ -122,22 +123,14 @@ class StarCamera:
                 raise ValueError(f"StarCamera: fov_deg must be < 180 degrees, got {fov_deg!r}")
         self.fov_deg: tuple[float, float] = fov  # type: ignore[assignment]
         self.focal_length = _finite_positive("focal_length", focal_length)
-        if isinstance(max_stars, bool) or int(max_stars) != max_stars or int(max_stars) < 1:
-            raise ValueError(f"StarCamera: max_stars must be an integer ≥ 1, got {max_stars!r}")
-        self.max_stars = int(max_stars)
-        sigma = float(sigma)
-        if not math.isfinite(sigma) or sigma < 0.0:
-            raise ValueError(f"StarCamera: sigma must be finite and ≥ 0, got {sigma}")
-        self.sigma = sigma
+        self.max_stars = check_count("StarCamera", "max_stars", max_stars, upper=MAX_STARS)
+        self.sigma = check_real("StarCamera", "sigma", sigma)
         if noise not in NOISE_MODES:
             raise ValueError(f"StarCamera: noise must be one of {NOISE_MODES}, got {noise!r}")
         self.noise = noise
-        pp = tuple(float(v) for v in principal_point)
-        if len(pp) != 2 or not all(math.isfinite(v) for v in pp):
-            raise ValueError(
-                f"StarCamera: principal_point must be 2 finite values (m), got {principal_point!r}"
-            )
+        pp = check_vector("StarCamera", "principal_point", principal_point, 2, unit=" (m)")
         self.principal_point: tuple[float, float] = pp  # type: ignore[assignment]
+        check_camera_bounds("StarCamera", self.focal_length, fov, self.sigma, pp)  # type: ignore[arg-type]
         if index not in ("grid", "dense"):
             raise ValueError(f"StarCamera: index must be 'grid' or 'dense', got {index!r}")
         self.index = index

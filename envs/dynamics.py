@@ -19,16 +19,24 @@ this held rate (:mod:`envs.gyro`), so the truth and the measurement model agree.
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence, Union
+from typing import Any, Callable, Sequence, Union
 
 import torch
 from torch import Tensor
 
 from agsf_torch.rotations import quat_multiply, rotvec_to_quat
 
-from ._checks import check_real
+from ._checks import check_real, check_rotation_per_step, check_vector
 
-__all__ = ["DEFAULT_OMEGA0", "DEFAULT_RATE", "RateLike", "AttitudeDynamics", "propagate_quat", "propagate_quat_block"]
+__all__ = [
+    "DEFAULT_OMEGA0",
+    "DEFAULT_RATE",
+    "RateLike",
+    "AttitudeDynamics",
+    "check_constant_rate",
+    "propagate_quat",
+    "propagate_quat_block",
+]
 
 DEFAULT_OMEGA0 = 2.0 * math.pi / 100.0
 """ω₀ = 2π/100 rad/s."""
@@ -78,12 +86,28 @@ def propagate_quat_block(q: Tensor, omega: Tensor, dt: float) -> Tensor:
     return torch.stack(out)
 
 
+def check_constant_rate(owner: str, rate: Any, dt: float) -> tuple[float, float, float]:
+    """A constant truth rate (rad/s) as 3 floats, validated for the step Δt (s): 3 finite
+    numbers whose rotation per step stays below half a turn (``|ω|·Δt < π``,
+    :func:`~envs._checks.check_rotation_per_step`).  Shared by :class:`AttitudeDynamics` and
+    :class:`~envs.config.StarTrackerConfig`.
+
+    Raises:
+        ValueError: naming ``owner``, ``rate`` and the value.
+    """
+    vec = check_vector(owner, "rate", rate, 3, unit=" (rad/s)")
+    check_rotation_per_step(owner, f"rate {math.hypot(*vec):.6g} rad/s", math.hypot(*vec), dt)
+    return vec  # type: ignore[return-value]
+
+
 class AttitudeDynamics:
     """The truth rate profile and attitude step.
 
     Args:
         rate: constant body rate (3 finite numbers, rad/s) or a callable
-            ``rate(t [B]) -> [B, 3]`` (torch; t in s, rate in rad/s).
+            ``rate(t [B]) -> [B, 3]`` (torch; t in s, rate in rad/s).  Either must turn
+            less than half a turn per step, ``|ω|·Δt < π`` (checked on every call of a
+            callable profile, before the state it feeds is touched).
         dt: step Δt (s), finite > 0.
 
     Raises:
@@ -97,24 +121,15 @@ class AttitudeDynamics:
             self.rate_fn = rate
             self.rate_const = None
         else:
-            if isinstance(rate, Tensor):
-                rate = rate.detach().cpu().tolist()
-            try:
-                vec = tuple(float(v) for v in rate)  # type: ignore[union-attr]
-            except (TypeError, ValueError):
-                raise ValueError(
-                    f"AttitudeDynamics: rate must be 3 numbers (rad/s) or a callable, got {rate!r}"
-                ) from None
-            if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
-                raise ValueError(f"AttitudeDynamics: rate must be 3 finite numbers (rad/s), got {rate!r}")
             self.rate_fn = None
-            self.rate_const = vec
+            self.rate_const = check_constant_rate("AttitudeDynamics", rate, self.dt)
 
     def rate(self, t: Tensor) -> Tensor:
         """Body rate at times ``t [B]`` (s) → ``[B, 3]`` (rad/s), dtype/device of ``t``.
 
         Raises:
-            ValueError: if a callable profile returns the wrong shape or non-finite values.
+            ValueError: if a callable profile returns the wrong shape, non-finite values or a
+                rate with ``|ω|·Δt ≥ π`` (naming the rate and the time).
         """
         if self.rate_fn is None:
             w = torch.tensor(self.rate_const, dtype=t.dtype, device=t.device)
@@ -125,6 +140,12 @@ class AttitudeDynamics:
             raise ValueError(f"AttitudeDynamics: rate(t) must return a tensor of shape {(*t.shape, 3)}, got {shape}")
         if not torch.isfinite(w).all():
             raise ValueError("AttitudeDynamics: rate(t) returned non-finite values")
+        norm = torch.linalg.vector_norm(w.detach(), dim=-1)
+        if not bool((norm * self.dt < math.pi).all()):
+            i = int(torch.argmax(norm.reshape(-1)))  # norm has the shape of t
+            fast, at = float(norm.reshape(-1)[i]), float(t.reshape(-1)[i])
+            what = f"rate(t) returned {fast:.6g} rad/s at t = {at:.6g} s, which"
+            check_rotation_per_step("AttitudeDynamics", what, fast, self.dt)
         return w.to(t.dtype)
 
     def held_rate(self, t_start: Tensor) -> Tensor:

@@ -34,7 +34,17 @@ from typing import Any
 import torch
 from torch import Tensor
 
-__all__ = ["FAULT_KINDS", "SensorFault", "parse_faults", "apply_gyro_faults", "apply_star_faults", "nearest_other_star"]
+from ._checks import real_number
+
+__all__ = [
+    "FAULT_KINDS",
+    "SensorFault",
+    "parse_faults",
+    "check_fault_slots",
+    "apply_gyro_faults",
+    "apply_star_faults",
+    "nearest_other_star",
+]
 
 FAULT_KINDS = ("misidentified_star", "star_outage", "gyro_dropout", "gyro_saturation")
 _TIME_TOLERANCE = 1e-9  # s: a sample at t = start (to rounding) is inside the window
@@ -47,10 +57,11 @@ class SensorFault:
 
     Attributes:
         kind: one of :data:`FAULT_KINDS`.
-        start: window start (s), ≥ 0.
+        start: window start (s), a number ≥ 0 (an int is converted; bools and strings are refused).
         end: window end (s), > ``start`` (exclusive).
         slot: ``misidentified_star`` only: the star slot (0 = brightest visible) whose
-            catalogue vector is wrong, ≥ 0.
+            catalogue vector is wrong, an integer ≥ 0 and below the camera's ``max_stars``
+            (checked where the faults meet it: :func:`check_fault_slots`).
         limit: ``gyro_saturation`` only: the per-axis range (rad/s), > 0.
     """
 
@@ -65,10 +76,7 @@ class SensorFault:
         if self.kind not in FAULT_KINDS:
             raise ValueError(f"SensorFault: kind must be one of {FAULT_KINDS}, got {self.kind!r}")
         for name in ("start", "end"):
-            try:
-                v = float(getattr(self, name))
-            except (TypeError, ValueError):
-                raise ValueError(f"SensorFault: {name} must be a number (s), got {getattr(self, name)!r}") from None
+            v = real_number("SensorFault", name, getattr(self, name))
             if not math.isfinite(v) or v < 0:
                 raise ValueError(f"SensorFault: {name} must be finite and ≥ 0 (s), got {getattr(self, name)!r}")
             put(name, v)
@@ -77,10 +85,9 @@ class SensorFault:
         if isinstance(self.slot, bool) or not isinstance(self.slot, int) or self.slot < 0:
             raise ValueError(f"SensorFault: slot must be an integer ≥ 0, got {self.slot!r}")
         if self.kind == "gyro_saturation":
-            try:
-                lim = float(self.limit)  # type: ignore[arg-type]
-            except (TypeError, ValueError):
-                raise ValueError(f"SensorFault: gyro_saturation needs limit > 0 (rad/s), got {self.limit!r}") from None
+            if self.limit is None:
+                raise ValueError("SensorFault: gyro_saturation needs limit > 0 (rad/s), got None")
+            lim = real_number("SensorFault", "limit", self.limit)
             if not math.isfinite(lim) or lim <= 0:
                 raise ValueError(f"SensorFault: gyro_saturation needs limit > 0 (rad/s), got {self.limit!r}")
             put("limit", lim)
@@ -101,8 +108,14 @@ class SensorFault:
         return d
 
 
-def parse_faults(value: Any) -> tuple[SensorFault, ...]:
+def parse_faults(value: Any, max_stars: int | None = None) -> tuple[SensorFault, ...]:
     """Faults from :class:`SensorFault` objects or mappings (``{"kind": …, "start": …}``).
+
+    Args:
+        value: a list (or tuple) of faults, or ``None`` for none.
+        max_stars: M, the stars per frame, if known: a ``misidentified_star`` fault must
+            name an existing slot (< M; :func:`check_fault_slots`).  Without it the slot
+            is checked when the faults meet a camera (:class:`~envs.config.StarTrackerConfig`).
 
     Raises:
         ValueError: naming the entry and the problem.
@@ -127,7 +140,25 @@ def parse_faults(value: Any) -> tuple[SensorFault, ...]:
             raise ValueError(f"faults[{i}]: {exc}; needs kind, start and end") from None
         except ValueError as exc:
             raise ValueError(f"faults[{i}]: {exc}") from None
+    if max_stars is not None:
+        check_fault_slots(out, max_stars)
     return tuple(out)
+
+
+def check_fault_slots(faults: Sequence[SensorFault], max_stars: int) -> None:
+    """Refuse a ``misidentified_star`` fault whose slot does not exist in a frame of
+    ``max_stars`` (M) stars: slots are ``0 … M−1``, and a fault on a slot ≥ M would
+    never be injected.
+
+    Raises:
+        ValueError: ``"faults[i]: misidentified_star slot s does not exist: …"``.
+    """
+    for i, fault in enumerate(faults):
+        if fault.kind == "misidentified_star" and fault.slot >= max_stars:
+            raise ValueError(
+                f"faults[{i}]: misidentified_star slot {fault.slot} does not exist: a frame reports "
+                f"max_stars={max_stars} stars (slots 0…{max_stars - 1})"
+            )
 
 
 def apply_gyro_faults(faults: Sequence[SensorFault], gyro: Tensor, time: Tensor) -> tuple[Tensor, Tensor]:
@@ -174,7 +205,11 @@ def apply_star_faults(
 
     Returns:
         ``(star_body, star_inertial, star_mask)`` with the faults applied.
+
+    Raises:
+        ValueError: for a ``misidentified_star`` slot ≥ M (:func:`check_fault_slots`).
     """
+    check_fault_slots(faults, mask.shape[-1])
     frame_shape = mask.shape[:-1]
     for fault in faults:
         if fault.kind == "star_outage":
@@ -182,7 +217,7 @@ def apply_star_faults(
             mask = mask & ~on[..., None]
             body = torch.where(on[..., None, None], torch.zeros_like(body), body)
             inertial = torch.where(on[..., None, None], torch.zeros_like(inertial), inertial)
-        elif fault.kind == "misidentified_star" and fault.slot < mask.shape[-1]:
+        elif fault.kind == "misidentified_star":
             hit = fault.active(time).expand(frame_shape) & mask[..., fault.slot]
             if not bool(hit.any()):
                 continue

@@ -14,12 +14,12 @@ Units: σ_v in rad/s^½ (angle random walk), σ_u in rad/s^{3/2} (rate random wa
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 from torch import Tensor
 
-from ._checks import check_real
+from ._checks import check_period, check_real, check_rotation_per_step, check_vector
 
 __all__ = [
     "DEG_PER_HOUR",
@@ -27,6 +27,7 @@ __all__ = [
     "DEFAULT_SIGMA_U",
     "DEFAULT_INITIAL_BIAS",
     "Gyro",
+    "check_gyro_settings",
 ]
 
 # The simulated gyro's own values (the truth); the filters' assumed values are in
@@ -41,23 +42,30 @@ DEFAULT_INITIAL_BIAS = (0.1 * DEG_PER_HOUR,) * 3
 """Initial bias, 0.1 deg/hr on each axis (rad/s)."""
 
 
-def _nonneg(name: str, value: float) -> float:
-    return check_real("Gyro", name, value)
+def check_gyro_settings(
+    owner: str, sigma_v: Any, sigma_u: Any, dt: Any, initial_bias: Any
+) -> tuple[float, float, float, tuple[float, float, float]]:
+    """Validated gyro settings ``(σ_v, σ_u, Δt, b_0)``, shared by :class:`Gyro` and
+    :class:`~envs.config.StarTrackerConfig`.
 
+    Ranges: σ_v, σ_u finite ≥ 0 (rad/s^½, rad/s^{3/2}); Δt finite and ≥
+    :data:`~envs._checks.MIN_PERIOD` (s); ``b_0`` a number (every axis) or 3 finite
+    numbers (rad/s).  Physical limit (:func:`~envs._checks.check_rotation_per_step`):
+    the initial bias ``|b_0|`` and the 1-σ reading noise ``sqrt(σ_v²/Δt + σ_u²Δt/12)``
+    must each turn less than half a turn per step (``·Δt < π``): a reading is a rate
+    over one step, and beyond π/Δt it no longer describes a sampled rotation.
 
-def _vector3(owner: str, name: str, value) -> tuple[float, float, float]:
-    """A finite 3-vector from a scalar (all axes) or 3 numbers."""
-    if isinstance(value, Tensor):
-        value = value.detach().cpu().tolist()
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        value = (value,) * 3
-    try:
-        vec = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{owner}: {name} must be a number or 3 numbers, got {value!r}") from None
-    if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
-        raise ValueError(f"{owner}: {name} must be 3 finite numbers, got {value!r}")
-    return vec  # type: ignore[return-value]
+    Raises:
+        ValueError: naming ``owner``, the field and the value.
+    """
+    sigma_v = check_real(owner, "sigma_v", sigma_v)
+    sigma_u = check_real(owner, "sigma_u", sigma_u)
+    dt = check_period(owner, "dt", dt)
+    bias = check_vector(owner, "initial_bias", initial_bias, 3, scalar_ok=True)
+    check_rotation_per_step(owner, f"initial_bias {math.hypot(*bias):.6g} rad/s", math.hypot(*bias), dt)
+    noise = math.hypot(sigma_v / math.sqrt(dt), sigma_u * math.sqrt(dt / 12.0))
+    check_rotation_per_step(owner, f"gyro noise (1-σ reading) {noise:.6g} rad/s", noise, dt)
+    return sigma_v, sigma_u, dt, bias  # type: ignore[return-value]
 
 
 class Gyro:
@@ -66,8 +74,11 @@ class Gyro:
     Args:
         sigma_v: angle random walk σ_v (rad/s^½), finite ≥ 0.
         sigma_u: rate random walk σ_u (rad/s^{3/2}), finite ≥ 0.
-        dt: gyro period Δt (s), finite > 0.
+        dt: gyro period Δt (s), finite, ≥ 1e-9 s.
         initial_bias: ``b_0`` (rad/s), a scalar (every axis) or 3 numbers, finite.
+
+    The bias and the reading noise must each turn less than half a turn per step
+    (:func:`check_gyro_settings`).
 
     Attributes:
         rate_noise_std: ``sqrt(σ_v²/Δt + σ_u²Δt/12)`` (rad/s), std of each axis of
@@ -85,16 +96,10 @@ class Gyro:
         dt: float = 0.1,
         initial_bias: float | Sequence[float] = DEFAULT_INITIAL_BIAS,
     ) -> None:
-        self.sigma_v = _nonneg("sigma_v", sigma_v)
-        self.sigma_u = _nonneg("sigma_u", sigma_u)
-        try:
-            dt = float(dt)
-        except (TypeError, ValueError):
-            raise ValueError(f"Gyro: dt must be a number, got {dt!r}") from None
-        if not math.isfinite(dt) or dt <= 0.0:
-            raise ValueError(f"Gyro: dt must be finite and > 0, got {dt}")
-        self.dt = dt
-        self.initial_bias = _vector3("Gyro", "initial_bias", initial_bias)
+        self.sigma_v, self.sigma_u, self.dt, self.initial_bias = check_gyro_settings(
+            "Gyro", sigma_v, sigma_u, dt, initial_bias
+        )
+        dt = self.dt
         self.rate_noise_std = math.sqrt(self.sigma_v**2 / dt + self.sigma_u**2 * dt / 12.0)
         self.bias_step_std = self.sigma_u * math.sqrt(dt)
 

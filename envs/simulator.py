@@ -26,6 +26,7 @@ from torch import Tensor
 
 from agsf_torch.rotations import attitude_error_angle, mrp_to_quat, quat_to_dcm, quat_to_mrp
 
+from ._checks import check_count, check_mrp
 from .camera import StarCamera
 from .catalog import shared_hipparcos
 from .config import StarTrackerConfig
@@ -75,10 +76,10 @@ class StarTrackerSimulator:
     """
 
     def __init__(self, config: StarTrackerConfig, num_envs: int, device: torch.device | str = "cpu") -> None:
-        if isinstance(num_envs, bool) or int(num_envs) != num_envs or int(num_envs) < 1:
-            raise ValueError(f"num_envs must be an integer ≥ 1, got {num_envs!r}")
+        if not isinstance(config, StarTrackerConfig):
+            raise ValueError(f"StarTrackerSimulator: config must be a StarTrackerConfig, got {type(config).__name__}")
         self.config = config
-        self.num_envs = int(num_envs)
+        self.num_envs = check_count("StarTrackerSimulator", "num_envs", num_envs)
         self.device = torch.device(device)
         self.dtype = torch.float64
         self.gyro = Gyro(config.sigma_v, config.sigma_u, config.dt, config.initial_bias)
@@ -232,19 +233,18 @@ class StarTrackerSimulator:
         cfg = self.config
         b = self.num_envs
         seeds = seeds.to(device=self.device, dtype=torch.int64).reshape(b)
-        self.seeds = seeds
-        self.step_index = 0
         if cfg.initial_attitude == "random":
             z = counter_normal(seeds, 0, STREAM_INITIAL_ATTITUDE, (4,), dtype=self.dtype)
             q = z / torch.linalg.vector_norm(z, dim=-1, keepdim=True)
         else:
             p0 = torch.tensor(cfg.initial_attitude, dtype=self.dtype, device=self.device)
             q = mrp_to_quat(p0).expand(b, 4).clone()
-        self.q = q
-        self.bias = self.gyro.initial_bias_tensor((b,), self.dtype, self.device)
+        bias = self.gyro.initial_bias_tensor((b,), self.dtype, self.device)
         t0 = torch.zeros(b, dtype=self.dtype, device=self.device)
-        self.rate = self.dynamics.rate(t0).expand(b, 3).clone()
+        rate = self.dynamics.rate(t0).expand(b, 3).clone()  # a callable profile is checked here
         n_v = counter_normal(seeds, 0, STREAM_GYRO_RATE_NOISE, (3,), dtype=self.dtype)
+        # Everything computed: only now is the state replaced.
+        self.seeds, self.step_index, self.q, self.bias, self.rate = seeds, 0, q, bias, rate
         self.last_gyro = self.gyro.read(self.rate, self.bias, n_v)
         return self._obs(self.last_gyro, self._no_stars()), self._info()
 
@@ -260,8 +260,14 @@ class StarTrackerSimulator:
         return self._obs(block.gyro[0], stars), self._info()  # type: ignore[arg-type]
 
     def reward(self, action: Tensor) -> Tensor:
-        """``−θ(action, p_k)`` (rad) against the current truth; ``action [B, 3]`` (MRP) → ``[B]``."""
+        """``−θ(action, p_k)`` (rad) against the current truth; ``action [B, 3]`` (MRP) → ``[B]``.
+
+        Raises:
+            ValueError: for a non-finite action or one with a component beyond ±1e150
+                (:func:`envs._checks.check_mrp`), naming the index; nothing changes.
+        """
         assert self.q is not None, "call reset() first"
+        check_mrp("StarTrackerSimulator", "action", action)
         return -attitude_error_angle(action, quat_to_mrp(self.q))
 
     def next_seeds(self) -> Tensor:

@@ -13,7 +13,8 @@ One step is one gyro period Δt.  Timeline (**[choice]**, documented):
 * ``step(action)`` scores the action — the estimate of the attitude at the time of
   the *last* observation, ``t_k`` — with ``reward = −θ(action, p_k)`` (rad, the
   rotation angle between the two attitudes; any MRP, shadow sets included, is
-  accepted), then advances the truth over ``(t_k, t_{k+1}]`` with the held rate
+  accepted with components within ±1e150 — beyond, it is refused before anything
+  changes, see :data:`envs._checks.MRP_LIMIT`), then advances the truth over ``(t_k, t_{k+1}]`` with the held rate
   ``ω_{k+1}`` (:mod:`envs.dynamics`) and returns the observation at ``t_{k+1}``:
   the gyro reading ``ω̃_{k+1}`` of that interval (:mod:`envs.gyro`) — the one to
   propagate a filter from ``t_k`` to ``t_{k+1}`` — and, when ``k+1`` is a multiple of
@@ -54,6 +55,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from torch import Tensor
 
+from ._checks import check_mrp
 from .config import StarTrackerConfig
 from .random import SEED_MASK, as_int64
 from .simulator import StarTrackerSimulator
@@ -90,6 +92,30 @@ def _seed_tensor(seed: Any, num_envs: int) -> Tensor:
     return torch.tensor([as_int64(v) for v in vals], dtype=torch.int64)
 
 
+def _action_tensor(owner: str, name: str, value: Any, shape: tuple[int, ...], device: torch.device) -> Tensor:
+    """An action as a float64 tensor of ``shape`` (MRPs, last dim 3), checked before anything
+    happens: real numbers only (no bool, complex, string or object dtype), the shape, and
+    finite components within ±1e150 (:func:`envs._checks.check_mrp`, which names the index).
+
+    Raises:
+        ValueError: ``"{owner}: {name} …"`` naming the dtype, the shape or the offending entry.
+    """
+    if isinstance(value, Tensor):
+        if value.dtype.is_complex or value.dtype == torch.bool:
+            raise ValueError(f"{owner}: {name} must hold real numbers, got dtype {value.dtype}")
+        a = value.to(device=device, dtype=torch.float64)
+    else:
+        arr = np.asarray(value)
+        if arr.dtype.kind not in "iuf":
+            raise ValueError(f"{owner}: {name} must hold real numbers, got dtype {arr.dtype}")
+        a = torch.as_tensor(arr.astype(np.float64, copy=False), device=device)
+    if a.shape != shape:
+        what = "an MRP" if len(shape) == 1 else "MRPs"
+        raise ValueError(f"{owner}: {name} must be {what} of shape {shape}, got shape {tuple(a.shape)}")
+    check_mrp(owner, name, a)
+    return a
+
+
 # ============================================================================ single env
 class StarTrackerAttitudeEnv(gym.Env):
     """Single-trajectory star-tracker attitude environment (numpy observations).
@@ -102,7 +128,8 @@ class StarTrackerAttitudeEnv(gym.Env):
     Observation (dict of numpy arrays): ``gyro [3]`` (rad/s), ``gyro_valid [1]`` (bool:
     false for a missing or saturated sample, see :mod:`envs.faults`), ``star_body [M, 3]``,
     ``star_inertial [M, 3]`` (unit vectors, zeros where masked), ``star_mask [M]``
-    (bool), ``time [1]`` (s).  Action: MRP estimate ``[3]``.  Reward: ``−θ`` (rad).
+    (bool), ``time [1]`` (s).  Action: MRP estimate ``[3]`` (real numbers, finite, each
+    within ±1e150).  Reward: ``−θ`` (rad).
     Info: ``truth_mrp [3]``, ``truth_bias [3]`` (rad/s), ``truth_rate [3]`` (rad/s).
     See the module docstring for the timeline.
     """
@@ -136,16 +163,17 @@ class StarTrackerAttitudeEnv(gym.Env):
         return self._np(obs), self._np(info)
 
     def step(self, action):
-        """Score ``action`` (MRP ``[3]``) against the truth at the current time, then advance Δt."""
+        """Score ``action`` (MRP ``[3]``) against the truth at the current time, then advance Δt.
+
+        Raises:
+            ValueError: for an action that is not 3 real, finite numbers within ±1e150
+                (naming the dtype, shape or entry), before the state advances.
+        """
         if self.sim.q is None:
             raise RuntimeError("call reset() before step()")
         if self.sim.step_index >= self.config.max_steps:
             raise RuntimeError("the episode is over (truncated); call reset()")
-        a = torch.as_tensor(np.asarray(action, dtype=np.float64), device=self.sim.device)
-        if a.shape != (3,):
-            raise ValueError(f"action must be an MRP of shape (3,), got shape {tuple(a.shape)}")
-        if not torch.isfinite(a).all():
-            raise ValueError(f"action must be finite, got {np.asarray(action)!r}")
+        a = _action_tensor("StarTrackerAttitudeEnv", "action", action, (3,), self.sim.device)
         reward = float(self.sim.reward(a[None])[0])
         obs, info = self.sim.advance()
         truncated = self.sim.step_index >= self.config.max_steps
@@ -224,19 +252,12 @@ class StarTrackerAttitudeVectorEnv(VectorEnv):
         self._seeded = bool(state["seeded"])
         self._needs_reset = bool(state["needs_reset"])
 
-    def _action_tensor(self, actions: Any) -> Tensor:
-        a = torch.as_tensor(actions, dtype=torch.float64, device=self.device)
-        if a.shape != (self.num_envs, 3):
-            raise ValueError(f"actions must have shape ({self.num_envs}, 3), got {tuple(a.shape)}")
-        if not torch.isfinite(a).all():
-            raise ValueError("actions must be finite")
-        return a
-
     def step(self, actions: Any):
         """Score the actions against the truth at the current time, then advance Δt.
 
         Args:
-            actions: MRP estimates ``[B, 3]`` (torch or numpy).
+            actions: MRP estimates ``[B, 3]`` (torch or numpy; real, finite, each
+                component within ±1e150, else ``ValueError`` before the state advances).
 
         Returns:
             ``(obs, reward [B], terminated [B], truncated [B], info)`` as torch tensors.
@@ -248,7 +269,7 @@ class StarTrackerAttitudeVectorEnv(VectorEnv):
         if self._needs_reset:  # NEXT_STEP autoreset: all trajectories ended together
             obs, info = self.reset()
             return obs, torch.zeros(b, dtype=torch.float64, device=self.device), false, false.clone(), info
-        a = self._action_tensor(actions)
+        a = _action_tensor("StarTrackerAttitudeVectorEnv", "actions", actions, (b, 3), self.device)
         reward = self.sim.reward(a)
         obs, info = self.sim.advance()
         done = self.sim.step_index >= self.config.max_steps

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import re
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -123,3 +126,121 @@ def test_gyro_valid_column_round_trips_replays_and_is_validated(tmp_path):
         Recording(**a, gyro_valid=rec.gyro_valid[:, :30])
     # without the column every sample counts as valid
     assert _run(RecordingEnv(Recording(**a, truth_mrp=rec.truth_mrp, truth_bias=rec.truth_bias))).extra["gyro_held"].sum() == 0
+
+
+# ------------------------------------------------------------------ column dtypes, file errors, atomic save, digest
+def _small(seed: int = 0, **extra) -> dict:
+    """A valid two-trajectory recording's columns (5 samples, 3 stars), built directly."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(2, 5, 3, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    cols = dict(time=np.arange(5) * 0.1, gyro=rng.normal(size=(2, 5, 3)) * 1e-3, star_body=v, star_inertial=v.copy())
+    return {**cols, "star_mask": rng.random((2, 5, 3)) < 0.7, **extra}
+
+
+@pytest.mark.parametrize("column", ["time", "gyro", "star_body", "star_inertial", "truth_mrp", "truth_bias"])
+@pytest.mark.parametrize("dtype", [np.complex128, np.complex64, object, str, bool])
+def test_non_real_columns_are_refused_naming_column_and_dtype(column, dtype):
+    a = _small(truth_mrp=np.zeros((2, 5, 3)), truth_bias=np.zeros((2, 5, 3)))
+    a[column] = a[column].astype(dtype)
+    kind = r"<U\d+" if dtype is str else str(np.dtype(dtype))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way to the error
+        with pytest.raises(ValueError, match=rf"recording: column '{column}' must hold real numbers, got dtype {kind}"):
+            Recording(**a)
+
+
+def test_integer_columns_are_accepted_as_float64():
+    a = _small()
+    a["time"] = np.arange(5)
+    rec = Recording(**a)
+    assert rec.time.dtype == np.float64 and rec.time.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+def _write_bytes(path, data: bytes):
+    path.write_bytes(data)
+    return path
+
+
+def test_load_names_the_file_for_every_kind_of_bad_file(tmp_path):
+    good = Recording(**_small()).save(tmp_path / "good.npz")
+    raw = good.read_bytes()
+    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "nope.npz"))):
+        Recording.load(tmp_path / "nope.npz")
+    (tmp_path / "folder.npz").mkdir()
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    cases = {
+        "folder.npz": "is a directory, not an .npz archive",
+        "text.npz": r"not an \.npz archive",
+        "empty.npz": r"empty file, not an \.npz archive",
+        "truncated.npz": r"not an \.npz archive",
+        "array.npy": r"not an \.npz archive",
+    }
+    _write_bytes(tmp_path / "text.npz", b"time,gyro\n0.0,1.0\n")
+    _write_bytes(tmp_path / "empty.npz", b"")
+    _write_bytes(tmp_path / "truncated.npz", raw[: len(raw) // 2])
+    for name, message in cases.items():
+        with pytest.raises(ValueError, match=rf"^recording {re.escape(str(tmp_path / name))}: {message}"):
+            Recording.load(tmp_path / name)
+
+
+def test_load_turns_a_corrupt_archive_into_a_value_error_naming_the_file(tmp_path):
+    raw = bytearray(Recording(**_small()).save(tmp_path / "good.npz").read_bytes())
+    seen = set()
+    for offset in range(30, len(raw) - 22, 7):  # every 7th byte of the members and the directory
+        flipped = bytearray(raw)
+        flipped[offset] ^= 0xFF
+        path = _write_bytes(tmp_path / "flipped.npz", bytes(flipped))
+        try:
+            Recording.load(path)
+        except ValueError as exc:
+            assert str(exc).startswith(f"recording {path}: "), str(exc)
+            seen.add(type(exc.__cause__).__name__ if exc.__cause__ else "ValueError")
+    assert {"BadZipFile", "error"} <= seen  # CRC / header errors and zlib errors were among them
+
+
+def test_load_refuses_pickled_object_columns_naming_them(tmp_path):
+    a = _small()
+    a["gyro"] = a["gyro"].astype(object)
+    np.savez(tmp_path / "objects.npz", **a)
+    with pytest.raises(ValueError, match=rf"^recording {re.escape(str(tmp_path / 'objects.npz'))}: column 'gyro' cannot be read"):
+        Recording.load(tmp_path / "objects.npz")
+
+
+def test_save_is_atomic_and_returns_the_written_path(tmp_path, monkeypatch):
+    rec = Recording(**_small())
+    assert rec.save(tmp_path / "a.npz") == tmp_path / "a.npz"
+    assert rec.save(tmp_path / "b") == tmp_path / "b.npz" and (tmp_path / "b.npz").is_file()
+    before = (tmp_path / "a.npz").read_bytes()
+
+    def interrupted(file, *args, **kwargs):
+        file.write(b"PK\x03\x04 half an archive")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez_compressed", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        Recording(**_small(seed=1)).save(tmp_path / "a.npz")
+    with pytest.raises(KeyboardInterrupt):
+        Recording(**_small(seed=1)).save(tmp_path / "new.npz")
+    assert (tmp_path / "a.npz").read_bytes() == before  # the old file is intact
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "b.npz"]  # no torn file, no temporary left
+
+
+def test_content_digest_depends_on_the_contents_only(tmp_path):
+    rec = Recording(**_small(truth_mrp=np.zeros((2, 5, 3))))
+    d = rec.content_digest()
+    assert isinstance(d, str) and len(d) == 16 and int(d, 16) >= 0
+    one = Recording.load(rec.save(tmp_path / "one.npz"))
+    (tmp_path / "sub").mkdir()
+    two = Recording.load(rec.save(tmp_path / "sub" / "two.npz"))
+    assert one.content_digest() == two.content_digest() == d
+    assert Recording(**_small(truth_mrp=np.zeros((2, 5, 3)))).content_digest() == d  # rebuilt from equal arrays
+    changed = _small(truth_mrp=np.zeros((2, 5, 3)))
+    changed["gyro"][1, 3, 2] = np.nextafter(changed["gyro"][1, 3, 2], 1.0)  # one value, by one ulp
+    assert Recording(**changed).content_digest() != d
+    flipped = _small(truth_mrp=np.zeros((2, 5, 3)))
+    flipped["star_mask"][0, 0, 0] = ~flipped["star_mask"][0, 0, 0]
+    assert Recording(**flipped).content_digest() != d
+    assert Recording(**_small()).content_digest() != d  # without the optional column
+    moved = _small(truth_bias=np.zeros((2, 5, 3)))  # the same zeros under another column
+    assert Recording(**moved).content_digest() != d

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from ..density import PosteriorReference
+from ..files import save_figure, write_json, write_text
 from ..filters.registry import FILTER_NAMES
 from ..metrics import nees, rms
 from ..rotations import attitude_error_angle
@@ -246,7 +247,7 @@ def _figure(path: Path, name: str, summary: dict[str, Any]) -> None:
                 a.axvline(tf, color="0.85", lw=0.5, zorder=0)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -274,7 +275,7 @@ def _scores_figure(path: Path, summaries: dict[str, dict[str, Any]]) -> None:
     ax.legend(fontsize=8)
     ax.grid(True, axis="y", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -318,12 +319,10 @@ def run_adaptation_study(
         summaries[name] = summarize_scenario(res, cfg)
         _figure(out / f"{name}.png", name, summaries[name])
         _tensorboard(out / "tensorboard" / name, summaries[name], res)
-        tmp = out / "summary.json.tmp"
-        tmp.write_text(json.dumps(summaries))
-        tmp.replace(out / "summary.json")
+        write_json(out / "summary.json", summaries)
     _scores_figure(out / "scores.png", summaries)
     table = "\n\n".join(f"{w.replace('_', ' ')}:\n\n{study_table(summaries, w)}" for w in ("before_first_frame", "between_frames", "all"))
-    (out / "results.md").write_text(table + "\n")
+    write_text(out / "results.md", table + "\n")
     return summaries
 
 

@@ -31,6 +31,7 @@ from typing import Any
 
 import torch
 
+from ..files import write_json
 from .bench_harness import WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
 from .bench_report import format_table, targets
 
@@ -179,9 +180,7 @@ def run_bench(out: Path | None = None, *, compile: bool = True, quick: bool = Fa
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        tmp = out / "bench.json.tmp"
-        tmp.write_text(json.dumps(report, indent=2))
-        tmp.replace(out / "bench.json")
+        write_json(out / "bench.json", report, indent=2)
     return report
 
 

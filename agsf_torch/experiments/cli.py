@@ -37,37 +37,79 @@ import torch
 __all__ = ["main"]
 
 
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+
+
 def _positive_int(text: str) -> int:
-    value = int(text)
+    value = _integer(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
     return value
 
 
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+
+
 def _positive_float(text: str) -> float:
-    value = float(text)
+    value = _number(text)
     if not np.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"must be a finite positive number, got {text}")
+    return value
+
+
+def _nonnegative_float(text: str) -> float:
+    value = _number(text)
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number ≥ 0, got {text}")
+    return value
+
+
+def _seed(text: str) -> int:
+    from .config import MAX_SEED
+
+    value = _integer(text)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, {MAX_SEED}], got {text}")
     return value
 
 
 def _simulate(args: argparse.Namespace) -> int:
     import envs
 
+    from ..files import write_json
     from ..recordings import FORMAT
     from .experiment import prepare_output
     from .recorded import record_environment
+    from .resources import refuse_if_too_large, simulation_memory
 
+    if args.seed > envs.random.SEED_MASK - (args.runs - 1):
+        raise ValueError(f"--seed must be ≤ {envs.random.SEED_MASK - (args.runs - 1)} with --runs {args.runs}, got {args.seed}")
     params = {"runs": args.runs, "steps": args.steps, "star_period": args.star_period, "seed": args.seed}
+    config = envs.StarTrackerConfig(max_steps=args.steps, star_period=args.star_period)  # validates before anything is created
+    refuse_if_too_large(
+        simulation_memory(args.runs, args.steps, config.max_stars), f"simulating --runs {args.runs} × --steps {args.steps}",
+        force=args.force,
+    )
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, config=config)
     out = prepare_output(Path(args.out), "simulate", json.dumps(params, sort_keys=True), params)
-    env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, max_steps=args.steps, star_period=args.star_period)
     t0 = time.perf_counter()
     rec = record_environment(env, args.steps, args.seed)
     path = rec.save(out / "recording.npz")
     elapsed = time.perf_counter() - t0
     counts = np.bincount(rec.star_mask[:, rec.star_frames()].sum(-1).ravel(), minlength=env.config.max_stars + 1)
-    summary = {**params, "command": "simulate", "format": FORMAT, "seconds": elapsed, "stars_per_frame_histogram": counts.tolist()}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    summary = {
+        **params, "command": "simulate", "format": FORMAT, "recording_digest": rec.content_digest(), "seconds": elapsed,
+        "stars_per_frame_histogram": counts.tolist(),
+    }
+    write_json(out / "summary.json", summary, indent=2)
     print(f"simulated {args.runs} trajectories × {args.steps} steps in {elapsed:.1f} s → {path} ({FORMAT})")
     print(f"stars per frame (0..{env.config.max_stars}): {counts.tolist()}")
     return 0
@@ -79,7 +121,9 @@ def _run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.set)
     _threads(args)
-    summary = run_experiment(cfg, Path(args.out), progress=not args.quiet, kind="run", recording=args.recording)
+    summary = run_experiment(
+        cfg, Path(args.out), progress=not args.quiet, kind="run", recording=args.recording, force=args.force
+    )
     _print_summary(cfg.name, summary)
     print(f"results: {args.out}/summary.json, figures *.png, TensorBoard: tensorboard --logdir {args.out}")
     return 0
@@ -95,7 +139,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         overrides.append(f"runs={args.runs}")
     if args.duration is not None:
         overrides.append(f"duration={args.duration}")
-    table = reproduce(cases, Path(args.out), overrides, progress=not args.quiet)
+    table = reproduce(cases, Path(args.out), overrides, progress=not args.quiet, force=args.force)
     print(table)
     print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/case*/ (figures, runs.npz)")
     print(f"TensorBoard: tensorboard --logdir {args.out}")
@@ -123,20 +167,22 @@ def _sweep(args: argparse.Namespace) -> int:
     if args.address is not None and args.backend != "ray":
         raise ValueError("--address needs --backend ray")
     base = load_config(args.config, args.set)
-    grid = parse_grid(args.grid)
+    grid = parse_grid(args.grid, base)
     if args.backend == "ray":
         kw = {"address": args.address, "cpus_per_task": max(1, args.threads or 1)}
     else:
         _threads(args)
         kw = {}
     try:
-        rows = run_sweep(base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, **kw)
+        rows = run_sweep(base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, force=args.force, **kw)
     except (RayUnavailable, SweepFailed) as exc:
         print(f"agsf: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
+        from ..files import read_json_lines
+
         results = Path(args.out) / "results.jsonl"
-        done = len(results.read_text().splitlines()) if results.exists() else 0
+        done = len(read_json_lines(results))
         print(f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume", file=sys.stderr)
         return 130
     print(f"{len(rows)} configurations in {args.out}/results.jsonl; TensorBoard hparams: tensorboard --logdir {args.out}")
@@ -147,15 +193,18 @@ def _bench(args: argparse.Namespace) -> int:
     from .bench import format_table, run_bench
 
     _threads(args)
+    from ..files import write_text
+
     report = run_bench(Path(args.out), compile=not args.no_compile, quick=args.quick)
     table = format_table(report)
-    (Path(args.out) / "bench.md").write_text(table + "\n")
+    write_text(Path(args.out) / "bench.md", table + "\n")
     print(table)
     print(f"report: {args.out}/bench.json, {args.out}/bench.md")
     return 0
 
 
 def _soak(args: argparse.Namespace) -> int:
+    from ..files import write_json
     from .config import parse_override
     from .soak import run_soak, soak_config, soak_verdict
 
@@ -166,9 +215,9 @@ def _soak(args: argparse.Namespace) -> int:
     cfg = soak_config(args.filter, **changes)
     _threads(args)
     out = Path(args.out)
-    rows = run_soak(cfg, out, report_every=args.report_every, progress=not args.quiet)
+    rows = run_soak(cfg, out, report_every=args.report_every, progress=not args.quiet, force=args.force)
     verdict = soak_verdict(rows, warmup=args.warmup)
-    (out / "verdict.json").write_text(json.dumps(verdict, indent=2))
+    write_json(out / "verdict.json", verdict, indent=2)
     print(json.dumps(verdict, indent=2))
     return 0 if verdict["passed"] else 1
 
@@ -179,7 +228,7 @@ def _diagnose(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.set)
     _threads(args)
-    report, passed = diagnose(cfg, Path(args.out), progress=not args.quiet)
+    report, passed = diagnose(cfg, Path(args.out), progress=not args.quiet, force=args.force)
     print(report)
     return 0 if passed else 1
 
@@ -191,7 +240,7 @@ def _learn(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set)
     _threads(args)
     names = [n.strip() for n in args.learn.split(",") if n.strip()]
-    report = learn(cfg, names, Path(args.out), recording=args.recording, max_iter=args.max_iter)
+    report = learn(cfg, names, Path(args.out), recording=args.recording, max_iter=args.max_iter, force=args.force)
     print(report)
     return 0
 
@@ -211,22 +260,34 @@ def _print_summary(name: str, summary: dict) -> None:
         print(f"  AGSF − GSF {d['mean_deg']:.3g} deg, 95% CI [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}]")
 
 
+FORCE_HELP = "run even if the memory estimate exceeds the memory available"
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (``agsf run: error: …``, exit 2), like every other refusal."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="agsf", description="Gaussian sum filters for spacecraft attitude")
+    parser = _Parser(prog="agsf", description="Gaussian sum filters for spacecraft attitude")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate the star-tracker environment")
     p.add_argument("--runs", type=_positive_int, default=64, help="trajectories (batch)")
     p.add_argument("--steps", type=_positive_int, default=600, help="gyro periods of 0.1 s")
     p.add_argument("--star-period", type=_positive_float, default=1.0, help="s between star frames")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0, help="trajectory i is seeded seed + i")
     p.add_argument("--out", default="runs/simulation")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=_simulate)
 
     def common(p):
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
-        p.add_argument("--threads", type=int, default=None, help="torch threads")
+        p.add_argument("--threads", type=_positive_int, default=None, help="torch threads")
         p.add_argument("--quiet", action="store_true", help="no progress bar")
+        p.add_argument("--force", action="store_true", help=FORCE_HELP)
 
     p = sub.add_parser("run", help="one configuration (a TOML file or a preset name)")
     p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior, faults)")
@@ -297,8 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=_positive_int, default=256)
     p.add_argument("--duration", type=_positive_float, default=3600.0, help="simulated seconds (default one hour)")
     p.add_argument("--report-every", type=_positive_float, default=60.0, help="simulated seconds per report row")
-    p.add_argument("--warmup", type=float, default=60.0, help="seconds excluded from the verdict (prior convergence)")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--warmup", type=_nonnegative_float, default=60.0, help="seconds excluded from the verdict (prior convergence)")
+    p.add_argument("--seed", type=_seed, default=1)
     p.add_argument("--no-compile", action="store_true", help="eager FPKE quadrature (AGSF)")
     p.add_argument("--out", required=True)
     common(p)
@@ -308,17 +369,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/bench")
     p.add_argument("--quick", action="store_true", help="smaller samples (a smoke run, not the reference numbers)")
     p.add_argument("--no-compile", action="store_true", help="skip the compiled penalty kernel's first-step measurement")
-    p.add_argument("--threads", type=int, default=None, help="torch threads")
+    p.add_argument("--threads", type=_positive_int, default=None, help="torch threads")
     p.set_defaults(func=_bench)
     return parser
 
 
+def _one_line(exc: BaseException) -> str:
+    """An error as one line; file errors name the file."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror or exc}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``agsf`` command; refused input (a bad configuration, file or output folder)
+    prints one line ``agsf: error: …`` and returns 2, having created nothing."""
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except ValueError as exc:  # bad configuration or output folder: a message, not a traceback
-        print(f"agsf: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError) as exc:
+        print(f"agsf: error: {_one_line(exc)}", file=sys.stderr)
         return 2
 
 

@@ -19,13 +19,18 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
+from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 
-__all__ = ["ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES", "DEFAULT_FILTERS"]
+__all__ = [
+    "ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES", "DEFAULT_FILTERS",
+    "MAX_SEED",
+]
 
 #: The filters of a configuration that names none (the paper's three).
 DEFAULT_FILTERS = ("EKF", "GSF", "AGSF")
+#: Largest run seed: trajectory ``i`` is seeded ``seed + i``, and the simulator's seeds lie in ``[0, 2⁶²)``.
+MAX_SEED = 2**62 - 1
 
 
 @dataclass(frozen=True)
@@ -58,7 +63,8 @@ class ExperimentConfig:
         update_iterations: linearisations per measurement update (1: EKF update).
         adapt_cadence: the AGSF adapts its weights every ``adapt_cadence``-th propagation step.
         filters: which of ``FILTER_NAMES`` to run (EKF, GSF, AGSF, AGSF-galerkin, MEKF).
-        seed: seeds truth, noise and prior draws.
+        seed: seeds truth, noise and prior draws (trajectory ``i``: ``seed + i``), an integer with
+            ``0 ≤ seed`` and ``seed + runs − 1 ≤ MAX_SEED``.
         compile: ``torch.compile`` the FPKE quadrature kernel.
         filter_sigma_s_scale: the filters assume ``σ_s × scale`` (1: the simulated value;
             other values make a deliberately mis-modelled filter, e.g. for ``agsf diagnose``).
@@ -170,16 +176,33 @@ class ExperimentConfig:
                 f"config key 'components' must be ≤ {MAX_COMPONENTS} with an adaptive filter (the weight QP's limit), "
                 f"got {self.components}"
             )
+        if not 0 <= self.seed <= MAX_SEED - (self.runs - 1):
+            raise ValueError(f"config key 'seed' must lie in [0, {MAX_SEED} − (runs − 1)], got {self.seed!r}")
         ratio = self.star_period / self.dt
         if abs(ratio - round(ratio)) > 1e-9 * ratio:
             raise ValueError(f"config key 'star_period' must be a multiple of dt={self.dt}, got {self.star_period!r}")
         if abs(self.duration / self.dt - round(self.duration / self.dt)) > 1e-9 * self.duration / self.dt:
             raise ValueError(f"config key 'duration' must be a multiple of dt={self.dt}, got {self.duration!r}")
+        from envs import StarTrackerConfig
+
+        try:  # the simulator's own checks (physical ranges, faults against max_stars), at configuration time
+            StarTrackerConfig(**self.env_settings())
+        except ValueError as exc:
+            raise ValueError(f"config: {exc}") from None
 
     # ------------------------------------------------------------------
     @property
     def num_steps(self) -> int:
         return int(round(self.duration / self.dt))
+
+    def env_settings(self) -> dict[str, Any]:
+        """The simulator's settings (:class:`envs.StarTrackerConfig` fields) of this configuration."""
+        return {
+            "max_steps": self.num_steps, "dt": self.dt, "star_period": self.star_period, "sigma_v": self.sigma_v,
+            "sigma_u": self.sigma_u, "initial_bias": self.gyro_bias_deg_per_hr * DEG_PER_HOUR, "sigma_s": self.sigma_s,
+            "fov_deg": self.fov_deg, "focal_length": self.focal_length, "max_stars": self.max_stars,
+            "rate": [self.omega0 * a for a in self.rate_axes], "faults": self.faults,
+        }
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from ..files import write_json, write_text
 from ..diagnostics import consistency_checks, format_report
 from .config import ExperimentConfig
 from .experiment import run_experiment
@@ -15,13 +15,13 @@ from .factories import filter_model
 __all__ = ["diagnose"]
 
 
-def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True) -> tuple[str, bool]:
+def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True, force: bool = False) -> tuple[str, bool]:
     """Run ``cfg`` under ``out`` and check every filter; writes ``diagnose.json`` / ``diagnose.md``.
 
     Returns:
         ``(report text, whether every check of every filter passed)``.
     """
-    run_experiment(cfg, out, progress=progress, kind="diagnose")
+    run_experiment(cfg, out, progress=progress, kind="diagnose", force=force)
     data = np.load(Path(out) / "runs.npz")
     n = filter_model(cfg).state_dim
     texts, result, passed = [], {}, True
@@ -36,8 +36,8 @@ def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True) -> tupl
         result[name] = [c.__dict__ for c in checks]
         passed &= all(c.passed for c in checks)
     report = "\n".join(texts)
-    (Path(out) / "diagnose.json").write_text(json.dumps({"passed": passed, "filters": result}, indent=2, default=float))
-    (Path(out) / "diagnose.md").write_text(report + "\n")
+    write_json(Path(out) / "diagnose.json", {"passed": passed, "filters": result}, indent=2, default=float)
+    write_text(Path(out) / "diagnose.md", report + "\n")
     from torch.utils.tensorboard import SummaryWriter
 
     with SummaryWriter(str(Path(out) / "tensorboard")) as writer:

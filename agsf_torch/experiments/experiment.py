@@ -8,14 +8,15 @@ TensorBoard events (:mod:`.tensorboard_log`); the names are re-exported here.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
+from ..files import write_json
 from .config import ExperimentConfig
 from .factories import make_env, make_filters, prior_covariance
 from .figures import write_figures
 from .outputs import OutputConflict, prepare_output, save_runs
+from .resources import check_memory
 from .runner import run_monte_carlo
 from .statistics import mean_ci95, paired_difference, summarize
 from .tensorboard_log import write_tensorboard
@@ -27,30 +28,41 @@ __all__ = [
 
 
 def run_experiment(
-    cfg: ExperimentConfig, out: Path, *, progress: bool = True, kind: str = "run", recording: str | Path | None = None
+    cfg: ExperimentConfig, out: Path, *, progress: bool = True, kind: str = "run", recording: str | Path | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
 
     With ``recording`` the filters replay that file (it must hold the truth and
-    ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps) instead of a simulation.
+    ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps) instead of a simulation;
+    the experiment is identified by the configuration and the recording's *contents*
+    (:meth:`~agsf_torch.recordings.Recording.content_digest`), so new contents at the same
+    path are a different experiment and never replace earlier results.
+
+    Everything is validated (the recording, the memory estimate of :func:`.resources.check_memory`,
+    unless ``force``, and the output folder) before ``out`` is created.
     """
     if recording is not None:
         from ..recordings import Recording
         from .recorded import RecordingEnv
 
-        env = RecordingEnv(Recording.load(recording))
+        rec = Recording.load(recording)
+        env = RecordingEnv(rec)
         if env.num_envs != cfg.runs or env.config.max_steps < cfg.num_steps or abs(env.config.dt - cfg.dt) > 1e-9 * cfg.dt:
             raise ValueError(
                 f"recording {recording} has {env.num_envs} trajectories × {env.config.max_steps} steps of {env.config.dt} s; "
                 f"the configuration needs runs={cfg.runs}, ≥ {cfg.num_steps} steps of dt={cfg.dt}"
             )
-        digest = cfg.digest() + ":" + str(Path(recording).resolve())
+        digest = f"{cfg.digest()}:recording={rec.content_digest()}"
+        check_memory(cfg, force=force)
     else:
+        check_memory(cfg, force=force)
         env, digest = make_env(cfg), cfg.digest()
+    filters = make_filters(cfg)
     out = prepare_output(Path(out), kind, digest, cfg.to_dict())
     res = run_monte_carlo(
         env,
-        make_filters(cfg),
+        filters,
         num_steps=cfg.num_steps,
         prior_cov=prior_covariance(cfg),
         sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
@@ -61,7 +73,7 @@ def run_experiment(
     )
     data = save_runs(out / "runs.npz", res)
     summary = summarize(data, cfg)
-    (out / "summary.json").write_text(json.dumps(summary))
+    write_json(out / "summary.json", summary)
     write_figures(out, summary)
     write_tensorboard(out, data, summary)
     return summary

@@ -17,21 +17,7 @@ def make_env(cfg: ExperimentConfig):
     """The batched star-tracker environment of a configuration."""
     import envs
 
-    return envs.StarTrackerAttitudeVectorEnv(
-        num_envs=cfg.runs,
-        max_steps=cfg.num_steps,
-        dt=cfg.dt,
-        star_period=cfg.star_period,
-        sigma_v=cfg.sigma_v,
-        sigma_u=cfg.sigma_u,
-        initial_bias=cfg.gyro_bias_deg_per_hr * DEG_PER_HOUR,
-        sigma_s=cfg.sigma_s,
-        fov_deg=cfg.fov_deg,
-        focal_length=cfg.focal_length,
-        max_stars=cfg.max_stars,
-        rate=[cfg.omega0 * a for a in cfg.rate_axes],
-        faults=cfg.faults,
-    )
+    return envs.StarTrackerAttitudeVectorEnv(num_envs=cfg.runs, **cfg.env_settings())
 
 
 def filter_model(cfg: ExperimentConfig) -> AttitudeModel:

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from ..files import save_figure
 from ..filters.registry import FILTER_NAMES, FILTERS
 
 __all__ = ["write_figures"]
@@ -30,7 +31,7 @@ def write_figures(out: Path, summary: dict[str, Any]) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(out / "rms.png", dpi=110)
+    save_figure(fig, out / "rms.png", dpi=110)
     plt.close(fig)
 
     shown = [n for n in FILTER_NAMES if n in filters and FILTERS[n].mixture] or list(filters)
@@ -48,7 +49,7 @@ def write_figures(out: Path, summary: dict[str, Any]) -> None:
             a.grid(True, alpha=0.3)
     axes[0, 0].legend()
     fig.tight_layout()
-    fig.savefig(out / "axes.png", dpi=100)
+    save_figure(fig, out / "axes.png", dpi=100)
     plt.close(fig)
 
     fig, axes = plt.subplots(1, len(shown), figsize=(5.5 * len(shown), 3.5), squeeze=False)
@@ -58,7 +59,7 @@ def write_figures(out: Path, summary: dict[str, Any]) -> None:
         axes[0, col].set(title=f"{name} weights (run 0)", xlabel="time (s)", ylabel="weight", ylim=(-0.02, 1.02))
         axes[0, col].grid(True, alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out / "weights.png", dpi=100)
+    save_figure(fig, out / "weights.png", dpi=100)
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -71,7 +72,7 @@ def write_figures(out: Path, summary: dict[str, Any]) -> None:
     if ax.lines:
         ax.legend()
     fig.tight_layout()
-    fig.savefig(out / "fpke.png", dpi=110)
+    save_figure(fig, out / "fpke.png", dpi=110)
     plt.close(fig)
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -10,12 +9,14 @@ import numpy as np
 import torch
 
 from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
-from ..learning import fit_attitude_parameters
+from ..files import write_json, write_text
+from ..learning import PARAMETERS, fit_attitude_parameters
 from ..recordings import Recording
 from ..constants import DEG_PER_HOUR
 from .config import ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
 from .recorded import record_environment
+from .resources import check_memory
 
 __all__ = ["learn", "learning_problem"]
 
@@ -53,16 +54,29 @@ def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]
     return configured, kwargs
 
 
-def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str | None = None, max_iter: int = 40) -> str:
+def learn(
+    cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str | Path | None = None, max_iter: int = 40,
+    force: bool = False,
+) -> str:
     """Fit ``names`` by maximum likelihood (EKF, ``cfg.update_iterations``); report learned vs configured.
 
-    Data: ``recording`` if given, else ``cfg.runs`` simulated trajectories.  The
-    configured values are the filter's (σ scaled by the ``filter_*_scale`` keys);
-    the filter is set up as ``agsf run`` sets it up (:func:`learning_problem`).
+    Data: ``recording`` if given (identified by its contents, not its path), else ``cfg.runs``
+    simulated trajectories.  The configured values are the filter's (σ scaled by the
+    ``filter_*_scale`` keys); the filter is set up as ``agsf run`` sets it up
+    (:func:`learning_problem`).  The names, the data and the memory estimate (unless
+    ``force``) are checked before ``out`` is created.
     """
-    out = prepare_output(Path(out), "learn", cfg.digest() + ",".join(names) + str(recording), cfg.to_dict())
-    rec = Recording.load(recording) if recording else record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
+    unknown = [k for k in names if k not in PARAMETERS]
+    if not names or unknown or len(set(names)) != len(names):
+        raise ValueError(f"--learn must name distinct parameters from {', '.join(PARAMETERS)}, got {','.join(names)!r}")
+    if recording is not None:
+        rec = Recording.load(recording)
+        source = f"recording={rec.content_digest()}"
+    else:
+        check_memory(cfg, force=force)
+        rec, source = record_environment(make_env(cfg), cfg.num_steps, cfg.seed), "simulated"
     configured, kwargs = learning_problem(cfg, rec)
+    out = prepare_output(Path(out), "learn", f"{cfg.digest()}:{','.join(names)}:{source}:max_iter={max_iter}", cfg.to_dict())
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(str(out / "tensorboard"))
@@ -84,6 +98,6 @@ def learn(cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str 
         flag = "consistent with the data" if res.inside[k] else "OUTSIDE the 95 % interval: mis-modelled"
         lines.append(f"  {k}: learned {res.learned[k]}, 95 % interval {res.interval[k]}, configured {res.configured[k]} — {flag}")
     report = "\n".join(lines)
-    (out / "learn.json").write_text(json.dumps(res.__dict__, indent=2, default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o)))
-    (out / "learn.md").write_text(report + "\n")
+    write_json(out / "learn.json", res.__dict__, indent=2, default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o))
+    write_text(out / "learn.md", report + "\n")
     return report

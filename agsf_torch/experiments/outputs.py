@@ -11,37 +11,62 @@ Folder layout (``out``)::
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..files import atomic_open, read_json, write_json
 from .runner import MonteCarloResult
 
-__all__ = ["OutputConflict", "prepare_output", "save_runs"]
+__all__ = ["OutputConflict", "check_output", "prepare_output", "save_runs", "save_npz"]
 
 
 class OutputConflict(ValueError):
     """The output folder holds a different experiment."""
 
 
-def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any]) -> Path:
-    """Create ``out`` for an experiment; refuse one that holds a different experiment."""
+def check_output(out: Path, kind: str, digest: str) -> None:
+    """Refuse ``out`` if it holds a different experiment (or is not an experiment folder);
+    creates nothing.  ``digest`` identifies the experiment by content: its configuration and
+    the digests of its input files, never their paths.
+
+    Raises:
+        OutputConflict: another experiment, or a non-empty folder without ``experiment.json``.
+        ValueError: ``out`` is a file, or its ``experiment.json`` is corrupt.
+    """
     out = Path(out)
     marker = out / "experiment.json"
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output folder {out} is a file; choose another --out")
     if marker.exists():
-        prev = json.loads(marker.read_text())
-        if prev.get("kind") != kind or prev.get("digest") != digest:
+        prev = read_json(marker, "experiment marker")
+        if not isinstance(prev, dict) or prev.get("kind") != kind or prev.get("digest") != digest:
+            prev = prev if isinstance(prev, dict) else {}
             raise OutputConflict(
                 f"{out} already holds a different experiment ({prev.get('kind')} {prev.get('digest')}); "
                 "choose another --out or remove it"
             )
     elif out.exists() and any(out.iterdir()):
         raise OutputConflict(f"{out} exists and is not an agsf experiment folder; choose another --out")
+
+
+def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any]) -> Path:
+    """Create ``out`` for an experiment (after :func:`check_output`) and write its
+    ``experiment.json`` atomically.  Callers validate every input first: a refused command
+    creates nothing."""
+    out = Path(out)
+    check_output(out, kind, digest)
     out.mkdir(parents=True, exist_ok=True)
-    marker.write_text(json.dumps({"kind": kind, "digest": digest, "config": config}, indent=2))
+    write_json(out / "experiment.json", {"kind": kind, "digest": digest, "config": config}, indent=2)
     return out
+
+
+def save_npz(path: Path, data: dict[str, np.ndarray]) -> Path:
+    """``np.savez_compressed`` written atomically to exactly ``path``."""
+    with atomic_open(path) as fh:
+        np.savez_compressed(fh, **data)
+    return Path(path)
 
 
 def save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
@@ -62,7 +87,7 @@ def save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
         for key, values in tr.extra.items():
             if values.shape == tr.error_angle.shape:
                 data[f"{name}/{key}"] = values
-    np.savez_compressed(path, **data)
+    save_npz(path, data)
     return data
 
 

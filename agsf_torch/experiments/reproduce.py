@@ -6,23 +6,30 @@ import hashlib
 import json
 from pathlib import Path
 
+from ..files import write_json, write_text
 from ..filters.registry import ADAPTIVE_FILTERS
 from .config import load_config
 from .experiment import prepare_output, run_experiment
+from .resources import check_memory
 from .statistics import minus_gsf_key
 
 __all__ = ["reproduce", "results_table"]
 
 
-def reproduce(cases: list[int], out: Path, overrides: list[str] | None = None, *, progress: bool = True) -> str:
+def reproduce(
+    cases: list[int], out: Path, overrides: list[str] | None = None, *, progress: bool = True, force: bool = False
+) -> str:
     """Run ``case{k}`` presets (with ``overrides``) under ``out/case{k}``; write the
-    combined ``summary.json`` and ``results.md``; return the Markdown table."""
+    combined ``summary.json`` and ``results.md``; return the Markdown table.  Every case is
+    validated (and its memory estimated, unless ``force``) before ``out`` is created."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
+    for cfg in configs.values():
+        check_memory(cfg, force=force)
     digest = hashlib.sha256(json.dumps({k: c.digest() for k, c in configs.items()}, sort_keys=True).encode()).hexdigest()[:16]
     out = prepare_output(Path(out), "reproduce", digest, {k: c.to_dict() for k, c in configs.items()})
     combined = {}
     for name, cfg in configs.items():
-        summary = run_experiment(cfg, out / name, progress=progress, kind="reproduce-case")
+        summary = run_experiment(cfg, out / name, progress=progress, kind="reproduce-case", force=force)
         combined[name] = {
             "star_period_s": cfg.star_period,
             "runs": cfg.runs,
@@ -38,9 +45,9 @@ def reproduce(cases: list[int], out: Path, overrides: list[str] | None = None, *
             "agsf_minus_gsf": summary.get("agsf_minus_gsf"),
             "agsf_galerkin_minus_gsf": summary.get("agsf_galerkin_minus_gsf"),
         }
-    (out / "summary.json").write_text(json.dumps(combined, indent=2))
+    write_json(out / "summary.json", combined, indent=2)
     table = results_table(combined)
-    (out / "results.md").write_text(table + "\n")
+    write_text(out / "results.md", table + "\n")
     return table
 
 

@@ -32,9 +32,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..files import append_line, write_text
 from ..metrics import nees
 from .config import ExperimentConfig, load_preset
-from .experiment import make_env, make_filters, prior_covariance
+from .experiment import make_env, make_filters, prepare_output, prior_covariance
+from .resources import check_memory
 from ..constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
 from ..filters.registry import ADAPTIVE_FILTERS
 from .runner import monte_carlo_steps
@@ -112,31 +114,34 @@ def run_soak(
     *,
     report_every: float = 60.0,
     progress: bool = False,
+    force: bool = False,
 ) -> list[dict[str, Any]]:
     """Run ``cfg`` for its whole duration keeping running statistics; returns the report rows.
 
     Args:
         cfg: the configuration (see :func:`soak_config`).
-        out: if given, rows are appended to ``out/soak.jsonl`` as they are made.
+        out: if given, an experiment folder (:func:`~.outputs.prepare_output`, created after
+            every check) whose ``soak.jsonl`` gets each row as it is made (complete lines).
         report_every: simulated seconds per report row (a multiple of ``cfg.dt``).
         progress: print each row.
+        force: run even if the memory estimate (:func:`~.resources.check_memory`, running
+            statistics only) exceeds the memory available.
     """
     per_report = int(round(report_every / cfg.dt))
     if per_report < 1 or abs(per_report * cfg.dt - report_every) > 1e-9 * report_every:
         raise ValueError(f"report_every must be a positive multiple of dt={cfg.dt}, got {report_every}")
-    setups = make_filters(cfg)
+    check_memory(cfg, force=force, keep_steps=False)
+    env, setups = make_env(cfg), make_filters(cfg)
     n = next(iter(setups.values())).filter.model.state_dim
     stats = {name: _Stats(n) for name in setups}
     log = None
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-        log = (out / "soak.jsonl").open("w")
+        out = prepare_output(Path(out), "soak", f"{cfg.digest()}:report_every={report_every}", cfg.to_dict())
+        log = write_text(out / "soak.jsonl", "")  # a rerun starts the log afresh
     rows: list[dict[str, Any]] = []
     start = time.perf_counter()
     steps = monte_carlo_steps(
-        make_env(cfg), setups, num_steps=cfg.num_steps, prior_cov=prior_covariance(cfg),
+        env, setups, num_steps=cfg.num_steps, prior_cov=prior_covariance(cfg),
         sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale, seed=cfg.seed, estimate_bias=cfg.estimate_bias,
         noise_model=cfg.star_noise_model,
     )
@@ -157,8 +162,7 @@ def run_soak(
                 s.reset()
             rows.append(row)
             if log is not None:
-                log.write(json.dumps(row) + "\n")
-                log.flush()
+                append_line(log, json.dumps(row))
             if progress:
                 f = "  ".join(
                     f"{k}: {v['rms_arcsec']:.3f}″ NEES {v['mean_nees']:.2f} in3σ {min(v['inside_3sigma']):.4f}"
@@ -166,8 +170,7 @@ def run_soak(
                 )
                 print(f"t = {row['time_s']:7.1f} s  wall {row['wall_s']:7.1f} s  RSS {row['rss_mb']:7.1f} MB  {f}", flush=True)
     finally:
-        if log is not None:
-            log.close()
+        steps.close()
     return rows
 
 

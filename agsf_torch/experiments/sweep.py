@@ -35,13 +35,16 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from ..files import append_line, repair_json_lines
 from .config import ExperimentConfig, parse_override
 from .experiment import prepare_output, run_experiment
+from .resources import check_memory
 
-__all__ = ["parse_grid", "run_sweep", "SweepFailed", "RayUnavailable", "BACKENDS"]
+__all__ = ["parse_grid", "run_sweep", "SweepFailed", "SweepBusy", "RayUnavailable", "BACKENDS"]
 
 BACKENDS = ("local", "ray")
 RAY_INSTALL_HINT = (
@@ -69,19 +72,41 @@ class RayUnavailable(ImportError):
     """``backend="ray"`` without Ray installed."""
 
 
-def parse_grid(items: list[str]) -> dict[str, list[Any]]:
-    """``["key=v1,v2", …]`` → ``{key: [v1, v2]}`` (values parsed as TOML; keys validated)."""
+def parse_grid(items: list[str], base: ExperimentConfig | None = None) -> dict[str, list[Any]]:
+    """``["key=v1,v2", …]`` → ``{key: [v1, v2]}`` (values parsed as TOML; keys validated).
+
+    With ``base``, each value is normalised as the configuration stores it (``1`` and
+    ``1.0`` of a float key are the same value), so a grid names each experiment once.
+
+    Raises:
+        ValueError: a malformed entry, a key given twice, an unsweepable key, a value the
+            configuration refuses, or a value listed twice (after normalisation).
+    """
     grid: dict[str, list[Any]] = {}
     for item in items:
         if "=" not in item:
             raise ValueError(f"grid entry {item!r} must look like key=v1,v2,...")
-        key, values = item.split("=", 1)
-        grid[key.strip()] = [parse_override(f"{key}={v}")[1] for v in values.split(",")]
-        if key.strip() in ("runs", "filters"):
-            raise ValueError(f"config key '{key.strip()}' cannot be swept")
+        key, values = (part.strip() for part in item.split("=", 1))
+        if key in ("runs", "filters"):
+            raise ValueError(f"config key '{key}' cannot be swept")
+        if key in grid:
+            raise ValueError(f"grid key '{key}' is given twice; list all its values in one --grid {key}=v1,v2,...")
+        parsed = [parse_override(f"{key}={v}")[1] for v in values.split(",")]
+        if base is not None:
+            parsed = [getattr(base.replace(**{key: v}), key) for v in parsed]
+        seen: list[Any] = []
+        for v in parsed:
+            if v in seen:
+                raise ValueError(f"grid key '{key}' lists the value {v!r} twice")
+            seen.append(v)
+        grid[key] = parsed
     if not grid:
         raise ValueError("a sweep needs at least one --grid key=v1,v2,...")
     return grid
+
+
+class SweepBusy(ValueError):
+    """Another sweep is writing the same output folder."""
 
 
 def _metrics(summary: dict[str, Any]) -> dict[str, float]:
@@ -107,14 +132,18 @@ def run_sweep(
     address: str | None = None,
     cpus_per_task: int = 1,
     max_retries: int = 3,
+    force: bool = False,
 ) -> list[dict[str, Any]]:
     """Run every combination of ``grid`` on top of ``base``; returns all result rows.
 
-    Every configuration is validated before any work starts.  ``out`` holds
+    Every configuration (and its memory estimate, :func:`.resources.check_memory`, unless
+    ``force``) is validated before any work starts or anything is created.  ``out`` holds
     ``experiment.json``, ``results.jsonl`` (one row ``{"digest", "params",
     "metrics"}`` per finished configuration), ``configs/<digest>/`` (that
     configuration's experiment folder) and ``tensorboard/`` (hparams).  Digests
-    already in ``results.jsonl`` are skipped.
+    already in ``results.jsonl`` are skipped; its rows are appended as complete lines,
+    and a torn last line (an interrupted write) is dropped with a warning and rerun.
+    One sweep at a time may write ``out``: a second one raises :class:`SweepBusy`.
 
     Args:
         runner: runs one configuration, ``runner(cfg, out, progress=, kind=)`` →
@@ -135,6 +164,7 @@ def run_sweep(
     Raises:
         SweepFailed: (Ray) some configurations failed; all others were recorded.
         RayUnavailable: ``backend="ray"`` without Ray installed.
+        SweepBusy: another sweep holds ``out``'s lock.
     """
     if backend not in BACKENDS:
         raise ValueError(f"unknown sweep backend {backend!r}; choose from {', '.join(BACKENDS)}")
@@ -144,14 +174,41 @@ def run_sweep(
         raise ValueError(f"cpus_per_task must be ≥ 1, got {cpus_per_task}")
     if backend == "ray":
         _import_ray()  # fail before any work or folder if the extra is missing
-    configs = []
+    grid = {key: [getattr(base.replace(**{key: v}), key) for v in values] for key, values in grid.items()}  # 1 ≡ 1.0
+    configs, digests = [], set()
     for values in itertools.product(*grid.values()):
         params = dict(zip(grid, values))
-        configs.append((params, base.replace(**params)))  # validates every configuration first
+        cfg = base.replace(**params)  # validates every configuration first
+        check_memory(cfg, force=force)
+        if cfg.digest() not in digests:  # grid values the configuration stores alike: run once
+            digests.add(cfg.digest())
+            configs.append((params, cfg))
     digest = hashlib.sha256(json.dumps({"base": base.digest(), "grid": grid}, sort_keys=True).encode()).hexdigest()[:16]
     out = prepare_output(Path(out), "sweep", digest, {"base": base.to_dict(), "grid": grid})
+    with _sweep_lock(out):
+        return _run_pending(configs, out, progress, runner, backend, address, cpus_per_task, max_retries)
+
+
+@contextmanager
+def _sweep_lock(out: Path):
+    """Hold ``out/.sweep.lock`` (:mod:`filelock`) for the sweep; refuse if another sweep holds it."""
+    from filelock import FileLock, Timeout
+
+    lock = FileLock(str(out / ".sweep.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        raise SweepBusy(f"another agsf sweep is writing {out}; wait for it to finish (or rerun it later to resume)") from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task, max_retries) -> list[dict[str, Any]]:
+    """Run the configurations without a row in ``results.jsonl`` (the lock held); returns all rows."""
     results = out / "results.jsonl"
-    rows = [json.loads(line) for line in results.read_text().splitlines()] if results.exists() else []
+    rows = repair_json_lines(results)
     done = {r["digest"] for r in rows}
     pending = [(params, cfg) for params, cfg in configs if cfg.digest() not in done]
     from torch.utils.tensorboard import SummaryWriter
@@ -160,8 +217,7 @@ def run_sweep(
 
     def record(params: dict[str, Any], cfg: ExperimentConfig, summary_metrics: dict[str, float]) -> None:
         row = {"digest": cfg.digest(), "params": params, "metrics": summary_metrics}
-        with results.open("a") as fh:
-            fh.write(json.dumps(row) + "\n")
+        append_line(results, json.dumps(row))
         rows.append(row)
         hp = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in params.items()}
         writer.add_hparams(hp, row["metrics"], run_name=cfg.digest())

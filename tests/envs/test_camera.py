@@ -245,7 +245,7 @@ def test_star_count_distribution_rejects_bad_count(default_camera):
         (dict(sigma=-1e-6), r"sigma must be finite and ≥ 0, got -1e-06"),
         (dict(sigma=float("nan")), r"sigma must be finite and ≥ 0, got nan"),
         (dict(noise="pixel"), r"noise must be one of .*, got 'pixel'"),
-        (dict(principal_point=(float("nan"), 0.0)), r"principal_point must be 2 finite values"),
+        (dict(principal_point=(float("nan"), 0.0)), r"principal_point must be 2 finite numbers \(m\)"),
         (dict(index="tree"), r"index must be 'grid' or 'dense', got 'tree'"),
     ],
 )

@@ -108,7 +108,7 @@ def test_callable_rate_returning_bad_values_raises():
     [
         (dict(rate=(float("nan"), 0.0, 0.0)), r"rate must be 3 finite numbers \(rad/s\), got \(nan, 0.0, 0.0\)"),
         (dict(rate=(0.1, 0.2)), r"rate must be 3 finite numbers \(rad/s\), got \(0.1, 0.2\)"),
-        (dict(rate="fast"), r"rate must be 3 numbers \(rad/s\) or a callable, got 'fast'"),
+        (dict(rate="fast"), r"rate must be 3 numbers \(rad/s\), got 'fast'"),
         (dict(dt=0.0), r"dt must be finite and > 0, got 0.0"),
         (dict(dt=-0.1), r"dt must be finite and > 0, got -0.1"),
         (dict(dt=float("inf")), r"dt must be finite and > 0, got inf"),

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from envs import StarTrackerAttitudeVectorEnv, StarTrackerConfig
-from envs.faults import SensorFault, apply_gyro_faults, nearest_other_star, parse_faults
+from envs.faults import SensorFault, apply_gyro_faults, apply_star_faults, nearest_other_star, parse_faults
 
 FAULTS = [
     {"kind": "gyro_dropout", "start": 0.5, "end": 0.8},
@@ -138,3 +138,33 @@ def test_faults_live_in_the_config_and_the_single_env_reports_gyro_valid():
         flags.append(bool(obs["gyro_valid"][0]))
     assert flags == [True, True, True, True, False, False, False, True, True, True]  # t = 0.5, 0.6, 0.7
     assert math.isclose(float(obs["time"][0]), 1.0)
+
+
+def test_a_misidentified_star_slot_beyond_max_stars_is_refused():
+    fault = {"kind": "misidentified_star", "start": 2.0, "end": 4.0, "slot": 5}
+    message = r"faults\[1\]: misidentified_star slot 5 does not exist: a frame reports max_stars=3 stars \(slots 0…2\)"
+    with pytest.raises(ValueError, match=rf"StarTrackerConfig: {message}"):
+        StarTrackerConfig(max_stars=3, faults=[FAULTS[0], fault])
+    with pytest.raises(ValueError, match=rf"StarTrackerConfig: {message}"):  # a SensorFault object, too
+        StarTrackerConfig(max_stars=3, faults=[FAULTS[0], SensorFault(**fault)])
+    with pytest.raises(ValueError, match=rf"^{message}$"):  # what a configuration that knows max_stars calls
+        parse_faults([FAULTS[0], fault], max_stars=3)
+    assert parse_faults([fault]) == (SensorFault(**fault),)  # without max_stars the slot is not checked
+    assert StarTrackerConfig(max_stars=6, faults=[fault]).faults == (SensorFault(**fault),)
+    body = torch.zeros(2, 3, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"faults\[0\]: misidentified_star slot 5 does not exist: a frame reports max_stars=3"):
+        apply_star_faults(parse_faults([fault]), torch.eye(3, dtype=torch.float64), body, body, torch.ones(2, 3, dtype=torch.bool), torch.tensor(3.0))
+
+
+@pytest.mark.parametrize(
+    ("fault", "message"),
+    [
+        ({"kind": "star_outage", "start": True, "end": 1.0}, r"start must be a number, got True"),
+        ({"kind": "star_outage", "start": 0.0, "end": "1.0"}, r"end must be a number, got '1.0'"),
+        ({"kind": "gyro_saturation", "start": 0, "end": 1, "limit": "1e-3"}, r"limit must be a number, got '1e-3'"),
+        ({"kind": "misidentified_star", "start": 0, "end": 1, "slot": "1"}, r"slot must be an integer ≥ 0, got '1'"),
+    ],
+)
+def test_fault_numbers_refuse_bools_and_strings(fault, message):
+    with pytest.raises(ValueError, match=rf"StarTrackerConfig: faults\[0\]: SensorFault: .*{message}"):
+        StarTrackerConfig(faults=[fault])

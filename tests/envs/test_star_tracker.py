@@ -220,7 +220,7 @@ def test_step_before_reset_and_bad_actions_raise():
         env.step(np.array([np.nan, 0.0, 0.0]))
     venv = StarTrackerAttitudeVectorEnv(2)
     venv.reset(seed=0)
-    with pytest.raises(ValueError, match=r"actions must have shape \(2, 3\), got \(3,\)"):
+    with pytest.raises(ValueError, match=r"actions must be MRPs of shape \(2, 3\), got shape \(3,\)"):
         venv.step(np.zeros(3))
     with pytest.raises(ValueError, match="actions must be finite"):
         venv.step(torch.full((2, 3), float("inf")))
@@ -360,8 +360,8 @@ NAN, INF = float("nan"), float("inf")
         ("max_magnitude", INF, r"max_magnitude must be finite, got inf"),
         ("star_noise", "pixel", r"star_noise must be one of \('focal_plane', 'unit_vector'\), got 'pixel'"),
         ("principal_point", (NAN, 0.0), r"principal_point must be 2 finite numbers, got \(nan, 0.0\)"),
-        ("rate", (NAN, 0.0, 0.0), r"rate must be 3 finite numbers, got \(nan, 0.0, 0.0\)"),
-        ("rate", (0.1, 0.1), r"rate must be 3 finite numbers, got \(0.1, 0.1\)"),
+        ("rate", (NAN, 0.0, 0.0), r"rate must be 3 finite numbers \(rad/s\), got \(nan, 0.0, 0.0\)"),
+        ("rate", (0.1, 0.1), r"rate must be 3 finite numbers \(rad/s\), got \(0.1, 0.1\)"),
         ("initial_attitude", "identity", r"initial_attitude must be 'random' or an MRP \(3 numbers\), got 'identity'"),
         ("initial_attitude", (0.0, INF, 0.0), r"initial_attitude must be 3 finite numbers, got \(0.0, inf, 0.0\)"),
         ("max_steps", 0, r"max_steps must be an integer ≥ 1, got 0"),

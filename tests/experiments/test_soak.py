@@ -52,7 +52,10 @@ def test_cli_soak_writes_the_verdict(tmp_path, capsys):
     verdict = json.loads((tmp_path / "verdict.json").read_text())
     assert code == (0 if verdict["passed"] else 1)
     assert verdict["filters"]["GSF"]["nonfinite"] == 0
-    assert (tmp_path / "soak.jsonl").exists() and (tmp_path / "config.json").exists()
+    rows = [json.loads(line) for line in (tmp_path / "soak.jsonl").read_text().splitlines()]
+    assert [r["time_s"] for r in rows] == pytest.approx([2.0, 4.0])
+    marker = json.loads((tmp_path / "experiment.json").read_text())
+    assert marker["kind"] == "soak" and marker["config"]["runs"] == 4 and marker["config"]["components"] == 2
 
 
 @pytest.mark.slow

@@ -1,0 +1,189 @@
+"""The command line's failure paths, as a property: every refused command exits 2 with one
+line naming the problem, creates and changes nothing, and the corrected command then succeeds.
+
+Each failure kind draws its bad input with hypothesis (values out of range, corrupt or
+misshapen files, unusable output folders); the corrected command of each kind is run
+once, after its refusals, in the same folder.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import tempfile
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from agsf_torch.experiments import cli
+from agsf_torch.experiments.config import MAX_SEED
+from agsf_torch.learning import PARAMETERS
+from agsf_torch.recordings import Recording
+
+TINY = ["--set", "runs=2", "--set", "duration=0.3", "--set", 'filters=["EKF"]', "--quiet"]
+
+
+def _tree(root: Path) -> dict[str, str]:
+    """Every path under ``root`` with a digest of its bytes (folders: ``"dir"``)."""
+    return {
+        str(p.relative_to(root)): ("dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest())
+        for p in sorted(root.rglob("*"))
+    }
+
+
+def _agsf(argv: list[str]) -> tuple[int, str]:
+    err = io.StringIO()
+    with redirect_stderr(err), redirect_stdout(io.StringIO()):
+        try:
+            code = cli.main(argv)
+        except SystemExit as exc:  # argparse
+            code = exc.code
+    return code, err.getvalue()
+
+
+def _assert_refused(argv: list[str], root: Path, names: str) -> None:
+    before = _tree(root)
+    code, err = _agsf(argv)
+    assert code == 2, (argv, err)
+    assert err.endswith("\n") and "\n" not in err[:-1], f"not one line: {err!r}"
+    assert err.startswith("agsf") and ": error: " in err, err
+    assert names.lower() in err.lower(), (names, err)
+    assert _tree(root) == before, f"{argv} changed {root}"
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    """A valid recording for the TINY configuration (2 runs, 0.3 s, truth included)."""
+    out = tmp_path_factory.mktemp("rec") / "sim"
+    assert _agsf(["simulate", "--runs", "2", "--steps", "3", "--out", str(out)])[0] == 0
+    return out / "recording.npz"
+
+
+def _bad_override():
+    """``(overrides, text the message must contain)`` that the configuration refuses
+    (several overrides separated by NUL)."""
+    return st.one_of(
+        st.integers(max_value=-1).map(lambda v: (f"seed={v}", "'seed'")),
+        st.integers(min_value=MAX_SEED + 1).map(lambda v: (f"seed={v}", "'seed'")),
+        st.integers(max_value=0).map(lambda v: (f"runs={v}", "'runs'")),
+        st.floats(max_value=0.0, allow_nan=False).map(lambda v: (f"duration={v!r}", "'duration'")),
+        st.integers(65, 10**6).map(lambda v: (f"components={v}\0filters=[\"AGSF\"]", "'components'")),
+        st.integers(117_956, 10**12).map(lambda v: (f"max_stars={v}", "max_stars")),
+        st.floats(1e3, 1e300).map(lambda v: (f"omega0={v!r}", "rate")),
+        st.floats(1.0, 1e300).map(lambda v: (f"gate_probability={v!r}", "'gate_probability'")),
+        st.sampled_from(["true", '"1.0"']).map(lambda v: (f"sigma_s={v}", "'sigma_s'")),
+        st.from_regex(r"\Azz[a-z_]{1,8}\Z").map(lambda k: (f"{k}=1", k)),
+    )
+
+
+def _bad_recording_file(path: Path, good: Path, data) -> str:
+    """Write a broken recording at ``path``; returns what the message must contain."""
+    raw = good.read_bytes()
+    kind = data.draw(st.sampled_from(["missing", "directory", "text", "empty", "truncated", "flipped", "complex", "non-unit", "runs"]))
+    if kind == "missing":
+        return path.name
+    if kind == "directory":
+        path.mkdir()
+    elif kind == "text":
+        path.write_text(data.draw(st.text(min_size=1)))
+    elif kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "truncated":
+        path.write_bytes(raw[: data.draw(st.integers(1, len(raw) - 1))])
+    elif kind == "flipped":
+        at = data.draw(st.integers(0, len(raw) - 1))
+        path.write_bytes(raw[:at] + bytes([raw[at] ^ 0xFF]) + raw[at + 1 :])
+        try:
+            same = Recording.load(path).content_digest() == Recording.load(good).content_digest()
+        except ValueError:
+            same = False
+        assume(not same)  # a flip in bytes the archive does not check leaves the data intact
+    else:
+        rec = Recording.load(good)
+        arrays = {k: getattr(rec, k) for k in ("time", "gyro", "star_body", "star_inertial", "star_mask", "truth_mrp", "truth_bias")}
+        if kind == "complex":
+            arrays["gyro"] = arrays["gyro"].astype(np.complex128)
+        elif kind == "non-unit":
+            arrays["star_mask"] = np.ones_like(arrays["star_mask"])
+            arrays["star_body"] = np.full_like(arrays["star_body"], data.draw(st.floats(0.0, 0.5)))
+        else:  # three trajectories for a two-run configuration
+            arrays = {k: (v if k == "time" else np.concatenate([v, v[:1]])) for k, v in arrays.items()}
+        np.savez(path, **arrays)
+    return str(path.name)
+
+
+KINDS = ["override", "memory", "recording", "simulate", "learn", "sweep", "output"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_refused_command_exits_2_in_one_line_creates_nothing_and_the_corrected_one_runs(kind, recording, tmp_path):
+    root = tmp_path / "work"
+    root.mkdir()
+
+    @settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @given(data=st.data())
+    def refused(data):
+        with tempfile.TemporaryDirectory(dir=root) as d:
+            d = Path(d)
+            out = str(d / "out")
+            if kind == "override":
+                overrides, names = data.draw(_bad_override())
+                sets = [a for o in overrides.split("\0") for a in ("--set", o)]
+                _assert_refused(["run", "case1", *TINY, *sets, "--out", out], d, names)
+            elif kind == "memory":
+                runs = data.draw(st.integers(10**7, 10**12))
+                _assert_refused(["run", "case1", *TINY, "--set", f"runs={runs}", "--out", out], d, "memory")
+            elif kind == "recording":
+                bad = d / "bad.npz"
+                names = _bad_recording_file(bad, recording, data)
+                _assert_refused(["run", "case1", *TINY, "--recording", str(bad), "--out", out], d, names)
+            elif kind == "simulate":
+                arg = data.draw(st.sampled_from(["--star-period", "--seed", "--runs", "--steps"]))
+                value = {
+                    "--star-period": st.floats(0.01, 10.0).filter(lambda v: abs(v / 0.1 - round(v / 0.1)) > 1e-6).map(repr),
+                    "--seed": st.one_of(st.integers(max_value=-1), st.integers(min_value=MAX_SEED + 1)).map(str),
+                    "--runs": st.integers(max_value=0).map(str),
+                    "--steps": st.one_of(st.integers(max_value=0).map(str), st.just("ten")),
+                }[arg]
+                names = "star_period" if arg == "--star-period" else arg
+                _assert_refused(["simulate", "--runs", "2", "--steps", "3", arg, data.draw(value), "--out", out], d, names)
+            elif kind == "learn":
+                name = data.draw(st.from_regex(r"\A[a-z_]{1,12}\Z").filter(lambda s: s not in PARAMETERS))
+                _assert_refused(["learn", "case1", *TINY, "--learn", name, "--recording", str(recording), "--out", out], d, "--learn")
+            elif kind == "sweep":
+                v = data.draw(st.integers(1, 9))
+                grid, names = data.draw(st.sampled_from([
+                    (f"reg={v},{v}.0", "twice"), (f"zz_key={v}", "zz_key"), (f"reg=-{v}", "'reg'"), (f"spread={v}", "'spread'"),
+                ]))
+                _assert_refused(["sweep", "case1", *TINY, "--grid", grid, "--out", out], d, names)
+            else:  # output folders that cannot hold the experiment
+                target = d / "taken"
+                case = data.draw(st.sampled_from(["file", "corrupt marker", "other experiment", "foreign folder"]))
+                if case == "file":
+                    target.write_text("not a folder")
+                    names = "is a file"
+                else:
+                    target.mkdir()
+                    marker = {"corrupt marker": '{"kind": "run", "dig', "other experiment": '{"kind": "run", "digest": "0"}'}
+                    if case in marker:
+                        (target / "experiment.json").write_text(marker[case])
+                    else:
+                        (target / "notes.txt").write_text("mine")
+                    names = {"corrupt marker": "corrupt", "other experiment": "different experiment"}.get(case, "not an agsf")
+                _assert_refused(["run", "case1", *TINY, "--out", str(target)], d, names)
+
+    refused()
+    out = str(root / "corrected")
+    corrected = {
+        "simulate": ["simulate", "--runs", "2", "--steps", "3", "--star-period", "0.2", "--out", out],
+        "learn": ["learn", "case1", *TINY, "--learn", "sigma_v", "--max-iter", "1", "--recording", str(recording), "--out", out],
+        "recording": ["run", "case1", *TINY, "--recording", str(recording), "--out", out],
+        "sweep": ["sweep", "case1", *TINY, "--grid", "reg=0.5,1", "--out", out],
+    }.get(kind, ["run", "case1", *TINY, "--out", out])
+    code, err = _agsf(corrected)
+    assert code == 0, err
+    assert (Path(out) / "experiment.json").exists()
