@@ -1,0 +1,177 @@
+"""Nothing lost: inputs identified by content, sweeps that survive torn logs and refuse to run twice,
+grids that name each experiment once, and memory estimates checked before any work."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import pytest
+
+from agsf_torch.experiments import cli
+from agsf_torch.experiments.config import load_config
+from agsf_torch.experiments.experiment import OutputConflict, make_env, run_experiment
+from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.experiments.resources import (
+    BASE_PROCESS, RETAINED_OVERHEAD, WORKING_OVERHEAD, TooLarge, check_memory, estimated_memory,
+)
+from agsf_torch.experiments.sweep import SweepBusy, parse_grid, run_sweep
+
+TINY = ["runs=2", "duration=0.3", 'filters=["EKF"]']
+
+
+def _tiny(*more):
+    return load_config("case1", TINY + list(more))
+
+
+# -------------------------------------------------------------- content, not path
+
+
+def test_new_recording_contents_at_the_same_path_never_replace_earlier_results(tmp_path):
+    cfg = _tiny()
+    path = tmp_path / "rec.npz"
+    record_environment(make_env(cfg), cfg.num_steps, seed=1).save(path)
+    out = tmp_path / "replay"
+    first = run_experiment(cfg, out, progress=False, recording=path)
+    kept = (out / "summary.json").read_bytes()
+    record_environment(make_env(cfg), cfg.num_steps, seed=2).save(path)  # new data, same path
+    with pytest.raises(OutputConflict, match="different experiment"):
+        run_experiment(cfg, out, progress=False, recording=path)
+    assert (out / "summary.json").read_bytes() == kept
+    # the first contents under another name are the same experiment: the folder is reused
+    record_environment(make_env(cfg), cfg.num_steps, seed=1).save(tmp_path / "copy.npz")
+    again = run_experiment(cfg, out, progress=False, recording=tmp_path / "copy.npz")
+    assert again["filters"]["EKF"]["rms_deg"] == first["filters"]["EKF"]["rms_deg"]
+
+
+def test_learn_identifies_its_recording_by_content(tmp_path):
+    cfg = _tiny()
+    path = tmp_path / "rec.npz"
+    record_environment(make_env(cfg), cfg.num_steps, seed=1).save(path)
+    args = ["learn", "case1", *sum([["--set", s] for s in TINY], []), "--learn", "sigma_v", "--max-iter", "1",
+            "--recording", str(path), "--out", str(tmp_path / "learn")]
+    assert cli.main(args) == 0
+    kept = (tmp_path / "learn" / "learn.json").read_bytes()
+    record_environment(make_env(cfg), cfg.num_steps, seed=2).save(path)
+    assert cli.main(args) == 2
+    assert (tmp_path / "learn" / "learn.json").read_bytes() == kept
+
+
+# -------------------------------------------------------------- sweeps
+
+
+def test_a_sweep_resumes_past_a_torn_last_line_with_a_warning_naming_the_file(tmp_path):
+    base = _tiny()
+    grid = parse_grid(["reg=0.5,1"], base)
+    out = tmp_path / "sweep"
+    run_sweep(base, grid, out, progress=False)
+    results = out / "results.jsonl"
+    rows = results.read_text().splitlines()
+    results.write_text(rows[0] + "\n" + rows[1][: len(rows[1]) // 2])  # killed while writing the second row
+    ran = []
+
+    def counting(cfg, out, **kw):
+        ran.append(cfg.reg)
+        return run_experiment(cfg, out, **kw)
+
+    with pytest.warns(RuntimeWarning, match=r"results.jsonl: removed a torn last line"):
+        again = run_sweep(base, grid, out, progress=False, runner=counting)
+    assert ran == [json.loads(rows[1])["params"]["reg"]]  # only the configuration whose row was torn
+    assert [json.loads(line) for line in results.read_text().splitlines()] == again
+    assert sorted(r["params"]["reg"] for r in again) == [0.5, 1.0]
+
+
+def test_a_truncated_experiment_marker_is_an_error_naming_the_file(tmp_path):
+    out = tmp_path / "sweep"
+    base = _tiny()
+    run_sweep(base, parse_grid(["reg=1"], base), out, progress=False)
+    marker = out / "experiment.json"
+    marker.write_text(marker.read_text()[:20])
+    with pytest.raises(ValueError, match=r"experiment marker .*experiment.json is corrupt"):
+        run_sweep(base, parse_grid(["reg=1"], base), out, progress=False)
+
+
+def test_grid_values_are_normalised_and_duplicates_refused():
+    base = _tiny()
+    assert parse_grid(["reg=1,2"], base) == parse_grid(["reg=1.0,2.0"], base) == {"reg": [1.0, 2.0]}
+    assert isinstance(parse_grid(["reg=1"], base)["reg"][0], float)
+    with pytest.raises(ValueError, match=r"grid key 'reg' lists the value 1.0 twice"):
+        parse_grid(["reg=1,1.0"], base)
+    with pytest.raises(ValueError, match="grid key 'reg' is given twice"):
+        parse_grid(["reg=1", "reg=2"], base)
+    with pytest.raises(ValueError, match="'reg' must be finite and ≥ 0"):
+        parse_grid(["reg=-1"], base)
+
+
+def test_the_same_grid_written_with_ints_or_floats_is_one_experiment(tmp_path):
+    base = _tiny()
+    out = tmp_path / "sweep"
+    first = run_sweep(base, {"reg": [1]}, out, progress=False)
+    ran = []
+    again = run_sweep(base, {"reg": [1.0]}, out, progress=False, runner=lambda *a, **k: ran.append(a))
+    assert again == first and not ran  # same folder accepted, nothing rerun
+    # duplicate values passed to the API directly run once
+    twice = run_sweep(base, {"reg": [0.5, 0.5]}, tmp_path / "dup", progress=False)
+    assert len(twice) == 1
+
+
+def test_a_second_sweep_into_the_same_folder_is_refused_while_the_first_runs(tmp_path):
+    base = _tiny()
+    grid = parse_grid(["reg=1"], base)
+    out = tmp_path / "sweep"
+    seen = []
+
+    def nested(cfg, folder, **kw):  # while this sweep runs, start the same sweep again
+        with pytest.raises(SweepBusy, match="another agsf sweep is writing"):
+            run_sweep(base, grid, out, progress=False)
+        seen.append(True)
+        return run_experiment(cfg, folder, **kw)
+
+    rows = run_sweep(base, grid, out, progress=False, runner=nested)
+    assert seen == [True] and len(rows) == 1
+    assert len((out / "results.jsonl").read_text().splitlines()) == 1
+
+
+# -------------------------------------------------------------- memory
+
+
+def test_the_memory_estimate_counts_what_the_runner_keeps():
+    cfg = load_config("case1", ["runs=100", "duration=30", 'filters=["EKF", "GSF", "AGSF"]', "components=5"])
+    est = estimated_memory(cfg)
+    # per step and trajectory: angle, error (3), sigma (3), NEES, NIS, NIS dof, weights (N), entropy,
+    # and up to 16 diagnostics; EKF has N = 1, GSF and AGSF N = 5
+    floats = (1 + 3 + 3 + 1 + 1 + 1 + 1 + 1 + 16) + 2 * (1 + 3 + 3 + 1 + 1 + 1 + 5 + 1 + 16)
+    assert est.retained == RETAINED_OVERHEAD * 8 * 300 * 100 * floats
+    assert est.working == WORKING_OVERHEAD * 8 * 100 * ((1 + 5 + 5) * 9 + 3 * 5)
+    assert est.total == est.retained + est.working + BASE_PROCESS
+    assert estimated_memory(cfg, keep_steps=False).retained == 0
+
+
+def test_a_configuration_larger_than_the_budget_is_refused_unless_forced():
+    cfg = _tiny()
+    need = estimated_memory(cfg).total
+    with pytest.raises(TooLarge, match=r"runs=2, 3 steps .* needs an estimated .* GB of memory .* --force"):
+        check_memory(cfg, budget=need - 1)
+    assert check_memory(cfg, budget=need).total == need
+    assert check_memory(cfg, budget=need - 1, force=True).total == need
+
+
+def test_run_refuses_a_configuration_that_cannot_fit_before_creating_anything(tmp_path):
+    with pytest.raises(TooLarge, match="runs=1000000000"):
+        run_experiment(_tiny("runs=1000000000"), tmp_path / "x", progress=False)
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+def test_the_memory_estimate_bounds_a_measured_peak(tmp_path):
+    """The estimate of ``agsf run case1`` (1024 runs × 300 steps) lies above the measured peak
+    resident memory of the process, by less than a factor of two."""
+    cfg = load_config("case1", ["runs=1024"])
+    code = (
+        "import resource, sys; from agsf_torch.experiments import cli; "
+        f"cli.main(['run', 'case1', '--set', 'runs=1024', '--quiet', '--out', {str(tmp_path / 'run')!r}]); "
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+    )
+    peak_kb = int(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout.split()[-1])
+    estimate = estimated_memory(cfg).total
+    assert peak_kb * 1024 < estimate < 2 * peak_kb * 1024, (peak_kb / 2**20, estimate / 2**30)
