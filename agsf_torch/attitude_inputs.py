@@ -69,18 +69,29 @@ class AttitudeInputs:
             return torch.ones(B, dtype=torch.bool)
         return as_float64(obs["gyro_valid"], torch.bool).reshape(B)
 
-    def _bias_of(self, truth_bias: Tensor | None) -> Tensor | None:
+    def _bias_of(self, truth_bias: Tensor | None, gyro: Tensor) -> Tensor | None:
+        """The true bias as ``[B, 3]`` float64 like ``gyro`` (``None`` unless ``known_bias``); any other
+        shape — ``[B, 1]`` included — is refused, never broadcast over the axes."""
         if not self.known_bias:
             return None
         if truth_bias is None:
             raise ValueError("known_bias=True needs the true gyro bias with every observation")
-        return as_float64(truth_bias)
+        bias = as_float64(truth_bias)
+        if bias.shape != gyro.shape:
+            raise ValueError(f"truth_bias must have the gyro's shape {tuple(gyro.shape)} ([B, 3], rad/s), got {tuple(bias.shape)}")
+        if not bool(torch.isfinite(bias).all()):
+            raise ValueError(f"truth_bias must be finite; non-finite at index {tuple((~torch.isfinite(bias)).nonzero()[0].tolist())}")
+        return bias
 
     def start(self, obs: Mapping[str, Any], dt: float, truth_bias: Tensor | None = None) -> None:
-        """Prime the gyro hold with the first reading (and the known bias with its true value)."""
+        """Start a run: the gyro hold forgets any earlier run and is primed with the first reading (and
+        the known bias with its true value).  Everything is checked before anything changes."""
         gyro = as_float64(obs["gyro"])
-        self.hold.step(gyro, self.gyro_valid(obs, gyro.shape[0]), dt)
-        self._bias = self._bias_of(truth_bias)
+        bias = self._bias_of(truth_bias, gyro)
+        valid = self.gyro_valid(obs, gyro.shape[0])
+        hold = GyroHold(self.hold.rate_sigma)
+        hold.step(gyro, valid, dt)
+        self.hold, self._bias = hold, bias
 
     def __call__(self, obs: Mapping[str, Any], dt: float, truth_bias: Tensor | None = None, context: Any = None) -> StepInput:
         """The input of the interval of length ``dt`` that ends at ``obs``.
@@ -94,8 +105,8 @@ class AttitudeInputs:
         gyro = as_float64(obs["gyro"])
         B = gyro.shape[0]
         valid = self.gyro_valid(obs, B)
+        bias = self._bias_of(truth_bias, gyro)
         u, held_var = self.hold.step(gyro, valid, dt)
-        bias = self._bias_of(truth_bias)
         if bias is not None:
             u = u - 0.5 * (self._bias + bias)  # the gyro model's bias term over the interval
             self._bias = bias

@@ -65,54 +65,123 @@ def _filter_state(s: dict[str, Any], fmt: str, filt: GaussianSumFilter) -> dict[
     Format 1 kept the step counter beside the mixture and the reference weights in it
     (for every filter, adaptive or not): they become the adaptive filter's weight-update
     state (the reference only for the paper's penalty update, the one that uses it) and
-    are dropped for the other filters, which never used them.
+    are dropped for the other filters, which never used them.  The values are passed on
+    as stored (``load_state_dict`` validates them: a counter must be an ``int ≥ 0``).
     """
     if fmt == FORMAT:
         return s["filter"]
     update = getattr(filt, "weight_update", None)
     if update is None:
         return {}
-    state = {"kind": update.name, "step": int(s["step"]), "elapsed": 0.0}
+    state = {"kind": update.name, "step": s["step"], "elapsed": 0.0}
     if "ref_log_weights" in update.extra_state_keys:
         state["ref_log_weights"] = s["mixture"].get("ref_log_weights")
     return {"weight_update": state}
 
 
+def _mixture(m: Any) -> GaussianMixture:
+    """The mixture of a checkpoint entry ``{"log_weights", "means", "covs"}``, validated in full.
+
+    The three fields must be floating-point tensors of one dtype (as :func:`save_checkpoint`
+    writes them: no conversion on load, so a resumed run is bit-identical).
+    """
+    if not isinstance(m, dict) or not {"log_weights", "means", "covs"} <= set(m):
+        got = sorted(m) if isinstance(m, dict) else type(m).__name__
+        raise ValueError(f"mixture must be a dict with log_weights, means and covs, got {got}")
+    for key in ("means", "covs", "log_weights"):
+        t = m[key]
+        if not torch.is_tensor(t) or not t.is_floating_point():
+            what = f"a {t.dtype} tensor" if torch.is_tensor(t) else type(t).__name__
+            raise ValueError(f"mixture '{key}' must be a floating-point tensor, got {what}")
+        if t.dtype != m["means"].dtype:
+            raise ValueError(f"mixture '{key}' is {t.dtype} but 'means' is {m['means'].dtype}")
+    return GaussianMixture(log_weights=m["log_weights"], means=m["means"], covs=m["covs"])
+
+
+def _check_reference(state: Any, mixture: GaussianMixture) -> None:
+    """A weight update's reference log-weights, if the state holds any, must match the mixture's ``[..., N]``."""
+    update = state.get("weight_update") if isinstance(state, dict) else None
+    ref = update.get("ref_log_weights") if isinstance(update, dict) else None
+    if torch.is_tensor(ref) and ref.shape != mixture.log_weights.shape:
+        raise ValueError(
+            f"weight-update state 'ref_log_weights' has shape {tuple(ref.shape)}, the mixture's weights "
+            f"{tuple(mixture.log_weights.shape)}"
+        )
+
+
+#: Errors a malformed checkpoint's content can raise while it is read or handed to a filter.
+_CONTENT_ERRORS = (ValueError, KeyError, TypeError, AttributeError, IndexError, RuntimeError)
+
+
+def _read(path: Path) -> Any:
+    """``torch.load(path, weights_only=True)``; a file that is not a readable torch archive
+    (corrupt, truncated, a pickle of other objects) is a ``ValueError`` naming it."""
+    if not path.exists():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    if path.is_dir():
+        raise IsADirectoryError(f"checkpoint {path} is a directory, not a file")
+    try:
+        return torch.load(path, weights_only=True)
+    except OSError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - torch/pickle raise many types for a corrupt archive
+        raise ValueError(f"{path} is not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
+
+
 def load_checkpoint(path: str | Path, filters: Mapping[str, GaussianSumFilter]) -> tuple[dict[str, GaussianMixture], dict[str, Any]]:
     """Read a checkpoint (``weights_only=True``), restore the filters' run state, return
-    ``(mixtures, extra)``.  Everything is validated first; if a filter refuses its state,
-    the filters restored before it are put back as they were.
+    ``(mixtures, extra)``.
+
+    Every mixture is validated in full (floating-point tensors of one dtype, shapes,
+    finite means, symmetric positive definite covariances, log-weights).  The filters'
+    states are then loaded one by one; if any filter refuses its state (whatever the
+    error), every filter is put back as it was before the call: a failed load changes
+    nothing.
 
     Raises:
-        ValueError: naming the file (and the filter) for any malformed or mismatched content.
+        ValueError: naming the file (and the filter) for any malformed or mismatched content,
+            and for a file that is not a readable torch archive (corrupt, truncated).
+        FileNotFoundError, IsADirectoryError: naming the path.
     """
-    state = torch.load(Path(path), weights_only=True)
+    path = Path(path)
+    state = _read(path)
     fmt = state.get("format") if isinstance(state, dict) else None
     if fmt not in (FORMAT, _OLD_FORMAT):
         raise ValueError(f"{path} is not an {FORMAT} file (format {fmt!r})")
+    name = None
     try:
         entries, extra = state["filters"], state["extra"]
-        if set(entries) != set(filters):
-            raise ValueError(f"checkpoint holds filters {sorted(entries)}, got {sorted(filters)}")
+        if not isinstance(entries, dict) or set(entries) != set(filters):
+            got = sorted(entries) if isinstance(entries, dict) else type(entries).__name__
+            raise ValueError(f"checkpoint holds filters {got}, got {sorted(filters)}")
         mixtures, restored = {}, {}
         for name, s in entries.items():
-            m = s["mixture"]
-            try:
-                mixtures[name] = GaussianMixture(log_weights=m["log_weights"], means=m["means"], covs=m["covs"])
-            except ValueError as exc:
-                raise ValueError(f"filter {name!r}: {exc}") from None
+            if not isinstance(s, dict):
+                raise ValueError(f"entry must be a dict, got {type(s).__name__}")
+            mixtures[name] = _mixture(s["mixture"])
             restored[name] = _filter_state(s, fmt, filters[name])
-    except (KeyError, TypeError, AttributeError) as exc:
-        raise ValueError(f"{path}: malformed checkpoint ({type(exc).__name__}: {exc})") from None
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+            _check_reference(restored[name], mixtures[name])
+        name = None
+    except _CONTENT_ERRORS as exc:
+        where = "" if name is None else f"filter {name!r}: "
+        if isinstance(exc, ValueError):
+            raise ValueError(f"{path}: {where}{exc}") from None
+        raise ValueError(f"{path}: malformed checkpoint ({where}{type(exc).__name__}: {exc})") from None
     previous = {name: filt.state_dict() for name, filt in filters.items()}
+    loaded: list[str] = []
     current = None
     try:
         for current, filt in filters.items():
             filt.load_state_dict(restored[current])
-    except ValueError as exc:  # put every filter back as it was
-        for name, filt in filters.items():
-            filt.load_state_dict(previous[name])
-        raise ValueError(f"{path}: filter {current!r}: {exc}") from None
+            loaded.append(current)
+    except BaseException as exc:  # put every filter back as it was, whatever went wrong
+        for name in loaded:
+            filters[name].load_state_dict(previous[name])
+        try:  # the failing filter too, should it have changed anything before refusing
+            filters[current].load_state_dict(previous[current])
+        except Exception:  # noqa: BLE001 - it refuses states altogether; its own error is raised below
+            pass
+        if isinstance(exc, _CONTENT_ERRORS):
+            raise ValueError(f"{path}: filter {current!r}: {exc}") from None
+        raise
     return mixtures, extra

@@ -16,7 +16,10 @@ is accepted when
 .. math:: \\bar ν_b^T \\bar S_b^{-1} \\bar ν_b \\le χ^2_{s}(p),
 
 the ``p`` quantile of the χ² distribution with ``s`` = block size degrees of
-freedom.  **Consistency rule**: with ``V`` valid blocks in the measurement, failing
+freedom.  The NIS solves with the Cholesky factor of ``S̄_b``, or, where that is
+unfit (a precise sensor after a wide prior: ``S̄_b`` singular to rounding along the
+star direction), with a factor built from square roots
+(:func:`~agsf_torch.update.moment_matched_factor`).  **Consistency rule**: with ``V`` valid blocks in the measurement, failing
 blocks are rejected only if at least ``min(2, V − 1)`` blocks pass; otherwise the
 whole measurement is kept (``overridden``).  When every star of a frame disagrees
 with the prediction, the prediction is what is wrong (the first frame after a wide
@@ -39,7 +42,13 @@ from scipy.stats import chi2
 from torch import Tensor
 
 from .models.base import MeasurementModel
-from .update import evaluate_measurement, moment_matched_innovation
+from .update import (
+    check_innovation,
+    covariance_form_usable,
+    evaluate_measurement,
+    moment_matched_factor,
+    moment_matched_innovation,
+)
 
 __all__ = ["chi2_threshold", "innovation_gate"]
 
@@ -79,6 +88,10 @@ def innovation_gate(
         blocks kept (invalid blocks count as accepted: they carry nothing), their
         NIS (0 for invalid blocks), the entry validity to update with (the model's
         mask and the gate) and where the consistency rule kept failing blocks.
+
+    Raises:
+        ValueError: a non-finite mean, measurement or prediction, or an absurd innovation
+            (:func:`~agsf_torch.update.check_innovation`), before anything is computed from them.
     """
     h, H = evaluate_measurement(measurement, means)  # [..., N, d], [..., N, d, n]
     d = h.shape[-1]
@@ -91,6 +104,7 @@ def innovation_gate(
     valid = valid.expand(h.shape[:-2] + (d,))
     R = measurement.noise_cov().to(means)
     S = H @ covs @ H.transpose(-1, -2) + (R.unsqueeze(-3) if R.dim() > 2 else R)  # [..., N, d, d]
+    check_innovation(y.unsqueeze(-2), means, h, S.diagonal(dim1=-2, dim2=-1), valid.unsqueeze(-2).expand(h.shape))
     blocks = S.reshape(*S.shape[:-2], G, s, G, s).diagonal(dim1=-4, dim2=-2).movedim(-1, -3)  # [..., N, G, s, s]
     nu = (y.unsqueeze(-2) - h).reshape(*h.shape[:-1], G, s)  # [..., N, G, s]
     # per block: components to the second-to-last axis, [..., G, N, s] and [..., G, N, s, s]
@@ -98,7 +112,11 @@ def innovation_gate(
     block_valid = valid.reshape(*valid.shape[:-1], G, s).all(-1)
     eye = torch.eye(s, dtype=S_bar.dtype, device=S_bar.device)
     S_bar = torch.where(block_valid[..., None, None], S_bar, eye)
-    L = torch.linalg.cholesky(0.5 * (S_bar + S_bar.transpose(-1, -2)))
+    S_bar = 0.5 * (S_bar + S_bar.transpose(-1, -2))
+    L, info = torch.linalg.cholesky_ex(S_bar)
+    need = ~covariance_form_usable(L, info, torch.ones_like(S_bar[..., 0]))
+    if bool(need.any()):  # a precise sensor after a wide prior: factor S̄ from square roots instead
+        L = torch.where(need[..., None, None], _block_factor(log_weights, nu, H, covs, R, G, s), L)
     z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False).squeeze(-1)
     nis = torch.where(block_valid, (z * z).sum(-1), torch.zeros_like(z[..., 0]))
     passing = block_valid & (nis <= threshold)
@@ -109,3 +127,25 @@ def innovation_gate(
     accepted = ~block_valid | passing | overridden[..., None]
     entry_mask = valid & accepted.repeat_interleave(s, dim=-1)
     return accepted, nis, entry_mask, overridden
+
+
+def _block_factor(log_weights: Tensor, nu: Tensor, H: Tensor, covs: Tensor, R: Tensor, G: int, s: int) -> Tensor:
+    """A lower Cholesky factor of each block's ``S̄_b`` from square roots (:func:`~agsf_torch.update.moment_matched_factor`),
+    ``[..., G, s, s]``: for a ``S̄_b`` too ill-conditioned for its own Cholesky factorisation (``H P Hᵀ``
+    singular along a star's direction and ``σ_s² ≪ H P Hᵀ``).
+
+    Args:
+        nu: ``[..., N, G, s]``; H: ``[..., N, d, n]``; covs: ``[..., N, n, n]``; R: ``[d, d]`` or ``[..., d, d]``.
+    """
+    L_P, info = torch.linalg.cholesky_ex(covs)
+    if bool((info != 0).any()):
+        idx = (info != 0).nonzero()[0].tolist()
+        raise ValueError(f"the component covariance P is not positive definite at trajectory index {tuple(idx[:-1])}, component {idx[-1]}")
+    HL = (H @ L_P).reshape(*H.shape[:-2], G, s, covs.shape[-1]).movedim(-3, -4)  # [..., G, N, s, n]
+    R_blocks = R.reshape(*R.shape[:-2], G, s, G, s).diagonal(dim1=-4, dim2=-2).movedim(-1, -3)  # [..., G, s, s]
+    L_R, info = torch.linalg.cholesky_ex(R_blocks)
+    if bool((info != 0).any()):
+        idx = (info != 0).nonzero()[0].tolist()
+        raise ValueError(f"the measurement noise covariance R is not positive definite in block {idx[-1]} (index {tuple(idx)})")
+    _, L = moment_matched_factor(log_weights.unsqueeze(-2), nu.movedim(-3, -2), HL, L_R)
+    return L

@@ -40,7 +40,8 @@ class GyroHold:
 
     State: ``last [B, 3]`` (the last valid reading; zeros before any) and
     ``held_steps [B]`` (consecutive held samples so far), saved by
-    :meth:`state_dict`.
+    :meth:`state_dict`.  One hold follows one run of ``B`` trajectories: a reading of
+    another batch size is refused (start a new run with a new hold or :meth:`reset`).
     """
 
     def __init__(self, rate_sigma: float) -> None:
@@ -73,7 +74,12 @@ class GyroHold:
             raise ValueError(f"gyro_valid must have shape [{B}], got {tuple(valid.shape)}")
         if not bool(torch.isfinite(gyro[valid]).all()):
             raise ValueError("valid gyro readings must be finite")
-        if self.last is None or self.last.shape != gyro.shape:
+        if self.last is not None and self.last.shape != gyro.shape:
+            raise ValueError(
+                f"gyro has shape {tuple(gyro.shape)} but this hold follows a run of shape {tuple(self.last.shape)}; "
+                "call reset() to start another run"
+            )
+        if self.last is None:
             self.last = torch.zeros_like(gyro)
             self.held_steps = torch.zeros(B, dtype=torch.int64)
         assert self.held_steps is not None
@@ -90,13 +96,26 @@ class GyroHold:
 
         Args:
             mixture: batch ``[B]``, state ``[p (3), …]``.
-            angle_variance: ``[B]`` (rad²).
+            angle_variance: ``[B]`` (rad²), finite and ≥ 0 (as :meth:`step` returns it).
+
+        The result is a valid mixture without a new factorisation: adding a positive
+        semidefinite diagonal keeps every covariance positive definite.
         """
+        angle_variance = torch.as_tensor(angle_variance)
+        B = mixture.batch_shape
+        if len(B) != 1 or angle_variance.shape != B:
+            raise ValueError(f"angle_variance must have the mixture's batch shape [B] = {tuple(B)}, got {tuple(angle_variance.shape)}")
+        if mixture.state_dim < 3:
+            raise ValueError(f"the mixture's state must start with the 3 MRP entries, got state dimension {mixture.state_dim}")
+        bad = ~torch.isfinite(angle_variance) | (angle_variance < 0)
+        if bool(bad.any()):
+            k = int(bad.nonzero()[0])
+            raise ValueError(f"angle_variance must be finite and ≥ 0 (rad²), got {float(angle_variance[k])} at trajectory {k}")
         n = mixture.state_dim
         diag = torch.zeros(n, dtype=mixture.covs.dtype, device=mixture.covs.device)
         diag[:3] = 1.0 / 16.0
         add = angle_variance.to(mixture.covs)[:, None, None, None] * torch.diag(diag)
-        return mixture.replace(covs=mixture.covs + add)
+        return mixture.replace(covs=mixture.covs + add, validate=False)
 
     def state_dict(self) -> dict[str, Any]:
         """The hold's state (for checkpoints)."""
@@ -106,8 +125,39 @@ class GyroHold:
             "held_steps": None if self.held_steps is None else self.held_steps.clone(),
         }
 
+    def reset(self) -> None:
+        """Forget the run (the last reading and the held-step counts)."""
+        self.last = None
+        self.held_steps = None
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict`."""
-        self.rate_sigma = float(state["rate_sigma"])
-        self.last = None if state["last"] is None else state["last"].clone()
-        self.held_steps = None if state["held_steps"] is None else state["held_steps"].clone()
+        """Restore :meth:`state_dict`; validated before anything changes.
+
+        Raises:
+            ValueError: naming the entry — other keys, ``rate_sigma`` not finite and ≥ 0, ``last`` not a
+                finite floating tensor ``[B, 3]``, ``held_steps`` not an integer tensor ``[B]`` ≥ 0,
+                or only one of the two given.
+        """
+        if not isinstance(state, dict) or set(state) != {"rate_sigma", "last", "held_steps"}:
+            got = sorted(state) if isinstance(state, dict) else type(state).__name__
+            raise ValueError(f"GyroHold state must have the keys ['held_steps', 'last', 'rate_sigma'], got {got}")
+        sigma, last, held = state["rate_sigma"], state["last"], state["held_steps"]
+        if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 <= sigma < math.inf:
+            raise ValueError(f"GyroHold state 'rate_sigma' must be a finite number ≥ 0, got {sigma!r}")
+        if (last is None) != (held is None):
+            raise ValueError("GyroHold state 'last' and 'held_steps' must both be None or both be tensors")
+        if last is not None:
+            if not torch.is_tensor(last) or not last.is_floating_point() or last.dim() != 2 or last.shape[-1] != 3:
+                got = tuple(last.shape) if torch.is_tensor(last) else type(last).__name__
+                raise ValueError(f"GyroHold state 'last' must be a floating tensor [B, 3], got {got}")
+            if not bool(torch.isfinite(last).all()):
+                raise ValueError("GyroHold state 'last' must be finite")
+            B = last.shape[0]
+            if not torch.is_tensor(held) or held.is_floating_point() or held.dtype == torch.bool or held.shape != (B,):
+                got = f"{held.dtype} {tuple(held.shape)}" if torch.is_tensor(held) else type(held).__name__
+                raise ValueError(f"GyroHold state 'held_steps' must be an integer tensor [{B}], got {got}")
+            if bool((held < 0).any()):
+                raise ValueError("GyroHold state 'held_steps' must be ≥ 0")
+        self.rate_sigma = float(sigma)
+        self.last = None if last is None else last.clone()
+        self.held_steps = None if held is None else held.to(torch.int64).clone()

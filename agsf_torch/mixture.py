@@ -13,7 +13,34 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["GaussianMixture", "split_gaussian", "check_covariance"]
+__all__ = ["GaussianMixture", "split_gaussian", "check_covariance", "as_real_tensor"]
+
+
+def _describe(value: object) -> str:
+    if torch.is_tensor(value):
+        return f"a {value.dtype} tensor of shape {tuple(value.shape)}"
+    return f"{type(value).__name__} {value!r}"[:120]
+
+
+def as_real_tensor(name: str, value: object, dtype: torch.dtype | None = None, device: torch.device | None = None) -> Tensor:
+    """``value`` as a real floating-point tensor, or ``ValueError`` naming ``name``.
+
+    A floating-point tensor keeps its dtype unless ``dtype`` is given; integer and bool
+    tensors and any array-like (lists, numbers, numpy arrays) become float64 (or
+    ``dtype``); complex values and anything that is not numeric (strings, ``None``,
+    dicts…) are refused.
+    """
+    try:
+        t = torch.as_tensor(value, device=device) if torch.is_tensor(value) else torch.as_tensor(
+            value, dtype=dtype or torch.float64, device=device
+        )
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{name} must be a real tensor, got {_describe(value)} ({exc})") from None
+    if t.is_complex():
+        raise ValueError(f"{name} must be real, got a {t.dtype} tensor")
+    if dtype is not None:
+        return t.to(dtype)
+    return t if t.is_floating_point() else t.to(torch.float64)
 
 
 def check_covariance(name: str, P: Tensor, rtol: float = 1e-9) -> None:
@@ -21,6 +48,8 @@ def check_covariance(name: str, P: Tensor, rtol: float = 1e-9) -> None:
 
     The message names the first offending batch index.
     """
+    if not torch.is_tensor(P) or not P.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got {_describe(P)}")
     if P.dim() < 2 or P.shape[-1] != P.shape[-2]:
         raise ValueError(f"{name} must have shape [..., n, n], got {tuple(P.shape)}")
     if not bool(torch.isfinite(P).all()):
@@ -50,6 +79,9 @@ class GaussianMixture:
     Inputs are validated (shapes, finiteness, symmetric positive definite
     covariances, non-negative weights with a positive sum) unless
     ``validate=False`` (used internally by the filters on their own outputs).
+    Integer or bool tensors and array-likes are converted to float64 (a floating
+    tensor keeps its dtype; ``covs`` and the weights take the dtype of ``means``);
+    a non-numeric or complex field is a ``ValueError`` naming it.
     """
 
     log_weights: Tensor
@@ -65,12 +97,12 @@ class GaussianMixture:
         log_weights: Tensor | None = None,
         validate: bool = True,
     ) -> None:
-        means = torch.as_tensor(means)
-        covs = torch.as_tensor(covs, dtype=means.dtype, device=means.device)
+        means = as_real_tensor("means", means)
+        covs = as_real_tensor("covs", covs, means.dtype, means.device)
         if (weights is None) == (log_weights is None):
             raise ValueError("give exactly one of weights= or log_weights=")
         if weights is not None:
-            weights = torch.as_tensor(weights, dtype=means.dtype, device=means.device)
+            weights = as_real_tensor("weights", weights, means.dtype, means.device)
             if validate:
                 if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
                     raise ValueError("weights must be finite and non-negative")
@@ -78,7 +110,7 @@ class GaussianMixture:
                     raise ValueError("weights must have a positive sum in every mixture")
             log_weights = torch.log(weights)
         else:
-            log_weights = torch.as_tensor(log_weights, dtype=means.dtype, device=means.device)
+            log_weights = as_real_tensor("log_weights", log_weights, means.dtype, means.device)
             if validate and (bool(torch.isnan(log_weights).any()) or bool(torch.isposinf(log_weights).any())):
                 raise ValueError("log_weights must not be NaN or +inf")
         if validate:
@@ -90,7 +122,8 @@ class GaussianMixture:
             if log_weights.shape != means.shape[:-1]:
                 raise ValueError(f"weights must have shape {tuple(means.shape[:-1])}, got {tuple(log_weights.shape)}")
             if not bool(torch.isfinite(means).all()):
-                raise ValueError("means must be finite")
+                idx = (~torch.isfinite(means)).any(-1).nonzero()[0].tolist()
+                raise ValueError(f"means must be finite; non-finite entry at batch index {tuple(idx)}")
             check_covariance("covs", covs)
             if bool(torch.isneginf(log_weights).all(-1).any()):
                 raise ValueError("weights must have a positive sum in every mixture")
@@ -117,11 +150,23 @@ class GaussianMixture:
     def batch_shape(self) -> torch.Size:
         return self.means.shape[:-2]
 
-    def replace(self, **kwargs: Tensor) -> GaussianMixture:
-        """A copy with some of ``log_weights``, ``means``, ``covs`` replaced (no validation)."""
+    def replace(self, *, validate: bool = True, **kwargs: Tensor) -> GaussianMixture:
+        """A copy with some of ``log_weights``, ``means``, ``covs`` replaced.
+
+        The result is validated as by the constructor (shapes, finite means, symmetric
+        positive definite covariances, log-weights without NaN or +inf and not all −inf);
+        ``validate=False`` skips that for the filters' own outputs, whose covariances they
+        have already checked (a Cholesky factorisation per component saved per step).
+
+        Raises:
+            ValueError: an unknown field, or (with ``validate``) a malformed one, named.
+        """
+        unknown = sorted(set(kwargs) - {"log_weights", "means", "covs"})
+        if unknown:
+            raise ValueError(f"replace() takes log_weights, means and covs, got {', '.join(unknown)}")
         fields = {"log_weights": self.log_weights, "means": self.means, "covs": self.covs}
         fields.update(kwargs)
-        return GaussianMixture(validate=False, **fields)
+        return GaussianMixture(validate=validate, **fields)
 
     # ------------------------------------------------------------ statistics
     def moments(self) -> tuple[Tensor, Tensor]:
@@ -181,8 +226,8 @@ class GaussianMixture:
         Args:
             mean: ``[..., n]``; cov: ``[..., n, n]`` symmetric positive definite.
         """
-        mean = torch.as_tensor(mean)
-        cov = torch.as_tensor(cov, dtype=mean.dtype, device=mean.device)
+        mean = as_real_tensor("mean", mean)
+        cov = as_real_tensor("cov", cov, mean.dtype, mean.device)
         if mean.dim() < 1 or cov.shape[-2:] != (mean.shape[-1],) * 2:
             raise ValueError(f"mean [..., n] and cov [..., n, n] do not match: {tuple(mean.shape)}, {tuple(cov.shape)}")
         if not bool(torch.isfinite(mean).all()):

@@ -20,9 +20,16 @@ system.  Its cost grows as ``2^N``: it is meant for mixtures of up to
 ``H ≻ 0`` on the simplex, e.g. the filter's ``L + λI``) the selected support's
 KKT matrix is nonsingular.
 
-Reference back ends, for validation and as options: Clarabel called directly
-(:func:`solve_simplex_qp_clarabel`) and through cvxpy
-(:func:`solve_simplex_qp_cvxpy`).
+Convexity is a precondition, checked on every call (:data:`PSD_TOLERANCE`, one batched
+Cholesky factorisation of the ``N × N`` matrices): for a concave or indefinite ``H`` the
+KKT conditions also hold at maximisers and saddle points, which the solver would return
+with a zero residual.  The filters' matrices are PSD by construction only up to their
+quadrature: ``L = Σₖ wₖ ℓ(xₖ)ℓ(xₖ)ᵀ`` and the Galerkin ``M`` are Gram matrices, PSD for a
+rule with positive weights, but a sparse grid (negative weights) or rounding can break it.
+
+Reference back ends, for validation and the benchmark (the filters always use
+:func:`solve_simplex_qp`): Clarabel called directly (:func:`solve_simplex_qp_clarabel`)
+and through cvxpy (:func:`solve_simplex_qp_cvxpy`).
 """
 
 from __future__ import annotations
@@ -33,6 +40,8 @@ from functools import lru_cache
 import numpy as np
 import torch
 from torch import Tensor
+
+from .fpke.matrices import check_chunk_size
 
 __all__ = [
     "MAX_COMPONENTS",
@@ -47,6 +56,9 @@ __all__ = [
 MAX_COMPONENTS = 64
 #: Largest problem size settled by support enumeration (``2^N − 1`` supports); above it, an interior-point method.
 MAX_ENUMERATION = 12
+#: Convexity tolerance: ``H`` is accepted as positive semidefinite when ``H + PSD_TOLERANCE·max|Hᵢⱼ|·I``
+#: is positive definite, i.e. its smallest eigenvalue is ≥ about ``−PSD_TOLERANCE·max|Hᵢⱼ|``.
+PSD_TOLERANCE = 1e-10
 
 
 @dataclass(frozen=True)
@@ -84,6 +96,30 @@ def _check_inputs(H: Tensor, c: Tensor) -> None:
         raise ValueError(f"solve_simplex_qp handles N ≤ {MAX_COMPONENTS} components, got {H.shape[-1]}")
 
 
+def _check_convex(H: Tensor, batch: tuple[int, ...]) -> None:
+    """Raise ``ValueError`` naming the first batch index (in ``batch``) of the symmetric ``H [P, N, N]``
+    that is not positive semidefinite to :data:`PSD_TOLERANCE`: the solver's optimality
+    certificate (the KKT conditions) characterises the minimiser of a *convex* problem only —
+    for a concave one it selects a stationary point, e.g. the maximiser.
+
+    One batched Cholesky factorisation of ``H + PSD_TOLERANCE·max|Hᵢᵢ|·I`` (for a PSD matrix
+    ``max|Hᵢⱼ| = max Hᵢᵢ``); the eigenvalue for the message is computed only on failure.
+    """
+    Hd = H.detach()
+    scale = Hd.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
+    shift = PSD_TOLERANCE * scale + torch.finfo(Hd.dtype).tiny
+    eye = torch.eye(Hd.shape[-1], dtype=Hd.dtype, device=Hd.device)
+    bad = torch.linalg.cholesky_ex(Hd + shift[:, None, None] * eye).info != 0
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0])
+        idx = tuple(int(i) for i in np.unravel_index(k, batch)) if batch else ()
+        lam = float(torch.linalg.eigvalsh(Hd[k])[0])
+        raise ValueError(
+            f"H is not positive semidefinite at batch index {idx} (smallest eigenvalue {lam:.3g}, "
+            f"largest |diagonal| {float(scale[k]):.3g}): solve_simplex_qp solves convex problems only"
+        )
+
+
 def kkt_residual(H: Tensor, c: Tensor, w: Tensor) -> Tensor:
     """Scaled KKT residual of a simplex-QP point, ``[...]``.
 
@@ -103,7 +139,7 @@ def kkt_residual(H: Tensor, c: Tensor, w: Tensor) -> Tensor:
     return torch.maximum(primal, torch.maximum(dual, comp) / scale)
 
 
-def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 4096) -> QPResult:
+def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int | None = 4096) -> QPResult:
     """Solve ``min ½wᵀHw + cᵀw`` on the simplex for a batch, exactly.
 
     A batched primal–dual active-set iteration runs first: solve the KKT system
@@ -116,32 +152,44 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int = 40
     support is then polished by one KKT solve (:func:`_interior_point`).
 
     Args:
-        H: ``[..., N, N]`` symmetric positive semidefinite.
+        H: ``[..., N, N]`` symmetric positive semidefinite (only the symmetric part is used;
+            checked to :data:`PSD_TOLERANCE` by one batched Cholesky factorisation).
         c: ``[..., N]`` (default zero).
-        chunk_size: problems per batched enumeration call (bounds memory).
+        chunk_size: problems per batched enumeration call (bounds memory), a positive integer
+            (``None``: all in one call).
 
     Returns:
         :class:`QPResult` (its ``iterations`` counts the work of all three stages, see there).
 
     Raises:
-        ValueError: non-finite entries (naming the batch index), bad shapes, or ``N > MAX_COMPONENTS`` (64).
+        ValueError: non-finite entries (naming the batch index), bad shapes, ``N > MAX_COMPONENTS`` (64),
+            an ``H`` that is not positive semidefinite (naming the batch index), or a ``chunk_size``
+            that is not a positive integer.
     """
     H = torch.as_tensor(H)
+    if not H.is_floating_point():
+        H = H.to(torch.float64)
     if c is None:
         c = torch.zeros(H.shape[:-1], dtype=H.dtype, device=H.device)
     c = torch.as_tensor(c, dtype=H.dtype, device=H.device)
     _check_inputs(H, c)
-    batch = torch.broadcast_shapes(H.shape[:-2], c.shape[:-1])
+    chunk_size = check_chunk_size(chunk_size)
+    try:
+        batch = torch.broadcast_shapes(H.shape[:-2], c.shape[:-1])
+    except RuntimeError:
+        raise ValueError(f"the batch dims of H {tuple(H.shape)} and c {tuple(c.shape)} do not broadcast") from None
     N = H.shape[-1]
     Hf = H.expand(*batch, N, N).reshape(-1, N, N)
     cf = c.expand(*batch, N).reshape(-1, N)
     Hf = 0.5 * (Hf + Hf.transpose(-1, -2))
+    _check_convex(Hf, tuple(batch))
     w, done, iterations = _active_set(Hf, cf)
     if not bool(done.all()):
         idx = (~done).nonzero().squeeze(-1)
         Hr, cr = Hf[idx], cf[idx]
         if N <= MAX_ENUMERATION:
             S = torch.as_tensor(_supports(N), device=H.device)  # [K, N]
+            chunk_size = chunk_size or idx.numel()
             out = [_solve_chunk(Hr[i : i + chunk_size], cr[i : i + chunk_size], S) for i in range(0, idx.numel(), chunk_size)]
             w = w.index_copy(0, idx, torch.cat(out))
             iterations += S.shape[0]

@@ -47,12 +47,11 @@ import numpy as np
 import torch
 
 from .files import atomic_open
+from .models.star_vectors import UNIT_TOLERANCE  # the filters' rule for star unit vectors
 
 __all__ = ["Recording", "FORMAT", "UNIT_TOLERANCE"]
 
 FORMAT = "agsf-recording-1"
-#: Largest |‖v‖ − 1| of a star vector that is normalised (with a warning) instead of rejected.
-UNIT_TOLERANCE = 1e-3
 _REQUIRED = ("time", "gyro", "star_body", "star_inertial", "star_mask")
 _OPTIONAL = ("gyro_valid", "truth_mrp", "truth_bias")
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a member's header, or an empty archive's directory (numpy's test)

@@ -10,11 +10,39 @@ For each component, with ``H = ∂h/∂x`` at the predicted mean:
 
     \\log w^+ = \\log w + \\log N(\\tilde y; h(μ), S) - \\operatorname{logsumexp}(\\cdot).
 
-Solves go through Cholesky factors of ``S``; no inverse is formed.  Invalid
-measurement entries (a mask) are removed exactly: their rows of ``H`` and of the
-innovation are zeroed and their block of ``R`` is replaced by the identity, so
-they change neither the state nor the likelihood; a trajectory with no valid
-entry is returned unchanged.
+Solves go through Cholesky factors; no inverse is formed.  Invalid measurement
+entries (a mask) are removed exactly: their rows of ``H`` and of the innovation
+are zeroed and their block of ``R`` is replaced by the identity, so they change
+neither the state nor the likelihood; a trajectory with no valid entry is
+returned unchanged.
+
+**Two forms of the gain.**  The covariance form above solves with the Cholesky
+factor of ``S``.  A unit-vector measurement makes ``H P Hᵀ`` singular along each
+star direction, so ``cond(S) ≈ λ_max(HPHᵀ)/σ²`` (≈ 4·10⁸ for σ = 10 µrad after a
+1e-3 prior, ≈ 4·10¹⁶ for σ = 1 nrad): the gain's rounding error grows like
+``ε·cond(S)`` and beyond ``1/ε`` the factorisation fails.  Where the Cholesky
+factor of ``S`` shows ``(max Lᵢᵢ / min Lᵢᵢ)² > COVARIANCE_FORM_MAX_CONDITION`` (a
+lower bound of ``cond(S)``) or the factorisation fails, the same gain is formed
+in information form (push-through identity), which never factors ``S``:
+
+.. math::
+
+    P = L_P L_P^T,\\; R = L_R L_R^T,\\; G = L_R^{-1} H L_P,\\;
+    M = I + G^T G = R_M^T R_M \\;(\\text{QR of } [G; I]),
+
+    K = L_P M^{-1} G^T L_R^{-1} \\;(= P H^T S^{-1}),\\qquad
+    \\log\\det S = \\log\\det R + \\log\\det M,
+
+    ν^T S^{-1} ν = \\lVert L_R^{-1}(ν - H δx)\\rVert^2 + \\lVert L_P^{-1} δx\\rVert^2,\\quad δx = Kν.
+
+``M ⪰ I`` whatever the conditioning, and its QR factor is backward stable, so the
+gain stays accurate to rounding; the Joseph form then keeps ``P⁺`` symmetric
+positive definite.  Below the threshold the covariance form is used unchanged.
+
+**Input checks** (:func:`check_innovation`, one batched reduction): the update
+refuses a non-finite mean, measurement or prediction, and an innovation entry
+more than ``1/ε`` of its predicted standard deviations ``√Sᵢᵢ`` — a value no
+float64 update can resolve (wrong units, a corrupted value) — naming it.
 """
 
 from __future__ import annotations
@@ -27,7 +55,22 @@ from torch import Tensor
 
 from .models.base import MeasurementModel
 
-__all__ = ["ComponentUpdate", "kalman_update", "evaluate_measurement", "moment_matched_innovation"]
+__all__ = [
+    "COVARIANCE_FORM_MAX_CONDITION",
+    "ComponentUpdate",
+    "check_innovation",
+    "covariance_form_usable",
+    "evaluate_measurement",
+    "gram_factor",
+    "kalman_update",
+    "moment_matched_factor",
+    "moment_matched_innovation",
+]
+
+#: Largest lower bound ``(max Lᵢᵢ / min Lᵢᵢ)²`` of ``cond(S)`` (over valid entries) at which a
+#: gain or NIS is computed with the Cholesky factor ``L`` of ``S``; above it the square-root /
+#: information form is used.  ``ε·10¹⁰ ≈ 2·10⁻⁶``: the covariance form's relative error bound.
+COVARIANCE_FORM_MAX_CONDITION = 1e10
 
 
 @dataclass(frozen=True)
@@ -41,6 +84,8 @@ class ComponentUpdate:
         dof: number of valid measurement entries, ``[...]``.
         innovation: ``ν = ỹ − h(μ)`` ``[..., N, d]`` (zero at masked entries).
         innovation_cov: ``S`` ``[..., N, d, d]``.
+        nis_mixture: NIS of the moment-matched mixture prediction ``ν̄ᵀ S̄⁻¹ ν̄``
+            (:func:`moment_matched_innovation` with the prior weights), ``[...]``.
     """
 
     means: Tensor
@@ -51,6 +96,7 @@ class ComponentUpdate:
     dof: Tensor
     innovation: Tensor
     innovation_cov: Tensor
+    nis_mixture: Tensor
 
 
 def moment_matched_innovation(log_weights: Tensor, nu: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
@@ -75,6 +121,131 @@ def moment_matched_innovation(log_weights: Tensor, nu: Tensor, S: Tensor) -> tup
     return nu_bar, S_bar
 
 
+def gram_factor(A: Tensor) -> Tensor:
+    """Lower-triangular ``L`` with ``L Lᵀ = A Aᵀ`` and ``Lᵢᵢ ≥ 0``, from a QR of ``Aᵀ`` (``Aᵀ = QU``, ``L = Uᵀ``).
+
+    Backward stable: ``L`` is the exact factor of ``(A + E)(A + E)ᵀ`` with ``|E| = O(ε|A|)``,
+    so it is nonsingular whenever ``A``'s smallest singular value exceeds ``O(ε|A|)`` — e.g.
+    ``A = [H L_P, L_R]`` (``S = AAᵀ``) with ``R`` positive definite — however ill-conditioned ``AAᵀ`` is.
+
+    Args:
+        A: ``[..., d, k]`` with ``k ≥ d``.
+
+    Returns:
+        ``L [..., d, d]``.
+    """
+    U = torch.linalg.qr(A.transpose(-1, -2)).R  # [..., d, d] upper
+    sign = torch.where(U.diagonal(dim1=-2, dim2=-1) < 0, -1.0, 1.0).to(U)
+    return (sign[..., :, None] * U).transpose(-1, -2)
+
+
+def covariance_form_usable(L: Tensor, info: Tensor, valid: Tensor) -> Tensor:
+    """Whether the Cholesky factor ``L`` of ``S`` (from ``torch.linalg.cholesky_ex``) is fit for solves:
+    the factorisation succeeded and ``(max Lᵢᵢ / min Lᵢᵢ)² ≤ COVARIANCE_FORM_MAX_CONDITION`` over the
+    valid entries (masked entries have decoupled unit pivots and are left out).
+
+    Args:
+        L: ``[..., d, d]``; info: ``[...]``; valid: ``[..., d]`` (bool or 0/1).
+
+    Returns:
+        ``[...]`` bool.
+    """
+    piv = L.diagonal(dim1=-2, dim2=-1)
+    v = valid.to(torch.bool)
+    big = torch.where(v, piv, torch.zeros_like(piv)).amax(-1)
+    small = torch.where(v, piv, torch.full_like(piv, math.inf)).amin(-1)
+    return (info == 0) & (big <= small * math.sqrt(COVARIANCE_FORM_MAX_CONDITION))
+
+
+def moment_matched_factor(log_weights: Tensor, nu: Tensor, HL: Tensor, L_R: Tensor) -> tuple[Tensor, Tensor]:
+    """``ν̄`` and a lower Cholesky factor of ``S̄`` (:func:`moment_matched_innovation`) from square roots,
+    never forming ``S̄``:
+
+    .. math:: \\bar S = A A^T,\\quad A = \\left[\\sqrt{w_i}\\, H_i L_{P,i}\\;(i = 1..N),\\;
+              \\sqrt{w_i}\\,(ν_i - \\bar ν)\\;(i = 1..N),\\; \\sqrt{\\textstyle\\sum_i w_i}\\, L_R\\right],
+
+    factored by :func:`gram_factor` (``S_i = H_i P_i H_iᵀ + R`` with one ``R`` for all components).
+
+    Args:
+        log_weights: ``[..., N]``; nu: ``[..., N, k]``; HL: ``H_i L_{P,i}`` ``[..., N, k, n]``;
+        L_R: a lower factor of ``R`` ``[..., k, k]``.
+
+    Returns:
+        ``(ν̄ [..., k], L̄ [..., k, k])``.
+    """
+    w = log_weights.exp()
+    nu_bar = (w[..., None] * nu).sum(-2)
+    sw = w.sqrt()
+    dn = (sw[..., None] * (nu - nu_bar.unsqueeze(-2))).transpose(-1, -2)  # [..., k, N]
+    spread = (sw[..., None, None] * HL).movedim(-3, -2)  # [..., k, N, n]
+    spread = spread.reshape(*spread.shape[:-2], -1)  # [..., k, N n]
+    rn = w.sum(-1).sqrt()[..., None, None] * L_R
+    batch = torch.broadcast_shapes(spread.shape[:-2], dn.shape[:-2], rn.shape[:-2])
+    k = nu.shape[-1]
+    A = torch.cat([t.expand(*batch, k, t.shape[-1]) for t in (spread, dn, rn)], -1)
+    return nu_bar, gram_factor(A)
+
+
+def _first_index(bad: Tensor) -> list[int]:
+    return bad.nonzero()[0].tolist()
+
+
+def check_innovation(y: Tensor, means: Tensor, h: Tensor, S_diag: Tensor, valid: Tensor) -> None:
+    """Refuse an update that no float64 arithmetic can carry out, naming the cause (before anything changes).
+
+    Passes when every innovation entry ``νⱼ = ỹⱼ − hⱼ(μ)`` is finite and, on the valid entries,
+    ``ε |νⱼ| ≤ √Sⱼⱼ`` (an innovation of more than ``1/ε ≈ 4.5·10¹⁵`` predicted standard deviations
+    is below the rounding of ``ν`` itself).  One batched reduction on success; on failure the
+    first cause is named in this order: a non-finite state mean, measurement, prediction
+    ``h(μ)`` or innovation variance ``Sⱼⱼ``, then the out-of-range innovation.
+
+    Args:
+        y: ``[..., 1, d]`` (broadcast over components); means: ``[..., N, n]``;
+        h: ``[..., N, d]``; S_diag: ``diag(S)`` ``[..., N, d]``; valid: ``[..., N, d]`` (bool or 0/1).
+
+    Raises:
+        ValueError: naming the quantity, the trajectory index, the component and the entry.
+    """
+    nu = y - h
+    eps = torch.finfo(nu.dtype).eps
+    v = valid.to(torch.bool)
+    ok = torch.isfinite(nu) & (~v | (eps * nu.abs() <= S_diag.sqrt()))
+    if bool(ok.all()):
+        return
+    if not bool(torch.isfinite(means).all()):
+        idx = _first_index(~torch.isfinite(means))
+        raise ValueError(
+            f"the state mean is not finite at trajectory index {tuple(idx[:-2])}, component {idx[-2]} "
+            f"(entry {idx[-1]}): the update needs a finite prior mean"
+        )
+    yb = y.expand(h.shape)
+    if not bool(torch.isfinite(yb).all()):
+        idx = _first_index(~torch.isfinite(yb))
+        raise ValueError(f"the measurement y is not finite at trajectory index {tuple(idx[:-2])}, entry {idx[-1]}")
+    if not bool(torch.isfinite(h).all()):
+        idx = _first_index(~torch.isfinite(h))
+        raise ValueError(
+            f"the measurement model's prediction h(μ) is not finite at trajectory index {tuple(idx[:-2])}, "
+            f"component {idx[-2]}, entry {idx[-1]} (the model is undefined at this mean)"
+        )
+    bad_S = v & ~(S_diag > 0)  # NaN or non-positive
+    if bool(bad_S.any()):
+        idx = _first_index(bad_S)
+        raise ValueError(
+            f"the innovation variance S = H P Hᵀ + R is {float(S_diag[tuple(idx)]):.3g} at trajectory index "
+            f"{tuple(idx[:-2])}, component {idx[-2]}, entry {idx[-1]}: the component covariance, the model's "
+            "Jacobian or its noise covariance is not finite or not positive"
+        )
+    idx = _first_index(~ok)
+    at = tuple(idx)
+    z = float(nu[at].abs() / S_diag[at].sqrt())
+    raise ValueError(
+        f"measurement entry {idx[-1]} at trajectory index {tuple(idx[:-2])}, component {idx[-2]} is absurd: "
+        f"ỹ = {float(yb[at]):.6g} against the prediction h(μ) = {float(h[at]):.6g} with √S = {float(S_diag[at].sqrt()):.3g}, "
+        f"{z:.3g} standard deviations away (more than 1/ε = {1.0 / eps:.3g}): a measurement in the wrong units or a corrupted value"
+    )
+
+
 def evaluate_measurement(measurement: MeasurementModel, means: Tensor) -> tuple[Tensor, Tensor]:
     """``h(μᵢ)`` and ``Hᵢ`` for every component.
 
@@ -92,6 +263,34 @@ def evaluate_measurement(measurement: MeasurementModel, means: Tensor) -> tuple[
     h = measurement.predict(x).movedim(0, -2)
     H = measurement.jacobian(x).movedim(0, -3)
     return h, H
+
+
+def _cholesky_or_raise(A: Tensor, need: Tensor, what: str, components: bool = True) -> Tensor:
+    """Cholesky factor of ``A [..., k, k]``; ``ValueError`` naming ``what`` where it fails and ``need`` holds
+    (``components``: the last batch dim of ``need`` is the component)."""
+    L, info = torch.linalg.cholesky_ex(A)
+    bad = (info != 0) & need
+    if bool(bad.any()):
+        idx = _first_index(bad)
+        at = f"trajectory index {tuple(idx[:-1])}, component {idx[-1]}" if components else f"trajectory index {tuple(idx)}"
+        raise ValueError(f"{what} is not positive definite at {at}")
+    return L
+
+
+def _information_gain(covs: Tensor, H: Tensor, R_eff: Tensor, need: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The gain in information form (module docstring): ``(K [..., N, n, d], L_P, L_R, log det S [..., N])``."""
+    L_P = _cholesky_or_raise(covs, need, "the component covariance P")
+    L_R = _cholesky_or_raise(R_eff, need, "the measurement noise covariance R")
+    G = torch.linalg.solve_triangular(L_R, H @ L_P, upper=False)  # [..., N, d, n]
+    n = G.shape[-1]
+    eye = torch.eye(n, dtype=G.dtype, device=G.device).expand(*G.shape[:-2], n, n)
+    R_M = torch.linalg.qr(torch.cat((G, eye), -2)).R  # R_Mᵀ R_M = I + GᵀG
+    W = torch.linalg.solve_triangular(L_R.transpose(-1, -2), G, upper=True)  # L_R⁻ᵀ G
+    K = L_P @ torch.cholesky_solve(W.transpose(-1, -2), R_M, upper=True)  # L_P M⁻¹ Gᵀ L_R⁻¹
+    log_det = 2.0 * (
+        L_R.diagonal(dim1=-2, dim2=-1).abs().log().sum(-1) + R_M.diagonal(dim1=-2, dim2=-1).abs().log().sum(-1)
+    )
+    return K, L_P, L_R, log_det
 
 
 def kalman_update(
@@ -116,6 +315,10 @@ def kalman_update(
     It removes the linearisation error of the first star frame after a wide
     prior, where one EKF step leaves errors many σ outside its covariance.
 
+    The gain of each component is formed in covariance form, or in information
+    form where ``S`` is too ill-conditioned for it (module docstring: a precise
+    sensor after a wide prior); both are the same gain up to rounding.
+
     Args:
         log_weights: ``[..., N]`` normalised.
         means: ``[..., N, n]``.
@@ -128,6 +331,11 @@ def kalman_update(
 
     Returns:
         :class:`ComponentUpdate`.
+
+    Raises:
+        ValueError: ``y`` of the wrong size; a non-finite mean, measurement or prediction, or an
+            absurd innovation (:func:`check_innovation`); a component covariance or ``R`` that is
+            not positive definite where the information form needs its factor.
     """
     R = measurement.noise_cov().to(means)
     if mask is None:
@@ -137,7 +345,7 @@ def kalman_update(
     n = means.shape[-1]
     eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
     x = means
-    for _ in range(int(iterations)):
+    for j in range(int(iterations)):
         h, H = evaluate_measurement(measurement, x)
         d = h.shape[-1]
         if y.shape[-1] != d:
@@ -148,19 +356,26 @@ def kalman_update(
             valid = mask.to(means.dtype).unsqueeze(-2).expand(h.shape)
         R_eff = valid[..., :, None] * valid[..., None, :] * R + torch.diag_embed(1.0 - valid)
         H = valid[..., None] * H
+        PHt = covs @ H.transpose(-1, -2)  # [..., N, n, d]
+        S = H @ PHt + R_eff
+        if j == 0:
+            check_innovation(y, means, h, S.diagonal(dim1=-2, dim2=-1), valid)
         nu = y - h
         if x is not means:
             nu = nu - (H @ (means - x).unsqueeze(-1)).squeeze(-1)
         nu = valid * nu
 
-        PHt = covs @ H.transpose(-1, -2)  # [..., N, n, d]
-        S = H @ PHt + R_eff
         S = 0.5 * (S + S.transpose(-1, -2))
         L, info = torch.linalg.cholesky_ex(S)
-        if bool((info != 0).any()):
-            idx = (info != 0).nonzero()[0].tolist()
-            raise ValueError(f"innovation covariance is not positive definite at (trajectory…, component) index {tuple(idx)}")
+        need = ~covariance_form_usable(L, info, valid)
+        robust = bool(need.any())
+        if robust:  # ill-conditioned S somewhere: information form there (module docstring)
+            eye_d = torch.eye(d, dtype=S.dtype, device=S.device)
+            L = torch.linalg.cholesky_ex(torch.where(need[..., None, None], eye_d, S)).L
+            K_info, L_P, L_R, log_det_info = _information_gain(covs, H, R_eff, need)
         K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)  # [..., N, n, d]
+        if robust:
+            K = torch.where(need[..., None, None], K_info, K)
         x = means + (K @ nu.unsqueeze(-1)).squeeze(-1)
     new_means = x
     IKH = eye_n - K @ H
@@ -169,12 +384,19 @@ def kalman_update(
 
     z = torch.linalg.solve_triangular(L, nu.unsqueeze(-1), upper=False).squeeze(-1)
     nis = (z * z).sum(-1)
-    dof = valid.sum(-1)  # [..., N]
     log_det = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+    if robust:
+        dx = new_means - means
+        e = torch.linalg.solve_triangular(L_R, (nu - (H @ dx.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1), upper=False)
+        f = torch.linalg.solve_triangular(L_P, dx.unsqueeze(-1), upper=False)
+        nis = torch.where(need, (e * e).sum((-2, -1)) + (f * f).sum((-2, -1)), nis)
+        log_det = torch.where(need, log_det_info, log_det)
+    dof = valid.sum(-1)  # [..., N]
     log_beta = -0.5 * (nis + log_det + dof * math.log(2.0 * math.pi))
     joint = log_weights + log_beta
     log_lik = torch.logsumexp(joint, -1)
     new_log_weights = joint - log_lik.unsqueeze(-1)
+    nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :])
 
     # trajectories without a valid entry are left exactly as they were
     any_valid = dof[..., 0] > 0
@@ -182,4 +404,23 @@ def kalman_update(
     new_covs = torch.where(any_valid[..., None, None, None], new_covs, covs)
     new_log_weights = torch.where(any_valid[..., None], new_log_weights, log_weights)
     log_lik = torch.where(any_valid, log_lik, torch.zeros_like(log_lik))
-    return ComponentUpdate(new_means, new_covs, new_log_weights, log_lik, nis, dof[..., 0], nu, S)
+    return ComponentUpdate(new_means, new_covs, new_log_weights, log_lik, nis, dof[..., 0], nu, S, nis_mixture)
+
+
+def _mixture_nis(
+    log_weights: Tensor, nu: Tensor, S: Tensor, H: Tensor, covs: Tensor, R_eff: Tensor, valid: Tensor
+) -> Tensor:
+    """``ν̄ᵀ S̄⁻¹ ν̄`` of :func:`moment_matched_innovation`, ``[...]``: with the Cholesky factor of ``S̄``,
+    or, where that is unfit (:func:`covariance_form_usable`), with :func:`moment_matched_factor`."""
+    nu_bar, S_bar = moment_matched_innovation(log_weights, nu, S)
+    L, info = torch.linalg.cholesky_ex(S_bar)
+    need = ~covariance_form_usable(L, info, valid)
+    if bool(need.any()):
+        eye = torch.eye(S_bar.shape[-1], dtype=S_bar.dtype, device=S_bar.device)
+        L = torch.linalg.cholesky_ex(torch.where(need[..., None, None], eye, S_bar)).L
+        L_P = _cholesky_or_raise(covs, need.unsqueeze(-1), "the component covariance P")
+        L_R = _cholesky_or_raise(R_eff[..., 0, :, :], need, "the measurement noise covariance R", components=False)
+        _, L_rob = moment_matched_factor(log_weights, nu, H @ L_P, L_R)
+        L = torch.where(need[..., None, None], L_rob, L)
+    z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False).squeeze(-1)
+    return (z * z).sum(-1)

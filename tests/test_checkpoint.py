@@ -130,3 +130,85 @@ def test_malformed_or_mismatched_checkpoints_are_named_and_change_nothing(tmp_pa
     torch.save(nan, tmp_path / "nan.pt")
     with pytest.raises(ValueError, match="nan.pt: filter 'gsf': means must be finite"):
         load_checkpoint(tmp_path / "nan.pt", filters)
+
+
+def _set(*keys, value):
+    def mutate(state):
+        d = state
+        for k in keys[:-1]:
+            d = d[k]
+        d[keys[-1]] = value
+
+    return mutate
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (_set("filters", "gsf", "mixture", "means", value=torch.zeros(3, 3, 6, dtype=torch.int64)),
+         r"filter 'gsf': mixture 'means' must be a floating-point tensor, got a torch.int64 tensor"),
+        (_set("filters", "gsf", "mixture", "covs", value=torch.eye(6, dtype=torch.int64).expand(3, 3, 6, 6).clone()),
+         r"filter 'gsf': mixture 'covs' must be a floating-point tensor"),
+        (_set("filters", "agsf", "mixture", "covs", value=torch.eye(6, dtype=torch.float32).expand(3, 3, 6, 6).clone()),
+         r"filter 'agsf': mixture 'covs' is torch.float32 but 'means' is torch.float64"),
+        (_set("filters", "gsf", "mixture", "means", value="abc"), r"filter 'gsf': mixture 'means' must be a floating-point tensor, got str"),
+        (_set("filters", "gsf", "mixture", "means", value=[[[0.0] * 6] * 3] * 3), r"mixture 'means' must be a floating-point tensor, got list"),
+        (_set("filters", "gsf", "mixture", value="m"), r"filter 'gsf': mixture must be a dict"),
+        (_set("filters", "agsf", "mixture", "covs", value=torch.full((3, 3, 6, 6), float("nan"), dtype=F64)),
+         r"filter 'agsf': covs has non-finite entries"),
+        (_set("filters", "agsf", "mixture", "covs", value=-torch.eye(6, dtype=F64).expand(3, 3, 6, 6).clone()),
+         r"filter 'agsf': covs is not positive definite at batch index \(0, 0\)"),
+        (_set("filters", "agsf", "filter", "weight_update", "ref_log_weights", value=torch.zeros(3, 3, dtype=torch.int64)),
+         r"filter 'agsf': weight-update state 'ref_log_weights' must be None or a floating-point tensor"),
+        (_set("filters", "agsf", "filter", "weight_update", "ref_log_weights", value=torch.zeros(7, dtype=F64)),
+         r"filter 'agsf': weight-update state 'ref_log_weights' has shape \(7,\), the mixture's weights \(3, 3\)"),
+        (_set("filters", value=None), r"checkpoint holds filters NoneType"),
+    ],
+)
+def test_malformed_content_is_refused_naming_file_and_filter_and_changes_nothing(tmp_path, mutate, match):
+    env, filters = _setup()
+    mix = _start(env)
+    path = save_checkpoint(tmp_path / "ok.pt", {"gsf": mix, "agsf": mix}, filters)
+    state = torch.load(path, weights_only=True)
+    mutate(state)
+    torch.save(state, tmp_path / "broken.pt")
+    filters["agsf"].weight_update.load_state_dict({"kind": "penalty", "step": 5, "elapsed": 0.25, "ref_log_weights": None})
+    before = {k: f.state_dict() for k, f in filters.items()}
+    with pytest.raises(ValueError, match=r"broken\.pt: .*" + match):
+        load_checkpoint(tmp_path / "broken.pt", filters)
+    assert {k: f.state_dict() for k, f in filters.items()} == before
+
+
+def test_a_filter_refusing_its_state_with_any_error_puts_every_filter_back(tmp_path):
+    """The adaptive filter is restored first; the next one fails with a RuntimeError: the counter goes back."""
+
+    class Fussy(GaussianSumFilter):
+        def load_state_dict(self, state):
+            raise RuntimeError("cannot restore")
+
+    env, filters = _setup()
+    mix = _start(env)
+    model = filters["agsf"].model
+    path = save_checkpoint(tmp_path / "run.pt", {"agsf": mix, "odd": mix}, {"agsf": filters["agsf"], "odd": GaussianSumFilter(model)})
+    agsf = AdaptiveGaussianSumFilter(model, cadence=2)
+    agsf.weight_update.load_state_dict({"kind": "penalty", "step": 5, "elapsed": 0.25, "ref_log_weights": None})
+    with pytest.raises(ValueError, match=r"run\.pt: filter 'odd': cannot restore"):
+        load_checkpoint(path, {"agsf": agsf, "odd": Fussy(model)})
+    assert agsf.state_dict()["weight_update"]["step"] == 5
+
+
+def test_unreadable_files_are_named(tmp_path):
+    env, filters = _setup()
+    mix = _start(env)
+    path = save_checkpoint(tmp_path / "ok.pt", {"gsf": mix, "agsf": mix}, filters)
+    (tmp_path / "junk.pt").write_bytes(b"not a torch file at all")
+    data = path.read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    for name in ("junk.pt", "cut.pt"):
+        with pytest.raises(ValueError, match=rf"{name} is not a readable torch checkpoint"):
+            load_checkpoint(tmp_path / name, filters)
+    (tmp_path / "folder.pt").mkdir()
+    with pytest.raises(IsADirectoryError, match=r"folder\.pt is a directory"):
+        load_checkpoint(tmp_path / "folder.pt", filters)
+    with pytest.raises(FileNotFoundError, match=r"missing\.pt does not exist"):
+        load_checkpoint(tmp_path / "missing.pt", filters)

@@ -57,3 +57,73 @@ def test_bad_input_raises_and_state_round_trips():
     a = hold.step(torch.zeros(2, 3, dtype=F64), torch.tensor([False, False]), 0.1)
     b = other.step(torch.zeros(2, 3, dtype=F64), torch.tensor([False, False]), 0.1)
     assert all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def _obs(gyro, valid):
+    B = gyro.shape[0]
+    return {"gyro": gyro, "gyro_valid": valid, "star_mask": torch.zeros(B, 2, dtype=torch.bool),
+            "star_body": torch.zeros(B, 2, 3, dtype=F64), "star_inertial": torch.zeros(B, 2, 3, dtype=F64)}
+
+
+def test_known_bias_must_have_three_axes():
+    """A true bias [B, 1] would be subtracted from all three axes: refused, before the hold moves."""
+    from agsf_torch.attitude_inputs import AttitudeInputs
+
+    adapter = AttitudeInputs(sigma_s=1e-5, gyro_hold_sigma=1e-6, known_bias=True)
+    gyro = torch.ones(2, 3, dtype=F64)
+    with pytest.raises(ValueError, match=r"truth_bias must have the gyro's shape \(2, 3\) \(\[B, 3\], rad/s\), got \(2, 1\)"):
+        adapter.start(_obs(gyro, torch.ones(2, dtype=torch.bool)), 0.1, torch.zeros(2, 1, dtype=F64))
+    adapter.start(_obs(gyro, torch.ones(2, dtype=torch.bool)), 0.1, torch.zeros(2, 3, dtype=F64))
+    last = adapter.hold.last.clone()
+    with pytest.raises(ValueError, match=r"truth_bias must have the gyro's shape \(2, 3\)"):
+        adapter(_obs(2 * gyro, torch.ones(2, dtype=torch.bool)), 0.1, torch.zeros(2, 1, dtype=F64))
+    assert torch.equal(adapter.hold.last, last)
+    step = adapter(_obs(2 * gyro, torch.ones(2, dtype=torch.bool)), 0.1, torch.full((2, 3), 0.5, dtype=F64))
+    assert torch.equal(step.u, torch.full((2, 3), 1.75, dtype=F64))  # 2 − ½(0 + 0.5)
+
+
+def test_start_begins_a_new_run():
+    """The first held sample of a new run is not the previous run's last reading."""
+    from agsf_torch.attitude_inputs import AttitudeInputs
+
+    adapter = AttitudeInputs(sigma_s=1e-5, gyro_hold_sigma=1e-6)
+    valid, held = torch.ones(2, dtype=torch.bool), torch.zeros(2, dtype=torch.bool)
+    adapter.start(_obs(torch.full((2, 3), 7.0, dtype=F64), valid), 0.1)
+    adapter(_obs(torch.full((2, 3), 8.0, dtype=F64), valid), 0.1)
+    adapter.start(_obs(torch.full((2, 3), 9.0, dtype=F64), held), 0.1)
+    step = adapter(_obs(torch.full((2, 3), 9.0, dtype=F64), held), 0.1)
+    assert torch.equal(step.u, torch.zeros(2, 3, dtype=F64))
+
+
+def test_hold_refuses_another_batch_and_bad_variances_and_states():
+    hold = GyroHold(1e-6)
+    hold.step(torch.ones(2, 3, dtype=F64), None, 0.1)
+    with pytest.raises(ValueError, match=r"gyro has shape \(3, 3\) but this hold follows a run of shape \(2, 3\); call reset\(\)"):
+        hold.step(torch.ones(3, 3, dtype=F64), torch.zeros(3, dtype=torch.bool), 0.1)
+    assert hold.last.shape == (2, 3)
+    hold.reset()
+    assert hold.step(torch.ones(3, 3, dtype=F64), None, 0.1)[0].shape == (3, 3)
+
+    mix = GaussianMixture(means=torch.zeros(2, 1, 3, dtype=F64), covs=1e-8 * torch.eye(3, dtype=F64).expand(2, 1, 3, 3), weights=torch.ones(2, 1, dtype=F64))
+    for bad, match in (
+        (torch.tensor([0.0, float("nan")], dtype=F64), r"angle_variance must be finite and ≥ 0 \(rad²\), got nan at trajectory 1"),
+        (torch.tensor([-1e-6, 0.0], dtype=F64), r"angle_variance must be finite and ≥ 0 \(rad²\), got -1e-06 at trajectory 0"),
+        (torch.zeros(2, 1, dtype=F64), r"angle_variance must have the mixture's batch shape \[B\] = \(2,\), got \(2, 1\)"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            GyroHold.inflate(mix, bad)
+
+    good = hold.state_dict()
+    for change, match in (
+        ({"last": torch.ones(3, 1, dtype=F64)}, r"'last' must be a floating tensor \[B, 3\], got \(3, 1\)"),
+        ({"last": torch.full((3, 3), float("nan"), dtype=F64)}, r"'last' must be finite"),
+        ({"held_steps": torch.zeros(2, dtype=torch.int64)}, r"'held_steps' must be an integer tensor \[3\]"),
+        ({"held_steps": -torch.ones(3, dtype=torch.int64)}, r"'held_steps' must be ≥ 0"),
+        ({"held_steps": None}, r"'last' and 'held_steps' must both be None"),
+        ({"rate_sigma": -1.0}, r"'rate_sigma' must be a finite number ≥ 0"),
+        ({"extra": 1}, r"GyroHold state must have the keys"),
+    ):
+        other = GyroHold(2e-6)
+        with pytest.raises(ValueError, match=match):
+            other.load_state_dict({**good, **change})
+        assert other.last is None and other.rate_sigma == 2e-6

@@ -87,3 +87,61 @@ def test_from_gaussian_rejects_bad_prior():
         GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 0)
     with pytest.raises(ValueError, match="spread"):
         GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 3, spread=1.0)
+
+
+def test_integer_and_bool_inputs_become_float64():
+    """Integer means no longer drag the weights to integers (0.5 → 0, 'positive sum'): every field is float64."""
+    mix = GaussianMixture(
+        weights=torch.tensor([[0.5, 0.5]], dtype=torch.float64),
+        means=torch.tensor([[[0, 0, 0], [1, 1, 1]]]),
+        covs=torch.eye(3, dtype=torch.int64).expand(1, 2, 3, 3),
+    )
+    assert mix.means.dtype == mix.covs.dtype == mix.log_weights.dtype == torch.float64
+    assert mix.weights.tolist() == [[0.5, 0.5]]
+    flags = GaussianMixture(weights=[[2, 2]], means=torch.zeros(1, 2, 1, dtype=torch.bool), covs=[[[[1]], [[2]]]])
+    assert flags.means.dtype == torch.float64 and flags.weights.tolist() == [[0.5, 0.5]]
+
+
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("means", "abc", "means must be a real tensor"),
+        ("means", torch.zeros(1, 2, 2, dtype=torch.complex128), "means must be real"),
+        ("covs", None, "covs must be a real tensor"),
+        ("weights", {"a": 1}, "weights must be a real tensor"),
+    ],
+)
+def test_non_numeric_fields_are_named(field, value, match):
+    args = {"weights": torch.ones(1, 2), "means": torch.zeros(1, 2, 2, dtype=torch.float64), "covs": torch.eye(2, dtype=torch.float64).expand(1, 2, 2, 2)}
+    args[field] = value
+    with pytest.raises(ValueError, match=match):
+        GaussianMixture(**args)
+
+
+def test_check_covariance_refuses_integer_matrices():
+    from agsf_torch.mixture import check_covariance
+
+    with pytest.raises(ValueError, match="P must be a floating-point tensor, got a torch.int64 tensor"):
+        check_covariance("P", torch.eye(2, dtype=torch.int64))
+
+
+def test_replace_validates_by_default():
+    mix = GaussianMixture(weights=torch.ones(2, 3), means=torch.zeros(2, 3, 2, dtype=torch.float64), covs=torch.eye(2, dtype=torch.float64).expand(2, 3, 2, 2))
+    nan_means = mix.means.clone()
+    nan_means[1, 2, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"means must be finite; non-finite entry at batch index \(1, 2\)"):
+        mix.replace(means=nan_means)
+    not_pd = mix.covs.clone()
+    not_pd[0, 1] = torch.diag(torch.tensor([1.0, -1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"covs is not positive definite at batch index \(0, 1\)"):
+        mix.replace(covs=not_pd)
+    with pytest.raises(ValueError, match="log_weights must not be NaN"):
+        mix.replace(log_weights=torch.full((2, 3), float("nan"), dtype=torch.float64))
+    with pytest.raises(ValueError, match="covs must have shape"):
+        mix.replace(covs=torch.eye(3, dtype=torch.float64).expand(2, 3, 3, 3))
+    with pytest.raises(ValueError, match="replace\\(\\) takes log_weights, means and covs, got weights"):
+        mix.replace(weights=torch.ones(2, 3))
+    # the filters' own outputs skip the check explicitly
+    assert bool(torch.isnan(mix.replace(means=nan_means, validate=False).means).any())
+    ok = mix.replace(means=mix.means + 1.0)
+    assert torch.equal(ok.means, mix.means + 1.0) and torch.equal(ok.covs, mix.covs)

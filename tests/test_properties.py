@@ -83,7 +83,8 @@ def test_gsf_steps_keep_the_belief_valid(B, N, estimate_bias, log_sigma, log_pri
     sigma = 10.0**log_sigma
     meas = StarVectorMeasurement(r, mask, sigma)
     y = meas.predict(p) + sigma * torch.randn(B, 15, generator=g, dtype=F64)
-    y[:, :3] += outlier  # star 0 may be an outlier of any size
+    y[:, :3] += outlier  # star 0 may be an outlier of any size: a unit vector pointing elsewhere
+    y[:, :3] = y[:, :3] / y[:, :3].norm(dim=-1, keepdim=True)
     for _ in range(2):
         mix = filt.predict(mix, u, 0.1)
         _assert_valid(mix)

@@ -165,3 +165,34 @@ def test_shape_errors():
     assert MAX_COMPONENTS == 64
     with pytest.raises(ValueError, match="N ≤ 64"):
         solve_simplex_qp(torch.eye(N, dtype=F64), torch.zeros(N, dtype=F64))
+
+
+def test_non_convex_problems_are_refused_naming_the_batch_index(gen):
+    """Concave or indefinite H: the KKT certificate would hold at the maximiser (residual 0), so it is refused."""
+    H, c = _random_problems(gen, 12, 3)
+    H = H.reshape(3, 4, 3, 3).clone()
+    H[1, 2] = torch.diag(torch.tensor([1.0, -1e-3, 2.0], dtype=F64))  # indefinite
+    with pytest.raises(ValueError, match=r"H is not positive semidefinite at batch index \(1, 2\) \(smallest eigenvalue -0\.001"):
+        solve_simplex_qp(H, c.reshape(3, 4, 3))
+    with pytest.raises(ValueError, match=r"not positive semidefinite at batch index \(\)"):
+        solve_simplex_qp(-torch.eye(3, dtype=F64), torch.zeros(3, dtype=F64))  # the maximiser of a concave QP
+    # an H shared by a batch of c is checked once, named in the broadcast batch
+    with pytest.raises(ValueError, match=r"at batch index \(0,\)"):
+        solve_simplex_qp(-torch.eye(3, dtype=F64), torch.zeros(5, 3, dtype=F64))
+
+
+def test_positive_semidefinite_up_to_rounding_is_accepted(gen):
+    """Singular PSD H (rank one, zero, a Gram matrix with eigenvalues at the rounding level) still solve."""
+    a = torch.randn(6, generator=gen, dtype=F64)
+    X = torch.randn(6, 2, generator=gen, dtype=F64)
+    for H in (torch.outer(a, a), torch.zeros(6, 6, dtype=F64), X @ X.T * 1e8):
+        assert float(torch.linalg.eigvalsh(H).min()) <= 1e-6 * float(H.abs().max() + 1)  # singular
+        res = solve_simplex_qp(H, torch.linspace(0.0, 1.0, 6, dtype=F64))
+        assert float(res.kkt_residual) < 1e-12
+
+
+@pytest.mark.parametrize("bad", [0, -4, 2.5, True, "8"])
+def test_bad_chunk_size_is_refused(gen, bad):
+    H, c = _random_problems(gen, 3, 3)
+    with pytest.raises(ValueError, match="chunk_size must be a positive integer"):
+        solve_simplex_qp(H, c, chunk_size=bad)

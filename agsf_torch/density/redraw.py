@@ -259,7 +259,7 @@ class _PathSpaceRedraw:
         ev = torch.where(torch.isfinite(ev), ev, torch.zeros_like(ev))
         c = 0.5 * ev + 0.5 / M
         pr = self.prior
-        prior = pr.replace(log_weights=pr.log_weights[sub], means=pr.means[sub], covs=pr.covs[sub])
+        prior = pr.replace(log_weights=pr.log_weights[sub], means=pr.means[sub], covs=pr.covs[sub], validate=False)
         proposal = InitialStateProposal(prior, mode, C, c / c.sum(-1, keepdim=True),
                                         defensive_weight=self.defensive_weight, t_dof=self.t_dof,
                                         t_scale=self.t_scale, chart=self.chart)

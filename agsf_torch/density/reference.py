@@ -119,8 +119,8 @@ class PosteriorReference(_PathSpaceRedraw):
             if len(prior.batch_shape) != 1:
                 raise ValueError(f"prior must have batch shape [B], got {tuple(prior.batch_shape)}")
             check_covariance("prior covs", prior.covs)
-            prior = prior.replace(log_weights=prior.log_weights.to(torch.float64),
-                                  means=prior.means.to(torch.float64), covs=prior.covs.to(torch.float64))
+            prior = prior.replace(log_weights=prior.log_weights.to(torch.float64), means=prior.means.to(torch.float64),
+                                  covs=prior.covs.to(torch.float64), validate=False)  # checked above
         else:
             if prior_mean is None or prior_cov is None:
                 raise ValueError("give prior_mean and prior_cov (or prior=)")

@@ -13,7 +13,6 @@ from typing import Any
 from torch import Tensor
 
 from ..mixture import GaussianMixture
-from ..qp import MAX_COMPONENTS
 from ..models.base import ContinuousModel
 from .gaussian_sum import GaussianSumFilter
 from .weight_updates import WeightUpdate, make_weight_update
@@ -128,11 +127,8 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
 
     def _check_mixture(self, mixture: GaussianMixture) -> None:
         super()._check_mixture(mixture)
-        if self.adapt and mixture.num_components > MAX_COMPONENTS:
-            raise ValueError(
-                f"the adaptive filter's weight QP handles N ≤ {MAX_COMPONENTS} components, got a mixture of "
-                f"{mixture.num_components}"
-            )
+        if self.adapt:
+            self.weight_update.check(mixture)  # e.g. N ≤ MAX_COMPONENTS, before any work
 
     def _after_update(self, posterior: GaussianMixture) -> None:
         self.weight_update.observe_update(posterior.log_weights)
@@ -143,4 +139,4 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
         log_weights, extra = self.weight_update(self.model, prior, propagated, u, dt, enabled=self.adapt)
         if log_weights is None:
             return propagated, extra
-        return propagated.replace(log_weights=log_weights), extra
+        return propagated.replace(log_weights=log_weights, validate=False), extra

@@ -8,10 +8,10 @@ import torch
 from torch import Tensor
 
 from ..gating import chi2_threshold, innovation_gate
-from ..mixture import GaussianMixture
+from ..mixture import GaussianMixture, as_real_tensor
 from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
-from ..update import kalman_update, moment_matched_innovation
+from ..update import kalman_update
 
 __all__ = ["GaussianSumFilter", "ExtendedKalmanFilter", "check_batched"]
 
@@ -149,7 +149,8 @@ class GaussianSumFilter:
 
         Args:
             mixture: the belief at ``t`` (batch shape ``[...]``, ``N`` components).
-            u: input ``[..., m]`` (e.g. the gyro rate, rad/s), or ``None``.
+            u: input ``[..., m]`` (e.g. the gyro rate, rad/s), or ``None``; ``m`` must be the
+                model's ``input_dim`` when it declares one (checked, never broadcast).
             dt: interval (s), finite and > 0.
 
         Returns:
@@ -159,13 +160,15 @@ class GaussianSumFilter:
         if not (isinstance(dt, (int, float)) or torch.is_tensor(dt)) or not float(dt) > 0 or not torch.isfinite(torch.tensor(float(dt))):
             raise ValueError(f"dt must be a finite positive number, got {dt}")
         if u is not None:
-            u = torch.as_tensor(u, dtype=mixture.means.dtype, device=mixture.means.device)
+            u = as_real_tensor("u", u, mixture.means.dtype, mixture.means.device)
+        self.model.check_input(u)  # u [..., m] for a model that declares its input size m
+        if u is not None:
             check_batched("u", u, mixture.batch_shape)
             u = u.unsqueeze(-2)  # broadcast over components
         means, covs = propagate_moments(self.model, mixture.means, mixture.covs, u, float(dt), self.substeps)
         means, covs = self.model.canonicalize(means, covs)
         covs, repairs = self._ensure_positive_definite(covs, "during propagation")
-        propagated = mixture.replace(means=means, covs=covs)
+        propagated = mixture.replace(means=means, covs=covs, validate=False)  # checked just above
         propagated, extra = self._adapt_weights(mixture, propagated, u, float(dt))
         self.diagnostics = {"weight_entropy": propagated.entropy_of_weights(), "covariance_repairs": repairs, **extra}
         return propagated
@@ -187,7 +190,8 @@ class GaussianSumFilter:
         Args:
             mixture: the predicted belief.
             y: measurement ``[..., d]`` (entries masked out by the measurement
-               model are ignored but must still be finite).
+               model are ignored but must still be finite), checked by
+               ``measurement.check_measurement`` before anything changes.
             measurement: the measurement model.
 
         Returns:
@@ -196,8 +200,9 @@ class GaussianSumFilter:
         self._check_mixture(mixture)
         if not isinstance(measurement, MeasurementModel):
             raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
-        y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
+        y = as_real_tensor("y", y, mixture.means.dtype, mixture.means.device)
         check_batched("y", y, mixture.batch_shape)
+        y = measurement.check_measurement(y)  # the model's own checks (size d, unit vectors…)
         gate: dict[str, Tensor] = {}
         mask = None
         if self.gate_probability is not None:
@@ -217,11 +222,11 @@ class GaussianSumFilter:
         )
         means, covs = self.model.canonicalize(res.means, res.covs)
         covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
-        posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs)
+        posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs, validate=False)
         self.diagnostics = {
             "log_likelihood": res.log_likelihood,
             "nis": res.nis,
-            "nis_mixture": _mixture_nis(mixture.log_weights, res.innovation, res.innovation_cov),
+            "nis_mixture": res.nis_mixture,
             "dof": res.dof,
             "weight_entropy": posterior.entropy_of_weights(),
             "covariance_repairs": repairs,
@@ -257,16 +262,7 @@ class GaussianSumFilter:
         idx = best[..., None, None].expand(*best.shape, 1, mixture.state_dim)
         reference = torch.gather(mixture.means, -2, idx)
         means, covs = self.model.align(mixture.means, mixture.covs, reference)
-        return mixture.replace(means=means, covs=covs).moments()
-
-
-def _mixture_nis(log_weights: Tensor, nu: Tensor, S: Tensor) -> Tensor:
-    """NIS of the moment-matched mixture prediction ``ν̄ᵀ S̄⁻¹ ν̄``
-    (:func:`~agsf_torch.update.moment_matched_innovation`), ``[...]``."""
-    nu_bar, S_bar = moment_matched_innovation(log_weights, nu, S)
-    L = torch.linalg.cholesky(S_bar)
-    z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False).squeeze(-1)
-    return (z * z).sum(-1)
+        return mixture.replace(means=means, covs=covs, validate=False).moments()
 
 
 class ExtendedKalmanFilter(GaussianSumFilter):

@@ -252,7 +252,9 @@ class MultiplicativeEKF:
 
         Args:
             mixture: one-component predicted MRP belief (batch ``[...]``).
-            y: measurement ``[..., d]`` (masked entries are ignored but must be finite).
+            y: measurement ``[..., d]`` (masked entries are ignored but must be finite), checked by
+                ``measurement.check_measurement`` and :func:`~agsf_torch.update.check_innovation`
+                before anything changes.
             measurement: any measurement model of the MRP state (``predict``, ``jacobian``,
                 ``noise_cov``, ``mask``), e.g. :class:`~agsf_torch.models.StarVectorMeasurement`.
 
@@ -264,6 +266,7 @@ class MultiplicativeEKF:
             raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
         y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
         check_batched("y", y, mixture.batch_shape)
+        y = measurement.check_measurement(y)  # the model's own checks (size d, unit vectors…), as the GSF
         q, b, P = self._to_error_state(mixture)
         n = mixture.state_dim
         err_meas = ErrorStateMeasurement(measurement, q, b)

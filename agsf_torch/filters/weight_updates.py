@@ -25,10 +25,11 @@ import torch
 from torch import Tensor
 
 from ..fpke import ComponentRates, fpke_matrix, galerkin_matrices, residual_rule
+from ..fpke.matrices import check_chunk_size
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel
 from ..propagation import moment_derivatives
-from ..qp import kkt_residual, solve_simplex_qp
+from ..qp import MAX_COMPONENTS, kkt_residual, solve_simplex_qp
 
 __all__ = ["WeightUpdate", "PenaltyWeightUpdate", "GalerkinWeightUpdate", "WEIGHT_UPDATES", "make_weight_update"]
 
@@ -64,7 +65,8 @@ class WeightUpdate:
     ``cadence``-th interval and keeps the counter.  One object serves one filter:
     its state is that filter's run state (passing the same object to two filters
     shares it, and :meth:`bind` rebinds it to the last filter's model).  State changes only after a
-    step succeeds: an error leaves the update as it was.
+    step succeeds: an error leaves the update as it was (:meth:`check` runs before the interval
+    is counted, :meth:`compute` must not change ``self`` before it can no longer fail).
 
     Args:
         cadence: adapt every ``cadence``-th ``predict`` call (1: every interval).
@@ -97,6 +99,8 @@ class WeightUpdate:
         Returns:
             ``(log_weights or None, diagnostics)``; ``None`` when this interval is not adapted.
         """
+        if enabled:
+            self.check(propagated)
         step, elapsed = self._step + 1, self._elapsed + float(dt)
         if not enabled or step % self.cadence != 0 or propagated.num_components == 1:
             self._step, self._elapsed = step, elapsed
@@ -104,6 +108,10 @@ class WeightUpdate:
         log_weights, extra = self.compute(model, prior, propagated, u, elapsed)
         self._step, self._elapsed = step, 0.0
         return log_weights, {**extra, "weights_adapted": True}
+
+    def check(self, mixture: GaussianMixture) -> None:
+        """Raise ``ValueError`` if this update cannot adapt ``mixture`` (default: it can).  Called on every
+        enabled interval before it is counted, and by the adaptive filter before it propagates."""
 
     def compute(
         self, model: ContinuousModel, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, elapsed: float
@@ -156,16 +164,30 @@ class _QuadratureUpdate(WeightUpdate):
 
     def __init__(self, *, cadence: int = 1, quadrature: Any = None, chunk_size: int | None = None, compile: bool = False) -> None:
         super().__init__(cadence=cadence)
-        if chunk_size is not None:
-            chunk_size = _positive_int("chunk_size", chunk_size)
         self.chunk_size = chunk_size
         self.compile = bool(compile)
         self.quadrature = quadrature
         self.nodes: Tensor | None = None
         self.node_weights: Tensor | None = None
 
+    @property
+    def chunk_size(self) -> int | None:
+        """Nodes (or pairs) per batched evaluation, ``int ≥ 1`` or ``None``; checked when set."""
+        return self._chunk_size
+
+    @chunk_size.setter
+    def chunk_size(self, value: int | None) -> None:
+        self._chunk_size = check_chunk_size(value)
+
     def bind(self, model: ContinuousModel) -> None:
         self.nodes, self.node_weights = residual_rule(model, self.quadrature, self.factors)
+
+    def check(self, mixture: GaussianMixture) -> None:
+        """The weight QP (:func:`~agsf_torch.qp.solve_simplex_qp`) takes ``N ≤ MAX_COMPONENTS`` components."""
+        if mixture.num_components > MAX_COMPONENTS:
+            raise ValueError(
+                f"the weight QP handles N ≤ {MAX_COMPONENTS} components, got a mixture of {mixture.num_components}"
+            )
 
 
 _SCALINGS = ("trace", "none")
@@ -238,8 +260,11 @@ class PenaltyWeightUpdate(_QuadratureUpdate):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         step, elapsed = self._parse_counter(state)
         ref = state["ref_log_weights"]
-        if ref is not None and (not torch.is_tensor(ref) or ref.dim() < 1 or bool(torch.isnan(ref).any())):
-            raise ValueError("weight-update state 'ref_log_weights' must be None or a tensor [..., N] without NaN")
+        floating = torch.is_tensor(ref) and ref.is_floating_point() and ref.dim() >= 1
+        if ref is not None and (not floating or bool((torch.isnan(ref) | torch.isposinf(ref)).any())):
+            got = f"a {ref.dtype} tensor" if torch.is_tensor(ref) else type(ref).__name__
+            raise ValueError(f"weight-update state 'ref_log_weights' must be None or a floating-point tensor [..., N] "
+                             f"without NaN or +inf, got {got}")
         self._step, self._elapsed, self._ref = step, elapsed, ref
 
     def compute(

@@ -6,6 +6,7 @@ and ``K_ij = z_ij E[ℓⱼ]``, each evaluated over the ``N(N+1)/2`` unordered pa
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -17,7 +18,7 @@ from .pairs import ProductGaussians, product_gaussians
 from .moments import residual_mean
 from .residual import ComponentRates, residual_factor
 
-__all__ = ["FPKEMatrix", "fpke_matrix", "GalerkinMatrices", "galerkin_matrices"]
+__all__ = ["FPKEMatrix", "fpke_matrix", "GalerkinMatrices", "galerkin_matrices", "check_chunk_size"]
 
 
 def _product_chunk(
@@ -59,14 +60,23 @@ def _kernel(name: str, compile: bool):
     return _COMPILED[name]
 
 
-def _check_chunk_size(chunk_size: int | None) -> None:
-    if chunk_size is not None and (int(chunk_size) != chunk_size or chunk_size < 1):
-        raise ValueError(f"chunk_size must be a positive integer or None, got {chunk_size}")
+def check_chunk_size(chunk_size: int | None) -> int | None:
+    """``chunk_size`` as an ``int ≥ 1`` (or ``None``: sized automatically), else ``ValueError``.
+
+    The one check of the option, shared by the matrices here and the weight updates that
+    pass it on (at construction, so that a bad value is refused before any step): zero,
+    negative, fractional, bool and non-numeric values are refused.
+    """
+    if chunk_size is None:
+        return None
+    ok = isinstance(chunk_size, (numbers.Integral, float)) and not isinstance(chunk_size, bool)
+    if not ok or not 1 <= chunk_size < float("inf") or int(chunk_size) != chunk_size:
+        raise ValueError(f"chunk_size must be a positive integer or None, got {chunk_size!r}")
+    return int(chunk_size)
 
 
-def _pairs(rates: ComponentRates, chunk_size: int | None) -> tuple[ProductGaussians, Tensor]:
-    """The prologue of every matrix: the chunk size checked, the product Gaussians and ``log max z_ij`` ``[...]``."""
-    _check_chunk_size(chunk_size)
+def _pairs(rates: ComponentRates) -> tuple[ProductGaussians, Tensor]:
+    """The prologue of every matrix: the product Gaussians and ``log max z_ij`` ``[...]``."""
     prod = product_gaussians(rates)
     return prod, prod.log_z.amax(-1)
 
@@ -77,7 +87,7 @@ def _integrate_pairs(
 ) -> tuple[ProductGaussians, Tensor, Tensor]:
     """The pairs' product Gaussians, ``log max z_ij`` ``[...]`` and ``kernel`` accumulated over the
     rule's nodes in chunks that bound memory."""
-    prod, log_scale = _pairs(rates, chunk_size)
+    prod, log_scale = _pairs(rates)
     m = prod.mean
     n = m.shape[-1]
     if u is not None:
@@ -186,9 +196,10 @@ def fpke_matrix(
     Returns:
         :class:`FPKEMatrix` (``[..., N, N]``).
     """
+    chunk_size = check_chunk_size(chunk_size)
     N = rates.means.shape[-2]
     if isinstance(nodes, ProductRule):
-        prod, log_scale = _pairs(rates, chunk_size)
+        prod, log_scale = _pairs(rates)
         acc = _product_rule_pairs(_kernel("product", compile), model, u, prod, nodes, chunk_size, max_chunk_elements)
     else:
         prod, log_scale, acc = _integrate_pairs(
@@ -240,9 +251,10 @@ def galerkin_matrices(
     Raises:
         ValueError: ``nodes = None`` for a model without Gaussian moments.
     """
+    chunk_size = check_chunk_size(chunk_size)
     N = rates.means.shape[-2]
     if nodes is None:
-        prod, log_scale = _pairs(rates, chunk_size)
+        prod, log_scale = _pairs(rates)
         moments = model.fokker_planck_moments(prod.mean, prod.cov, None if u is None else u.unsqueeze(-2))
         if moments is None:
             raise ValueError(f"{type(model).__name__} gives no Gaussian moments (fokker_planck_moments); pass a quadrature rule")

@@ -35,7 +35,13 @@ class AttitudeModel(ContinuousModel):
         bias: known constant gyro bias (rad/s), ``[3]``; subtracted from ``ω̃`` in
             the 3-state model, ignored by the 6-state one.  Known biases that
             differ between trajectories are subtracted from the gyro input instead.
+
+    The input ``u = ω̃`` must have shape ``[..., 3]`` (one rate per body axis): any other
+    last dimension, ``[..., 1]`` included, is a ``ValueError`` (:meth:`check_input`), never a
+    rate broadcast over the three axes.
     """
+
+    input_dim = 3
 
     def __init__(
         self,
@@ -60,7 +66,8 @@ class AttitudeModel(ContinuousModel):
 
     # ------------------------------------------------------------- helpers
     def _rate(self, x: Tensor, u: Tensor) -> Tensor:
-        """Bias-corrected body rate ``ω = ω̃ − b`` (``[..., 3]``)."""
+        """Bias-corrected body rate ``ω = ω̃ − b`` (``[..., 3]``); ``u`` is checked to be ``[..., 3]``."""
+        self.check_input(u)
         if self.estimate_bias:
             return u - x[..., 3:]
         return u - self.bias.to(u)
@@ -203,6 +210,7 @@ class AttitudeModel(ContinuousModel):
         Args:
             mean: ``[..., n]``; cov: ``[..., n, n]``; u: ``ω̃`` ``[..., 3]``.
         """
+        self.check_input(u)
         n = self.state_dim
         m = mean[..., :3]
         M = cov[..., :3, :3]

@@ -134,10 +134,32 @@ class ContinuousModel(nn.Module):
 
     Subclasses set :attr:`state_dim` and implement :meth:`drift`,
     :meth:`noise_gain` and :meth:`noise_psd`.  Tensors that parametrise the
-    model should be registered as buffers so ``.to(device)`` moves them.
+    model should be registered as buffers so ``.to(device)`` moves them.  A model
+    driven by an input declares its size in :attr:`input_dim`; then
+    :meth:`check_input` (called by the filters and by the model itself) refuses a
+    missing input or one whose last dimension differs, instead of broadcasting it.
     """
 
     state_dim: int
+    #: Size ``m`` of the input ``u [..., m]``; ``None``: not declared (no input, or one the model checks itself).
+    input_dim: int | None = None
+
+    def check_input(self, u: Tensor | None) -> None:
+        """Raise ``ValueError`` unless ``u`` fits :attr:`input_dim`: ``u [..., m]`` with ``m = input_dim``.
+
+        A shape check only (no data is read): cheap enough for every evaluation of the drift.
+        Nothing is checked when :attr:`input_dim` is ``None``.
+        """
+        m = self.input_dim
+        if m is None:
+            return
+        if u is None:
+            raise ValueError(f"{type(self).__name__} needs an input u [..., {m}], got None")
+        if u.dim() < 1 or u.shape[-1] != m:
+            raise ValueError(
+                f"u must have shape [..., {m}] ({type(self).__name__}'s input), got {tuple(u.shape)}; "
+                "it is not broadcast over the input's entries"
+            )
 
     def drift(self, x: Tensor, u: Tensor | None) -> Tensor:
         """Drift ``f(x, u)``: ``x [..., n]``, ``u [..., m]`` (or None) → ``[..., n]``."""
@@ -271,15 +293,37 @@ class MeasurementModel(nn.Module):
         """Validity of each measurement entry, ``[..., d]`` bool, or ``None`` (all valid)."""
         return None
 
+    def check_measurement(self, y: Tensor) -> Tensor:
+        """Validate a measurement vector ``y [..., d]`` against the model before an update; return
+        the ``y`` to use.
+
+        Called by the filters before anything changes.  The default checks that :meth:`mask`,
+        if any, has ``d`` entries; subclasses add their own checks (the size ``d``, unit
+        vectors…) and may return a corrected ``y`` (e.g. normalised).
+
+        Raises:
+            ValueError: naming ``y`` (or the mask) and the shapes.
+        """
+        mask = self.mask()
+        if mask is not None and (mask.dim() < 1 or mask.shape[-1] != y.shape[-1]):
+            raise ValueError(f"the measurement mask has shape {tuple(mask.shape)}, y has {tuple(y.shape)}: their last dims differ")
+        return y
+
 
 class FunctionMeasurement(MeasurementModel):
     """A measurement model from a plain function.
 
     Args:
         fn: ``h``, mapping ``[..., n]`` to ``[..., d]`` elementwise over leading dims.
-        noise_cov: ``R``, ``[d, d]`` (or batched), symmetric positive definite.
+        noise_cov: ``R``, ``[d, d]`` (or batched), symmetric positive definite; its size
+            fixes ``d``.
         jacobian: optional closed form of ``∂h/∂x`` (``[..., n]`` → ``[..., d, n]``).
-        mask: optional ``[..., d]`` bool validity of the entries.
+        mask: optional ``[..., d]`` bool validity of the entries (``d`` as ``noise_cov``'s,
+            leading dims broadcasting with its own).
+
+    Shapes are checked against ``d``: the mask at construction, ``y`` before each update
+    (:meth:`check_measurement`), ``fn``'s and ``jacobian``'s outputs at every call — a
+    mismatch is a ``ValueError`` naming the argument, never a broadcast.
     """
 
     def __init__(
@@ -298,21 +342,57 @@ class FunctionMeasurement(MeasurementModel):
             raise ValueError("noise_cov must be symmetric")
         if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
             raise ValueError("noise_cov must be positive definite")
+        d = R.shape[-1]
+        if mask is not None:
+            mask = torch.as_tensor(mask)
+            if mask.dtype != torch.bool:
+                if mask.is_floating_point() or mask.is_complex() or bool(((mask != 0) & (mask != 1)).any()):
+                    raise ValueError(f"mask must be bool (or 0/1 integers) [..., {d}], got a {mask.dtype} tensor")
+                mask = mask.to(torch.bool)
+            if mask.dim() < 1 or mask.shape[-1] != d:
+                raise ValueError(f"mask must have shape [..., {d}] (d = noise_cov's size), got {tuple(mask.shape)}")
+            try:
+                torch.broadcast_shapes(mask.shape[:-1], R.shape[:-2])
+            except RuntimeError:
+                raise ValueError(
+                    f"mask {tuple(mask.shape)} and noise_cov {tuple(R.shape)} have leading dims that do not broadcast"
+                ) from None
         self.fn = fn
         self._jacobian = jacobian
         self.register_buffer("R", R)
-        self.register_buffer("_mask", None if mask is None else torch.as_tensor(mask, dtype=torch.bool))
+        self.register_buffer("_mask", mask)
+
+    @property
+    def measurement_dim(self) -> int:
+        """``d``, the size of ``y`` (``noise_cov``'s)."""
+        return self.R.shape[-1]
+
+    def _check_output(self, name: str, value: Tensor, trailing: tuple[int, ...]) -> Tensor:
+        if not torch.is_tensor(value) or value.dim() < len(trailing) or tuple(value.shape[-len(trailing):]) != trailing:
+            got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
+            want = ", ".join(map(str, trailing))
+            raise ValueError(f"{name} must return [..., {want}] (d = {self.measurement_dim}, noise_cov's size), got {got}")
+        return value
 
     def predict(self, x: Tensor) -> Tensor:
-        return self.fn(x)
+        return self._check_output("fn", self.fn(x), (self.measurement_dim,))
 
     def noise_cov(self) -> Tensor:
         return self.R
 
     def jacobian(self, x: Tensor) -> Tensor:
         if self._jacobian is not None:
-            return self._jacobian(x)
+            return self._check_output("jacobian", self._jacobian(x), (self.measurement_dim, x.shape[-1]))
         return super().jacobian(x)
+
+    def check_measurement(self, y: Tensor) -> Tensor:
+        """``y`` must have ``d`` entries (``noise_cov``'s size)."""
+        if y.dim() < 1 or y.shape[-1] != self.measurement_dim:
+            raise ValueError(
+                f"y has shape {tuple(y.shape)}: {y.shape[-1] if y.dim() else 0} entries but the measurement model "
+                f"predicts {self.measurement_dim} (d = noise_cov's size)"
+            )
+        return y
 
     def mask(self) -> Tensor | None:
         return self._mask

@@ -1,7 +1,21 @@
-"""Star-camera unit-vector measurement ``b_j = C(p) r_j + v_j`` (method.md §1)."""
+"""Star-camera unit-vector measurement ``b_j = C(p) r_j + v_j`` (method.md §1).
+
+Valid star vectors must have unit norm.  Catalogue vectors (``r_inertial``) and the
+camera's observed directions (``body``, an observation's ``star_body``): off by at most
+``1e-12`` they are taken as they are, by at most :data:`UNIT_TOLERANCE` they are
+normalised with a warning, beyond it they are refused, naming the vector, its index and
+its norm (:func:`unit_vectors`; the same rule as recorded sensor logs,
+:mod:`agsf_torch.recordings`).  A measurement ``y`` handed to a filter is ``C r + v``
+with the model's noise ``v``, unit only up to that noise: it is used as it is, and
+refused only beyond ``max(UNIT_TOLERANCE, 10 σ)`` of the unit sphere (σ the radial noise
+of the noise model; a larger radial draw has probability < 1e-22), which catches zero,
+unnormalised or mis-scaled vectors (:meth:`StarVectorMeasurement.check_measurement`).
+Vectors of masked-out stars are ignored (they must only be finite).
+"""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 
 import torch
@@ -10,7 +24,55 @@ from torch import Tensor
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_to_dcm
 from .base import MeasurementModel, check_finite, check_nonnegative
 
-__all__ = ["StarVectorMeasurement"]
+__all__ = ["StarVectorMeasurement", "UNIT_TOLERANCE", "unit_vectors"]
+
+#: Largest |‖v‖ − 1| of a valid star vector that is normalised (with a warning) instead of refused.
+UNIT_TOLERANCE = 1e-3
+#: Below this |‖v‖ − 1| a vector is taken as it is (the rounding of a float64 normalisation).
+_ROUNDING_TOLERANCE = 1e-12
+
+
+#: A measured vector's radial noise beyond this many σ is taken for a malformed vector.
+_RADIAL_NOISE_BOUND = 10.0
+
+
+def _off_unit(name: str, v: Tensor, mask: Tensor | None, tolerance: float) -> tuple[Tensor, Tensor]:
+    """``(‖v‖, |‖v‖ − 1|)`` of ``v [..., M, 3]`` (0 off the ``mask``); ``ValueError`` naming ``name``,
+    the star, its batch index and its norm where ``|‖v‖ − 1| > tolerance``."""
+    norm = torch.linalg.vector_norm(v.detach(), dim=-1)
+    off = (norm - 1.0).abs()
+    if mask is not None:
+        off = torch.where(mask, off, torch.zeros_like(off))
+    bad = off > tolerance
+    if bool(bad.any()):
+        idx = bad.nonzero()[0].tolist()
+        value = float(torch.broadcast_to(norm, bad.shape)[tuple(idx)])
+        raise ValueError(
+            f"{name}: star {idx[-1]} at batch index {tuple(idx[:-1])} is not a unit vector (norm {value:.6g}); "
+            f"valid star vectors must have unit norm within {tolerance:.3g}"
+        )
+    return norm, off
+
+
+def unit_vectors(name: str, v: Tensor, mask: Tensor | None = None) -> Tensor:
+    """``v [..., M, 3]`` with the valid rows (``mask [..., M]``, broadcasting; ``None``: all) checked
+    to be unit vectors.
+
+    ``|‖v‖ − 1| ≤ 1e-12``: kept bit for bit; ``≤ UNIT_TOLERANCE``: normalised (``v/‖v‖``)
+    with a warning; beyond (zero vectors included): ``ValueError`` naming ``name``, the star,
+    its batch index and its norm.  Masked-out rows are returned unchanged.
+    """
+    norm, off = _off_unit(name, v, mask, UNIT_TOLERANCE)
+    fix = off > _ROUNDING_TOLERANCE
+    if not bool(fix.any()):
+        return v
+    warnings.warn(
+        f"{name}: star vectors off unit norm by up to {float(off.max()):.2e} (first at "
+        f"{tuple(fix.nonzero()[0].tolist())}); normalised",
+        stacklevel=3,
+    )
+    scale = torch.where(fix, torch.broadcast_to(norm, fix.shape), torch.ones_like(off)).to(v)
+    return v / scale.unsqueeze(-1)
 
 
 class StarVectorMeasurement(MeasurementModel):
@@ -36,6 +98,11 @@ class StarVectorMeasurement(MeasurementModel):
         mask: ``[..., M]`` bool, ``True`` for a valid star (``None``: all valid).
             Masked stars contribute nothing to an update.
         sigma: σ_s, per-axis unit-vector noise (rad), > 0.
+        body: the measured unit vectors ``[..., M, 3]`` (needed by ``"tangent"``).
+
+    Valid vectors of ``r_inertial`` and ``body`` must be unit vectors (:func:`unit_vectors`),
+    and those of the measurement ``y`` handed to a filter unit up to the noise
+    (:meth:`check_measurement`; module docstring).
     """
 
     block_size = 3  # one star: gated as a whole
@@ -71,15 +138,17 @@ class StarVectorMeasurement(MeasurementModel):
             mask = torch.as_tensor(mask, dtype=torch.bool, device=r.device)
             if mask.shape != r.shape[:-1]:
                 raise ValueError(f"mask must have shape {tuple(r.shape[:-1])} (r_inertial[..., M]), got {tuple(mask.shape)}")
-        self.num_stars = r.shape[-2]
-        self.register_buffer("r_inertial", r)
-        self.register_buffer("star_mask", mask)
-        self.register_buffer("sigma", sig.to(r.dtype))
         if body is not None:
             body = torch.as_tensor(body, dtype=r.dtype, device=r.device)
             if body.shape != r.shape:
                 raise ValueError(f"body must have the shape of r_inertial {tuple(r.shape)}, got {tuple(body.shape)}")
             check_finite("body", body)
+            body = unit_vectors("body", body, mask)
+        r = unit_vectors("r_inertial", r, mask)
+        self.num_stars = r.shape[-2]
+        self.register_buffer("r_inertial", r)
+        self.register_buffer("star_mask", mask)
+        self.register_buffer("sigma", sig.to(r.dtype))
         self.register_buffer("body", body)
 
     @classmethod
@@ -94,17 +163,34 @@ class StarVectorMeasurement(MeasurementModel):
             sigma: σ_s (rad).
 
         Returns:
-            ``(y [..., 3M], measurement)``.
+            ``(y [..., 3M], measurement)``; valid star vectors are checked (and, within
+            :data:`UNIT_TOLERANCE`, normalised) as :func:`unit_vectors`.
         """
         body = torch.as_tensor(obs["star_body"])
+        inertial = torch.as_tensor(obs["star_inertial"])
+        if body.shape != inertial.shape:
+            raise ValueError(f"star_body {tuple(body.shape)} and star_inertial {tuple(inertial.shape)} must have equal shapes")
         if kwargs.get("noise_model") == "tangent":
             kwargs.setdefault("body", body)
-        meas = cls(torch.as_tensor(obs["star_inertial"]), torch.as_tensor(obs["star_mask"]), sigma, **kwargs)
-        if body.shape != meas.r_inertial.shape:
-            raise ValueError(
-                f"star_body {tuple(body.shape)} and star_inertial {tuple(meas.r_inertial.shape)} must have equal shapes"
-            )
+        meas = cls(inertial, torch.as_tensor(obs["star_mask"]), sigma, **kwargs)
+        if meas.body is not None and kwargs.get("body") is body:
+            body = meas.body.to(body.dtype)  # checked (and normalised) by the constructor
+        else:
+            check_finite("star_body", body)
+            body = unit_vectors("star_body", body, meas.star_mask)
         return body.flatten(-2), meas
+
+    def check_measurement(self, y: Tensor) -> Tensor:
+        """``y [..., 3M]`` (returned unchanged): the valid stars' measured vectors ``C r + v`` must lie
+        within ``max(UNIT_TOLERANCE, 10 σ)`` of the unit sphere, σ the radial noise (σ_s, or
+        ``radial_sigma`` for the tangent model) — a zero, unnormalised or mis-scaled vector is
+        refused, naming the star, its batch index and its norm."""
+        M = self.num_stars
+        if y.dim() < 1 or y.shape[-1] != 3 * M:
+            raise ValueError(f"y has shape {tuple(y.shape)}: {y.shape[-1] if y.dim() else 0} entries but the measurement model predicts {3 * M} (3 for each of {M} stars)")
+        radial = float(self.sigma.detach()) if self.noise_model == "isotropic" else self.radial_sigma
+        _off_unit("y (measured star vectors)", y.unflatten(-1, (M, 3)), self.star_mask, max(UNIT_TOLERANCE, _RADIAL_NOISE_BOUND * radial))
+        return y
 
     def predict(self, x: Tensor) -> Tensor:
         """``h(x) = vec(C(p) r_j)``: ``x [..., n]`` → ``[..., 3M]``."""

@@ -103,7 +103,7 @@ def test_singular_covariance_is_named_or_repaired(gen):
     model, mix, u, meas, y = _attitude_setup(gen, False, B=4, N=3)
     covs = mix.covs.clone()
     covs[2, 0] = torch.diag(torch.tensor([1e-3, 1e-3, -1e-6], dtype=F64))
-    broken = mix.replace(covs=covs)
+    broken = mix.replace(covs=covs, validate=False)  # the filter's own check is under test
     with pytest.raises(ValueError, match=r"trajectory index \(2,\), component 0"):
         AdaptiveGaussianSumFilter(model).predict(broken, u[:4], 0.1)
     agsf = AdaptiveGaussianSumFilter(model, repair_covariance=True)
@@ -170,3 +170,62 @@ def test_components_beyond_the_qp_limit_are_refused_before_any_work():
     with pytest.raises(ValueError, match=r"'components' must be ≤ 64 with an adaptive filter"):
         load_preset("case1").replace(components=65)
     assert load_preset("case1").replace(components=65, filters=["GSF"]).components == 65
+
+
+@pytest.mark.parametrize("bad", [0, -1, -3, 2.5, True, "4", [4], float("inf"), float("nan")])
+@pytest.mark.parametrize("weight_update", ["penalty", "galerkin"])
+def test_bad_chunk_size_is_refused_at_construction_and_when_set(weight_update, bad):
+    """One check (fpke.matrices.check_chunk_size) for every path: the filter, the update, the matrices."""
+    from agsf_torch.fpke.matrices import check_chunk_size
+
+    with pytest.raises(ValueError, match="chunk_size must be a positive integer or None"):
+        AdaptiveGaussianSumFilter(AttitudeModel(), weight_update=weight_update, chunk_size=bad)
+    filt = AdaptiveGaussianSumFilter(AttitudeModel(), weight_update=weight_update, chunk_size=8)
+    with pytest.raises(ValueError, match="chunk_size must be a positive integer or None"):
+        filt.weight_update.chunk_size = bad
+    assert filt.weight_update.chunk_size == 8
+    with pytest.raises(ValueError, match="chunk_size must be a positive integer or None"):
+        check_chunk_size(bad)
+    assert check_chunk_size(4.0) == 4 and check_chunk_size(None) is None
+
+
+@pytest.mark.parametrize("kind", ["penalty", "galerkin"])
+def test_counter_does_not_move_when_the_update_refuses_the_mixture(kind):
+    """N > 64 is refused on the first interval, adapted or not: the cadence counter stays where it was."""
+    from agsf_torch.filters.weight_updates import WEIGHT_UPDATES
+    from agsf_torch.qp import MAX_COMPONENTS
+
+    model = AttitudeModel()
+    update = WEIGHT_UPDATES[kind](cadence=2)
+    update.bind(model)
+    mix = GaussianMixture.from_gaussian(torch.zeros(2, 3, dtype=F64), 1e-3 * torch.eye(3, dtype=F64).expand(2, 3, 3), MAX_COMPONENTS + 1)
+    u = torch.zeros(2, 1, 3, dtype=F64)
+    for _ in range(2):
+        with pytest.raises(ValueError, match=r"the weight QP handles N ≤ 64 components, got a mixture of 65"):
+            update(model, mix, mix, u, 0.1)
+        assert update.state_dict()["step"] == 0 and update.state_dict()["elapsed"] == 0.0
+    update(model, mix, mix, u, 0.1, enabled=False)  # switched off: a plain GSF, any N
+    assert update.state_dict()["step"] == 1
+
+
+def test_counter_does_not_move_when_the_fpke_matrix_is_not_finite(gen):
+    """The off-cadence interval counts; the adapting one that fails does not, and can be retried."""
+    from agsf_torch.models.base import FokkerPlanckTerms
+
+    class Broken(AttitudeModel):
+        def fokker_planck_terms(self, x, u):
+            t = super().fokker_planck_terms(x, u)
+            div = torch.where(u[..., 0] == 0.123, float("nan"), t.drift_divergence)
+            return FokkerPlanckTerms(t.drift, div, t.diffusion, t.diffusion_divergence, t.diffusion_second_divergence)
+
+    model, mix, u, meas, y = _attitude_setup(gen, False, B=4, N=3)
+    u = u[:4].clone()
+    u[1, 0] = 0.123
+    filt = AdaptiveGaussianSumFilter(Broken(), cadence=2)
+    filt.predict(mix, u, 0.1)
+    assert filt.weight_update.state_dict()["step"] == 1
+    before = filt.state_dict()
+    for _ in range(2):
+        with pytest.raises(ValueError, match=r"FPKE matrix L is not finite at trajectory index \(1,\)"):
+            filt.predict(mix, u, 0.1)
+        assert filt.state_dict()["weight_update"] == before["weight_update"]

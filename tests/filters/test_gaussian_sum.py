@@ -133,7 +133,7 @@ def test_loss_of_positive_definiteness_is_named_or_repaired(gen):
     model, mix, r, y = _setup(gen, B=3, N=2)
     covs = mix.covs.clone()
     covs[1, 1] = torch.diag(torch.tensor([1e-3, 1e-3, -1e-3, 1e-12, 1e-12, 1e-12], dtype=F64))
-    broken = mix.replace(covs=covs)  # bypasses validation, as a corrupted run state would
+    broken = mix.replace(covs=covs, validate=False)  # bypasses validation, as a corrupted run state would
     with pytest.raises(ValueError, match=r"trajectory index \(1,\), component 1"):
         GaussianSumFilter(model).predict(broken, torch.zeros(3, 3, dtype=F64), 0.1)
     gsf = GaussianSumFilter(model, repair_covariance=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -113,3 +115,41 @@ def test_state_error_uses_nearest_set(gen):
 def test_bad_configuration_raises(kwargs, field):
     with pytest.raises(ValueError, match=field):
         AttitudeModel(**kwargs)
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+@pytest.mark.parametrize("shape", [(4, 1), (4, 2), (4, 4), (1,)])
+def test_gyro_input_must_have_three_axes(gen, estimate_bias, shape):
+    """A rate of shape [B, 1] (or any last dim ≠ 3) is refused by every path, never broadcast over the axes."""
+    model = AttitudeModel(estimate_bias=estimate_bias)
+    n = model.state_dim
+    x = _states(gen, 4, estimate_bias)
+    u = torch.ones(shape, dtype=torch.float64)
+    match = rf"u must have shape \[\.\.\., 3\] \(AttitudeModel's input\), got {re.escape(str(tuple(shape)))}"
+    for call in (
+        lambda: model.drift(x, u),
+        lambda: model.drift_jacobian(x, u),
+        lambda: model.fokker_planck_terms(x, u),
+        lambda: model.fokker_planck_moments(x, 1e-3 * torch.eye(n, dtype=torch.float64).expand(4, n, n), u),
+    ):
+        with pytest.raises(ValueError, match=match):
+            call()
+    with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\], got None"):
+        model.drift(x, None)
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+def test_filters_refuse_a_one_axis_gyro_before_any_change(gen, estimate_bias):
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+
+    model = AttitudeModel(estimate_bias=estimate_bias)
+    n = model.state_dim
+    mix = GaussianMixture.from_gaussian(_states(gen, 2, estimate_bias), 1e-4 * torch.eye(n, dtype=torch.float64).expand(2, n, n), 3)
+    agsf = AdaptiveGaussianSumFilter(model, cadence=1)
+    for filt in (GaussianSumFilter(model), agsf):
+        with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 3\] \(AttitudeModel's input\), got \(2, 1\)"):
+            filt.predict(mix, torch.full((2, 1), 0.01, dtype=torch.float64), 0.1)
+        with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\], got None"):
+            filt.predict(mix, None, 0.1)
+    assert agsf.weight_update.state_dict()["step"] == 0

@@ -82,3 +82,51 @@ def test_linear_model(gen):
         LinearModel(torch.ones(2, 3), G, torch.eye(1))
     with pytest.raises(ValueError, match="Q must be"):
         LinearModel(A, G, torch.eye(2))
+
+
+@pytest.mark.parametrize(
+    "mask, match",
+    [
+        (torch.ones(2, dtype=torch.bool), r"mask must have shape \[\.\.\., 3\] \(d = noise_cov's size\), got \(2,\)"),
+        (torch.ones(4, 1, dtype=torch.bool), r"mask must have shape \[\.\.\., 3\]"),
+        (torch.full((3,), 0.5), r"mask must be bool \(or 0/1 integers\)"),
+        (torch.tensor([0, 2, 1]), r"mask must be bool \(or 0/1 integers\)"),
+    ],
+)
+def test_function_measurement_checks_the_mask_at_construction(mask, match):
+    with pytest.raises(ValueError, match=match):
+        FunctionMeasurement(lambda x: x, torch.eye(3, dtype=torch.float64), mask=mask)
+    ok = FunctionMeasurement(lambda x: x, torch.eye(3, dtype=torch.float64), mask=torch.tensor([1, 0, 1]))
+    assert ok.mask().tolist() == [True, False, True]
+
+
+def test_function_measurement_of_the_wrong_size_is_refused_before_the_update():
+    """R is 1×1 but y and h(x) have 3 entries: refused at the update, naming y, before anything changes."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    model = LinearModel(torch.zeros(3, 3), torch.eye(3), torch.eye(3))
+    mix = GaussianMixture.from_gaussian(torch.zeros(2, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64).expand(2, 3, 3), 2)
+    filt = GaussianSumFilter(model)
+    small_R = FunctionMeasurement(lambda x: x, torch.eye(1, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"y has shape \(2, 3\): 3 entries but the measurement model predicts 1 \(d = noise_cov's size\)"):
+        filt.update(mix, torch.zeros(2, 3, dtype=torch.float64), small_R)
+    with pytest.raises(ValueError, match=r"fn must return \[\.\.\., 1\] \(d = 1, noise_cov's size\), got \(2, 3\)"):
+        small_R.predict(torch.zeros(2, 3, dtype=torch.float64))
+    closed = FunctionMeasurement(lambda x: x, torch.eye(3, dtype=torch.float64), jacobian=lambda x: torch.ones(*x.shape[:-1], 3, 2))
+    with pytest.raises(ValueError, match=r"jacobian must return \[\.\.\., 3, 3\]"):
+        closed.jacobian(torch.zeros(2, 3, dtype=torch.float64))
+
+
+def test_model_input_size_is_checked_when_declared():
+    class Driven(Pendulum):
+        input_dim = 1
+
+    x = torch.zeros(4, 2, dtype=torch.float64)
+    Driven().check_input(torch.zeros(4, 1))
+    with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 1\] \(Driven's input\), got \(4, 2\)"):
+        Driven().check_input(torch.zeros(4, 2))
+    with pytest.raises(ValueError, match=r"Driven needs an input u \[\.\.\., 1\], got None"):
+        Driven().check_input(None)
+    Pendulum().check_input(torch.zeros(4, 7))  # not declared: the model's own business
+    assert Pendulum().drift(x, torch.zeros(4, 1)).shape == (4, 2)

@@ -95,3 +95,81 @@ def test_tangent_noise_model(gen):
         StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent")
     with pytest.raises(ValueError, match="noise_model"):
         StarVectorMeasurement(r, sigma=1e-5, noise_model="radial")
+
+
+def test_unit_tolerance_is_the_recordings_one():
+    from agsf_torch import recordings
+    from agsf_torch.models import star_vectors
+
+    assert star_vectors.UNIT_TOLERANCE == recordings.UNIT_TOLERANCE == 1e-3
+
+
+@pytest.mark.parametrize("scale, norm", [(2.0, "2"), (0.0, "0"), (1.0 + 2e-3, "1.002")])
+def test_non_unit_star_vectors_are_refused_naming_vector_star_and_norm(gen, scale, norm):
+    r = _unit(gen, 2, 3)
+    bad = r.clone()
+    bad[1, 2] *= scale
+    with pytest.raises(ValueError, match=rf"r_inertial: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"):
+        StarVectorMeasurement(bad, sigma=1e-5)
+    with pytest.raises(ValueError, match=rf"body: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"):
+        StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent", body=bad)
+    obs = {"star_body": bad, "star_inertial": r, "star_mask": torch.ones(2, 3, dtype=torch.bool)}
+    with pytest.raises(ValueError, match=rf"star_body: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"):
+        StarVectorMeasurement.from_observation(obs, sigma=1e-5)
+    with pytest.raises(ValueError, match=rf"y \(measured star vectors\): star 2 at batch index \(1,\) .*\(norm {norm}\)"):
+        StarVectorMeasurement(r, sigma=1e-5).check_measurement(bad.flatten(-2))
+    # a masked-out star is ignored, whatever its vector (zeros by convention)
+    mask = torch.tensor([[True] * 3, [True, True, False]])
+    meas = StarVectorMeasurement(bad, mask, sigma=1e-5)
+    assert torch.equal(meas.check_measurement(bad.flatten(-2)), bad.flatten(-2))
+
+
+def test_star_vectors_within_tolerance_are_normalised_with_a_warning(gen):
+    r = _unit(gen, 2, 3)
+    off = r.clone()
+    off[0, 1] *= 1.0 + 1e-5
+    with pytest.warns(UserWarning, match=r"r_inertial: star vectors off unit norm by up to 1\.00e-05"):
+        meas = StarVectorMeasurement(off, sigma=1e-5)
+    torch.testing.assert_close(meas.r_inertial, r, rtol=0, atol=1e-15)
+    with pytest.warns(UserWarning, match="star_body"):
+        y, _ = StarVectorMeasurement.from_observation({"star_body": off, "star_inertial": r, "star_mask": torch.ones(2, 3, dtype=torch.bool)}, 1e-5)
+    torch.testing.assert_close(y, r.flatten(-2), rtol=0, atol=1e-15)
+    # unit to rounding: taken bit for bit, no warning
+    exact = StarVectorMeasurement(r, sigma=1e-5)
+    assert torch.equal(exact.r_inertial, r) and exact.check_measurement(r.flatten(-2)) is not None
+
+
+def test_filter_update_refuses_non_unit_measured_vectors_before_any_change(gen):
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import AdaptiveGaussianSumFilter
+    from agsf_torch.models import AttitudeModel
+
+    p = random_mrps(2, gen, max_norm=0.5)
+    r = _unit(gen, 2, 3)
+    meas = StarVectorMeasurement(r, sigma=1e-5)
+    y = meas.predict(p)
+    y_bad = y.clone()
+    y_bad[0, 3:6] *= 1e5  # star 1 of trajectory 0: NIS 1e10 if it were used
+    mix = GaussianMixture.from_gaussian(p, 1e-4 * torch.eye(3, dtype=torch.float64).expand(2, 3, 3), 3)
+    filt = AdaptiveGaussianSumFilter(AttitudeModel())
+    state = filt.state_dict()
+    with pytest.raises(ValueError, match=r"star 1 at batch index \(0,\) is not a unit vector \(norm 100000\)"):
+        filt.update(mix, y_bad, meas)
+    with pytest.raises(ValueError, match=r"y has shape \(2, 6\): 6 entries but the measurement model predicts 9"):
+        filt.update(mix, y[:, :6], meas)
+    assert filt.state_dict() == state
+    assert bool(torch.isfinite(filt.update(mix, y, meas).means).all())
+
+
+def test_measured_vectors_are_unit_up_to_the_noise(gen):
+    """y = C r + v is unit only up to the noise: used as it is within max(1e-3, 10σ), refused beyond."""
+    r = _unit(gen, 2, 3)
+    y = r.clone()
+    y[0, 1] *= 1.0 + 5e-3  # a 5σ radial draw for σ_s = 1e-3
+    y = y.flatten(-2)
+    out = StarVectorMeasurement(r, sigma=1e-3).check_measurement(y)
+    assert out is y
+    with pytest.raises(ValueError, match=r"star 1 at batch index \(0,\) is not a unit vector \(norm 1\.005\); .* within 0\.001"):
+        StarVectorMeasurement(r, sigma=1e-5).check_measurement(y)
+    tangent = StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent", body=r, radial_sigma=1e-3)
+    assert tangent.check_measurement(y) is y
