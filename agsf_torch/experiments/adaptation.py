@@ -47,6 +47,7 @@ from ..rotations import attitude_error_angle
 from .config import ExperimentConfig, load_config
 from .experiment import make_env, make_filters, mean_ci95, prepare_output, prior_covariance
 from .factories import filter_model
+from .resources import check_memory
 from .runner import monte_carlo_steps
 
 __all__ = ["SCENARIOS", "STUDY_FILTERS", "run_scenario", "run_adaptation_study", "study_table"]
@@ -297,18 +298,22 @@ def _tensorboard(folder: Path, summary: dict[str, Any], res: dict[str, Any]) -> 
 
 def run_adaptation_study(
     scenarios: list[str], out: Path, *, runs: int = 32, samples: int = 1024, overrides: list[str] | None = None,
-    progress: bool = True,
+    progress: bool = True, force: bool = False,
 ) -> dict[str, Any]:
     """Run the scenarios, write ``summary.json``, figures, TensorBoard logs and ``results.md`` under ``out``.
 
     Raises:
-        ValueError: an unknown scenario, or ``runs``/``samples`` out of range (before anything is written).
+        ValueError: an unknown scenario, ``runs``/``samples`` out of range, or a scenario whose
+            memory estimate (:func:`~.resources.check_memory`) exceeds the memory available
+            (unless ``force``), before anything is written.
     """
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 2:
         raise ValueError(f"runs must be an integer ≥ 2 (intervals need two runs), got {runs!r}")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 64:
         raise ValueError(f"samples must be an integer ≥ 64, got {samples!r}")
     configs = {s: scenario_config(s, runs, overrides) for s in scenarios}
+    for cfg in configs.values():
+        check_memory(cfg, force=force)
     digest = hashlib.sha256(
         json.dumps({"configs": {k: c.digest() for k, c in configs.items()}, "samples": samples}, sort_keys=True).encode()
     ).hexdigest()[:16]

@@ -152,7 +152,8 @@ def _adaptation(args: argparse.Namespace) -> int:
     _threads(args)
     names = list(SCENARIOS) if "all" in args.scenario else list(dict.fromkeys(args.scenario))
     summaries = run_adaptation_study(
-        names, Path(args.out), runs=args.runs, samples=args.samples, overrides=list(args.set), progress=not args.quiet
+        names, Path(args.out), runs=args.runs, samples=args.samples, overrides=list(args.set), progress=not args.quiet,
+        force=args.force,
     )
     for window in ("before_first_frame", "between_frames", "all"):
         print(f"\n{window.replace('_', ' ')}:\n{study_table(summaries, window)}")

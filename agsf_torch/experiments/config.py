@@ -261,10 +261,14 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Experim
     """
     p = Path(path)
     if p.suffix == ".toml" or p.exists():
-        if not p.is_file():
+        if not p.exists():
             raise ValueError(f"config file {p} does not exist")
+        if not p.is_file():
+            raise ValueError(f"config file {p} is not a file")
         try:
-            data = tomllib.loads(p.read_text())
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"config file {p} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"config file {p} is not valid TOML: {exc}") from None
         cfg = _resolve(data)

@@ -40,7 +40,10 @@ def check_output(out: Path, kind: str, digest: str) -> None:
     if out.exists() and not out.is_dir():
         raise ValueError(f"output folder {out} is a file; choose another --out")
     if marker.exists():
-        prev = read_json(marker, "experiment marker")
+        try:
+            prev = read_json(marker, "experiment marker")
+        except ValueError as exc:
+            raise ValueError(f"{exc}; remove {out} or choose another --out") from None
         if not isinstance(prev, dict) or prev.get("kind") != kind or prev.get("digest") != digest:
             prev = prev if isinstance(prev, dict) else {}
             raise OutputConflict(

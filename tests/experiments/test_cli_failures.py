@@ -116,7 +116,7 @@ def _bad_recording_file(path: Path, good: Path, data) -> str:
     return str(path.name)
 
 
-KINDS = ["override", "memory", "recording", "simulate", "learn", "sweep", "output"]
+KINDS = ["override", "memory", "recording", "simulate", "learn", "sweep", "config", "output"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -160,6 +160,19 @@ def test_a_refused_command_exits_2_in_one_line_creates_nothing_and_the_corrected
                     (f"reg={v},{v}.0", "twice"), (f"zz_key={v}", "zz_key"), (f"reg=-{v}", "'reg'"), (f"spread={v}", "'spread'"),
                 ]))
                 _assert_refused(["sweep", "case1", *TINY, "--grid", grid, "--out", out], d, names)
+            elif kind == "config":
+                path = d / "mine.toml"
+                case = data.draw(st.sampled_from(["missing", "directory", "binary", "toml", "unknown key"]))
+                if case == "directory":
+                    path.mkdir()
+                elif case == "binary":
+                    path.write_bytes(b"\xff" + data.draw(st.binary()))
+                elif case == "toml":
+                    path.write_text("runs = [" + data.draw(st.text(alphabet="0123456789, ")))
+                elif case == "unknown key":
+                    path.write_text('preset = "case1"\nzz_speed = 1\n')
+                names = {"missing": "does not exist", "directory": "not a file", "binary": "utf-8", "toml": "toml"}.get(case, "zz_speed")
+                _assert_refused(["run", str(path), *TINY, "--out", out], d, names)
             else:  # output folders that cannot hold the experiment
                 target = d / "taken"
                 case = data.draw(st.sampled_from(["file", "corrupt marker", "other experiment", "foreign folder"]))
