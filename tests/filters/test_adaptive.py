@@ -136,16 +136,19 @@ def test_compiled_kernel_equals_eager(gen):
     torch.testing.assert_close(compiled.log_weights, eager.log_weights, rtol=1e-10, atol=1e-12)
 
 
+class Broken(AttitudeModel):
+    """Fokker–Planck terms that turn NaN wherever the gyro reads the marker rate 0.123 (elementwise)."""
+
+    def fokker_planck_terms(self, x, u):
+        from agsf_torch.models.base import FokkerPlanckTerms
+
+        t = super().fokker_planck_terms(x, u)
+        div = torch.where(u[..., 0] == 0.123, float("nan"), t.drift_divergence)
+        return FokkerPlanckTerms(t.drift, div, t.diffusion, t.diffusion_divergence, t.diffusion_second_divergence)
+
+
 def test_non_finite_fpke_matrix_names_the_trajectory(gen):
     """A model whose Fokker–Planck terms turn NaN for one trajectory: a clear error, never a NaN weight."""
-    from agsf_torch.models.base import FokkerPlanckTerms
-
-    class Broken(AttitudeModel):  # NaN wherever the gyro reads the marker rate (elementwise, whatever the layout)
-        def fokker_planck_terms(self, x, u):
-            t = super().fokker_planck_terms(x, u)
-            div = torch.where(u[..., 0] == 0.123, float("nan"), t.drift_divergence)
-            return FokkerPlanckTerms(t.drift, div, t.diffusion, t.diffusion_divergence, t.diffusion_second_divergence)
-
     model, mix, u, meas, y = _attitude_setup(gen, False, B=4, N=3)
     u = u[:4].clone()
     u[2, 0] = 0.123  # trajectory 2
@@ -210,14 +213,6 @@ def test_counter_does_not_move_when_the_update_refuses_the_mixture(kind):
 
 def test_counter_does_not_move_when_the_fpke_matrix_is_not_finite(gen):
     """The off-cadence interval counts; the adapting one that fails does not, and can be retried."""
-    from agsf_torch.models.base import FokkerPlanckTerms
-
-    class Broken(AttitudeModel):
-        def fokker_planck_terms(self, x, u):
-            t = super().fokker_planck_terms(x, u)
-            div = torch.where(u[..., 0] == 0.123, float("nan"), t.drift_divergence)
-            return FokkerPlanckTerms(t.drift, div, t.diffusion, t.diffusion_divergence, t.diffusion_second_divergence)
-
     model, mix, u, meas, y = _attitude_setup(gen, False, B=4, N=3)
     u = u[:4].clone()
     u[1, 0] = 0.123
