@@ -37,6 +37,7 @@ __all__ = [
     "mrp_canonical",
     "attitude_error_angle",
     "attitude_error_vector",
+    "attitude_error_jacobian",
 ]
 
 
@@ -260,6 +261,26 @@ def attitude_error_vector(p_est: Tensor, p_true: Tensor) -> Tensor:
     dq = quat_multiply(mrp_to_quat(p_est), quat_conjugate(mrp_to_quat(p_true)))
     sign = torch.where(dq[..., 3:] < 0, -1.0, 1.0).to(dq.dtype)
     return 2.0 * dq[..., :3] * sign
+
+
+def attitude_error_jacobian(p: Tensor) -> Tensor:
+    """Jacobian of :func:`attitude_error_vector` in its first argument, at ``p_est = p_true = p``:
+    how an additive MRP perturbation ``δp`` of the estimate turns into the small-angle error,
+    ``δθ ≈ J δp``.
+
+    .. math:: J = \frac{4}{(1 + |p|^2)^2} B(p)^T
+
+    (:func:`mrp_kinematics_matrix`; ``J = 4 I`` at ``p = 0``).  Maps an MRP covariance ``P`` to
+    the covariance ``J P Jᵀ`` of the rotation error (rad²).
+
+    Args:
+        p: ``[..., 3]``.
+
+    Returns:
+        ``[..., 3, 3]``.
+    """
+    s = (p * p).sum(-1)[..., None, None]
+    return 4.0 * mrp_kinematics_matrix(p).transpose(-1, -2) / (1.0 + s) ** 2
 
 
 def attitude_error_angle(p_a: Tensor, p_b: Tensor) -> Tensor:

@@ -133,3 +133,13 @@ def test_attitude_error_angle_does_not_depend_on_the_batch(gen):
     alone = torch.cat([rot.attitude_error_angle(pa[i : i + 1], pb[i : i + 1]) for i in range(len(pa))])
     assert torch.equal(batch, alone)
     assert torch.equal(rot.attitude_error_angle(pa[:7], pb[:7]), batch[:7])
+
+
+def test_attitude_error_jacobian_is_the_derivative_of_the_error_vector():
+    from agsf_torch.rotations import attitude_error_jacobian, attitude_error_vector
+
+    gen = torch.Generator().manual_seed(4)
+    for p in (torch.zeros(3, dtype=torch.float64), 0.7 * torch.randn(3, generator=gen, dtype=torch.float64)):
+        J = torch.autograd.functional.jacobian(lambda pe: attitude_error_vector(pe, p), p)
+        torch.testing.assert_close(attitude_error_jacobian(p), J, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(attitude_error_jacobian(torch.zeros(3, dtype=torch.float64)), 4.0 * torch.eye(3, dtype=torch.float64))

@@ -245,10 +245,10 @@ def test_case1_runs_with_a_precise_sensor(iterations, noise_model):
     assert len(frames) == 2
     for name, trace in res.traces.items():
         assert np.isfinite(trace.error).all() and np.isfinite(trace.sigma).all() and np.isfinite(trace.nees).all(), name
-        assert np.isfinite(trace.nis[frames]).all(), name
-        err_deg = np.degrees(trace.error_angle[frames])
+        assert np.isfinite(trace.nis[:, frames]).all(), name
+        err_deg = np.degrees(trace.error_angle[:, frames].T)  # [frame, run]
         if iterations == 1:
             assert err_deg[0].max() < 1.0 and (err_deg[1] < 0.1 * err_deg[0]).all(), (name, err_deg)
         else:
-            assert trace.nees[frames].max() < 30.7, (name, trace.nees[frames])
+            assert trace.nees[:, frames].max() < 30.7, (name, trace.nees[:, frames])
             assert err_deg.max() < 1e-6, (name, err_deg)  # < 20 nrad: σ_s-level for 5 stars in 8°

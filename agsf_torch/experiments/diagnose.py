@@ -27,7 +27,7 @@ def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True, force: 
     texts, result, passed = [], {}, True
     for name in cfg.filters:
         checks = consistency_checks(
-            nees=data[f"{name}/nees"], state_dim=n, nis=data[f"{name}/nis"], nis_dof=data[f"{name}/nis_dof"]
+            nees=data[f"{name}/nees"].T, state_dim=n, nis=data[f"{name}/nis"].T, nis_dof=data[f"{name}/nis_dof"].T
         )
         fpke = None
         if f"{name}/fpke_error_before" in data:

@@ -11,6 +11,7 @@ Folder layout (``out``)::
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -72,25 +73,47 @@ def save_npz(path: Path, data: dict[str, np.ndarray]) -> Path:
     return Path(path)
 
 
+#: Units of the ``runs.npz`` arrays (per filter: the key after ``name/``); diagnostics not listed are counts or ratios.
+RUN_UNITS = {
+    "time": "s",
+    "star_frame": "bool",
+    "error_angle": "rad",
+    "error": "rad (attitude: rotation-error vector, body axes of the truth), rad/s (bias)",
+    "sigma": "rad (attitude: 1σ of the rotation error), rad/s (bias)",
+    "cov": "MRP² (attitude), (rad/s)² (bias): the filter's own chart",
+    "nees": "1 (χ² with n degrees of freedom)",
+    "nis": "1 (χ² with nis_dof degrees of freedom); NaN between star frames",
+    "nis_dof": "count",
+    "weights": "1",
+    "weight_entropy": "nat",
+    "gyro_held": "bool (the gyro sample was bridged)",
+    "gate_rejected": "count (star blocks the gate rejected)",
+    "fpke_error_before": "FPKE residual (1/s) before the weight update",
+    "fpke_error_after": "FPKE residual (1/s) after the weight update",
+}
+
+
 def save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
-    """Write ``runs.npz``: ``time [T]``, ``star_frame [T]`` and per filter ``name/key`` arrays
-    (:class:`~agsf_torch.experiments.runner.FilterTrace` fields, time first), plus every per-trajectory
-    diagnostic ``[T, B]`` the filter reported (its ``diagnostic_keys``, e.g. ``fpke_error_before``,
-    ``qp_kkt_residual``, ``gate_rejected``) and the input's (``gyro_held``); returns what it wrote."""
+    """Write ``runs.npz`` and return what it wrote.
+
+    Layout (batch first, as everywhere in the package): ``time [T]`` (s), ``star_frame [T]``,
+    and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
+    ``[B, T, ...]`` — ``error_angle``, ``error`` and ``sigma`` (rotation error and its 1σ),
+    ``cov [B, T, n, n]`` (the filter's covariance), ``nees``, ``nis``, ``nis_dof``,
+    ``weights [B, T, N]``, ``weight_entropy`` — plus every per-trajectory diagnostic
+    ``[B, T]`` the filter reported (its ``diagnostic_keys``, e.g. ``fpke_error_before``,
+    ``qp_kkt_residual``, ``gate_rejected``) and the input's (``gyro_held``).  ``units`` holds
+    a JSON object: key (without the filter prefix) → unit (:data:`RUN_UNITS`).
+    """
     data: dict[str, np.ndarray] = {"time": res.time, "star_frame": res.star_frame}
+    units = {k: RUN_UNITS[k] for k in ("time", "star_frame")}
     for name, tr in res.traces.items():
-        data[f"{name}/error_angle"] = tr.error_angle
-        data[f"{name}/error"] = tr.error
-        data[f"{name}/sigma"] = tr.sigma
-        data[f"{name}/nees"] = tr.nees
-        data[f"{name}/nis"] = tr.nis
-        data[f"{name}/nis_dof"] = tr.nis_dof
-        data[f"{name}/weights"] = tr.weights
-        data[f"{name}/weight_entropy"] = tr.weight_entropy
+        for key in ("error_angle", "error", "sigma", "cov", "nees", "nis", "nis_dof", "weights", "weight_entropy"):
+            data[f"{name}/{key}"] = getattr(tr, key)
+            units[key] = RUN_UNITS[key]
         for key, values in tr.extra.items():
             if values.shape == tr.error_angle.shape:
                 data[f"{name}/{key}"] = values
-    save_npz(path, data)
+                units[key] = RUN_UNITS.get(key, "1")
+    save_npz(path, {**data, "units": np.array(json.dumps(units, sort_keys=True))})
     return data
-
-

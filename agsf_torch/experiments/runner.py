@@ -14,37 +14,42 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..constants import ATTITUDE_RADIANS_PER_MRP
 from ..attitude_inputs import AttitudeInputs, as_float64
 from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
 from ..metrics import nees, rms
-from ..rotations import attitude_error_angle
+from ..rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector
 
 __all__ = [
-    "FilterSetup", "FilterStep", "FilterTrace", "MonteCarloResult", "Step", "monte_carlo_steps", "run_monte_carlo", "sample_prior",
+    "FilterSetup", "FilterStep", "FilterTrace", "MonteCarloResult", "Step", "monte_carlo_steps", "run_monte_carlo",
+    "rotation_error", "sample_prior",
 ]
 
 
 @dataclass
 class FilterTrace:
-    """Per-time metrics of one filter over ``T`` steps and ``B`` trajectories (numpy).
+    """Per-time metrics of one filter over ``B`` trajectories and ``T`` steps (numpy, batch first).
 
     Attributes:
-        error_angle: attitude error angle (rad) ``[T, B]``.
-        error: state error, attitude part in rad (small-angle, ``4 δp``) and bias in
-            rad/s, ``[T, B, n]``.
-        sigma: 1σ of the same quantities from the filter's covariance ``[T, B, n]``.
-        nees: ``eᵀP⁻¹e`` ``[T, B]``.
-        nis: mixture NIS at star frames, NaN elsewhere ``[T, B]``; ``nis_dof`` its
-            number of valid entries ``[T, B]``.
-        weights: ``[T, B, N]``.
-        weight_entropy: ``[T, B]``.
-        extra: any further per-step diagnostics of the filter, ``name -> [T, ...]``.
+        error_angle: attitude error angle (rad) ``[B, T]``.
+        error: state error ``[B, T, n]``: the attitude part is the rotation error, the
+            small-angle vector of ``q_est ⊗ q_true⁻¹`` (rad, body axes of the truth;
+            :func:`~agsf_torch.rotations.attitude_error_vector`), the bias part in rad/s.
+        sigma: 1σ of the same quantities from the filter's covariance ``[B, T, n]``: the MRP
+            covariance mapped to the rotation error by ``J P Jᵀ``
+            (:func:`~agsf_torch.rotations.attitude_error_jacobian`), the bias part as is.
+        cov: the filter's covariance ``[B, T, n, n]`` in its own chart (MRP² and (rad/s)²).
+        nees: ``eᵀP⁻¹e`` in the filter's chart ``[B, T]``.
+        nis: mixture NIS at star frames, NaN elsewhere ``[B, T]``; ``nis_dof`` its
+            number of valid entries ``[B, T]``.
+        weights: ``[B, T, N]``.
+        weight_entropy: ``[B, T]``.
+        extra: any further per-step diagnostics of the filter, ``name -> [B, T, ...]``.
     """
 
     error_angle: np.ndarray
     error: np.ndarray
     sigma: np.ndarray
+    cov: np.ndarray
     nees: np.ndarray
     nis: np.ndarray
     nis_dof: np.ndarray
@@ -54,7 +59,7 @@ class FilterTrace:
 
     def rms_error(self) -> np.ndarray:
         """RMS attitude error angle over trajectories, ``[T]`` (rad)."""
-        return rms(self.error_angle, 1)
+        return rms(self.error_angle, 0)
 
 
 @dataclass
@@ -77,8 +82,8 @@ class Step:
     ``(y [B, d], StarVectorMeasurement)``; ``prior_mean [B, n]`` is the mean of the Gaussian prior
     ``N(prior_mean, prior_cov)`` every filter's initial mixture was split from; ``chart_error``:
     name → the state error of the filter's estimate against the truth in the estimate's chart
-    ``[B, n]`` (MRP and rad/s: the units of the covariance, for NEES; multiply the attitude part by
-    :data:`ATTITUDE_RADIANS_PER_MRP` for radians, as :class:`FilterTrace` stores it)."""
+    ``[B, n]`` (MRP and rad/s: the units of the covariance, for NEES; :class:`FilterTrace`
+    stores the error as a rotation instead, :func:`rotation_error`)."""
 
     index: int
     time: float
@@ -151,6 +156,26 @@ def monte_carlo_steps(
                    step.input.u, step.input.measurement, mean0, errors)
 
 
+def rotation_error(mean: Tensor, cov: Tensor, x_true: Tensor) -> tuple[Tensor, Tensor]:
+    """The estimate's error as a rotation and its 1σ (:class:`FilterTrace` ``error``, ``sigma``).
+
+    Args:
+        mean: ``[B, n]`` (MRP, then the bias in rad/s if ``n = 6``); cov: ``[B, n, n]`` in the
+            MRP chart; x_true: ``[B, n]``.
+
+    Returns:
+        ``(error [B, n], sigma [B, n])``: attitude part ``δθ`` of ``q_est ⊗ q_true⁻¹`` (rad)
+        and ``sqrt(diag(J P Jᵀ))`` with ``J = ∂δθ/∂p`` at the estimate; bias part
+        ``b̂ − b`` and ``sqrt(diag P)`` (rad/s).
+    """
+    n = mean.shape[-1]
+    J = torch.eye(n, dtype=cov.dtype).expand(cov.shape).clone()
+    J[:, :3, :3] = attitude_error_jacobian(mean[:, :3])
+    error = torch.cat((attitude_error_vector(mean[:, :3], x_true[:, :3]), mean[:, 3:] - x_true[:, 3:]), -1)
+    sigma = (J @ cov @ J.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sqrt()
+    return error, sigma
+
+
 def run_monte_carlo(
     env,
     filters: Mapping[str, FilterSetup],
@@ -198,19 +223,16 @@ def run_monte_carlo(
         from tqdm import tqdm
 
         steps = tqdm(steps, desc="monte carlo", unit="step", total=num_steps)
-    scale: Tensor | None = None
     for step in steps:
         times.append(step.time)
         frames.append(step.star_frame)
-        if scale is None:
-            n = step.x_true.shape[-1]
-            scale = torch.ones(n, dtype=torch.float64)
-            scale[:3] = ATTITUDE_RADIANS_PER_MRP
         for name, fs in step.filters.items():
             rec = records[name]
+            error, sigma = rotation_error(fs.mean, fs.cov, step.x_true)
             rec["error_angle"].append(attitude_error_angle(fs.mean[:, :3], step.truth_mrp))
-            rec["error"].append(step.chart_error[name] * scale)
-            rec["sigma"].append(fs.cov.diagonal(dim1=-2, dim2=-1).sqrt() * scale)
+            rec["error"].append(error)
+            rec["sigma"].append(sigma)
+            rec["cov"].append(fs.cov)
             rec["nees"].append(nees(step.chart_error[name], fs.cov))
             rec["nis"].append(fs.nis)
             rec["nis_dof"].append(fs.dof)
@@ -222,9 +244,9 @@ def run_monte_carlo(
 
     traces = {}
     for name, rec in records.items():
-        stacked = {k: torch.stack(v).numpy() for k, v in rec.items() if k != "extra"}
+        stacked = {k: torch.stack(v, 1).numpy() for k, v in rec.items() if k != "extra"}
         extra_keys = rec["extra"][0].keys() if rec["extra"] else []
-        stacked["extra"] = {k: torch.stack([e[k] for e in rec["extra"]]).numpy() for k in extra_keys}
+        stacked["extra"] = {k: torch.stack([e[k] for e in rec["extra"]], 1).numpy() for k in extra_keys}
         traces[name] = FilterTrace(**stacked)
     state_dim = next(iter(filters.values())).filter.model.state_dim
     return MonteCarloResult(np.array(times), np.array(frames), traces, state_dim)

@@ -39,7 +39,7 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     windows = {"between_updates": ~frames, "before_first_update": np.arange(len(frames)) < first}
     names = [n for n in FILTER_NAMES if f"{n}/error_angle" in data]
     n_state = data[f"{names[0]}/error"].shape[-1]
-    runs = data[f"{names[0]}/error_angle"].shape[1]
+    runs = data[f"{names[0]}/error_angle"].shape[0]
     lo, hi = chi2_band(n_state, runs)
     out: dict[str, Any] = {
         "config": cfg.to_dict(),
@@ -50,27 +50,27 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     }
     per_run: dict[str, dict[str, np.ndarray]] = {}
     for name in names:
-        theta = data[f"{name}/error_angle"]  # [T, B]
+        theta = data[f"{name}/error_angle"]  # [B, T]
         entry: dict[str, Any] = {
-            "rms_deg": np.degrees(rms(theta, 1)).tolist(),
-            "nees_mean": data[f"{name}/nees"].mean(1).tolist(),
+            "rms_deg": np.degrees(rms(theta, 0)).tolist(),
+            "nees_mean": data[f"{name}/nees"].mean(0).tolist(),
             "time_averaged_nees": float(data[f"{name}/nees"].mean()),
-            "time_averaged_nees_ci95": list(mean_ci95(data[f"{name}/nees"].mean(0))[1:]),
-            "weights_run0": data[f"{name}/weights"][:, 0].tolist(),
-            "error_run0_rad": data[f"{name}/error"][:, 0].tolist(),
-            "sigma_run0_rad": data[f"{name}/sigma"][:, 0].tolist(),
+            "time_averaged_nees_ci95": list(mean_ci95(data[f"{name}/nees"].mean(1))[1:]),
+            "weights_run0": data[f"{name}/weights"][0].tolist(),
+            "error_run0_rad": data[f"{name}/error"][0].tolist(),
+            "sigma_run0_rad": data[f"{name}/sigma"][0].tolist(),
             "mean_weight_entropy": float(data[f"{name}/weight_entropy"].mean()),
         }
         for key in ("fpke_error_before", "fpke_error_after"):
             if f"{name}/{key}" in data:
-                entry[f"{key}_mean"] = data[f"{name}/{key}"].mean(1).tolist()
+                entry[f"{key}_mean"] = data[f"{name}/{key}"].mean(0).tolist()
         for key in ("gate_rejected", "gyro_held"):
             if f"{name}/{key}" in data:
                 entry[f"{key}_total"] = int(data[f"{name}/{key}"].sum())
         per_run[name] = {}
         for wname, mask in windows.items():
             if mask.any():
-                r = np.degrees(rms(theta[mask], 0))  # [B]
+                r = np.degrees(rms(theta[:, mask], 1))  # [B]
                 per_run[name][wname] = r
                 entry[wname] = {
                     "mean_rms_deg": float(r.mean()),

@@ -43,6 +43,25 @@ def test_outputs_exist_and_agree(experiment):
     assert "AGSF/weights" in acc.Tags()["histograms"]
 
 
+def test_runs_file_is_batch_first_with_units_and_covariances(experiment):
+    cfg, out, summary = experiment
+    data = np.load(out / "runs.npz")
+    B, T, n = cfg.runs, cfg.num_steps, 3
+    units = json.loads(str(data["units"]))
+    assert data["time"].shape == data["star_frame"].shape == (T,) and units["time"] == "s"
+    for name in cfg.filters:
+        assert data[f"{name}/error_angle"].shape == data[f"{name}/nees"].shape == (B, T)
+        assert data[f"{name}/error"].shape == data[f"{name}/sigma"].shape == (B, T, n)
+        cov = data[f"{name}/cov"]
+        assert cov.shape == (B, T, n, n) and (np.linalg.eigvalsh(cov) > 0).all()
+        # the attitude error is the rotation-error vector: its norm is 2 sin(θ/2) of the error angle
+        np.testing.assert_allclose(
+            np.linalg.norm(data[f"{name}/error"], axis=-1), 2 * np.sin(data[f"{name}/error_angle"] / 2), rtol=1e-9
+        )
+        assert np.isfinite(data[f"{name}/nees"]).all()
+    assert "rad" in units["error"] and "MRP" in units["cov"] and units["weight_entropy"] == "nat"
+
+
 def test_summary_matches_independent_recomputation(experiment):
     cfg, out, summary = experiment
     data = np.load(out / "runs.npz")
@@ -53,11 +72,11 @@ def test_summary_matches_independent_recomputation(experiment):
         theta = data[f"{name}/error_angle"]
         # RMS over runs at each time, by explicit loops
         for k in (0, len(frames) // 2, len(frames) - 1):
-            expect = np.degrees(np.sqrt(sum(theta[k, b] ** 2 for b in range(B)) / B))
+            expect = np.degrees(np.sqrt(sum(theta[b, k] ** 2 for b in range(B)) / B))
             assert summary["filters"][name]["rms_deg"][k] == pytest.approx(expect, rel=1e-12)
         r = []
         for b in range(B):
-            vals = [theta[k, b] ** 2 for k in range(len(frames)) if not frames[k]]
+            vals = [theta[b, k] ** 2 for k in range(len(frames)) if not frames[k]]
             r.append(np.degrees(np.sqrt(np.mean(vals))))
         per_run[name] = np.array(r)
         assert summary["filters"][name]["between_updates"]["mean_rms_deg"] == pytest.approx(np.mean(r), rel=1e-12)

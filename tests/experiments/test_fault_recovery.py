@@ -48,7 +48,7 @@ def _window(time, a, b):
 
 
 def _rms(trace, mask) -> float:
-    return float(np.sqrt((trace.error_angle[mask] ** 2).mean()))
+    return float(np.sqrt((trace.error_angle[:, mask] ** 2).mean()))
 
 
 def _key(faults):
@@ -63,13 +63,13 @@ def test_filter_recovers_its_fault_free_accuracy(name):
     ratio = _rms(faulty, after) / _rms(clean, after)
     assert ratio < 1.10, f"{name}: RMS after the fault {ratio:.3f} × the fault-free run's"
     assert np.isfinite(faulty.nees).all()
-    assert faulty.nees[after].mean() < 1.5 * clean.nees[after].mean()
+    assert faulty.nees[:, after].mean() < 1.5 * clean.nees[:, after].mean()
     during = _window(time, 40.0, 160.0 if name == "star_outage" else 100.0)
-    assert faulty.nees[during].mean() < 5.0  # 3 states: the gap covariance covers the error
+    assert faulty.nees[:, during].mean() < 5.0  # 3 states: the gap covariance covers the error
     if name.startswith("gyro"):
         # every sample of the window is bridged (the truth rate, 0.063 rad/s, exceeds the 0.05 range)
         assert faulty.extra["gyro_held"].sum() == RUNS * 600
-        assert faulty.extra["gyro_held"][~_window(time, 40.0, 100.0)].sum() == 0
+        assert faulty.extra["gyro_held"][:, ~_window(time, 40.0, 100.0)].sum() == 0
 
 
 def test_gate_rejects_every_misidentified_star_and_without_it_the_filter_fails():
@@ -80,9 +80,9 @@ def test_gate_rejects_every_misidentified_star_and_without_it_the_filter_fails()
     injected = RUNS * 20  # one wrong star in each of the 20 frames of every run
     rejected = gated.extra["gate_rejected"]
     false_clean = int(clean.extra["gate_rejected"].sum())
-    assert injected <= int(rejected[window].sum()) <= injected + false_clean
+    assert injected <= int(rejected[:, window].sum()) <= injected + false_clean
     assert false_clean <= 4  # correct stars rejected over 16 × 220 frames × 5 stars
-    assert int(rejected[~window].sum()) <= false_clean
+    assert int(rejected[:, ~window].sum()) <= false_clean
     # the gate keeps the error at its fault-free level during the fault; without it the wrong vector pulls the estimate
     assert _rms(gated, window) < 1.2 * _rms(clean, window)
     assert _rms(ungated, window) > 100 * _rms(gated, window)

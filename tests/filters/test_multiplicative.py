@@ -356,7 +356,7 @@ def test_monte_carlo_next_to_the_iterated_ekf(estimate_bias):
     assert lo <= nees["mekf"] <= hi
     assert abs(rms["imekf"] / rms["iekf"] - 1) < 1e-3
     assert abs(nees["imekf"] / nees["iekf"] - 1) < 1e-2
-    assert np.isfinite(res.traces["mekf"].nis[res.star_frame]).all()
+    assert np.isfinite(res.traces["mekf"].nis[:, res.star_frame]).all()
 
 
 # --------------------------------------------------------------------------- 5. bad input
