@@ -106,6 +106,11 @@ class AttitudeInputs:
         B = gyro.shape[0]
         valid = self.gyro_valid(obs, B)
         bias = self._bias_of(truth_bias, gyro)
+        measurement = None  # built (and checked) before the hold or the bias move
+        mask = as_float64(obs["star_mask"], torch.bool)
+        if bool(mask.any()):
+            stars = {"star_body": as_float64(obs["star_body"]), "star_inertial": as_float64(obs["star_inertial"]), "star_mask": mask}
+            measurement = StarVectorMeasurement.from_observation(stars, self.sigma_s, noise_model=self.noise_model)
         u, held_var = self.hold.step(gyro, valid, dt)
         if bias is not None:
             u = u - 0.5 * (self._bias + bias)  # the gyro model's bias term over the interval
@@ -113,11 +118,6 @@ class AttitudeInputs:
         correct = None
         if bool((~valid).any()):
             correct = lambda mixture: GyroHold.inflate(mixture, held_var)  # noqa: E731
-        measurement = None
-        mask = as_float64(obs["star_mask"], torch.bool)
-        if bool(mask.any()):
-            stars = {"star_body": as_float64(obs["star_body"]), "star_inertial": as_float64(obs["star_inertial"]), "star_mask": mask}
-            measurement = StarVectorMeasurement.from_observation(stars, self.sigma_s, noise_model=self.noise_model)
         return StepInput(float(dt), u, measurement, correct, {"gyro_held": (~valid).to(torch.int64)}, context)
 
 

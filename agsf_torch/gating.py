@@ -114,7 +114,7 @@ def innovation_gate(
     S_bar = torch.where(block_valid[..., None, None], S_bar, eye)
     S_bar = 0.5 * (S_bar + S_bar.transpose(-1, -2))
     L, info = torch.linalg.cholesky_ex(S_bar)
-    need = ~covariance_form_usable(L, info, torch.ones_like(S_bar[..., 0]))
+    need = ~covariance_form_usable(L, info, torch.ones_like(S_bar[..., 0]), S_bar)
     if bool(need.any()):  # a precise sensor after a wide prior: factor S̄ from square roots instead
         L = torch.where(need[..., None, None], _block_factor(log_weights, nu, H, covs, R, G, s), L)
     z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False).squeeze(-1)

@@ -21,8 +21,9 @@ factor of ``S``.  A unit-vector measurement makes ``H P Hᵀ`` singular along ea
 star direction, so ``cond(S) ≈ λ_max(HPHᵀ)/σ²`` (≈ 4·10⁸ for σ = 10 µrad after a
 1e-3 prior, ≈ 4·10¹⁶ for σ = 1 nrad): the gain's rounding error grows like
 ``ε·cond(S)`` and beyond ``1/ε`` the factorisation fails.  Where the Cholesky
-factor of ``S`` shows ``(max Lᵢᵢ / min Lᵢᵢ)² > COVARIANCE_FORM_MAX_CONDITION`` (a
-lower bound of ``cond(S)``) or the factorisation fails, the same gain is formed
+factor of ``S`` shows ``(max ℓᵢ / min ℓᵢ)² > COVARIANCE_FORM_MAX_CONDITION``
+(``ℓᵢ = Lᵢᵢ/√Sᵢᵢ``: a lower bound of the condition of ``S`` scaled to unit diagonal;
+the limit scales with the dtype's ε) or the factorisation fails, the same gain is formed
 in information form (push-through identity), which never factors ``S``:
 
 .. math::
@@ -67,9 +68,11 @@ __all__ = [
     "moment_matched_innovation",
 ]
 
-#: Largest lower bound ``(max Lᵢᵢ / min Lᵢᵢ)²`` of ``cond(S)`` (over valid entries) at which a
-#: gain or NIS is computed with the Cholesky factor ``L`` of ``S``; above it the square-root /
-#: information form is used.  ``ε·10¹⁰ ≈ 2·10⁻⁶``: the covariance form's relative error bound.
+#: Largest lower bound ``(max ℓᵢ / min ℓᵢ)²`` of the condition of the correlation matrix
+#: ``D^{-½} S D^{-½}`` (``ℓᵢ = Lᵢᵢ/√Sᵢᵢ``, over valid entries) at which a gain or NIS is computed
+#: with the Cholesky factor ``L`` of ``S`` in float64; above it the square-root / information form
+#: is used.  ``ε·10¹⁰ ≈ 2·10⁻⁶``: the covariance form's relative error bound.  Other dtypes scale
+#: it by ``ε_float64 / ε`` (the same error bound: about 18 in float32).
 COVARIANCE_FORM_MAX_CONDITION = 1e10
 
 
@@ -139,22 +142,25 @@ def gram_factor(A: Tensor) -> Tensor:
     return (sign[..., :, None] * U).transpose(-1, -2)
 
 
-def covariance_form_usable(L: Tensor, info: Tensor, valid: Tensor) -> Tensor:
+def covariance_form_usable(L: Tensor, info: Tensor, valid: Tensor, S: Tensor) -> Tensor:
     """Whether the Cholesky factor ``L`` of ``S`` (from ``torch.linalg.cholesky_ex``) is fit for solves:
-    the factorisation succeeded and ``(max Lᵢᵢ / min Lᵢᵢ)² ≤ COVARIANCE_FORM_MAX_CONDITION`` over the
-    valid entries (masked entries have decoupled unit pivots and are left out).
+    the factorisation succeeded and ``(max ℓᵢ / min ℓᵢ)² ≤ COVARIANCE_FORM_MAX_CONDITION·ε₆₄/ε`` with
+    ``ℓᵢ = Lᵢᵢ / √Sᵢᵢ`` (the pivots of the correlation matrix ``D^{-½} S D^{-½}``, so entries in
+    different units do not count as ill-conditioning) over the valid entries (masked entries have
+    decoupled unit pivots and are left out).
 
     Args:
-        L: ``[..., d, d]``; info: ``[...]``; valid: ``[..., d]`` (bool or 0/1).
+        L: ``[..., d, d]``; info: ``[...]``; valid: ``[..., d]`` (bool or 0/1); S: ``[..., d, d]``.
 
     Returns:
         ``[...]`` bool.
     """
-    piv = L.diagonal(dim1=-2, dim2=-1)
+    piv = L.diagonal(dim1=-2, dim2=-1) / S.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(S.dtype).tiny).sqrt()
     v = valid.to(torch.bool)
     big = torch.where(v, piv, torch.zeros_like(piv)).amax(-1)
     small = torch.where(v, piv, torch.full_like(piv, math.inf)).amin(-1)
-    return (info == 0) & (big <= small * math.sqrt(COVARIANCE_FORM_MAX_CONDITION))
+    limit = COVARIANCE_FORM_MAX_CONDITION * torch.finfo(torch.float64).eps / torch.finfo(S.dtype).eps
+    return (info == 0) & (big <= small * math.sqrt(limit))
 
 
 def moment_matched_factor(log_weights: Tensor, nu: Tensor, HL: Tensor, L_R: Tensor) -> tuple[Tensor, Tensor]:
@@ -367,7 +373,7 @@ def kalman_update(
 
         S = 0.5 * (S + S.transpose(-1, -2))
         L, info = torch.linalg.cholesky_ex(S)
-        need = ~covariance_form_usable(L, info, valid)
+        need = ~covariance_form_usable(L, info, valid, S)
         robust = bool(need.any())
         if robust:  # ill-conditioned S somewhere: information form there (module docstring)
             eye_d = torch.eye(d, dtype=S.dtype, device=S.device)
@@ -414,7 +420,7 @@ def _mixture_nis(
     or, where that is unfit (:func:`covariance_form_usable`), with :func:`moment_matched_factor`."""
     nu_bar, S_bar = moment_matched_innovation(log_weights, nu, S)
     L, info = torch.linalg.cholesky_ex(S_bar)
-    need = ~covariance_form_usable(L, info, valid)
+    need = ~covariance_form_usable(L, info, valid, S_bar)
     if bool(need.any()):
         eye = torch.eye(S_bar.shape[-1], dtype=S_bar.dtype, device=S_bar.device)
         L = torch.linalg.cholesky_ex(torch.where(need[..., None, None], eye, S_bar)).L

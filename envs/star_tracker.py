@@ -158,8 +158,8 @@ class StarTrackerAttitudeEnv(gym.Env):
             seeds = self.sim.next_seeds()
         else:
             seeds = torch.tensor([int(self.np_random.integers(0, SEED_MASK + 1))], dtype=torch.int64)
+        obs, info = self.sim.reset(seeds)  # may refuse (e.g. a rate profile): the bookkeeping is set after
         self._episode_seed = seeds
-        obs, info = self.sim.reset(seeds)
         return self._np(obs), self._np(info)
 
     def step(self, action):
@@ -238,9 +238,10 @@ class StarTrackerAttitudeVectorEnv(VectorEnv):
         else:
             base = int(self.np_random.integers(0, SEED_MASK + 1))
             seeds = _seed_tensor(base, self.num_envs)
+        out = self.sim.reset(seeds)  # may refuse (e.g. a rate profile): the bookkeeping is set after
         self._seeded = True
         self._needs_reset = False
-        return self.sim.reset(seeds)
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         """Checkpointable state: the simulator's plus the episode bookkeeping."""

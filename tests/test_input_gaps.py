@@ -127,3 +127,23 @@ def test_hold_refuses_another_batch_and_bad_variances_and_states():
         with pytest.raises(ValueError, match=match):
             other.load_state_dict({**good, **change})
         assert other.last is None and other.rate_sigma == 2e-6
+
+
+def test_a_refused_star_frame_leaves_the_hold_and_bias_as_they_were():
+    """A frame with a non-unit catalogue vector is refused before the gyro hold counts the interval."""
+    from agsf_torch.attitude_inputs import AttitudeInputs
+
+    adapter = AttitudeInputs(sigma_s=1e-5, gyro_hold_sigma=1e-6, known_bias=True)
+    bias = torch.full((2, 3), 1e-6, dtype=F64)
+    adapter.start(_obs(torch.ones(2, 3, dtype=F64), torch.ones(2, dtype=torch.bool)), 0.1, bias)
+    held = torch.tensor([True, False])
+    adapter(_obs(torch.ones(2, 3, dtype=F64), held), 0.1, bias)
+    before = adapter.hold.state_dict()
+    obs = _obs(torch.ones(2, 3, dtype=F64), held)
+    obs["star_mask"][:, 0] = True
+    obs["star_body"][:, 0] = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    obs["star_inertial"][:, 0] = torch.tensor([0.0, 0.0, 2.0], dtype=F64)
+    with pytest.raises(ValueError, match="unit"):
+        adapter(obs, 0.1, 2 * bias)
+    after = adapter.hold.state_dict()
+    assert torch.equal(after["held_steps"], before["held_steps"]) and torch.equal(adapter._bias, bias)

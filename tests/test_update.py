@@ -252,3 +252,18 @@ def test_case1_runs_with_a_precise_sensor(iterations, noise_model):
         else:
             assert trace.nees[:, frames].max() < 30.7, (name, trace.nees[:, frames])
             assert err_deg.max() < 1e-6, (name, err_deg)  # < 20 nrad: σ_s-level for 5 stars in 8°
+
+
+def test_the_covariance_form_test_ignores_units_and_follows_the_dtype():
+    """Entries in different units (S = diag(2e6, 2e-6)) are not ill-conditioning; a correlation
+    condition of 1e3 is fine in float64 but beyond float32's error bound."""
+    from agsf_torch.update import covariance_form_usable
+
+    S = torch.diag(torch.tensor([2e6, 2e-6], dtype=torch.float64))
+    L, info = torch.linalg.cholesky_ex(S)
+    assert bool(covariance_form_usable(L, info, torch.ones(2), S))
+    rho = 1 - 1e-3  # correlation condition ≈ 2e3
+    C = torch.tensor([[1.0, rho], [rho, 1.0]], dtype=torch.float64)
+    for dtype, usable in ((torch.float64, True), (torch.float32, False)):
+        L, info = torch.linalg.cholesky_ex(C.to(dtype))
+        assert bool(covariance_form_usable(L, info, torch.ones(2), C.to(dtype))) is usable

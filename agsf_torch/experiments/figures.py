@@ -1,78 +1,331 @@
-"""The figures of an experiment (PNG), drawn from its ``summary.json`` alone."""
+"""The figures of an experiment (PNG), drawn from its ``summary.json`` alone.
+
+One function per figure builds a :class:`matplotlib.figure.Figure` without
+touching pyplot's global state (no backend is selected, no figure is left
+open); :func:`write_figures` saves them:
+
+* ``rms.png`` (:func:`rms_figure`): per filter, the RMS over the runs of the
+  attitude error angle (deg, log scale);
+* ``axes.png`` (:func:`axes_figure`): per filter, run 0's rotation error about
+  each body axis of the truth (arcsec) inside the ±3σ band of the filter's
+  own covariance; with bias states also the gyro-bias error (deg/h);
+* ``weights.png`` (:func:`weights_figure`): per mixture filter, run 0's
+  component weights;
+* ``fpke.png`` (:func:`fpke_figure`): the FPKE residual ``wᵀLw`` (mean over the
+  runs) with the propagated weights (before the weight update) and the adapted
+  weights (after it).
+
+Lines carry a ``gid`` naming what they plot (``"GSF/error/0"``,
+``"GSF/+3sigma/0"``, ``"AGSF/weight/2"``, …) so that tests and notebooks can
+find them.
+"""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..files import save_figure
-from ..filters.registry import FILTER_NAMES, FILTERS
 
-__all__ = ["write_figures"]
+__all__ = [
+    "ARCSEC_PER_RAD",
+    "DEG_PER_HOUR_PER_RAD_PER_S",
+    "axes_figure",
+    "fpke_figure",
+    "rms_figure",
+    "weights_figure",
+    "write_figures",
+]
+
+#: rad → arcsec.
+ARCSEC_PER_RAD = 180.0 / math.pi * 3600.0
+#: rad/s → deg/h.
+DEG_PER_HOUR_PER_RAD_PER_S = 180.0 / math.pi * 3600.0
+
+_BODY_AXES = ("x", "y", "z")
+_LINESTYLES = ("-", (0, (6, 2)), (0, (4, 1.5, 1, 1.5)), (0, (1.5, 1.5)), (0, (8, 2, 1, 2, 1, 2)))
+_MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*", "<", ">")
 
 
-def write_figures(out: Path, summary: dict[str, Any]) -> None:
-    """Write ``rms.png``, ``axes.png``, ``weights.png`` and ``fpke.png`` into ``out``."""
-    import matplotlib
+def _figure(figsize: tuple[float, float]) -> Any:
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    return Figure(figsize=figsize)
 
-    t = np.array(summary["time_s"])
+
+def _filter_colors(summary: dict[str, Any]) -> dict[str, str]:
+    """One colour per filter, the same in every figure (in the summary's order)."""
+    return {name: f"C{i % 10}" for i, name in enumerate(summary["filters"])}
+
+
+def _star_times(summary: dict[str, Any]) -> np.ndarray:
+    t = np.asarray(summary["time_s"], dtype=float)
+    frames = np.asarray(summary.get("star_frame", np.zeros(len(t), bool)), dtype=bool)
+    return t[frames] if frames.shape == t.shape else np.zeros(0)
+
+
+def _mark_star_frames(ax: Any, times: np.ndarray) -> Any:
+    """Faint vertical lines at the star frames; returns one of them (for a legend) or ``None``."""
+    first = None
+    for k, s in enumerate(times):
+        line = ax.axvline(s, color="0.55", lw=0.6, alpha=0.45, zorder=0, gid="star_frame")
+        if k == 0:
+            first = line
+    return first
+
+
+def _runs(summary: dict[str, Any]) -> int:
+    return int(summary["config"]["runs"])
+
+
+def rms_figure(summary: dict[str, Any]) -> Any:
+    """``rms.png``: the RMS over the runs of the attitude error angle (deg) of every filter, log scale."""
+    t = np.asarray(summary["time_s"], dtype=float)
+    colors = _filter_colors(summary)
+    fig = _figure((7.5, 4.4))
+    ax = fig.add_subplot()
+    star = _mark_star_frames(ax, _star_times(summary))
+    for name, f in summary["filters"].items():
+        ax.plot(t, f["rms_deg"], color=colors[name], lw=1.4, label=name, gid=f"{name}/rms")
+    ax.set_yscale("log")
+    ax.set(
+        xlabel="time (s)",
+        ylabel="RMS attitude error angle (deg)",
+        title=f"{summary['config']['name']}: RMS over {_runs(summary)} runs of the attitude error angle",
+    )
+    ax.grid(True, which="both", alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    if star is not None:
+        handles.append(star)
+        labels.append("star frame")
+    ax.legend(handles, labels, fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def _fmt_tick(v: float, _pos: Any = None) -> str:
+    if v == 0:
+        return "0"
+    if abs(v) >= 1:
+        return f"{v:,.0f}".replace("-", "−")
+    return f"{v:.3g}".replace("-", "−")
+
+
+def _set_range(axs: list[Any], values: np.ndarray, spread: np.ndarray) -> str:
+    """One y range for ``axs`` that shows every value: linear when the band spans
+    less than 1.5 decades, else symlog, linear within ±(the band's low end rounded
+    to a power of 10) and labelled at whole decades.  Returns a note for the axis
+    label (``""`` or ``"linear within ±1"``)."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter
+
+    finite = np.abs(values[np.isfinite(values)])
+    top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+    positive = spread[np.isfinite(spread) & (spread > 0)]
+    low = float(np.percentile(positive, 5)) if positive.size else top
+    if top / low < 30:
+        for ax in axs:
+            ax.set_ylim(-1.1 * top, 1.1 * top)
+            ax.yaxis.set_major_formatter(FuncFormatter(_fmt_tick))
+        return ""
+    e0 = round(math.log10(low))
+    linthresh = 10.0**e0
+    lim = top * 10**0.15
+    e1 = math.floor(math.log10(lim))  # the highest decade inside the range
+    step = 1 if e1 - e0 <= 3 else 2  # at most ~4 labelled decades per sign
+    major = [10.0**e for e in range(e0, e1 + 1, step)]
+    minor = [10.0**e for e in range(e0, e1 + 1) if 10.0**e not in major]
+    for ax in axs:
+        ax.set_yscale("symlog", linthresh=linthresh, linscale=1.0)
+        ax.set_ylim(-lim, lim)
+        ax.yaxis.set_major_locator(FixedLocator([-v for v in reversed(major)] + [0.0] + major))
+        ax.yaxis.set_minor_locator(FixedLocator([-v for v in reversed(minor)] + minor))
+        ax.yaxis.set_major_formatter(FuncFormatter(_fmt_tick))
+        ax.grid(True, which="minor", alpha=0.15)
+    return f"linear within ±{_fmt_tick(linthresh)}"
+
+
+def axes_figure(summary: dict[str, Any]) -> Any:
+    """``axes.png``: run 0's error of every filter about each body axis of the truth, with ±3σ.
+
+    Rows are filters; the first three columns the rotation error (``error_run0_rad``
+    → arcsec) about body x, y, z with the band ``±3·sigma_run0_rad``; with bias
+    states (``n = 6``) three more columns the gyro-bias error (rad/s → deg/h).
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    t = np.asarray(summary["time_s"], dtype=float)
     filters = summary["filters"]
-    title = summary["config"]["name"]
+    colors = _filter_colors(summary)
+    names = list(filters)
+    n = np.asarray(filters[names[0]]["error_run0_rad"]).shape[-1]
+    bias = n >= 6
+    ncol = 6 if bias else 3
+    fig = _figure((3.5 * ncol, 2.5 * len(names) + 1.3))
+    grid = fig.subplots(len(names), ncol, squeeze=False, sharex=True)
+    groups: dict[str, tuple[list[Any], list[np.ndarray], list[np.ndarray]]] = {
+        "attitude": ([], [], []), "bias": ([], [], [])
+    }
+    for row, name in enumerate(names):
+        err_rad = np.asarray(filters[name]["error_run0_rad"], dtype=float)
+        sig_rad = np.asarray(filters[name]["sigma_run0_rad"], dtype=float)
+        for col in range(ncol):
+            ax, k = grid[row, col], col
+            if col < 3:
+                scale, group = ARCSEC_PER_RAD, "attitude"
+                title = f"{name}: rotation error about body {_BODY_AXES[col]}"
+                ylabel = "rotation error (arcsec)"
+            else:
+                scale, group = DEG_PER_HOUR_PER_RAD_PER_S, "bias"
+                title = f"{name}: gyro bias error, body {_BODY_AXES[col - 3]}"
+                ylabel = "bias error (deg/h)"
+            err = err_rad[:, k] * scale
+            band = 3.0 * sig_rad[:, k] * scale
+            ax.fill_between(t, -band, band, color="0.6", alpha=0.3, lw=0, zorder=1)
+            ax.plot(t, band, color="0.35", ls="--", lw=0.8, zorder=2, gid=f"{name}/+3sigma/{k}")
+            ax.plot(t, -band, color="0.35", ls="--", lw=0.8, zorder=2, gid=f"{name}/-3sigma/{k}")
+            ax.plot(t, err, color=colors[name], lw=1.1, zorder=3, gid=f"{name}/error/{k}")
+            ax.axhline(0.0, color="k", lw=0.5, zorder=1.5)
+            ax.set_title(title, fontsize=9)
+            if col in (0, 3):
+                ax.set_ylabel(ylabel)
+            if row == len(names) - 1:
+                ax.set_xlabel("time (s)")
+            ax.grid(True, alpha=0.3)
+            axs, vals, spreads = groups[group]
+            axs.append(ax)
+            vals.extend([err, band])
+            spreads.append(band)
+    for axs, vals, spreads in groups.values():
+        if axs:
+            note = _set_range(axs, np.concatenate(vals), np.concatenate(spreads))
+            for ax in axs:
+                if ax.get_ylabel() and note:
+                    ax.set_ylabel(f"{ax.get_ylabel()}\n{note}", fontsize=9)
+    handles = [Line2D([], [], color=colors[name], lw=1.5) for name in names]
+    labels = [f"{name}: error (run 0)" for name in names]
+    handles.append((Patch(facecolor="0.6", alpha=0.3), Line2D([], [], color="0.35", ls="--", lw=0.8)))
+    labels.append("±3σ of the filter's covariance")
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=9, frameon=False)
+    what = "rotation error about the true body axes (arcsec)"
+    what += " and gyro bias error (deg/h)" if bias else ""
+    state = "" if bias else "; attitude-only state (no bias states)"
+    fig.suptitle(
+        f"{summary['config']['name']}, run 0: {what} with ±3σ of each filter's covariance{state}", fontsize=11
+    )
+    fig.tight_layout(rect=(0, 0.45 / fig.get_figheight(), 1, 1))
+    return fig
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, f in filters.items():
-        ax.semilogy(t, f["rms_deg"], label=name)
-    ax.set(xlabel="time (s)", ylabel="RMS attitude error (deg)", title=f"{title}: RMS over {summary['config']['runs']} runs")
+
+def weights_figure(summary: dict[str, Any]) -> Any:
+    """``weights.png``: run 0's component weights of every mixture filter, one panel each.
+
+    Each component has its own colour, line style, width and marker phase (the
+    widest drawn first), so that components with equal weights stay visible.
+    """
+    t = np.asarray(summary["time_s"], dtype=float)
+    shown = {
+        name: np.asarray(f["weights_run0"], dtype=float)
+        for name, f in summary["filters"].items()
+        if np.asarray(f["weights_run0"]).ndim == 2 and np.asarray(f["weights_run0"]).shape[1] > 1
+    }
+    stars = _star_times(summary)
+    if not shown:
+        fig = _figure((6.0, 2.5))
+        ax = fig.add_subplot()
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no mixture filter in this experiment:\nno component weights to show",
+                ha="center", va="center", transform=ax.transAxes)
+        return fig
+    ncomp = max(w.shape[1] for w in shown.values())
+    fig = _figure((12.0, 2.9 * len(shown) + 1.0))
+    grid = fig.subplots(len(shown), 1, squeeze=False, sharex=True)
+    every = max(len(t) // 12, 1)
+    handles: list[Any] = []
+    star = None
+    for row, (name, w) in enumerate(shown.items()):
+        ax = grid[row, 0]
+        star = _mark_star_frames(ax, stars)
+        N = w.shape[1]
+        for i in range(N):
+            frac = (N - 1 - i) / max(N - 1, 1)
+            (line,) = ax.plot(
+                t, w[:, i], color=f"C{i % 10}", ls=_LINESTYLES[i % len(_LINESTYLES)], lw=1.0 + 2.2 * frac,
+                alpha=0.85, marker=_MARKERS[i % len(_MARKERS)], markersize=5, markevery=(i * every // N, every),
+                zorder=2 + i, label=f"component {i + 1}", gid=f"{name}/weight/{i}",
+            )
+            if len(handles) <= i:  # the first panel with this many components names them
+                handles.append(line)
+        ax.set(title=name, ylabel="weight (sum 1)", ylim=(-0.03, 1.03))
+        if row == len(shown) - 1:
+            ax.set_xlabel("time (s)")
+        ax.grid(True, alpha=0.3)
+    labels = [f"component {i + 1}" for i in range(len(handles))]
+    if star is not None:
+        handles.append(star)
+        labels.append("star frame")
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=9, frameon=False)
+    fig.suptitle(f"{summary['config']['name']}: component weights of each mixture filter, run 0", fontsize=11)
+    fig.tight_layout(rect=(0, (0.4 if ncomp <= 7 else 0.7) / fig.get_figheight(), 1, 1))
+    return fig
+
+
+def fpke_figure(summary: dict[str, Any]) -> Any:
+    """``fpke.png``: the FPKE residual ``wᵀLw = ∫e² dx`` (mean over the runs), before and after
+    the weight update."""
+    t = np.asarray(summary["time_s"], dtype=float)
+    colors = _filter_colors(summary)
+    fig = _figure((7.8, 4.6))
+    ax = fig.add_subplot()
+    star = _mark_star_frames(ax, _star_times(summary))
+    recorded = [n for n, f in summary["filters"].items() if "fpke_error_before_mean" in f]
+    others = [n for n, f in summary["filters"].items() if "fpke_error_before_mean" not in f]
+    for name in recorded:
+        f = summary["filters"][name]
+        ax.plot(t, f["fpke_error_before_mean"], color=colors[name], lw=2.6, alpha=0.45,
+                label=f"{name}: before the weight update (propagated weights)", gid=f"{name}/fpke_before")
+        if "fpke_error_after_mean" in f:
+            ax.plot(t, f["fpke_error_after_mean"], color=colors[name], ls="--", lw=1.0,
+                    label=f"{name}: after the weight update (adapted weights)", gid=f"{name}/fpke_after")
+    first = next(iter(summary["filters"].values()))
+    n = np.asarray(first["error_run0_rad"]).shape[-1]
+    chart = "MRP, bias in rad/s" if n >= 6 else "MRP"
+    ax.set(xlabel="time (s)", ylabel=f"FPKE residual wᵀLw = ∫e² dx\n(state chart: {chart})")
+    ax.set_title(
+        f"{summary['config']['name']}: FPKE residual before and after the weight update, "
+        f"mean over {_runs(summary)} runs",
+        fontsize=10,
+    )
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    if recorded:
+        ax.set_yscale("log")
+        handles, labels = ax.get_legend_handles_labels()
+        if star is not None:
+            handles.append(star)
+            labels.append("star frame")
+        ax.legend(handles, labels, fontsize=8)
+        if others:
+            ax.text(0.99, 0.01, "no FPKE residual recorded by: " + ", ".join(others), transform=ax.transAxes,
+                    fontsize=8, ha="right", va="bottom", color="0.3")
+    else:
+        ax.text(0.5, 0.5, "no filter in this experiment records the FPKE residual", ha="center", va="center",
+                transform=ax.transAxes)
     fig.tight_layout()
-    save_figure(fig, out / "rms.png", dpi=110)
-    plt.close(fig)
-
-    shown = [n for n in FILTER_NAMES if n in filters and FILTERS[n].mixture] or list(filters)
-    fig, axes = plt.subplots(len(shown), 3, figsize=(11, 3 * len(shown)), squeeze=False)
-    for row, name in enumerate(shown):
-        err = np.degrees(np.array(filters[name]["error_run0_rad"]))[:, :3] * 3600
-        sig = np.degrees(np.array(filters[name]["sigma_run0_rad"]))[:, :3] * 3600
-        for k in range(3):
-            a = axes[row, k]
-            a.plot(t, err[:, k], lw=1, label="error")
-            a.plot(t, 3 * sig[:, k], "r--", lw=0.8, label="±3σ")
-            a.plot(t, -3 * sig[:, k], "r--", lw=0.8)
-            a.set_yscale("symlog", linthresh=1.0)
-            a.set(title=f"{name} axis {k + 1} (run 0)", xlabel="time (s)", ylabel="arcsec")
-            a.grid(True, alpha=0.3)
-    axes[0, 0].legend()
-    fig.tight_layout()
-    save_figure(fig, out / "axes.png", dpi=100)
-    plt.close(fig)
-
-    fig, axes = plt.subplots(1, len(shown), figsize=(5.5 * len(shown), 3.5), squeeze=False)
-    for col, name in enumerate(shown):
-        w = np.array(filters[name]["weights_run0"])
-        axes[0, col].plot(t, w, lw=1)
-        axes[0, col].set(title=f"{name} weights (run 0)", xlabel="time (s)", ylabel="weight", ylim=(-0.02, 1.02))
-        axes[0, col].grid(True, alpha=0.3)
-    fig.tight_layout()
-    save_figure(fig, out / "weights.png", dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, f in filters.items():
-        if "fpke_error_before_mean" in f:
-            ax.semilogy(t, f["fpke_error_before_mean"], label=f"{name}: before weight update")
-            ax.semilogy(t, f["fpke_error_after_mean"], "--", label=f"{name}: after weight update")
-    ax.set(xlabel="time (s)", ylabel="FPKE error wᵀLw (mean over runs)", title=f"{title}: FPKE error")
-    ax.grid(True, which="both", alpha=0.3)
-    if ax.lines:
-        ax.legend()
-    fig.tight_layout()
-    save_figure(fig, out / "fpke.png", dpi=110)
-    plt.close(fig)
+    return fig
 
 
+#: file name → the function that builds it.
+FIGURES = {"rms.png": rms_figure, "axes.png": axes_figure, "weights.png": weights_figure, "fpke.png": fpke_figure}
+_DPI = {"rms.png": 110, "axes.png": 100, "weights.png": 100, "fpke.png": 110}
+
+
+def write_figures(out: Path, summary: dict[str, Any]) -> list[Path]:
+    """Write ``rms.png``, ``axes.png``, ``weights.png`` and ``fpke.png`` into ``out``; returns their paths."""
+    out = Path(out)
+    paths = []
+    for fname, build in FIGURES.items():
+        paths.append(save_figure(build(summary), out / fname, dpi=_DPI[fname]))
+    return paths

@@ -162,6 +162,17 @@ def test_a_rate_profile_turning_half_a_turn_per_step_is_refused_before_the_state
         venv.reset(seed=7)
     after = venv.sim.state_dict()
     assert after["step_index"] == 1 and all(torch.equal(after[k], before[k]) for k in ("q", "seeds", "rate", "bias"))
+    # a finished episode stays finished: the episode bookkeeping moves only after a successful reset
+    speed[0] = 0.01
+    venv = StarTrackerAttitudeVectorEnv(2, max_steps=2, rate=lambda t: torch.full((*t.shape, 3), speed[0], dtype=t.dtype))
+    venv.reset(seed=0)
+    for _ in range(2):
+        venv.step(torch.zeros(2, 3))
+    flags = {k: v for k, v in venv.state_dict().items() if k != "sim"}
+    speed[0] = 50.0
+    with pytest.raises(ValueError, match=r"rate\(t\) returned"):
+        venv.reset(seed=7)
+    assert {k: v for k, v in venv.state_dict().items() if k != "sim"} == flags and flags["needs_reset"]
 
 
 # ------------------------------------------------------------------ actions

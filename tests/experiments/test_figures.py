@@ -1,0 +1,207 @@
+"""The experiment figures state what they plot: units on the axes, every filter and
+component in a legend, and the data of ``summary.json`` converted to the stated units."""
+
+from __future__ import annotations
+
+import math
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import numpy as np
+import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+from agsf_torch.experiments.config import load_config
+from agsf_torch.experiments.figures import axes_figure, fpke_figure, rms_figure, weights_figure, write_figures
+from agsf_torch.experiments.statistics import summarize
+
+ARCSEC = 180.0 / math.pi * 3600.0  # rad → arcsec, written out independently of the module
+DEG_PER_HOUR = 180.0 / math.pi * 3600.0  # rad/s → deg/h
+FILTERS = ["EKF", "GSF", "AGSF"]
+
+
+def _summary(n: int = 3, components: int = 3, runs: int = 4, steps: int = 40, filters=FILTERS) -> dict:
+    """A summary from ``summarize`` of synthetic per-run data (the keys ``runs.npz`` holds)."""
+    cfg = load_config("case1", [f"runs={runs}", "duration=4.0", f"filters={filters!r}".replace("'", '"'),
+                                f"components={components}", f"estimate_bias={'true' if n == 6 else 'false'}"])
+    rng = np.random.default_rng(3)
+    dt = 0.1
+    time = dt * np.arange(1, steps + 1)
+    frames = np.zeros(steps, bool)
+    frames[9::10] = True
+    decay = np.exp(-time / 0.8)[None, :, None]
+    data = {"time": time, "star_frame": frames}
+    for name in filters:
+        N = 1 if name == "EKF" else components
+        sigma = (2e-6 + 0.05 * decay) * np.ones((runs, steps, n))
+        if n == 6:
+            sigma[..., 3:] = 1e-7 * (1 + decay[..., :3] * np.ones((runs, steps, 3)))
+        error = sigma * rng.normal(size=(runs, steps, n)) * 2.0
+        weights = np.full((runs, steps, N), 1.0 / N)  # equal (overlapping) weights
+        if N > 1:
+            weights[:, frames, 0] = 1.0
+            weights[:, frames, 1:] = 0.0
+        data |= {
+            f"{name}/error_angle": np.linalg.norm(error[..., :3], axis=-1),
+            f"{name}/error": error,
+            f"{name}/sigma": sigma,
+            f"{name}/nees": rng.chisquare(n, size=(runs, steps)),
+            f"{name}/weights": weights,
+            f"{name}/weight_entropy": np.zeros((runs, steps)),
+        }
+        if name == "AGSF":
+            data[f"{name}/fpke_error_before"] = rng.uniform(1.0, 10.0, size=(runs, steps))
+            data[f"{name}/fpke_error_after"] = data[f"{name}/fpke_error_before"] / 2
+    return summarize(data, cfg)
+
+
+def _lines(fig) -> dict:
+    return {line.get_gid(): line for ax in fig.axes for line in ax.get_lines() if line.get_gid()}
+
+
+def _legend_texts(fig) -> list[str]:
+    legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+    return [t.get_text() for leg in legends for t in leg.get_texts()]
+
+
+@pytest.fixture(scope="module")
+def summary3():
+    return _summary()
+
+
+@pytest.fixture(scope="module")
+def summary6():
+    return _summary(n=6)
+
+
+def test_axes_figure_plots_the_rotation_error_of_each_filter_in_arcsec_with_its_3_sigma_band(summary3):
+    fig = axes_figure(summary3)
+    lines = _lines(fig)
+    t = np.array(summary3["time_s"])
+    for name in FILTERS:
+        err = np.array(summary3["filters"][name]["error_run0_rad"])
+        sig = np.array(summary3["filters"][name]["sigma_run0_rad"])
+        for k in range(3):
+            np.testing.assert_allclose(lines[f"{name}/error/{k}"].get_xdata(), t)
+            np.testing.assert_allclose(lines[f"{name}/error/{k}"].get_ydata(), err[:, k] * ARCSEC, rtol=1e-12)
+            np.testing.assert_allclose(lines[f"{name}/+3sigma/{k}"].get_ydata(), 3 * sig[:, k] * ARCSEC, rtol=1e-12)
+            np.testing.assert_allclose(lines[f"{name}/-3sigma/{k}"].get_ydata(), -3 * sig[:, k] * ARCSEC, rtol=1e-12)
+    grid = np.array(fig.axes).reshape(len(FILTERS), 3)
+    for row, name in enumerate(FILTERS):
+        for k, axis in enumerate("xyz"):
+            ax = grid[row, k]
+            assert name in ax.get_title() and f"about body {axis}" in ax.get_title()
+            assert len(ax.collections) == 1  # the shaded ±3σ band
+            ys = ax.collections[0].get_paths()[0].vertices[:, 1]
+            band = 3 * np.array(summary3["filters"][name]["sigma_run0_rad"])[:, k] * ARCSEC
+            assert ys.max() == pytest.approx(band.max()) and ys.min() == pytest.approx(-band.max())
+            assert ax.get_legend() is None  # one legend for the figure
+        assert "arcsec" in grid[row, 0].get_ylabel()
+    assert all(ax.get_xlabel() == "time (s)" for ax in grid[-1])
+    texts = _legend_texts(fig)
+    assert len(fig.legends) == 1
+    assert all(any(name in s for s in texts) for name in FILTERS)
+    assert any("3σ" in s for s in texts)
+    assert "attitude-only" in fig._suptitle.get_text()
+
+
+def test_axes_figure_range_shows_every_value_with_readable_tick_labels(summary3):
+    fig = axes_figure(summary3)
+    FigureCanvasAgg(fig).draw()
+    values = np.concatenate([np.abs(line.get_ydata()) for line in fig.axes[0].get_lines() if line.get_gid()])
+    for ax in fig.axes:
+        lo, hi = ax.get_ylim()
+        assert lo < -values.max() and hi > values.max()
+        labels = [t.get_text() for t in ax.get_yticklabels() if lo <= t.get_position()[1] <= hi]
+        assert "0" in labels and len(labels) <= 11
+        assert not any("$" in s or "^" in s for s in labels), labels  # no mathtext powers like 10^0
+    if fig.axes[0].get_yscale() == "symlog":
+        assert "linear within" in fig.axes[0].get_ylabel()
+
+
+def test_axes_figure_shows_the_bias_error_in_deg_per_hour_for_six_states(summary6):
+    fig = axes_figure(summary6)
+    lines = _lines(fig)
+    grid = np.array(fig.axes).reshape(len(FILTERS), 6)
+    for row, name in enumerate(FILTERS):
+        err = np.array(summary6["filters"][name]["error_run0_rad"])
+        sig = np.array(summary6["filters"][name]["sigma_run0_rad"])
+        for k in range(3, 6):
+            np.testing.assert_allclose(lines[f"{name}/error/{k}"].get_ydata(), err[:, k] * DEG_PER_HOUR, rtol=1e-12)
+            np.testing.assert_allclose(lines[f"{name}/+3sigma/{k}"].get_ydata(), 3 * sig[:, k] * DEG_PER_HOUR,
+                                       rtol=1e-12)
+            assert "bias" in grid[row, k].get_title() and f"body {'xyz'[k - 3]}" in grid[row, k].get_title()
+        assert "deg/h" in grid[row, 3].get_ylabel()
+        assert "arcsec" in grid[row, 0].get_ylabel()
+    assert "bias" in fig._suptitle.get_text()
+
+
+def test_weights_figure_names_every_component_and_keeps_equal_weights_visible(summary3):
+    fig = weights_figure(summary3)
+    lines = _lines(fig)
+    texts = _legend_texts(fig)
+    for i in range(3):
+        assert f"component {i + 1}" in texts
+    assert "star frame" in texts
+    assert not any(line.get_gid().startswith("EKF/") for line in lines.values())  # one component: no panel
+    for name in ("GSF", "AGSF"):
+        w = np.array(summary3["filters"][name]["weights_run0"])
+        comps = [lines[f"{name}/weight/{i}"] for i in range(3)]
+        for i, line in enumerate(comps):
+            np.testing.assert_allclose(line.get_ydata(), w[:, i])
+        styles = {(str(c.get_linestyle()), c.get_marker()) for c in comps}
+        assert len(styles) == 3  # equal weights stay distinguishable
+        widths = [c.get_linewidth() for c in comps]
+        zorders = [c.get_zorder() for c in comps]
+        assert widths == sorted(widths, reverse=True) and zorders == sorted(zorders)  # wider lines underneath
+    frames = np.array(summary3["time_s"])[np.array(summary3["star_frame"])]
+    ax = fig.axes[0]
+    marked = sorted(line.get_xdata()[0] for line in ax.get_lines() if line.get_gid() == "star_frame")
+    np.testing.assert_allclose(marked, frames)
+    assert fig.axes[-1].get_xlabel() == "time (s)"
+    assert all("weight" in ax.get_ylabel() for ax in fig.axes)
+
+
+def test_weights_figure_without_mixture_filters_says_so():
+    fig = weights_figure(_summary(filters=["EKF"]))
+    assert any("no mixture filter" in t.get_text() for ax in fig.axes for t in ax.texts)
+
+
+def test_rms_figure_states_what_it_plots(summary3):
+    fig = rms_figure(summary3)
+    (ax,) = fig.axes
+    assert ax.get_yscale() == "log"
+    assert "deg" in ax.get_ylabel() and ax.get_xlabel() == "time (s)"
+    assert "RMS over 4 runs" in ax.get_title() and "attitude error angle" in ax.get_title()
+    lines = _lines(fig)
+    for name in FILTERS:
+        np.testing.assert_allclose(lines[f"{name}/rms"].get_ydata(), summary3["filters"][name]["rms_deg"])
+        assert name in _legend_texts(fig)
+
+
+def test_fpke_figure_shows_the_residual_before_and_after_the_weight_update(summary3):
+    fig = fpke_figure(summary3)
+    (ax,) = fig.axes
+    lines = _lines(fig)
+    f = summary3["filters"]["AGSF"]
+    np.testing.assert_allclose(lines["AGSF/fpke_before"].get_ydata(), f["fpke_error_before_mean"])
+    np.testing.assert_allclose(lines["AGSF/fpke_after"].get_ydata(), f["fpke_error_after_mean"])
+    texts = _legend_texts(fig)
+    assert any("AGSF" in s and "before the weight update" in s for s in texts)
+    assert any("AGSF" in s and "after the weight update" in s for s in texts)
+    assert "before and after the weight update" in ax.get_title() and "4 runs" in ax.get_title()
+    assert ax.get_yscale() == "log" and ax.get_xlabel() == "time (s)" and "wᵀLw" in ax.get_ylabel()
+    assert any("EKF" in t.get_text() and "GSF" in t.get_text() for t in ax.texts)  # who does not record it
+
+
+def test_write_figures_writes_the_four_pngs_and_leaves_no_pyplot_figure_open(summary6, tmp_path):
+    import matplotlib.pyplot as plt
+
+    before = plt.get_fignums()
+    paths = write_figures(tmp_path, summary6)
+    assert sorted(p.name for p in paths) == ["axes.png", "fpke.png", "rms.png", "weights.png"]
+    for p in paths:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert plt.get_fignums() == before
