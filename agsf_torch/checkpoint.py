@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from .files import atomic_open
 from .filters.gaussian_sum import GaussianSumFilter
 from .mixture import GaussianMixture
 
@@ -36,7 +37,8 @@ def save_checkpoint(
     filters: Mapping[str, GaussianSumFilter],
     extra: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Write a checkpoint atomically (a temporary file renamed into place).
+    """Write a checkpoint atomically (:func:`agsf_torch.files.atomic_open`: a temporary file, flushed
+    to disk and renamed into place).
 
     Args:
         mixtures / filters: name → the current belief / the filter that owns it.
@@ -53,9 +55,8 @@ def save_checkpoint(
         "extra": dict(extra or {}),
     }
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
+    with atomic_open(path) as fh:
+        torch.save(state, fh)
     return path
 
 

@@ -56,8 +56,9 @@ __all__ = [
 MAX_COMPONENTS = 64
 #: Largest problem size settled by support enumeration (``2^N − 1`` supports); above it, an interior-point method.
 MAX_ENUMERATION = 12
-#: Convexity tolerance: ``H`` is accepted as positive semidefinite when ``H + PSD_TOLERANCE·max|Hᵢⱼ|·I``
-#: is positive definite, i.e. its smallest eigenvalue is ≥ about ``−PSD_TOLERANCE·max|Hᵢⱼ|``.
+#: Convexity tolerance (float64): ``H`` is accepted as positive semidefinite when ``H + τ·max|Hᵢⱼ|·I``
+#: is positive definite, i.e. its smallest eigenvalue is ≥ about ``−τ·max|Hᵢⱼ|``, with
+#: ``τ = max(PSD_TOLERANCE, 100 ε)`` for the dtype's ε (1.2e-5 in float32).
 PSD_TOLERANCE = 1e-10
 
 
@@ -107,7 +108,7 @@ def _check_convex(H: Tensor, batch: tuple[int, ...]) -> None:
     """
     Hd = H.detach()
     scale = Hd.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
-    shift = PSD_TOLERANCE * scale + torch.finfo(Hd.dtype).tiny
+    shift = max(PSD_TOLERANCE, 100.0 * torch.finfo(Hd.dtype).eps) * scale + torch.finfo(Hd.dtype).tiny
     eye = torch.eye(Hd.shape[-1], dtype=Hd.dtype, device=Hd.device)
     bad = torch.linalg.cholesky_ex(Hd + shift[:, None, None] * eye).info != 0
     if bool(bad.any()):

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from .files import atomic_open
-from .models.star_vectors import UNIT_TOLERANCE  # the filters' rule for star unit vectors
+from .models.star_vectors import UNIT_ROUNDING, UNIT_TOLERANCE  # the filters' rule for star unit vectors
 
 __all__ = ["Recording", "FORMAT", "UNIT_TOLERANCE"]
 
@@ -286,8 +286,8 @@ def _validate(a: dict[str, np.ndarray | None]) -> None:
             raise ValueError(
                 f"recording: column '{key}' star {m} at trajectory {b}, row {t} is not a unit vector (norm {norm[b, t, m]:.6g})"
             )
-        if (off > 1e-12).any():
-            b, t, m = np.argwhere(off > 1e-12)[0]
+        if (off > UNIT_ROUNDING).any():
+            b, t, m = np.argwhere(off > UNIT_ROUNDING)[0]
             warnings.warn(
                 f"recording: column '{key}' has star vectors off unit norm by up to {off.max():.2e} "
                 f"(first at trajectory {b}, row {t}, star {m}); normalised",

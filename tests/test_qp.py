@@ -196,3 +196,13 @@ def test_bad_chunk_size_is_refused(gen, bad):
     H, c = _random_problems(gen, 3, 3)
     with pytest.raises(ValueError, match="chunk_size must be a positive integer"):
         solve_simplex_qp(H, c, chunk_size=bad)
+
+
+def test_singular_gram_matrices_in_float32_are_convex_to_float32_rounding():
+    """Rank-deficient Gram matrices rounded to float32 have eigenvalues down to about −ε·max Hᵢᵢ: accepted."""
+    gen = torch.Generator().manual_seed(11)
+    G = torch.randn(200, 5, 3, generator=gen, dtype=torch.float64)
+    H = (G @ G.transpose(-1, -2)).to(torch.float32)
+    assert float(torch.linalg.eigvalsh(H.double()).min()) < 0  # the rounding made some indefinite
+    res = solve_simplex_qp(H)
+    assert torch.isfinite(res.w).all() and torch.allclose(res.w.sum(-1), torch.ones(200), atol=1e-5)

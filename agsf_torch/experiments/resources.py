@@ -10,7 +10,7 @@ copies written to ``runs.npz`` coexisting at the end of a run) was measured on t
 code base: the peak resident memory of ``agsf run case1`` grew by 2.2 (512 runs × 600
 steps) and 2.4 (2048 runs × 300 steps) times the kept bytes over a 0.53 GB process;
 the constant 3 keeps a margin, and a slow test
-(``tests/experiments/test_resources.py``) checks the estimate against a measured peak.  :func:`check_memory` refuses a configuration whose estimate exceeds
+(``tests/experiments/test_outputs.py``) checks the estimate against a measured peak.  :func:`check_memory` refuses a configuration whose estimate exceeds
 the memory this machine has available, naming the estimate, the budget and the keys
 that drive it; ``force=True`` (``--force`` on the command line) runs it anyway.
 """
@@ -96,17 +96,35 @@ def simulation_memory(runs: int, steps: int, max_stars: int) -> MemoryEstimate:
     return MemoryEstimate(retained, working, BASE_PROCESS)
 
 
-def available_memory() -> int:
-    """Memory available to a new allocation (bytes): ``MemAvailable`` of ``/proc/meminfo``
-    where there is one (Linux), else the physical memory."""
+def _read_int(path: str, prefix: str = "", scale: int = 1) -> int | None:
+    """The integer after ``prefix`` on the first matching line of ``path`` (× ``scale``), or None."""
     try:
-        with open("/proc/meminfo", encoding="ascii") as fh:
+        with open(path, encoding="ascii") as fh:
             for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
+                if line.startswith(prefix):
+                    word = line[len(prefix):].split()[0]
+                    return int(word) * scale if word.isdigit() else None
+    except (OSError, IndexError):
         pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return None
+
+
+def available_memory() -> int:
+    """Memory this process may grow to (bytes), comparable with :attr:`MemoryEstimate.total`:
+    what the machine has available (``MemAvailable`` of ``/proc/meminfo``, else the physical
+    memory) plus what this process already holds (its resident set, which the estimate counts in
+    ``base``), capped by a cgroup v2 memory limit (``memory.max`` − ``memory.current``) if there is one."""
+    page = os.sysconf("SC_PAGE_SIZE")
+    free = _read_int("/proc/meminfo", "MemAvailable:", 1024) or page * os.sysconf("SC_PHYS_PAGES")
+    limit, used = _read_int("/sys/fs/cgroup/memory.max"), _read_int("/sys/fs/cgroup/memory.current")
+    if limit is not None and used is not None:
+        free = min(free, max(limit - used, 0))
+    try:
+        with open("/proc/self/statm", encoding="ascii") as fh:
+            rss = int(fh.read().split()[1]) * page  # resident pages
+    except (OSError, IndexError, ValueError):
+        rss = 0
+    return free + rss
 
 
 def _gb(b: int) -> str:

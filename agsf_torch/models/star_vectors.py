@@ -24,12 +24,12 @@ from torch import Tensor
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_to_dcm
 from .base import MeasurementModel, check_finite, check_nonnegative
 
-__all__ = ["StarVectorMeasurement", "UNIT_TOLERANCE", "unit_vectors"]
+__all__ = ["StarVectorMeasurement", "UNIT_TOLERANCE", "UNIT_ROUNDING", "unit_vectors"]
 
 #: Largest |‖v‖ − 1| of a valid star vector that is normalised (with a warning) instead of refused.
 UNIT_TOLERANCE = 1e-3
 #: Below this |‖v‖ − 1| a vector is taken as it is (the rounding of a float64 normalisation).
-_ROUNDING_TOLERANCE = 1e-12
+UNIT_ROUNDING = 1e-12
 
 
 #: A measured vector's radial noise beyond this many σ is taken for a malformed vector.
@@ -58,12 +58,12 @@ def unit_vectors(name: str, v: Tensor, mask: Tensor | None = None) -> Tensor:
     """``v [..., M, 3]`` with the valid rows (``mask [..., M]``, broadcasting; ``None``: all) checked
     to be unit vectors.
 
-    ``|‖v‖ − 1| ≤ 1e-12``: kept bit for bit; ``≤ UNIT_TOLERANCE``: normalised (``v/‖v‖``)
+    ``|‖v‖ − 1| ≤ max(UNIT_ROUNDING, 100 ε)``: kept bit for bit; ``≤ UNIT_TOLERANCE``: normalised (``v/‖v‖``)
     with a warning; beyond (zero vectors included): ``ValueError`` naming ``name``, the star,
     its batch index and its norm.  Masked-out rows are returned unchanged.
     """
     norm, off = _off_unit(name, v, mask, UNIT_TOLERANCE)
-    fix = off > _ROUNDING_TOLERANCE
+    fix = off > max(UNIT_ROUNDING, 100.0 * torch.finfo(v.dtype).eps)  # rounding of the dtype
     if not bool(fix.any()):
         return v
     warnings.warn(
