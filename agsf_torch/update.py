@@ -88,7 +88,8 @@ class ComponentUpdate:
         innovation: ``ν = ỹ − h(μ)`` ``[..., N, d]`` (zero at masked entries).
         innovation_cov: ``S`` ``[..., N, d, d]``.
         nis_mixture: NIS of the moment-matched mixture prediction ``ν̄ᵀ S̄⁻¹ ν̄``
-            (:func:`moment_matched_innovation` with the prior weights), ``[...]``.
+            (:func:`moment_matched_innovation` with the prior weights), ``[...]``; ``None`` when
+            not asked for (``kalman_update(..., mixture_nis=False)``).
     """
 
     means: Tensor
@@ -99,7 +100,7 @@ class ComponentUpdate:
     dof: Tensor
     innovation: Tensor
     innovation_cov: Tensor
-    nis_mixture: Tensor
+    nis_mixture: Tensor | None
 
 
 def moment_matched_innovation(log_weights: Tensor, nu: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
@@ -307,6 +308,7 @@ def kalman_update(
     measurement: MeasurementModel,
     iterations: int = 1,
     mask: Tensor | None = None,
+    mixture_nis: bool = True,
 ) -> ComponentUpdate:
     """Joseph-form EKF update of all components and Bayes' rule on the weights.
 
@@ -334,6 +336,8 @@ def kalman_update(
         iterations: linearisations (≥ 1).
         mask: entry validity ``[..., d]`` bool to use instead of the model's
             ``measurement.mask()`` (e.g. after innovation gating).
+        mixture_nis: compute :attr:`ComponentUpdate.nis_mixture` (a single-Gaussian caller
+            that does not report it saves its factorisation).
 
     Returns:
         :class:`ComponentUpdate`.
@@ -402,7 +406,7 @@ def kalman_update(
     joint = log_weights + log_beta
     log_lik = torch.logsumexp(joint, -1)
     new_log_weights = joint - log_lik.unsqueeze(-1)
-    nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :])
+    nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :]) if mixture_nis else None
 
     # trajectories without a valid entry are left exactly as they were
     any_valid = dof[..., 0] > 0

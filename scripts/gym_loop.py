@@ -16,6 +16,7 @@ import argparse
 import gymnasium
 import numpy as np
 import torch
+from tqdm import tqdm
 
 import envs  # noqa: F401  (registers agsf/StarTrackerAttitude-v0)
 from agsf_torch import GaussianMixture
@@ -51,6 +52,7 @@ def main() -> None:
     dt = env.unwrapped.config.dt if not batched else env.config.dt
 
     total = 0.0
+    bar = tqdm(total=args.steps, desc="gym loop", unit="step")
     for _ in range(args.steps):
         action = agent.estimate(mix)[0]
         obs, reward, terminated, truncated, info = env.step(action if batched else action[0].numpy())
@@ -66,8 +68,10 @@ def main() -> None:
             }
             y, meas = StarVectorMeasurement.from_observation(frame, sigma=10e-6)
             mix = agent.update(mix, y, meas)
+        bar.update(1)
         if np.any(np.asarray(truncated)):
             break
+    bar.close()
     err = -np.asarray(reward)
     print(f"mean reward {total / args.steps:.3e} rad; final attitude error {np.degrees(err).mean() * 3600:.3f} arcsec")
     env.close()

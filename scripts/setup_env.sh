@@ -12,7 +12,9 @@ stamp=.venv/.agsf-installed
 extras="dev,ray"
 want="$( (cat constraints.txt pyproject.toml; echo "extras=$extras") | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+    echo "installing agsf-torch[$extras] and its pinned dependencies into .venv (the first time: a few minutes)..." >&2
     .venv/bin/python -m pip install --quiet --upgrade pip
-    .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[$extras]"
+    # not --quiet: pip's download and install progress is the only sign of life for minutes
+    .venv/bin/python -m pip install -c constraints.txt -e ".[$extras]"
     echo "$want" > "$stamp"
 fi

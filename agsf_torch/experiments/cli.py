@@ -13,22 +13,30 @@ Subcommands:
   the weights pays: RMS, NEES and the density score against an exact-density reference
   for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.adaptation`).
 * ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
-  resumable grid, in this process or as Ray tasks.
+  resumable grid, in this process or as Ray tasks; ends with a table of every configuration
+  (printed and written to ``results.md``).
 * ``agsf soak [--filter NAME] [--runs B] [--duration S] --out DIR`` — a long run
   (default one simulated hour, 256 runs, 6-state) with running statistics and a
   pass/fail verdict: no NaN, covariances positive definite, errors inside ±3σ,
   flat memory (:mod:`agsf_torch.experiments.soak`).
 
 Every experiment writes ``summary.json``, ``runs.npz``, PNG figures and
-TensorBoard events (see :mod:`agsf_torch.experiments.experiment`).
+TensorBoard events (see :mod:`agsf_torch.experiments.experiment`); each command ends
+by printing where they are and the TensorBoard command of this environment.  Progress
+bars and the package's INFO messages (the FPKE kernel's compilation) go to stderr unless
+``--quiet``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
+import shlex
 import sys
 import time
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -125,7 +133,8 @@ def _run(args: argparse.Namespace) -> int:
         cfg, Path(args.out), progress=not args.quiet, kind="run", recording=args.recording, force=args.force
     )
     _print_summary(cfg.name, summary)
-    print(f"results: {args.out}/summary.json, figures *.png, TensorBoard: tensorboard --logdir {args.out}")
+    print(f"results: {args.out}/summary.json, figures {args.out}/*.png")
+    print(f"TensorBoard: {tensorboard_command(args.out)}")
     return 0
 
 
@@ -141,8 +150,9 @@ def _reproduce(args: argparse.Namespace) -> int:
         overrides.append(f"duration={args.duration}")
     table = reproduce(cases, Path(args.out), overrides, progress=not args.quiet, force=args.force)
     print(table)
-    print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/case*/ (figures, runs.npz)")
-    print(f"TensorBoard: tensorboard --logdir {args.out}")
+    print(f"results: {args.out}/ — tables {args.out}/results.md, numbers {args.out}/summary.json")
+    print(f"per case: {args.out}/case*/ — figures rms.png, axes.png, weights.png, fpke.png; every run's data runs.npz")
+    print(f"TensorBoard: {tensorboard_command(args.out)}")
     return 0
 
 
@@ -157,7 +167,8 @@ def _adaptation(args: argparse.Namespace) -> int:
     )
     for window in ("before_first_frame", "between_frames", "all"):
         print(f"\n{window.replace('_', ' ')}:\n{study_table(summaries, window)}")
-    print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/*.png, {args.out}/tensorboard/")
+    print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/*.png")
+    print(f"TensorBoard: {tensorboard_command(args.out)}")
     return 0
 
 
@@ -186,7 +197,15 @@ def _sweep(args: argparse.Namespace) -> int:
         done = len(read_json_lines(results))
         print(f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume", file=sys.stderr)
         return 130
-    print(f"{len(rows)} configurations in {args.out}/results.jsonl; TensorBoard hparams: tensorboard --logdir {args.out}")
+    from ..files import write_text
+    from .sweep import results_table
+
+    table = results_table(rows)
+    write_text(Path(args.out) / "results.md", table + "\n")
+    print(table)
+    print(f"{len(rows)} configurations: {args.out}/results.md (this table), {args.out}/results.jsonl (the rows), "
+          f"{args.out}/configs/<config>/ (each one's figures and data)")
+    print(f"TensorBoard (hparams): {tensorboard_command(args.out)}")
     return 0
 
 
@@ -246,6 +265,15 @@ def _learn(args: argparse.Namespace) -> int:
     return 0
 
 
+def tensorboard_command(logdir: str | Path) -> str:
+    """The shell command that opens TensorBoard on ``logdir`` with the ``tensorboard`` of this
+    Python's environment: the executable next to ``sys.executable`` (e.g. ``.venv/bin/tensorboard``,
+    which need not be on ``PATH``) if it exists, else ``python -m tensorboard.main``."""
+    exe = Path(sys.executable).parent / "tensorboard"
+    program = [str(exe)] if exe.is_file() else [sys.executable, "-m", "tensorboard.main"]
+    return shlex.join([*program, "--logdir", str(logdir)])
+
+
 def _threads(args: argparse.Namespace) -> None:
     if getattr(args, "threads", None):
         torch.set_num_threads(max(1, args.threads))
@@ -280,28 +308,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_positive_int, default=600, help="gyro periods of 0.1 s")
     p.add_argument("--star-period", type=_positive_float, default=1.0, help="s between star frames")
     p.add_argument("--seed", type=_seed, default=0, help="trajectory i is seeded seed + i")
-    p.add_argument("--out", default="runs/simulation")
+    p.add_argument("--out", default="runs/simulation", help="output folder (default: runs/simulation)")
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=_simulate)
 
     def common(p):
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
         p.add_argument("--threads", type=_positive_int, default=None, help="torch threads")
-        p.add_argument("--quiet", action="store_true", help="no progress bar")
+        p.add_argument("--quiet", action="store_true", help="no progress bars or progress messages on stderr")
         p.add_argument("--force", action="store_true", help=FORCE_HELP)
 
     p = sub.add_parser("run", help="one configuration (a TOML file or a preset name)")
     p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior, faults)")
     p.add_argument("--recording", default=None, help="replay a recorded .npz file (with truth) instead of simulating")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="output folder (created; an existing one must hold the same experiment)")
     common(p)
     p.set_defaults(func=_run)
 
     p = sub.add_parser("reproduce", help="the paper's three cases (star frames at 1, 0.5, 0.2 Hz)")
-    p.add_argument("--case", choices=["1", "2", "3", "all"], default="all")
+    p.add_argument(
+        "--case", choices=["1", "2", "3", "all"], default="all",
+        help="the paper's case: star frames at 1 Hz (1), 0.5 Hz (2), 0.2 Hz (3), or all three (default)",
+    )
     p.add_argument("--runs", type=_positive_int, default=None, help="Monte Carlo runs (preset: 100)")
-    p.add_argument("--duration", type=_positive_float, default=None, help="s (preset: 30)")
-    p.add_argument("--out", default="runs/reproduce")
+    p.add_argument("--duration", type=_positive_float, default=None, help="simulated seconds per run (preset: 30)")
+    p.add_argument("--out", default="runs/reproduce", help="output folder (default: runs/reproduce; one subfolder per case)")
     common(p)
     p.set_defaults(func=_reproduce)
 
@@ -326,7 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sweep", help="a grid of configurations, each one batched Monte Carlo")
     p.add_argument("config", help="base TOML file or preset")
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...", help="a swept key")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="output folder (rerun the same command on it to resume)")
     p.add_argument(
         "--backend", choices=["local", "ray"], default="local",
         help="local: one configuration after another in this process; ray: one Ray task per configuration "
@@ -341,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_sweep)
     p = sub.add_parser("diagnose", help="consistency checks (NEES, NIS, whiteness) of one configuration, in words")
     p.add_argument("config", help="TOML file or preset")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_diagnose)
 
@@ -349,25 +380,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", help="TOML file or preset (simulation and filter settings)")
     p.add_argument("--learn", required=True, help="comma-separated: sigma_v, sigma_u, sigma_s, bias, reg, prior_scale")
     p.add_argument("--recording", default=None, help="a recorded .npz file instead of simulating (needs truth for the prior)")
-    p.add_argument("--max-iter", type=_positive_int, default=40)
-    p.add_argument("--out", required=True)
+    p.add_argument("--max-iter", type=_positive_int, default=40, help="L-BFGS iterations of the fit (default 40)")
+    p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_learn)
 
     p = sub.add_parser("soak", help="a long run checking NaN, positive definiteness, 3σ consistency and flat memory")
     p.add_argument("--filter", choices=FILTER_NAMES, default="GSF", help="the filter to soak")
-    p.add_argument("--runs", type=_positive_int, default=256)
+    p.add_argument("--runs", type=_positive_int, default=256, help="Monte Carlo runs (batch, default 256)")
     p.add_argument("--duration", type=_positive_float, default=3600.0, help="simulated seconds (default one hour)")
     p.add_argument("--report-every", type=_positive_float, default=60.0, help="simulated seconds per report row")
     p.add_argument("--warmup", type=_nonnegative_float, default=60.0, help="seconds excluded from the verdict (prior convergence)")
-    p.add_argument("--seed", type=_seed, default=1)
+    p.add_argument("--seed", type=_seed, default=1, help="seeds truth, noise and prior draws; trajectory i is seeded seed + i (default 1)")
     p.add_argument("--no-compile", action="store_true", help="eager FPKE quadrature (AGSF)")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_soak)
 
     p = sub.add_parser("bench", help="adaptive vs classic filter cost, first step, QP vs Clarabel, filterpy/NumPy peers, memory; targets met or not")
-    p.add_argument("--out", default="runs/bench")
+    p.add_argument("--out", default="runs/bench", help="output folder (default: runs/bench)")
     p.add_argument("--quick", action="store_true", help="smaller samples (a smoke run, not the reference numbers)")
     p.add_argument("--no-compile", action="store_true", help="skip the compiled penalty kernel's first-step measurement")
     p.add_argument("--threads", type=_positive_int, default=None, help="torch threads")
@@ -384,15 +415,54 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
+class _TqdmHandler(logging.Handler):
+    """Log records as lines on stderr, written through ``tqdm.write`` so that they do not break
+    a progress bar that is being drawn."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            from tqdm import tqdm
+
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:  # noqa: BLE001 - logging must never raise
+            self.handleError(record)
+
+
+@contextmanager
+def _messages(quiet: bool):
+    """While the command runs: the package's INFO messages (``agsf_torch`` logger, e.g. the
+    FPKE kernel's compilation) on stderr as ``agsf: …`` unless ``quiet``, and the dependencies'
+    warnings that are not the user's concern filtered out (precisely, by message and module)."""
+    logger = logging.getLogger("agsf_torch")
+    handler = _TqdmHandler()
+    handler.setFormatter(logging.Formatter("agsf: %(message)s"))
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    try:
+        with warnings.catch_warnings():
+            # torch's own inductor lowering calls its deprecated torch._prims_common.check
+            warnings.filterwarnings(
+                "ignore", message=r"`torch\._prims_common\.check` is deprecated", category=FutureWarning,
+                module=r"torch\._inductor\.",
+            )
+            yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the ``agsf`` command; refused input (a bad configuration, file or output folder)
-    prints one line ``agsf: error: …`` and returns 2, having created nothing."""
+    prints one line ``agsf: error: …`` and returns 2, having created nothing.  Long steps
+    (the FPKE kernel's compilation) are announced on stderr unless ``--quiet``."""
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except (ValueError, OSError) as exc:
-        print(f"agsf: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
+    with _messages(quiet=getattr(args, "quiet", False)):
+        try:
+            return args.func(args)
+        except (ValueError, OSError) as exc:
+            print(f"agsf: error: {_one_line(exc)}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

@@ -281,14 +281,18 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Experim
 
 
 def parse_override(item: str) -> tuple[str, Any]:
-    """``"key=value"`` with the value read as a TOML value (bare words as strings)."""
+    """``"key=value"`` with the value read as a TOML value (bare words as strings).
+
+    Raises:
+        ValueError: no ``=``, or a key that is not a configuration field (the message lists the known keys).
+    """
     if "=" not in item:
         raise ValueError(f"override {item!r} must look like key=value")
     key, text = item.split("=", 1)
     key = key.strip()
     known = {f.name for f in dataclasses.fields(ExperimentConfig)}
     if key not in known:
-        raise ValueError(f"unknown config key '{key}' in override {item!r}")
+        raise ValueError(f"unknown config key '{key}' in override {item!r} (known: {', '.join(sorted(known))})")
     try:
         value = tomllib.loads(f"v = {text.strip()}")["v"]
     except tomllib.TOMLDecodeError:

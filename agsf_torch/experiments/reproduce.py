@@ -1,4 +1,11 @@
-"""``agsf reproduce``: the paper's three cases (method.md §4) and their summary table."""
+"""``agsf reproduce``: the paper's three cases (method.md §4) and their summary table.
+
+Each case's TensorBoard run (``out/case{k}/tensorboard``) is also an HParams session
+(:func:`.tensorboard_log.write_hparams_session`): its hyperparameters are the case name
+and the fields of its configuration (lists as JSON; ``compile`` left out: it changes no
+number), its metrics the per-filter numbers of the summary table, so the HParams tab of
+``tensorboard --logdir out`` compares the cases and opens onto each case's curves.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +19,7 @@ from .config import load_config
 from .experiment import prepare_output, run_experiment
 from .resources import check_memory
 from .statistics import minus_gsf_key
+from .tensorboard_log import hparam_domains, write_hparams_session
 
 __all__ = ["reproduce", "results_table"]
 
@@ -27,6 +35,8 @@ def reproduce(
         check_memory(cfg, force=force)
     digest = hashlib.sha256(json.dumps({k: c.digest() for k, c in configs.items()}, sort_keys=True).encode()).hexdigest()[:16]
     out = prepare_output(Path(out), "reproduce", digest, {k: c.to_dict() for k, c in configs.items()})
+    hparams = {name: case_hparams(name, cfg.to_dict()) for name, cfg in configs.items()}
+    domains = hparam_domains(hparams.values())
     combined = {}
     for name, cfg in configs.items():
         summary = run_experiment(cfg, out / name, progress=progress, kind="reproduce-case", force=force)
@@ -45,10 +55,36 @@ def reproduce(
             "agsf_minus_gsf": summary.get("agsf_minus_gsf"),
             "agsf_galerkin_minus_gsf": summary.get("agsf_galerkin_minus_gsf"),
         }
+        write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(combined[name]), domains)
     write_json(out / "summary.json", combined, indent=2)
     table = results_table(combined)
     write_text(out / "results.md", table + "\n")
     return table
+
+
+def case_hparams(name: str, config: dict) -> dict:
+    """A case's HParams values: ``case`` (its name) and its configuration's fields (but ``name`` and ``compile``)."""
+    return {"case": name, **{k: v for k, v in config.items() if k not in ("name", "compile")}}
+
+
+def case_metrics(case: dict) -> dict[str, float]:
+    """A case's HParams metrics from its entry of the combined summary (the numbers of :func:`results_table`)."""
+    metrics: dict[str, float] = {}
+    for f, s in case["filters"].items():
+        for key, metric in (
+            ("between_updates_mean_rms_deg", "mean_rms_between_updates_deg"),
+            ("before_first_update_mean_rms_deg", "mean_rms_before_first_update_deg"),
+            ("final_rms_deg", "final_rms_deg"),
+            ("time_averaged_nees", "time_averaged_nees"),
+        ):
+            if s.get(key) is not None:
+                metrics[f"{f}/{metric}"] = float(s[key])
+    for label in ADAPTIVE_FILTERS:
+        key = minus_gsf_key(label)
+        for window, d in (case.get(key) or {}).items():
+            if isinstance(d, dict) and d.get("mean_deg") is not None:
+                metrics[f"{key}/{window}_deg"] = float(d["mean_deg"])
+    return metrics
 
 
 def results_table(combined: dict) -> str:

@@ -3,8 +3,24 @@
 Every finished configuration is appended as one JSON line to ``results.jsonl``
 (with the configuration's digest) as soon as it finishes; a rerun with the same
 base and grid skips the digests already there, so an interrupted sweep loses
-only the configurations that were running.  TensorBoard's hparams view gets one
-entry per configuration under ``out/tensorboard``.
+only the configurations that were running.
+
+TensorBoard (``tensorboard --logdir out/tensorboard``) gets one run per
+configuration, named by its swept parameters (``reg=0.5,scaling=trace``,
+:func:`.tensorboard_log.run_name`; a digest is appended only where two names would
+collide).  That run holds both the configuration's time series (simulated time on
+the x-axis, see :mod:`.tensorboard_log`) and its HParams session (its parameters,
+its metrics, and the sweep's complete grid as the experiment configuration), so the
+HParams tab opens onto each configuration's curves::
+
+    out/tensorboard/reg=0.5,scaling=trace/   events: curves + HParams session
+    out/tensorboard/reg=1.0,scaling=trace/   ...
+    out/configs/<digest>/                    the configuration's experiment folder
+                                             (runs.npz, summary.json, figures)
+
+The configuration's events are moved there from its folder when it is recorded,
+just before its row is appended (a rerun replaces the run of a configuration
+interrupted in between).
 
 Two backends run the pending configurations:
 
@@ -43,8 +59,9 @@ from ..files import append_line, repair_json_lines
 from .config import ExperimentConfig, parse_override
 from .experiment import prepare_output, run_experiment
 from .resources import check_memory
+from .tensorboard_log import clear_events, hparam_domains, move_events, run_names, write_hparams_session
 
-__all__ = ["parse_grid", "run_sweep", "SweepFailed", "SweepBusy", "RayUnavailable", "BACKENDS"]
+__all__ = ["parse_grid", "run_sweep", "results_table", "SweepFailed", "SweepBusy", "RayUnavailable", "BACKENDS"]
 
 BACKENDS = ("local", "ray")
 RAY_INSTALL_HINT = (
@@ -140,7 +157,8 @@ def run_sweep(
     ``force``) is validated before any work starts or anything is created.  ``out`` holds
     ``experiment.json``, ``results.jsonl`` (one row ``{"digest", "params",
     "metrics"}`` per finished configuration), ``configs/<digest>/`` (that
-    configuration's experiment folder) and ``tensorboard/`` (hparams).  Digests
+    configuration's experiment folder, its events moved out) and ``tensorboard/<params>/``
+    (its curves and HParams session, see the module docstring).  Digests
     already in ``results.jsonl`` are skipped; its rows are appended as complete lines,
     and a torn last line (an interrupted write) is dropped with a warning and rerun.
     One sweep at a time may write ``out``: a second one raises :class:`SweepBusy`.
@@ -211,27 +229,44 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
     rows = repair_json_lines(results)
     done = {r["digest"] for r in rows}
     pending = [(params, cfg) for params, cfg in configs if cfg.digest() not in done]
-    from torch.utils.tensorboard import SummaryWriter
-
-    writer = SummaryWriter(str(out / "tensorboard"))
+    # names and domains from every configuration of the sweep: the same on every (resumed) run
+    names = run_names((params, cfg.digest()) for params, cfg in configs)
+    domains = hparam_domains(params for params, _ in configs)
+    _upgrade_tensorboard(out, rows, names, domains)
 
     def record(params: dict[str, Any], cfg: ExperimentConfig, summary_metrics: dict[str, float]) -> None:
+        run_dir = out / "tensorboard" / names[cfg.digest()]
+        move_events(out / "configs" / cfg.digest() / "tensorboard", run_dir)
+        write_hparams_session(run_dir, params, summary_metrics, domains)
         row = {"digest": cfg.digest(), "params": params, "metrics": summary_metrics}
         append_line(results, json.dumps(row))
         rows.append(row)
-        hp = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in params.items()}
-        writer.add_hparams(hp, row["metrics"], run_name=cfg.digest())
 
-    try:
-        if backend == "local":
-            for params, cfg in pending:
-                summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
-                record(params, cfg, _metrics(summary))
-        elif pending:
-            _run_on_ray(pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs))
-    finally:
-        writer.close()
+    if backend == "local":
+        for params, cfg in pending:
+            summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
+            record(params, cfg, _metrics(summary))
+    elif pending:
+        _run_on_ray(pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs))
     return rows
+
+
+def _upgrade_tensorboard(out: Path, rows: list[dict[str, Any]], names: dict[str, str], domains) -> None:
+    """Give every recorded configuration its named run, from a sweep folder of an earlier layout
+    (a digest-named HParams run per configuration, an events file at the root, the curves in
+    ``configs/<digest>/tensorboard``): resuming such a sweep then shows each configuration once."""
+    tb = out / "tensorboard"
+    for row in rows:
+        digest = row.get("digest")
+        if digest not in names:
+            continue
+        if (tb / digest).is_dir():
+            shutil.rmtree(tb / digest)
+        curves = out / "configs" / digest / "tensorboard"
+        if not (tb / names[digest]).exists() or curves.is_dir():
+            move_events(curves, tb / names[digest])
+            write_hparams_session(tb / names[digest], row["params"], row["metrics"], domains)
+    clear_events(tb)  # the root run of the earlier layout
 
 
 # ----------------------------------------------------------------------------
@@ -338,3 +373,70 @@ def _run_on_ray(
     finally:
         if started:
             ray.shutdown()
+
+
+# ----------------------------------------------------------------------------
+# Results table
+
+_RMS_SUFFIX = "/mean_rms_between_updates_deg"
+_NEES_SUFFIX = "/time_averaged_nees"
+_DIFFERENCE_KEY = "agsf_minus_gsf_deg"
+
+
+def _table_cell(value: Any) -> str:
+    """A parameter or metric as table text: strings as they are, floats in 4 significant digits,
+    anything else as JSON; ``|`` escaped for Markdown."""
+    if value is None:
+        text = "—"
+    elif isinstance(value, str):
+        text = value
+    elif isinstance(value, float):
+        text = f"{value:.4g}"
+    else:
+        text = json.dumps(value)
+    return text.replace("|", "\\|")
+
+
+def results_table(rows: list[dict[str, Any]]) -> str:
+    """A sweep's rows (``{"digest", "params", "metrics"}``, as in ``results.jsonl``) as one
+    Markdown table, one line per configuration in the order of ``rows``.
+
+    Columns: the configuration's digest (its folder ``configs/<digest>/``), every swept
+    parameter, then per filter its mean RMS between star frames (deg) and its time-averaged
+    NEES (dimensionless), and ``AGSF − GSF`` (deg, the paired difference of the mean RMS
+    between frames) when any row has it.  A metric a row lacks is shown as ``—``.  Cells are
+    padded so that the table also reads as plain text.
+
+    Raises:
+        ValueError: a row without a ``params`` or ``metrics`` mapping (named by its index).
+    """
+    if not rows:
+        return "no finished configurations"
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict) or not isinstance(row.get("params"), dict) or not isinstance(row.get("metrics"), dict):
+            raise ValueError(f"sweep row {i} must be a mapping with 'params' and 'metrics' mappings, got {row!r}")
+    params = list(dict.fromkeys(k for row in rows for k in row["params"]))
+    filters = list(dict.fromkeys(
+        k.split("/", 1)[0] for row in rows for k in row["metrics"] if k.endswith((_RMS_SUFFIX, _NEES_SUFFIX))
+    ))
+    difference = any(_DIFFERENCE_KEY in row["metrics"] for row in rows)
+    header = ["config", *params]
+    for name in filters:
+        header += [f"{name} RMS (deg)", f"{name} NEES"]
+    if difference:
+        header.append("AGSF − GSF (deg)")
+    body = []
+    for row in rows:
+        m = row["metrics"]
+        cells = [_table_cell(row.get("digest")), *(_table_cell(row["params"].get(k)) for k in params)]
+        for name in filters:
+            cells += [_table_cell(m.get(name + _RMS_SUFFIX)), _table_cell(m.get(name + _NEES_SUFFIX))]
+        if difference:
+            cells.append(_table_cell(m.get(_DIFFERENCE_KEY)))
+        body.append(cells)
+    widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"
+
+    return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in body)])

@@ -1,40 +1,285 @@
-"""An experiment's TensorBoard events: scalars per step and weight histograms."""
+"""An experiment's TensorBoard events, and the HParams sessions that compare experiments.
+
+Time axis
+---------
+Every time series is written against the *simulated* time, never the step index:
+
+* the TensorBoard **step** is the simulated time in integer milliseconds, and every
+  time-series tag says so with the suffix ``_vs_ms`` (``GSF/rms_deg_vs_ms`` at step
+  1500 is the RMS error at t = 1.5 s).  Steps must be integers; a time grid finer
+  than 1 ms (``dt`` < 1 ms) is written in integer microseconds instead, tags ending
+  in ``_vs_us`` (:func:`time_steps`);
+* the event **walltime** is the simulated time in seconds, so TensorBoard's
+  ``RELATIVE`` x-axis reads simulated seconds since the first sample (the first
+  sample is at ``t = dt``).  The ``WALL`` axis has no meaning for these series.
+
+Tags of one filter ``F`` (one run directory per experiment)::
+
+    F/rms_deg_vs_ms            RMS attitude error over the runs (deg)
+    F/nees_vs_ms               mean NEES over the runs
+    F/nis_vs_ms                mean NIS, at star frames only
+    F/fpke_error_before_vs_ms  FPKE residual before / after the weight update
+    F/fpke_error_after_vs_ms   (adaptive filters only)
+    F/weight_entropy_vs_ms     mean entropy of the mixture weights (nat)  ┐ mixtures
+    F/weight_<i>_run0_vs_ms    weight of component i in the first run     │ only: not for
+    F/weights_vs_ms            histogram of the weights over the runs     ┘ one Gaussian
+
+HParams
+-------
+:func:`write_hparams_session` makes one run directory an HParams *session*: its
+hyperparameter values (``_hparams_/session_start_info``), its end
+(``_hparams_/session_end_info``), one scalar per metric (``summary/<metric>``) and
+the experiment-level configuration (``_hparams_/experiment``): every compared
+hyperparameter with the complete domain of values over all sessions and
+``differs`` set when they differ, and the metrics.  Every session carries the same
+experiment configuration, so no run exists only to hold it.  The session and the
+experiment's curves share the run directory: the HParams tab links each session to
+its curves.  :func:`run_name` names such a directory by its parameters.
+"""
 
 from __future__ import annotations
 
+import json
+import re
+import shutil
+import time
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["write_tensorboard"]
+__all__ = [
+    "write_tensorboard", "time_steps", "run_name", "run_names", "hparam_value", "hparam_domains",
+    "write_hparams_session", "clear_events", "move_events", "METRIC_PREFIX", "EVENTS_GLOB",
+]
+
+METRIC_PREFIX = "summary/"
+EVENTS_GLOB = "events.out.tfevents.*"
+_MAX_NAME = 200  # characters of a run directory name (file systems allow 255 bytes)
+
+
+def time_steps(time_s: np.ndarray) -> tuple[np.ndarray, str]:
+    """Integer TensorBoard steps of the simulated times ``time_s`` (s) and the tag suffix naming their unit.
+
+    Milliseconds (``"_vs_ms"``) when they keep every time distinct, else microseconds (``"_vs_us"``).
+    """
+    t = np.asarray(time_s, dtype=np.float64)
+    for scale, suffix in ((1e3, "_vs_ms"), (1e6, "_vs_us")):
+        steps = np.rint(t * scale).astype(np.int64)
+        if len(steps) < 2 or (np.diff(steps) > 0).all():
+            return steps, suffix
+    raise ValueError("simulated times closer than 1 µs cannot be TensorBoard steps")
+
+
+def clear_events(folder: Path) -> None:
+    """Remove the event files directly in ``folder`` (left by an earlier writing of the same run)."""
+    for p in Path(folder).glob(EVENTS_GLOB):
+        if p.is_file():
+            p.unlink()
 
 
 def write_tensorboard(out: Path, data: dict[str, np.ndarray], summary: dict[str, Any]) -> None:
-    """Write the events of one experiment under ``out/tensorboard`` from its data and summary."""
+    """Write the events of one experiment under ``out/tensorboard`` from its data and summary.
+
+    Time is simulated time (see the module docstring); event files of an earlier
+    writing of the same experiment folder are replaced, not added to.
+    """
     from torch.utils.tensorboard import SummaryWriter
 
-    writer = SummaryWriter(str(out / "tensorboard"))
-    frames = data["star_frame"]
-    for name, f in summary["filters"].items():
-        rms = f["rms_deg"]
-        nees = f["nees_mean"]
-        nis = data[f"{name}/nis"]
-        weights = data[f"{name}/weights"]
-        entropy = data[f"{name}/weight_entropy"].mean(0)
-        for k in range(len(rms)):
-            writer.add_scalar(f"{name}/rms_deg", rms[k], k)
-            writer.add_scalar(f"{name}/nees", nees[k], k)
-            writer.add_scalar(f"{name}/weight_entropy", entropy[k], k)
-            if frames[k]:
-                writer.add_scalar(f"{name}/nis", float(np.nanmean(nis[:, k])), k)
-            for i in range(weights.shape[-1]):
-                writer.add_scalar(f"{name}/weight_{i}_run0", weights[0, k, i], k)
+    folder = out / "tensorboard"
+    clear_events(folder)
+    frames = np.asarray(data["star_frame"], dtype=bool)
+    t = np.asarray(data["time"], dtype=np.float64)
+    steps, unit = time_steps(t)
+    writer = SummaryWriter(str(folder))
+    try:
+        for name, f in summary["filters"].items():
+            series: dict[str, np.ndarray] = {
+                "rms_deg": np.asarray(f["rms_deg"], dtype=np.float64),
+                "nees": np.asarray(f["nees_mean"], dtype=np.float64),
+            }
             if "fpke_error_before_mean" in f:
-                writer.add_scalar(f"{name}/fpke_error_before", f["fpke_error_before_mean"][k], k)
-                writer.add_scalar(f"{name}/fpke_error_after", f["fpke_error_after_mean"][k], k)
-            if weights.shape[-1] > 1 and (frames[k] or k % 10 == 0):
-                writer.add_histogram(f"{name}/weights", weights[:, k].reshape(-1), k)
-    writer.close()
+                series["fpke_error_before"] = np.asarray(f["fpke_error_before_mean"], dtype=np.float64)
+                series["fpke_error_after"] = np.asarray(f["fpke_error_after_mean"], dtype=np.float64)
+            weights = data.get(f"{name}/weights")
+            mixture = weights is not None and weights.shape[-1] > 1  # one Gaussian: weight 1, entropy 0
+            if mixture:
+                series["weight_entropy"] = np.asarray(data[f"{name}/weight_entropy"], dtype=np.float64).mean(0)
+                for i in range(weights.shape[-1]):
+                    series[f"weight_{i}_run0"] = np.asarray(weights[0, :, i], dtype=np.float64)
+            for key, values in series.items():
+                for k in range(len(values)):
+                    writer.add_scalar(f"{name}/{key}{unit}", float(values[k]), int(steps[k]), walltime=float(t[k]))
+            nis = data.get(f"{name}/nis")
+            if nis is not None:
+                for k in np.flatnonzero(frames):
+                    writer.add_scalar(
+                        f"{name}/nis{unit}", float(np.nanmean(nis[:, k])), int(steps[k]), walltime=float(t[k])
+                    )
+            if mixture:
+                for k in range(len(t)):
+                    if frames[k] or k % 10 == 0:
+                        writer.add_histogram(
+                            f"{name}/weights{unit}", weights[:, k].reshape(-1), int(steps[k]), walltime=float(t[k])
+                        )
+    finally:
+        writer.close()
 
 
+# ----------------------------------------------------------------------------
+# HParams sessions
+
+
+def hparam_value(value: Any) -> bool | int | float | str:
+    """A parameter as an HParams value: booleans, numbers and strings as they are, anything else as JSON."""
+    if isinstance(value, (bool, int, float, str)):
+        return value
+    return json.dumps(value)
+
+
+def _name_part(value: Any) -> str:
+    if isinstance(value, bool):
+        text = "true" if value else "false"
+    elif isinstance(value, float):
+        text = repr(value)
+    elif isinstance(value, (int, str)):
+        text = str(value)
+    else:
+        text = json.dumps(value, separators=(",", ":"))
+    return re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9.+-]", "_", text)).strip("_") or "_"
+
+
+def run_name(params: Mapping[str, Any]) -> str:
+    """A run directory named by its parameters: ``{"reg": 0.5, "scaling": "trace"}`` → ``reg=0.5,scaling=trace``.
+
+    Values are written as in a configuration (floats by ``repr``, booleans ``true``/``false``,
+    lists as JSON); every character other than letters, digits, ``. + -`` becomes ``_``.
+    """
+    text = ",".join(f"{_name_part(k)}={_name_part(v)}" for k, v in params.items())
+    return text.lstrip(".") or "_"
+
+
+def run_names(configs: Iterable[tuple[Mapping[str, Any], str]]) -> dict[str, str]:
+    """Digest → unique run directory name of ``(params, digest)`` pairs.
+
+    A name shared by configurations (after sanitizing) or too long for a file name
+    gets the digest's first characters appended, so that names depend only on the set
+    of configurations and stay the same when a sweep is resumed.
+    """
+    configs = list(configs)
+    plain = {digest: run_name(params) for params, digest in configs}
+    counts: dict[str, int] = {}
+    for name in plain.values():
+        counts[name] = counts.get(name, 0) + 1
+    names = {}
+    for digest, name in plain.items():
+        if counts[name] > 1 or len(name) > _MAX_NAME:
+            name = f"{name[:_MAX_NAME - 17]}-{digest[:16]}"
+        names[digest] = name
+    return names
+
+
+def hparam_domains(sessions: Iterable[Mapping[str, Any]]) -> dict[str, list[Any]]:
+    """Every hyperparameter's distinct values (in first-seen order) over the sessions' hparams."""
+    domains: dict[str, list[Any]] = {}
+    for hp in sessions:
+        for k, v in hp.items():
+            values = domains.setdefault(k, [])
+            v = hparam_value(v)
+            if not any(type(v) is type(u) and v == u for u in values):
+                values.append(v)
+    return domains
+
+
+def _hparam_info(name: str, values: list[Any]):
+    from google.protobuf import struct_pb2
+    from tensorboard.plugins.hparams import api_pb2
+
+    info = api_pb2.HParamInfo(name=name, display_name=name)
+    if all(isinstance(v, bool) for v in values):
+        info.type = api_pb2.DATA_TYPE_BOOL
+        info.domain_discrete.values.extend(struct_pb2.Value(bool_value=v) for v in values)
+    elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        info.type = api_pb2.DATA_TYPE_FLOAT64
+        info.domain_discrete.values.extend(struct_pb2.Value(number_value=float(v)) for v in sorted(values))
+    else:
+        info.type = api_pb2.DATA_TYPE_STRING
+        info.domain_discrete.values.extend(struct_pb2.Value(string_value=str(v)) for v in values)
+    info.differs = len(values) > 1
+    return info
+
+
+def _hparams_summary(tag: str, plugin_data):
+    """A ``Summary`` holding HParams plugin data (as :mod:`tensorboard.plugins.hparams.summary_v2` writes it)."""
+    from tensorboard.compat.proto import summary_pb2
+    from tensorboard.plugins.hparams import metadata
+
+    summary = summary_pb2.Summary()
+    summary.value.add(tag=tag, metadata=metadata.create_summary_metadata(plugin_data), tensor=metadata.NULL_TENSOR)
+    return summary
+
+
+def write_hparams_session(
+    run_dir: Path,
+    hparams: Mapping[str, Any],
+    metrics: Mapping[str, float],
+    domains: Mapping[str, list[Any]],
+    *,
+    start_time_secs: float | None = None,
+) -> None:
+    """Make ``run_dir`` an HParams session with ``hparams`` and ``metrics`` (see the module docstring).
+
+    ``domains`` holds every compared hyperparameter's values over all sessions of the
+    experiment (:func:`hparam_domains`); it must cover ``hparams``.  The metrics are
+    scalars ``summary/<metric>`` at step 0 in ``run_dir``, shown under their own names.
+    """
+    from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
+    from torch.utils.tensorboard import SummaryWriter
+
+    hp = {k: hparam_value(v) for k, v in hparams.items()}
+    missing = [k for k in hp if k not in domains]
+    if missing:
+        raise ValueError(f"hparams {missing} have no domain")
+    experiment = api_pb2.Experiment(
+        hparam_infos=[_hparam_info(k, [hparam_value(v) for v in values]) for k, values in domains.items()],
+        metric_infos=[
+            api_pb2.MetricInfo(name=api_pb2.MetricName(tag=METRIC_PREFIX + k), display_name=k) for k in metrics
+        ],
+    )
+    # no group name: each session is its own group, named by its run
+    start = plugin_data_pb2.SessionStartInfo(start_time_secs=time.time() if start_time_secs is None else start_time_secs)
+    for k, v in hp.items():
+        if isinstance(v, bool):
+            start.hparams[k].bool_value = v
+        elif isinstance(v, (int, float)):
+            start.hparams[k].number_value = v
+        else:
+            start.hparams[k].string_value = v
+    writer = SummaryWriter(str(run_dir))
+    try:
+        fw = writer.file_writer
+        fw.add_summary(_hparams_summary(metadata.EXPERIMENT_TAG, plugin_data_pb2.HParamsPluginData(experiment=experiment)))
+        fw.add_summary(_hparams_summary(metadata.SESSION_START_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_start_info=start)))
+        for k, v in metrics.items():
+            writer.add_scalar(METRIC_PREFIX + k, float(v), 0)
+        end = plugin_data_pb2.SessionEndInfo(status=api_pb2.STATUS_SUCCESS, end_time_secs=time.time())
+        fw.add_summary(_hparams_summary(metadata.SESSION_END_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_end_info=end)))
+    finally:
+        writer.close()
+
+
+def move_events(source: Path, run_dir: Path) -> None:
+    """Make ``run_dir`` hold exactly the event files of ``source`` (which is removed).
+
+    A ``run_dir`` left by an interrupted writing is replaced.  Without ``source``,
+    ``run_dir`` is created empty.
+    """
+    source, run_dir = Path(source), Path(run_dir)
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    if source.is_dir():
+        source.rename(run_dir)
+    else:
+        run_dir.mkdir()

@@ -2,6 +2,7 @@
 updates) and the multiplicative EKF."""
 
 from .adaptive import AdaptiveGaussianSumFilter
+from .diagnostics_view import StepDiagnostics
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
 from .multiplicative import MultiplicativeEKF
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
@@ -14,4 +15,5 @@ __all__ = [
     "WeightUpdate",
     "PenaltyWeightUpdate",
     "GalerkinWeightUpdate",
+    "StepDiagnostics",
 ]

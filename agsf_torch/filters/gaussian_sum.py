@@ -12,6 +12,7 @@ from ..mixture import GaussianMixture, as_real_tensor
 from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
 from ..update import kalman_update
+from .diagnostics_view import StepDiagnostics
 
 __all__ = ["GaussianSumFilter", "ExtendedKalmanFilter", "check_batched"]
 
@@ -61,7 +62,9 @@ class GaussianSumFilter:
         mean, cov = filt.estimate(mixture)
 
     After each call ``filt.diagnostics`` holds that step's diagnostics as a dict
-    of tensors (computed during the step, never recomputed):
+    of tensors (computed during the step, never recomputed; a
+    :class:`~agsf_torch.filters.diagnostics_view.StepDiagnostics`, which prints one
+    summary line per key):
 
     * predict: ``weight_entropy [...]``, ``covariance_repairs`` (int, this call);
     * update: ``log_likelihood [...]`` (``log Σ wᵢβᵢ``), ``nis [..., N]``,
@@ -117,7 +120,7 @@ class GaussianSumFilter:
         self.substeps = int(substeps)
         self.repair_covariance = bool(repair_covariance)
         self.min_eigenvalue = float(min_eigenvalue)
-        self.diagnostics: dict[str, Any] = {}
+        self.diagnostics: StepDiagnostics = StepDiagnostics()
 
     # ----------------------------------------------------------------- checks
     def _check_mixture(self, mixture: GaussianMixture) -> None:
@@ -170,7 +173,9 @@ class GaussianSumFilter:
         covs, repairs = self._ensure_positive_definite(covs, "during propagation")
         propagated = mixture.replace(means=means, covs=covs, validate=False)  # checked just above
         propagated, extra = self._adapt_weights(mixture, propagated, u, float(dt))
-        self.diagnostics = {"weight_entropy": propagated.entropy_of_weights(), "covariance_repairs": repairs, **extra}
+        self.diagnostics = StepDiagnostics(
+            {"weight_entropy": propagated.entropy_of_weights(), "covariance_repairs": repairs, **extra}
+        )
         return propagated
 
     def diagnostic_keys(self, step: str) -> tuple[str, ...]:
@@ -223,7 +228,7 @@ class GaussianSumFilter:
         means, covs = self.model.canonicalize(res.means, res.covs)
         covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
         posterior = mixture.replace(log_weights=res.log_weights, means=means, covs=covs, validate=False)
-        self.diagnostics = {
+        self.diagnostics = StepDiagnostics({
             "log_likelihood": res.log_likelihood,
             "nis": res.nis,
             "nis_mixture": res.nis_mixture,
@@ -231,7 +236,7 @@ class GaussianSumFilter:
             "weight_entropy": posterior.entropy_of_weights(),
             "covariance_repairs": repairs,
             **gate,
-        }
+        })
         self._after_update(posterior)  # last: nothing above can fail after the run state moves
         return posterior
 

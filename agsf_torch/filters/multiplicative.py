@@ -47,6 +47,7 @@ from ..rotations import (
 )
 from ..update import kalman_update
 from .error_state import ErrorStateMeasurement, _exp_and_right_jacobian, _sym, error_state_to_mrp, mrp_to_error_state, rotation_series
+from .diagnostics_view import StepDiagnostics
 from .gaussian_sum import check_batched, diagnostic_keys
 
 __all__ = ["MultiplicativeEKF", "mrp_to_error_state", "error_state_to_mrp", "rotation_series"]  # helpers from error_state
@@ -153,7 +154,7 @@ class MultiplicativeEKF:
         self.gate_probability = None if gate_probability is None else float(gate_probability)
         self.discrete_noise = discrete_noise
         self.covariance_reset = bool(covariance_reset)
-        self.diagnostics: dict[str, Any] = {}
+        self.diagnostics: StepDiagnostics = StepDiagnostics()
 
     # ----------------------------------------------------------------- checks
     def _check_mixture(self, mixture: GaussianMixture) -> None:
@@ -179,7 +180,8 @@ class MultiplicativeEKF:
     def _to_mixture(self, mixture: GaussianMixture, q: Tensor, b: Tensor, P: Tensor) -> GaussianMixture:
         mean, cov = error_state_to_mrp(q, b, P)
         log_w = torch.zeros(mean.shape[:-1] + (1,), dtype=mean.dtype, device=mean.device)
-        return mixture.replace(log_weights=log_w, means=mean.unsqueeze(-2), covs=cov.unsqueeze(-3))
+        # the filter's own output (Φ P Φᵀ + Q of a checked P, or a checked posterior): no per-step validation
+        return mixture.replace(log_weights=log_w, means=mean.unsqueeze(-2), covs=cov.unsqueeze(-3), validate=False)
 
     # ------------------------------------------------------------ transition
     def transition(self, omega: Tensor, dt: float) -> tuple[Tensor, Tensor]:
@@ -244,7 +246,7 @@ class MultiplicativeEKF:
         P = _sym(Phi @ P @ Phi.transpose(-1, -2) + Q)
         b = b.expand(*q.shape[:-1], b.shape[-1])
         out = self._to_mixture(mixture, q, b, P)
-        self.diagnostics = {"weight_entropy": out.entropy_of_weights(), "covariance_repairs": 0}
+        self.diagnostics = StepDiagnostics({"weight_entropy": out.entropy_of_weights(), "covariance_repairs": 0})
         return out
 
     def update(self, mixture: GaussianMixture, y: Tensor, measurement: MeasurementModel) -> GaussianMixture:
@@ -285,7 +287,7 @@ class MultiplicativeEKF:
                 "gate_accepted": accepted,
                 "gate_overridden": overridden,
             }
-        res = kalman_update(zero_w, zero_x, covs, y, err_meas, self.update_iterations, mask=mask)
+        res = kalman_update(zero_w, zero_x, covs, y, err_meas, self.update_iterations, mask=mask, mixture_nis=False)
         dx, P_post = res.means[..., 0, :], res.covs[..., 0, :, :]
         batch = dx.shape[:-1]
         q_post = quat_multiply(rotvec_to_quat(dx[..., :3]), q.expand(*batch, 4))
@@ -303,8 +305,8 @@ class MultiplicativeEKF:
         means = torch.where(keep, mixture.means.expand_as(out.means), out.means)
         cov_out = torch.where(keep[..., None], mixture.covs.expand_as(out.covs), out.covs)
         means, cov_out = self.model.canonicalize(means, cov_out)
-        out = out.replace(means=means, covs=cov_out)
-        self.diagnostics = {
+        out = out.replace(means=means, covs=cov_out, validate=False)  # checked above; kept entries are the input's
+        self.diagnostics = StepDiagnostics({
             "log_likelihood": res.log_likelihood,
             "nis": res.nis,
             "nis_mixture": res.nis[..., 0],
@@ -312,7 +314,7 @@ class MultiplicativeEKF:
             "weight_entropy": out.entropy_of_weights(),
             "covariance_repairs": 0,
             **gate,
-        }
+        })
         return out
 
     def diagnostic_keys(self, step: str) -> tuple[str, ...]:

@@ -6,7 +6,9 @@ and ``K_ij = z_ij E[ℓⱼ]``, each evaluated over the ``N(N+1)/2`` unordered pa
 
 from __future__ import annotations
 
+import logging
 import numbers
+import time
 from dataclasses import dataclass
 
 import torch
@@ -46,17 +48,45 @@ def _galerkin_chunk(
     return torch.stack(((vi * wq).sum(-1), (vj * wq).sum(-1)))
 
 
-_COMPILED: dict[str, object] = {}
+_log = logging.getLogger(__name__)
+
+
+class _AnnouncedCompile:
+    """``torch.compile(fn)`` whose first call — the one that compiles — is logged at INFO on the
+    ``agsf_torch`` logger when it starts and when it ends (with its duration), since it takes
+    seconds; later calls go straight to the compiled function."""
+
+    def __init__(self, name: str, fn):
+        self.name = name
+        self._compiled_fn = torch.compile(fn)
+        self._first_call_done = False
+
+    def __call__(self, *args):
+        if self._first_call_done:
+            return self._compiled_fn(*args)
+        _log.info(
+            "compiling the FPKE kernel %r with torch.compile (first step only: a few seconds once "
+            "torch's on-disk cache holds it, about 20 s the first time on a machine)", self.name,
+        )
+        t0 = time.perf_counter()
+        out = self._compiled_fn(*args)
+        self._first_call_done = True
+        _log.info("compiled the FPKE kernel %r in %.1f s", self.name, time.perf_counter() - t0)
+        return out
+
+
+_COMPILED: dict[str, _AnnouncedCompile] = {}
 
 
 def _kernel(name: str, compile: bool):
     """The chunk kernel ``name``, eager or ``torch.compile``-d once per process
-    (static first, dynamic after a shape change: no recompile storm)."""
+    (static first, dynamic after a shape change: no recompile storm); the compilation
+    is announced on the ``agsf_torch`` logger (INFO)."""
     fn = {"pair": _pair_chunk, "galerkin": _galerkin_chunk, "product": _product_chunk}[name]
     if not compile:
         return fn
     if name not in _COMPILED:
-        _COMPILED[name] = torch.compile(fn)
+        _COMPILED[name] = _AnnouncedCompile(name, fn)
     return _COMPILED[name]
 
 

@@ -36,11 +36,11 @@ def test_outputs_exist_and_agree(experiment):
     acc = EventAccumulator(str(out / "tensorboard"))
     acc.Reload()
     for name in cfg.filters:
-        events = acc.Scalars(f"{name}/rms_deg")
+        events = acc.Scalars(f"{name}/rms_deg_vs_ms")
         assert len(events) == cfg.num_steps
         np.testing.assert_allclose([e.value for e in events], summary["filters"][name]["rms_deg"], rtol=1e-6)
-    assert "AGSF/fpke_error_before" in acc.Tags()["scalars"]
-    assert "AGSF/weights" in acc.Tags()["histograms"]
+    assert "AGSF/fpke_error_before_vs_ms" in acc.Tags()["scalars"]
+    assert "AGSF/weights_vs_ms" in acc.Tags()["histograms"]
 
 
 def test_runs_file_is_batch_first_with_units_and_covariances(experiment):

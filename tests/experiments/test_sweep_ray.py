@@ -24,6 +24,7 @@ from agsf_torch.experiments import cli
 from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.experiment import run_experiment
 from agsf_torch.experiments.sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
+from agsf_torch.experiments.tensorboard_log import run_name
 
 BASE = ["runs=4", "duration=1.0", "compile=false", "components=2", 'filters=["GSF", "AGSF"]']
 GRID = ["reg=0.1,1.0", "scaling=trace,none"]
@@ -92,8 +93,10 @@ def check_rows_and_files_equal_local(local_out, local_rows, tmp_path):
         assert sorted(a.files) == sorted(b.files)
         for key in a.files:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
-        assert list((mine / "tensorboard").glob("events.out.tfevents.*"))
-    assert {p.name for p in (out / "tensorboard").iterdir() if p.is_dir()} == set(local_rows)  # hparams per config
+        assert not (mine / "tensorboard").exists()  # its events moved to the run named by its parameters
+        assert list((out / "tensorboard" / run_name(local_rows[digest]["params"])).glob("events.out.tfevents.*"))
+    # one run (curves + HParams session) per configuration, named by its parameters
+    assert {p.name for p in (out / "tensorboard").iterdir()} == {run_name(r["params"]) for r in local_rows.values()}
     assert not list((out / "configs").glob(".*"))  # no staging folder left
 
 

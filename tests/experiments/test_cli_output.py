@@ -1,0 +1,148 @@
+"""What the ``agsf`` command prints: help for every argument, a TensorBoard command that runs,
+the sweep's results table, the valid keys of a bad ``--set``, and long steps announced on stderr."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import logging
+import os
+import shlex
+import sys
+import warnings
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+
+import pytest
+
+from agsf_torch.experiments import cli
+from agsf_torch.experiments.sweep import results_table
+from agsf_torch.files import read_json_lines
+
+TINY = ["--set", "runs=2", "--set", "duration=0.3", "--set", 'filters=["EKF"]', "--quiet"]
+
+
+def _agsf(argv: list[str]) -> tuple[int, str, str]:
+    """``(exit code, stdout, stderr)`` of ``agsf argv``."""
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        try:
+            code = cli.main(argv)
+        except SystemExit as exc:  # argparse
+            code = exc.code
+    return code, out.getvalue(), err.getvalue()
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    raise AssertionError("agsf has no subcommands")
+
+
+def test_every_argument_of_every_subcommand_has_help():
+    subcommands = _subparsers(cli.build_parser())
+    assert {"run", "reproduce", "sweep", "simulate", "soak", "learn", "diagnose", "adaptation", "bench"} <= set(subcommands)
+    missing = [
+        f"agsf {name} {action.option_strings[0] if action.option_strings else action.dest}"
+        for name, sub in subcommands.items()
+        for action in sub._actions
+        if not isinstance(action, argparse._HelpAction) and not (action.help or "").strip()
+    ]
+    assert missing == []
+
+
+def test_tensorboard_command_uses_the_executable_next_to_python(tmp_path, monkeypatch):
+    bin_dir = tmp_path / "env dir" / "bin"
+    bin_dir.mkdir(parents=True)
+    (bin_dir / "python").write_text("")
+    (bin_dir / "tensorboard").write_text("")
+    monkeypatch.setattr(sys, "executable", str(bin_dir / "python"))
+    command = cli.tensorboard_command("runs/x y")
+    assert shlex.split(command) == [str(bin_dir / "tensorboard"), "--logdir", "runs/x y"]
+
+
+def test_tensorboard_command_falls_back_to_the_module(tmp_path, monkeypatch):
+    (tmp_path / "python").write_text("")
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "python"))
+    assert shlex.split(cli.tensorboard_command("out")) == [
+        str(tmp_path / "python"), "-m", "tensorboard.main", "--logdir", "out",
+    ]
+
+
+def test_tensorboard_command_of_this_environment_runs():
+    program = shlex.split(cli.tensorboard_command("out"))[0]
+    assert Path(program).is_file() and os.access(program, os.X_OK)
+
+
+def test_run_prints_a_tensorboard_command_that_names_its_executable(tmp_path):
+    out = tmp_path / "run"
+    code, stdout, _ = _agsf(["run", "case1", *TINY, "--out", str(out)])
+    assert code == 0
+    assert f"TensorBoard: {cli.tensorboard_command(out)}" in stdout.splitlines()
+    assert "tensorboard --logdir" not in stdout.replace(cli.tensorboard_command(out), "")
+
+
+def test_sweep_prints_its_results_table_and_writes_results_md(tmp_path):
+    out = tmp_path / "sweep"
+    argv = ["sweep", "case1", *TINY, "--set", 'filters=["EKF", "GSF"]', "--set", "duration=1.2",
+            "--grid", "seed=3,5", "--out", str(out)]
+    code, stdout, _ = _agsf(argv)
+    assert code == 0
+    rows = read_json_lines(out / "results.jsonl")
+    table = results_table(rows)
+    assert (out / "results.md").read_text() == table + "\n"
+    assert table in stdout
+    assert f"TensorBoard (hparams): {cli.tensorboard_command(out)}" in stdout.splitlines()
+    lines = table.splitlines()
+    assert len(lines) == 2 + 2  # header, rule, one line per configuration
+    assert "seed" in lines[0] and "GSF RMS (deg)" in lines[0] and "EKF NEES" in lines[0]
+    assert sorted(line.split("|")[2].strip() for line in lines[2:]) == ["3", "5"]
+
+
+def test_an_unknown_set_key_lists_the_known_keys(tmp_path):
+    code, _, stderr = _agsf(["run", "case1", "--set", "sigma_q=1", "--out", str(tmp_path / "x")])
+    assert code == 2 and stderr.count("\n") == 1
+    assert "unknown config key 'sigma_q'" in stderr
+    known = stderr.split("known: ", 1)[1]
+    assert {"runs", "duration", "sigma_s", "seed"} <= set(known.rstrip(")\n").split(", "))
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_info_messages_reach_stderr_unless_quiet(quiet, tmp_path, monkeypatch):
+    def fake_run(args):
+        logging.getLogger("agsf_torch.fpke.matrices").info("compiling the kernel")
+        return 0
+
+    monkeypatch.setattr(cli, "_run", fake_run)
+    logger = logging.getLogger("agsf_torch")
+    level, handlers = logger.level, list(logger.handlers)
+    code, stdout, stderr = _agsf(["run", "case1", "--out", str(tmp_path)] + (["--quiet"] if quiet else []))
+    assert code == 0 and stdout == ""
+    assert stderr == ("" if quiet else "agsf: compiling the kernel\n")
+    assert (logger.level, logger.handlers) == (level, handlers), "the command leaves logging as it found it"
+
+
+def test_torch_internal_deprecation_is_hidden_and_nothing_else():
+    message = "`torch._prims_common.check` is deprecated and will be removed in the future."
+    with warnings.catch_warnings():
+        warnings.resetwarnings()  # only the command's own filter below (not the test configuration's)
+        warnings.simplefilter("default")
+        with cli._messages(quiet=True), warnings.catch_warnings(record=True) as caught:
+            warnings.warn_explicit(message, FutureWarning, "lowering.py", 1, module="torch._inductor.lowering", registry={})
+            warnings.warn_explicit(message, FutureWarning, "ours.py", 1, module="agsf_torch.ours", registry={})
+            warnings.warn_explicit("something else", FutureWarning, "lowering.py", 2, module="torch._inductor.lowering", registry={})
+    assert [(str(w.message), w.filename) for w in caught] == [(message, "ours.py"), ("something else", "lowering.py")]
+
+
+def test_reproduce_names_its_outputs(tmp_path, monkeypatch):
+    from agsf_torch.experiments import reproduce
+
+    monkeypatch.setattr(reproduce, "reproduce", lambda cases, out, overrides, progress, force: "TABLE")
+    out = tmp_path / "repro"
+    code, stdout, _ = _agsf(["reproduce", "--case", "1", "--out", str(out)])
+    assert code == 0
+    assert stdout.splitlines()[0] == "TABLE"
+    assert f"{out}/results.md" in stdout and "rms.png" in stdout and "runs.npz" in stdout
+    assert stdout.splitlines()[-1] == f"TensorBoard: {cli.tensorboard_command(out)}"
