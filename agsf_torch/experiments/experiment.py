@@ -70,6 +70,7 @@ def run_experiment(
         estimate_bias=cfg.estimate_bias,
         progress=progress,
         noise_model=cfg.star_noise_model,
+        label=cfg.name,
     )
     data = save_runs(out / "runs.npz", res)
     summary = summarize(data, cfg)

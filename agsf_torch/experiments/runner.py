@@ -189,6 +189,7 @@ def run_monte_carlo(
     callback=None,
     noise_model: str = "isotropic",
     gyro_hold_sigma: float | None = None,
+    label: str = "monte carlo",
 ) -> MonteCarloResult:
     """Run every filter over ``num_steps`` gyro periods of a batched environment.
 
@@ -202,7 +203,7 @@ def run_monte_carlo(
         estimate_bias: ``False`` → the filters' model is 3-state and the gyro
             is compensated with the true bias (the paper's "bias known");
             ``True`` → 6-state.
-        progress: show a progress bar.
+        progress: show a progress bar, labelled ``label``.
         callback: optional ``callback(step, name, filter, mixture)`` after each step.
         noise_model: star-vector noise model of the filters (``"isotropic"`` or ``"tangent"``).
         gyro_hold_sigma: σ_h of :class:`~agsf_torch.input_gaps.GyroHold`, which bridges
@@ -222,7 +223,7 @@ def run_monte_carlo(
     if progress:
         from tqdm import tqdm
 
-        steps = tqdm(steps, desc="monte carlo", unit="step", total=num_steps)
+        steps = tqdm(steps, desc=label, unit="step", total=num_steps)
     for step in steps:
         times.append(step.time)
         frames.append(step.star_frame)
