@@ -31,62 +31,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
-import shlex
 import sys
 import time
-import warnings
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
 
-__all__ = ["main"]
+from .cli_terminal import (
+    FORCE_HELP, Parser, messages, nonnegative_float, one_line, positive_float, positive_int, seed, tensorboard_command,
+)
 
-
-def _integer(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
-
-
-def _positive_int(text: str) -> int:
-    value = _integer(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
-
-
-def _number(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-
-
-def _positive_float(text: str) -> float:
-    value = _number(text)
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a finite positive number, got {text}")
-    return value
-
-
-def _nonnegative_float(text: str) -> float:
-    value = _number(text)
-    if not np.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number ≥ 0, got {text}")
-    return value
-
-
-def _seed(text: str) -> int:
-    from .config import MAX_SEED
-
-    value = _integer(text)
-    if not 0 <= value <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"must be an integer in [0, {MAX_SEED}], got {text}")
-    return value
+__all__ = ["main", "tensorboard_command"]
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -265,15 +221,6 @@ def _learn(args: argparse.Namespace) -> int:
     return 0
 
 
-def tensorboard_command(logdir: str | Path) -> str:
-    """The shell command that opens TensorBoard on ``logdir`` with the ``tensorboard`` of this
-    Python's environment: the executable next to ``sys.executable`` (e.g. ``.venv/bin/tensorboard``,
-    which need not be on ``PATH``) if it exists, else ``python -m tensorboard.main``."""
-    exe = Path(sys.executable).parent / "tensorboard"
-    program = [str(exe)] if exe.is_file() else [sys.executable, "-m", "tensorboard.main"]
-    return shlex.join([*program, "--logdir", str(logdir)])
-
-
 def _threads(args: argparse.Namespace) -> None:
     if getattr(args, "threads", None):
         torch.set_num_threads(max(1, args.threads))
@@ -289,32 +236,22 @@ def _print_summary(name: str, summary: dict) -> None:
         print(f"  AGSF − GSF {d['mean_deg']:.3g} deg, 95% CI [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}]")
 
 
-FORCE_HELP = "run even if the memory estimate exceeds the memory available"
-
-
-class _Parser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line (``agsf run: error: …``, exit 2), like every other refusal."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="agsf", description="Gaussian sum filters for spacecraft attitude")
+    parser = Parser(prog="agsf", description="Gaussian sum filters for spacecraft attitude")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate the star-tracker environment")
-    p.add_argument("--runs", type=_positive_int, default=64, help="trajectories (batch)")
-    p.add_argument("--steps", type=_positive_int, default=600, help="gyro periods of 0.1 s")
-    p.add_argument("--star-period", type=_positive_float, default=1.0, help="s between star frames")
-    p.add_argument("--seed", type=_seed, default=0, help="trajectory i is seeded seed + i")
+    p.add_argument("--runs", type=positive_int, default=64, help="trajectories (batch)")
+    p.add_argument("--steps", type=positive_int, default=600, help="gyro periods of 0.1 s")
+    p.add_argument("--star-period", type=positive_float, default=1.0, help="s between star frames")
+    p.add_argument("--seed", type=seed, default=0, help="trajectory i is seeded seed + i")
     p.add_argument("--out", default="runs/simulation", help="output folder (default: runs/simulation)")
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=_simulate)
 
     def common(p):
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
-        p.add_argument("--threads", type=_positive_int, default=None, help="torch threads")
+        p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
         p.add_argument("--quiet", action="store_true", help="no progress bars or progress messages on stderr")
         p.add_argument("--force", action="store_true", help=FORCE_HELP)
 
@@ -330,8 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--case", choices=["1", "2", "3", "all"], default="all",
         help="the paper's case: star frames at 1 Hz (1), 0.5 Hz (2), 0.2 Hz (3), or all three (default)",
     )
-    p.add_argument("--runs", type=_positive_int, default=None, help="Monte Carlo runs (preset: 100)")
-    p.add_argument("--duration", type=_positive_float, default=None, help="simulated seconds per run (preset: 30)")
+    p.add_argument("--runs", type=positive_int, default=None, help="Monte Carlo runs (preset: 100)")
+    p.add_argument("--duration", type=positive_float, default=None, help="simulated seconds per run (preset: 30)")
     p.add_argument("--out", default="runs/reproduce", help="output folder (default: runs/reproduce; one subfolder per case)")
     common(p)
     p.set_defaults(func=_reproduce)
@@ -348,8 +285,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["all", *SCENARIOS],
         help="scenarios to run (default: all)",
     )
-    p.add_argument("--runs", type=_positive_int, default=32, help="Monte Carlo runs per scenario")
-    p.add_argument("--samples", type=_positive_int, default=1024, help="exact-density reference samples per run")
+    p.add_argument("--runs", type=positive_int, default=32, help="Monte Carlo runs per scenario")
+    p.add_argument("--samples", type=positive_int, default=1024, help="exact-density reference samples per run")
     p.add_argument("--out", default="runs/adaptation", help="output folder")
     common(p)
     p.set_defaults(func=_adaptation)
@@ -380,18 +317,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", help="TOML file or preset (simulation and filter settings)")
     p.add_argument("--learn", required=True, help="comma-separated: sigma_v, sigma_u, sigma_s, bias, reg, prior_scale")
     p.add_argument("--recording", default=None, help="a recorded .npz file instead of simulating (needs truth for the prior)")
-    p.add_argument("--max-iter", type=_positive_int, default=40, help="L-BFGS iterations of the fit (default 40)")
+    p.add_argument("--max-iter", type=positive_int, default=40, help="L-BFGS iterations of the fit (default 40)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_learn)
 
     p = sub.add_parser("soak", help="a long run checking NaN, positive definiteness, 3σ consistency and flat memory")
     p.add_argument("--filter", choices=FILTER_NAMES, default="GSF", help="the filter to soak")
-    p.add_argument("--runs", type=_positive_int, default=256, help="Monte Carlo runs (batch, default 256)")
-    p.add_argument("--duration", type=_positive_float, default=3600.0, help="simulated seconds (default one hour)")
-    p.add_argument("--report-every", type=_positive_float, default=60.0, help="simulated seconds per report row")
-    p.add_argument("--warmup", type=_nonnegative_float, default=60.0, help="seconds excluded from the verdict (prior convergence)")
-    p.add_argument("--seed", type=_seed, default=1, help="seeds truth, noise and prior draws; trajectory i is seeded seed + i (default 1)")
+    p.add_argument("--runs", type=positive_int, default=256, help="Monte Carlo runs (batch, default 256)")
+    p.add_argument("--duration", type=positive_float, default=3600.0, help="simulated seconds (default one hour)")
+    p.add_argument("--report-every", type=positive_float, default=60.0, help="simulated seconds per report row")
+    p.add_argument("--warmup", type=nonnegative_float, default=60.0, help="seconds excluded from the verdict (prior convergence)")
+    p.add_argument("--seed", type=seed, default=1, help="seeds truth, noise and prior draws; trajectory i is seeded seed + i (default 1)")
     p.add_argument("--no-compile", action="store_true", help="eager FPKE quadrature (AGSF)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
@@ -401,55 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/bench", help="output folder (default: runs/bench)")
     p.add_argument("--quick", action="store_true", help="smaller samples (a smoke run, not the reference numbers)")
     p.add_argument("--no-compile", action="store_true", help="skip the compiled penalty kernel's first-step measurement")
-    p.add_argument("--threads", type=_positive_int, default=None, help="torch threads")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     p.set_defaults(func=_bench)
     return parser
-
-
-def _one_line(exc: BaseException) -> str:
-    """An error as one line; file errors name the file."""
-    if isinstance(exc, OSError) and exc.filename is not None:
-        text = f"{exc.filename}: {exc.strerror or exc}"
-    else:
-        text = str(exc) or type(exc).__name__
-    return " ".join(text.split())
-
-
-class _TqdmHandler(logging.Handler):
-    """Log records as lines on stderr, written through ``tqdm.write`` so that they do not break
-    a progress bar that is being drawn."""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            from tqdm import tqdm
-
-            tqdm.write(self.format(record), file=sys.stderr)
-        except Exception:  # noqa: BLE001 - logging must never raise
-            self.handleError(record)
-
-
-@contextmanager
-def _messages(quiet: bool):
-    """While the command runs: the package's INFO messages (``agsf_torch`` logger, e.g. the
-    FPKE kernel's compilation) on stderr as ``agsf: …`` unless ``quiet``, and the dependencies'
-    warnings that are not the user's concern filtered out (precisely, by message and module)."""
-    logger = logging.getLogger("agsf_torch")
-    handler = _TqdmHandler()
-    handler.setFormatter(logging.Formatter("agsf: %(message)s"))
-    level = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.WARNING if quiet else logging.INFO)
-    try:
-        with warnings.catch_warnings():
-            # torch's own inductor lowering calls its deprecated torch._prims_common.check
-            warnings.filterwarnings(
-                "ignore", message=r"`torch\._prims_common\.check` is deprecated", category=FutureWarning,
-                module=r"torch\._inductor\.",
-            )
-            yield
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -457,11 +348,11 @@ def main(argv: list[str] | None = None) -> int:
     prints one line ``agsf: error: …`` and returns 2, having created nothing.  Long steps
     (the FPKE kernel's compilation) are announced on stderr unless ``--quiet``."""
     args = build_parser().parse_args(argv)
-    with _messages(quiet=getattr(args, "quiet", False)):
+    with messages(quiet=getattr(args, "quiet", False)):
         try:
             return args.func(args)
         except (ValueError, OSError) as exc:
-            print(f"agsf: error: {_one_line(exc)}", file=sys.stderr)
+            print(f"agsf: error: {one_line(exc)}", file=sys.stderr)
             return 2
 
 

@@ -129,7 +129,7 @@ def test_torch_internal_deprecation_is_hidden_and_nothing_else():
     with warnings.catch_warnings():
         warnings.resetwarnings()  # only the command's own filter below (not the test configuration's)
         warnings.simplefilter("default")
-        with cli._messages(quiet=True), warnings.catch_warnings(record=True) as caught:
+        with cli.messages(quiet=True), warnings.catch_warnings(record=True) as caught:
             warnings.warn_explicit(message, FutureWarning, "lowering.py", 1, module="torch._inductor.lowering", registry={})
             warnings.warn_explicit(message, FutureWarning, "ours.py", 1, module="agsf_torch.ours", registry={})
             warnings.warn_explicit("something else", FutureWarning, "lowering.py", 2, module="torch._inductor.lowering", registry={})

@@ -1,0 +1,136 @@
+"""The ``agsf`` command's terminal: argument types, one-line errors, messages and the TensorBoard hint.
+
+Argument types refuse bad values with argparse's one-line error; :class:`Parser` prints
+every argument error as one line (exit 2), like every other refusal; :func:`one_line`
+folds an exception into one line naming the file; :func:`messages` shows the package's
+INFO messages on stderr (through ``tqdm.write``, so progress bars stay intact) and
+filters the dependencies' warnings that are not the user's concern.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "FORCE_HELP", "Parser", "integer", "positive_int", "positive_float", "nonnegative_float", "seed", "one_line",
+    "messages", "tensorboard_command",
+]
+
+
+def integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    value = integer(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+
+
+def positive_float(text: str) -> float:
+    value = _number(text)
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a finite positive number, got {text}")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    value = _number(text)
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number ≥ 0, got {text}")
+    return value
+
+
+def seed(text: str) -> int:
+    from .config import MAX_SEED
+
+    value = integer(text)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, {MAX_SEED}], got {text}")
+    return value
+
+
+def tensorboard_command(logdir: str | Path) -> str:
+    """The shell command that opens TensorBoard on ``logdir`` with the ``tensorboard`` of this
+    Python's environment: the executable next to ``sys.executable`` (e.g. ``.venv/bin/tensorboard``,
+    which need not be on ``PATH``) if it exists, else ``python -m tensorboard.main``."""
+    exe = Path(sys.executable).parent / "tensorboard"
+    program = [str(exe)] if exe.is_file() else [sys.executable, "-m", "tensorboard.main"]
+    return shlex.join([*program, "--logdir", str(logdir)])
+
+
+FORCE_HELP = "run even if the memory estimate exceeds the memory available"
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (``agsf run: error: …``, exit 2), like every other refusal."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def one_line(exc: BaseException) -> str:
+    """An error as one line; file errors name the file."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror or exc}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+class _TqdmHandler(logging.Handler):
+    """Log records as lines on stderr, written through ``tqdm.write`` so that they do not break
+    a progress bar that is being drawn."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            from tqdm import tqdm
+
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:  # noqa: BLE001 - logging must never raise
+            self.handleError(record)
+
+
+@contextmanager
+def messages(quiet: bool):
+    """While the command runs: the package's INFO messages (``agsf_torch`` logger, e.g. the
+    FPKE kernel's compilation) on stderr as ``agsf: …`` unless ``quiet``, and the dependencies'
+    warnings that are not the user's concern filtered out (precisely, by message and module)."""
+    logger = logging.getLogger("agsf_torch")
+    handler = _TqdmHandler()
+    handler.setFormatter(logging.Formatter("agsf: %(message)s"))
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    try:
+        with warnings.catch_warnings():
+            # torch's own inductor lowering calls its deprecated torch._prims_common.check
+            warnings.filterwarnings(
+                "ignore", message=r"`torch\._prims_common\.check` is deprecated", category=FutureWarning,
+                module=r"torch\._inductor\.",
+            )
+            yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
