@@ -25,42 +25,45 @@ __all__ = [
 ]
 
 
-def integer(text: str) -> int:
+def _parse(text: str, kind: type, what: str):
+    """``kind(text)``, or argparse's one-line error saying it ``must be {what}``."""
     try:
-        return int(text)
+        return kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
+
+
+def integer(text: str) -> int:
+    """An integer argument."""
+    return _parse(text, int, "an integer")
 
 
 def positive_int(text: str) -> int:
+    """An integer argument ≥ 1."""
     value = integer(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
     return value
 
 
-def _number(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-
-
 def positive_float(text: str) -> float:
-    value = _number(text)
+    """A finite number argument > 0."""
+    value = _parse(text, float, "a number")
     if not np.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"must be a finite positive number, got {text}")
     return value
 
 
 def nonnegative_float(text: str) -> float:
-    value = _number(text)
+    """A finite number argument ≥ 0."""
+    value = _parse(text, float, "a number")
     if not np.isfinite(value) or value < 0:
         raise argparse.ArgumentTypeError(f"must be a finite number ≥ 0, got {text}")
     return value
 
 
 def seed(text: str) -> int:
+    """A run seed argument in ``[0, MAX_SEED]`` (:data:`.config.MAX_SEED`)."""
     from .config import MAX_SEED
 
     value = integer(text)
