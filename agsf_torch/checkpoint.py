@@ -18,13 +18,12 @@ from typing import Any
 import torch
 
 from .files import atomic_open
-from .filters.gaussian_sum import GaussianSumFilter
+from .filters.base import Filter
 from .mixture import GaussianMixture
 
 __all__ = ["save_checkpoint", "load_checkpoint", "FORMAT"]
 
 FORMAT = "agsf-checkpoint-2"
-_OLD_FORMAT = "agsf-checkpoint-1"  # counter and reference weights beside the mixture; still read
 
 
 def _mixture_state(m: GaussianMixture) -> dict[str, Any]:
@@ -34,7 +33,7 @@ def _mixture_state(m: GaussianMixture) -> dict[str, Any]:
 def save_checkpoint(
     path: str | Path,
     mixtures: Mapping[str, GaussianMixture],
-    filters: Mapping[str, GaussianSumFilter],
+    filters: Mapping[str, Filter],
     extra: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write a checkpoint atomically (:func:`agsf_torch.files.atomic_open`: a temporary file, flushed
@@ -58,26 +57,6 @@ def save_checkpoint(
     with atomic_open(path) as fh:
         torch.save(state, fh)
     return path
-
-
-def _filter_state(s: dict[str, Any], fmt: str, filt: GaussianSumFilter) -> dict[str, Any]:
-    """The ``state_dict`` for ``filt`` from a checkpoint entry.
-
-    Format 1 kept the step counter beside the mixture and the reference weights in it
-    (for every filter, adaptive or not): they become the adaptive filter's weight-update
-    state (the reference only for the paper's penalty update, the one that uses it) and
-    are dropped for the other filters, which never used them.  The values are passed on
-    as stored (``load_state_dict`` validates them: a counter must be an ``int ≥ 0``).
-    """
-    if fmt == FORMAT:
-        return s["filter"]
-    update = getattr(filt, "weight_update", None)
-    if update is None:
-        return {}
-    state = {"kind": update.name, "step": s["step"], "elapsed": 0.0}
-    if "ref_log_weights" in update.extra_state_keys:
-        state["ref_log_weights"] = s["mixture"].get("ref_log_weights")
-    return {"weight_update": state}
 
 
 def _mixture(m: Any) -> GaussianMixture:
@@ -129,12 +108,14 @@ def _read(path: Path) -> Any:
         raise ValueError(f"{path} is not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
 
 
-def load_checkpoint(path: str | Path, filters: Mapping[str, GaussianSumFilter]) -> tuple[dict[str, GaussianMixture], dict[str, Any]]:
+def load_checkpoint(path: str | Path, filters: Mapping[str, Filter]) -> tuple[dict[str, GaussianMixture], dict[str, Any]]:
     """Read a checkpoint (``weights_only=True``), restore the filters' run state, return
     ``(mixtures, extra)``.
 
     Every mixture is validated in full (floating-point tensors of one dtype, shapes,
-    finite means, symmetric positive definite covariances, log-weights).  The filters'
+    finite means, symmetric positive definite covariances, log-weights) and against its
+    filter (:meth:`~agsf_torch.filters.base.Filter.check_mixture`: the state dimension, the
+    number of components).  The filters'
     states are then loaded one by one; if any filter refuses its state (whatever the
     error), every filter is put back as it was before the call: a failed load changes
     nothing.
@@ -147,7 +128,7 @@ def load_checkpoint(path: str | Path, filters: Mapping[str, GaussianSumFilter]) 
     path = Path(path)
     state = _read(path)
     fmt = state.get("format") if isinstance(state, dict) else None
-    if fmt not in (FORMAT, _OLD_FORMAT):
+    if fmt != FORMAT:
         raise ValueError(f"{path} is not an {FORMAT} file (format {fmt!r})")
     name = None
     try:
@@ -160,7 +141,8 @@ def load_checkpoint(path: str | Path, filters: Mapping[str, GaussianSumFilter]) 
             if not isinstance(s, dict):
                 raise ValueError(f"entry must be a dict, got {type(s).__name__}")
             mixtures[name] = _mixture(s["mixture"])
-            restored[name] = _filter_state(s, fmt, filters[name])
+            filters[name].check_mixture(mixtures[name])  # state dimension, components: fits its filter
+            restored[name] = s["filter"]
             _check_reference(restored[name], mixtures[name])
         name = None
     except _CONTENT_ERRORS as exc:

@@ -26,6 +26,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .filters.base import Filter
 from .mixture import GaussianMixture
 
 __all__ = ["FilterSetup", "StepInput", "FilterStep", "LoopStep", "filter_steps", "initial_mixtures", "sample_prior", "PRIOR_SEED_OFFSET"]
@@ -39,12 +40,12 @@ class FilterSetup:
     """A filter in a run and its initial mixture size.
 
     Attributes:
-        filter: any filter with the predict/update/estimate contract.
+        filter: any :class:`~agsf_torch.filters.base.Filter`.
         num_components: components of the initial split of the prior.
         spread: share of the principal prior variance carried by the component means.
     """
 
-    filter: Any
+    filter: Filter
     num_components: int = 1
     spread: float = 0.5
 
@@ -86,7 +87,7 @@ class FilterStep:
             ``[B, n, n]``, computed when first read.
     """
 
-    def __init__(self, filt: Any, mixture: GaussianMixture, nis: Tensor, dof: Tensor,
+    def __init__(self, filt: Filter, mixture: GaussianMixture, nis: Tensor, dof: Tensor,
                  log_likelihood: Tensor | None, extra: dict[str, Tensor]) -> None:
         self.filter = filt
         self.mixture = mixture
@@ -146,12 +147,12 @@ def initial_mixtures(setups: Mapping[str, FilterSetup], mean: Tensor, cov: Tenso
 
 
 def filter_steps(
-    filters: Mapping[str, Any], mixtures: Mapping[str, GaussianMixture], inputs: Iterable[StepInput]
+    filters: Mapping[str, Filter], mixtures: Mapping[str, GaussianMixture], inputs: Iterable[StepInput]
 ) -> Iterator[LoopStep]:
     """Run every filter over ``inputs``, yielding one :class:`LoopStep` per input.
 
     Args:
-        filters: name → filter (predict/update/estimate contract).
+        filters: name → filter (:class:`~agsf_torch.filters.base.Filter`).
         mixtures: name → initial belief.
         inputs: the steps' inputs; may be a generator that reads the previous
             step's estimates (closed loop: an environment that takes the estimate as action).
@@ -165,10 +166,10 @@ def filter_steps(
             if inp.correct is not None:
                 mix = inp.correct(mix)
             extra.update(inp.extra)
-            B = mix.batch_shape
-            extra["gate_rejected"] = torch.zeros(B, dtype=torch.int64)
-            nis = torch.full(B, float("nan"), dtype=mix.means.dtype)
-            dof = torch.zeros(B, dtype=mix.means.dtype)
+            B, like = mix.batch_shape, mix.means
+            extra["gate_rejected"] = torch.zeros(B, dtype=torch.int64, device=like.device)
+            nis = torch.full(B, float("nan"), dtype=like.dtype, device=like.device)
+            dof = torch.zeros(B, dtype=like.dtype, device=like.device)
             log_likelihood = None
             if inp.measurement is not None:
                 mix = filt.update(mix, *inp.measurement)

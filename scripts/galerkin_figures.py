@@ -25,7 +25,7 @@ import torch  # noqa: E402
 
 from agsf_torch import GaussianMixture  # noqa: E402
 from agsf_torch.experiments.sine_benchmark import DT, NUM_STEPS, sine_prior  # noqa: E402
-from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter  # noqa: E402
+from agsf_torch.filters import AdaptiveGaussianSumFilter, GalerkinWeightUpdate, GaussianSumFilter, PenaltyWeightUpdate  # noqa: E402
 from agsf_torch.models import LorenzModel, SineDriftModel  # noqa: E402
 from agsf_torch.reference import FokkerPlanckGrid, integrated_squared_error  # noqa: E402
 
@@ -41,8 +41,8 @@ def sine_figure(path: Path) -> None:
     model = SineDriftModel()
     filters = {
         "GSF": GaussianSumFilter(model, substeps=10),
-        "AGSF (penalty)": AdaptiveGaussianSumFilter(model, quadrature=40, substeps=10),
-        "AGSF (Galerkin)": AdaptiveGaussianSumFilter(model, weight_update="galerkin", quadrature=40, substeps=10),
+        "AGSF (penalty)": AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10),
+        "AGSF (Galerkin)": AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=40), substeps=10),
     }
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(grid, exact, "k", lw=2.5, alpha=0.35, label="exact (FPKE on a grid)")

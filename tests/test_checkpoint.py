@@ -8,7 +8,7 @@ import torch
 import envs
 from agsf_torch import GaussianMixture
 from agsf_torch.checkpoint import load_checkpoint, save_checkpoint
-from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 
 F64 = torch.float64
@@ -17,7 +17,7 @@ F64 = torch.float64
 def _setup():
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=3, max_steps=50, star_period=0.5)
     model = AttitudeModel(estimate_bias=True)
-    filters = {"gsf": GaussianSumFilter(model), "agsf": AdaptiveGaussianSumFilter(model, cadence=2)}
+    filters = {"gsf": GaussianSumFilter(model), "agsf": AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=2))}
     return env, filters
 
 
@@ -73,41 +73,24 @@ def test_bad_checkpoints(tmp_path):
         load_checkpoint(path, {"gsf": filters["gsf"]})
 
 
-def _format1_file(path, mixtures, steps, refs):
-    """A checkpoint as format 1 wrote it: counter beside the mixture, reference weights inside it."""
-    torch.save(
-        {
-            "format": "agsf-checkpoint-1",
-            "filters": {
-                name: {
-                    "mixture": {"log_weights": m.log_weights, "means": m.means, "covs": m.covs, "ref_log_weights": refs[name]},
-                    "step": steps[name],
-                }
-                for name, m in mixtures.items()
-            },
-            "extra": {},
-        },
-        path,
-    )
-    return path
-
-
-def test_format1_checkpoints_still_load(tmp_path):
-    """Format 1 stored a reference for every filter (the GSF's too) and nothing at t₀: both load,
-    the adaptive filter gets its counter and reference, the GSF drops what it never used."""
+@pytest.mark.parametrize("build", ["other_state_dim", "mixture_into_ekf"])
+def test_a_mixture_that_does_not_fit_its_filter_is_refused_at_load(tmp_path, build):
+    """A 6-state mixture for 3-state filters, or a 5-component one for an EKF, is refused when the
+    file is read, naming the file and the mismatch, with every filter unchanged."""
     env, filters = _setup()
     mix = _start(env)
-    ref = mix.log_weights - 1.0
-    path = _format1_file(tmp_path / "old.pt", {"gsf": mix, "agsf": mix}, {"gsf": 0, "agsf": 7}, {"gsf": ref, "agsf": ref})
-    mixtures, _ = load_checkpoint(path, filters)
-    state = filters["agsf"].state_dict()["weight_update"]
-    assert state["step"] == 7 and torch.equal(state["ref_log_weights"], ref)
-    assert filters["gsf"].state_dict() == {}
-    assert torch.equal(mixtures["agsf"].means, mix.means)
-    env, filters = _setup()
-    path = _format1_file(tmp_path / "t0.pt", {"gsf": mix, "agsf": mix}, {"gsf": 0, "agsf": 0}, {"gsf": None, "agsf": None})
-    load_checkpoint(path, filters)
-    assert filters["agsf"].state_dict()["weight_update"]["ref_log_weights"] is None
+    path = save_checkpoint(tmp_path / "six.pt", {"gsf": mix, "agsf": mix}, filters)
+    if build == "other_state_dim":
+        three = AttitudeModel(estimate_bias=False)
+        targets = {"gsf": GaussianSumFilter(three), "agsf": AdaptiveGaussianSumFilter(three)}
+        match = r"six\.pt: filter 'gsf': mixture state dimension 6 != model state_dim 3"
+    else:
+        targets = {"gsf": ExtendedKalmanFilter(filters["gsf"].model), "agsf": filters["agsf"]}
+        match = r"six\.pt: filter 'gsf': ExtendedKalmanFilter needs a one-component mixture, got 3 components"
+    before = {k: f.state_dict() for k, f in targets.items()}
+    with pytest.raises(ValueError, match=match):
+        load_checkpoint(path, targets)
+    assert {k: f.state_dict() for k, f in targets.items()} == before
 
 
 def test_malformed_or_mismatched_checkpoints_are_named_and_change_nothing(tmp_path):
@@ -190,7 +173,7 @@ def test_a_filter_refusing_its_state_with_any_error_puts_every_filter_back(tmp_p
     mix = _start(env)
     model = filters["agsf"].model
     path = save_checkpoint(tmp_path / "run.pt", {"agsf": mix, "odd": mix}, {"agsf": filters["agsf"], "odd": GaussianSumFilter(model)})
-    agsf = AdaptiveGaussianSumFilter(model, cadence=2)
+    agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=2))
     agsf.weight_update.load_state_dict({"kind": "penalty", "step": 5, "elapsed": 0.25, "ref_log_weights": None})
     with pytest.raises(ValueError, match=r"run\.pt: filter 'odd': cannot restore"):
         load_checkpoint(path, {"agsf": agsf, "odd": Fussy(model)})

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from agsf_torch import GaussianMixture
-from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.qp import solve_simplex_qp
 
@@ -112,7 +112,7 @@ def test_adaptive_weights_stay_on_the_simplex(B, N, reg, scaling, weight_ref, se
     model = AttitudeModel()
     mean = 0.5 * torch.randn(B, 3, generator=g, dtype=F64)
     mix = GaussianMixture.from_gaussian(mean, 1e-3 * torch.eye(3, dtype=F64).expand(B, 3, 3), N)
-    filt = AdaptiveGaussianSumFilter(model, reg=reg, scaling=scaling, weight_ref=weight_ref)
+    filt = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(reg=reg, scaling=scaling, weight_ref=weight_ref))
     u = 0.1 * torch.randn(B, 3, generator=g, dtype=F64)
     for _ in range(2):
         mix = filt.predict(mix, u, 0.1)

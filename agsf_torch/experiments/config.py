@@ -2,7 +2,9 @@
 
 Every value decoded or guessed from the paper (method.md §4) is a named field
 here with that value as its default; the presets in ``presets/*.toml`` set the
-rest.  Files are read with :mod:`tomllib` (data only, no code execution).
+rest.  The filters' options are not written here: they are the fields the filters
+and weight updates declare (:data:`agsf_torch.filters.registry.CONFIG_OPTIONS`), added
+to :class:`ExperimentConfig` under the same names and validated by those classes.  Files are read with :mod:`tomllib` (data only, no code execution).
 Unknown keys, wrong types and out-of-range values raise ``ValueError`` naming
 the key, before any work starts.
 """
@@ -20,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR
-from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
+from ..filters.registry import ADAPTIVE_FILTERS, CONFIG_OPTIONS, FILTER_NAMES
 
 __all__ = [
     "ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES", "DEFAULT_FILTERS",
@@ -34,7 +36,7 @@ MAX_SEED = 2**62 - 1
 
 
 @dataclass(frozen=True)
-class ExperimentConfig:
+class _ExperimentFields:
     """One Monte Carlo experiment (units: s, rad, rad/s unless the name says otherwise).
 
     Attributes:
@@ -57,22 +59,14 @@ class ExperimentConfig:
         prior_bias_sigma_deg_per_hr: prior bias σ (6-state).
         components: N of the Gaussian sums.
         spread: share of the principal prior variance carried by the component means.
-        reg: λ of the weight QP — paper: 1.
-        scaling: ``"trace"`` or ``"none"`` (the paper's L + λI).
-        weight_ref: ``"update"`` (paper) or ``"previous"``.
-        update_iterations: linearisations per measurement update (1: EKF update).
-        adapt_cadence: the AGSF adapts its weights every ``adapt_cadence``-th propagation step.
         filters: which of ``FILTER_NAMES`` to run (EKF, GSF, AGSF, AGSF-galerkin, MEKF).
         seed: seeds truth, noise and prior draws (trajectory ``i``: ``seed + i``), an integer with
             ``0 ≤ seed`` and ``seed + runs − 1 ≤ MAX_SEED``.
-        compile: ``torch.compile`` the FPKE quadrature kernel.
         filter_sigma_s_scale: the filters assume ``σ_s × scale`` (1: the simulated value;
             other values make a deliberately mis-modelled filter, e.g. for ``agsf diagnose``).
         filter_sigma_v_scale: likewise for σ_v.
         star_noise_model: the filters' star-vector noise model, ``"isotropic"`` (σ_s²I₃,
             the method) or ``"tangent"`` (noise across the star direction only).
-        gate_probability: innovation gate of every filter (:mod:`agsf_torch.gating`):
-            0 = off (the method), else ``p`` in (0, 1), e.g. 0.9999.
         faults: sensor faults injected by the environment (:mod:`envs.faults`), a list
             of tables such as ``{kind = "star_outage", start = 60.0, end = 180.0}``.
     """
@@ -96,18 +90,11 @@ class ExperimentConfig:
     prior_bias_sigma_deg_per_hr: float = 0.2
     components: int = 5
     spread: float = 0.5
-    reg: float = 1.0
-    scaling: str = "trace"
-    weight_ref: str = "update"
-    update_iterations: int = 1
-    adapt_cadence: int = 1
     filters: list = field(default_factory=lambda: list(DEFAULT_FILTERS))
     seed: int = 0
-    compile: bool = False
     filter_sigma_s_scale: float = 1.0
     filter_sigma_v_scale: float = 1.0
     star_noise_model: str = "isotropic"
-    gate_probability: float = 0.0
     faults: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -138,35 +125,36 @@ class ExperimentConfig:
             v = getattr(self, key)
             if not math.isfinite(v) or v <= 0:
                 raise ValueError(f"config key '{key}' must be finite and > 0, got {v!r}")
-        for key in ("sigma_v", "sigma_u", "reg", "omega0"):
+        for key in ("sigma_v", "sigma_u", "omega0"):
             v = getattr(self, key)
             if not math.isfinite(v) or v < 0:
                 raise ValueError(f"config key '{key}' must be finite and ≥ 0, got {v!r}")
         if not math.isfinite(self.gyro_bias_deg_per_hr):
             raise ValueError(f"config key 'gyro_bias_deg_per_hr' must be finite, got {self.gyro_bias_deg_per_hr!r}")
-        for key in ("runs", "max_stars", "components", "update_iterations", "adapt_cadence"):
+        for key in ("runs", "max_stars", "components"):
             if getattr(self, key) < 1:
                 raise ValueError(f"config key '{key}' must be ≥ 1, got {getattr(self, key)!r}")
         if not 0.0 < self.spread < 1.0:
             raise ValueError(f"config key 'spread' must lie in (0, 1), got {self.spread!r}")
         if self.fov_deg >= 180.0:
             raise ValueError(f"config key 'fov_deg' must be < 180, got {self.fov_deg!r}")
-        if self.scaling not in ("trace", "none"):
-            raise ValueError(f"config key 'scaling' must be 'trace' or 'none', got {self.scaling!r}")
         if self.star_noise_model not in ("isotropic", "tangent"):
             raise ValueError(f"config key 'star_noise_model' must be 'isotropic' or 'tangent', got {self.star_noise_model!r}")
-        if not 0.0 <= self.gate_probability < 1.0:
-            raise ValueError(f"config key 'gate_probability' must be 0 (off) or lie in (0, 1), got {self.gate_probability!r}")
         from envs.faults import parse_faults
 
         try:
             parse_faults(self.faults)
         except ValueError as exc:
             raise ValueError(f"config key 'faults': {exc}") from None
-        if self.weight_ref not in ("update", "previous"):
-            raise ValueError(f"config key 'weight_ref' must be 'update' or 'previous', got {self.weight_ref!r}")
         if len(self.rate_axes) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes):
             raise ValueError(f"config key 'rate_axes' must be 3 finite numbers, got {self.rate_axes!r}")
+        for key, opt in CONFIG_OPTIONS.items():  # each declaring class validates its own option
+            for owner in opt.owners:
+                try:
+                    owner(**{key: opt.to_api(getattr(self, key))})
+                except ValueError as exc:
+                    off = "" if opt.off is None else f" (or {opt.off!r}: off)"
+                    raise ValueError(f"config key '{key}': {exc}{off}") from None
         if not self.filters or any(f not in FILTER_NAMES for f in self.filters) or len(set(self.filters)) != len(self.filters):
             raise ValueError(f"config key 'filters' must be a non-empty list of distinct names from {FILTER_NAMES}, got {self.filters!r}")
         from ..qp import MAX_COMPONENTS
@@ -195,6 +183,11 @@ class ExperimentConfig:
     def num_steps(self) -> int:
         return int(round(self.duration / self.dt))
 
+    def filter_options(self) -> dict[str, Any]:
+        """The filters' options (:data:`~agsf_torch.filters.registry.CONFIG_OPTIONS`) as the filters take
+        them (``gate_probability = 0`` → ``None``), for :func:`~agsf_torch.filters.registry.make_filter`."""
+        return {key: opt.to_api(getattr(self, key)) for key, opt in CONFIG_OPTIONS.items()}
+
     def env_settings(self) -> dict[str, Any]:
         """The simulator's settings (:class:`envs.StarTrackerConfig` fields) of this configuration."""
         return {
@@ -211,8 +204,32 @@ class ExperimentConfig:
         """Short hash of the configuration (identifies an experiment in an output folder)."""
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 
-    def replace(self, **changes: Any) -> "ExperimentConfig":
+    def replace(self, **changes: Any) -> ExperimentConfig:
         return _from_mapping({**self.to_dict(), **changes})
+
+
+def _option_lines() -> str:
+    return "\n".join(
+        f"        {opt.name}: {opt.help} (default {opt.default!r}; declared by "
+        f"{', '.join(c.__name__ for c in opt.owners)})."
+        for opt in CONFIG_OPTIONS.values()
+    )
+
+
+#: One Monte Carlo experiment: the fields of the experiment and of the filters' options.
+ExperimentConfig = dataclasses.make_dataclass(
+    "ExperimentConfig",
+    [(o.name, o.kind, field(default=o.default)) for o in CONFIG_OPTIONS.values()],
+    bases=(_ExperimentFields,),
+    frozen=True,
+)
+ExperimentConfig.__module__ = __name__  # pickled by reference (Ray workers, multiprocessing)
+ExperimentConfig.__doc__ = (
+    _ExperimentFields.__doc__.rstrip()
+    + "\n\n    The filters' options (declared by the filters and weight updates, one name everywhere):\n\n"
+    + _option_lines()
+    + "\n"
+)
 
 
 def _from_mapping(data: dict[str, Any]) -> ExperimentConfig:

@@ -6,7 +6,7 @@ import torch
 
 from ..constants import DEG_PER_HOUR
 from ..filter_loop import FilterSetup
-from ..filters.registry import FilterOptions, filter_spec
+from ..filters.registry import filter_spec
 from ..models import AttitudeModel
 from .config import ExperimentConfig
 
@@ -29,14 +29,11 @@ def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:
     """The filters a configuration names, built by the registry (:mod:`agsf_torch.filters.registry`),
     all on the same attitude model."""
     model = filter_model(cfg)
-    options = {
-        "update_iterations": cfg.update_iterations, "gate_probability": cfg.gate_probability or None, "reg": cfg.reg,
-        "scaling": cfg.scaling, "weight_ref": cfg.weight_ref, "compile": cfg.compile, "cadence": cfg.adapt_cadence,
-    }
+    options = cfg.filter_options()
     setups = {}
     for name in cfg.filters:
         spec = filter_spec(name)
-        filt = spec.build(model, FilterOptions(**options))
+        filt = spec.build(model, **options)
         setups[name] = FilterSetup(filt, cfg.components, cfg.spread) if spec.mixture else FilterSetup(filt, 1)
     return setups
 

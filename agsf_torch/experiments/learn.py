@@ -49,7 +49,7 @@ def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]
     kwargs = {
         "prior_mean": mean0, "prior_cov": P0, "filter_kind": "EKF", "estimate_bias": cfg.estimate_bias,
         "update_iterations": cfg.update_iterations, "noise_model": cfg.star_noise_model,
-        "gate_probability": cfg.gate_probability or None,
+        "gate_probability": cfg.filter_options()["gate_probability"],
     }
     return configured, kwargs
 

@@ -169,7 +169,7 @@ def rotation_error(mean: Tensor, cov: Tensor, x_true: Tensor) -> tuple[Tensor, T
         ``b̂ − b`` and ``sqrt(diag P)`` (rad/s).
     """
     n = mean.shape[-1]
-    J = torch.eye(n, dtype=cov.dtype).expand(cov.shape).clone()
+    J = torch.eye(n, dtype=cov.dtype, device=cov.device).expand(cov.shape).clone()
     J[:, :3, :3] = attitude_error_jacobian(mean[:, :3])
     error = torch.cat((attitude_error_vector(mean[:, :3], x_true[:, :3]), mean[:, 3:] - x_true[:, 3:]), -1)
     sigma = (J @ cov @ J.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sqrt()
@@ -211,8 +211,8 @@ def run_monte_carlo(
             ``σ_v/√Δt`` of the first filter's model.
 
     Per-step extras of every trace (besides the filter's own diagnostics):
-    ``gate_rejected [T, B]`` (star blocks rejected by the filter's innovation gate;
-    0 without gating) and ``gyro_held [T, B]`` (1 where the gyro sample was bridged).
+    ``gate_rejected [B, T]`` (star blocks rejected by the filter's innovation gate;
+    0 without gating) and ``gyro_held [B, T]`` (1 where the gyro sample was bridged).
     """
     records: dict[str, dict[str, list]] = {name: {k: [] for k in FilterTrace.__dataclass_fields__} for name in filters}
     times, frames = [], []

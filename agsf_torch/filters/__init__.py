@@ -1,13 +1,18 @@
-"""Filters sharing one predict/update contract: EKF, GSF, the adaptive GSF (with its weight
-updates) and the multiplicative EKF."""
+"""Filters sharing one contract (:class:`~agsf_torch.filters.base.Filter`): EKF, GSF, the adaptive
+GSF (with its weight updates) and the multiplicative EKF, built on one base with small steps."""
 
 from .adaptive import AdaptiveGaussianSumFilter
-from .diagnostics_view import StepDiagnostics
+from .base import BaseFilter, Filter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
 from .multiplicative import MultiplicativeEKF
+from .options import FilterOptions
+from .step_diagnostics import StepDiagnostics
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
 
 __all__ = [
+    "Filter",
+    "BaseFilter",
+    "FilterOptions",
     "ExtendedKalmanFilter",
     "GaussianSumFilter",
     "AdaptiveGaussianSumFilter",

@@ -8,6 +8,7 @@ that reduce the Fokker–Planck residual of the mixture: the paper's penalised Q
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 from torch import Tensor
@@ -15,48 +16,37 @@ from torch import Tensor
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel
 from .gaussian_sum import GaussianSumFilter
-from .weight_updates import WeightUpdate, make_weight_update
+from .weight_updates import WEIGHT_UPDATES, WeightUpdate, make_weight_update
 
 __all__ = ["AdaptiveGaussianSumFilter"]
 
-_UNSET: Any = object()
-_PENALTY_ONLY = frozenset({"reg", "scaling", "weight_ref"})
+#: Each weight-update option → the first registered update class that declares it (for error messages).
+_WEIGHT_UPDATE_OPTIONS: dict[str, type[WeightUpdate]] = {}
+for _cls in WEIGHT_UPDATES.values():
+    for _f in dataclasses.fields(_cls):
+        if _f.init:
+            _WEIGHT_UPDATE_OPTIONS.setdefault(_f.name, _cls)
 
 
 class AdaptiveGaussianSumFilter(GaussianSumFilter):
     """Gaussian sum filter whose weights minimise the FPKE residual between updates.
 
+    Example::
+
+        AdaptiveGaussianSumFilter(model)                                          # the paper's update, λ = 1
+        AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(reg=0.1, cadence=2))
+        AdaptiveGaussianSumFilter(model, weight_update="galerkin")                # the authors' later form
+
     Args:
         model: the continuous-time model.
-        reg, scaling, weight_ref: options of the paper's update
-            (:class:`~agsf_torch.filters.weight_updates.PenaltyWeightUpdate`): λ ≥ 0
-            (default 1), ``"trace"`` (default) or ``"none"``, ``"update"`` (default)
-            or ``"previous"``.
-        weight_update: ``"penalty"`` (default; the paper, method.md §3),
+        weight_update: ``"penalty"`` (default; the paper, method.md §3, with default options),
             ``"galerkin"`` (the authors' later form, §3b) or a
-            :class:`~agsf_torch.filters.weight_updates.WeightUpdate` object (then
-            configure it there, not here).
-        cadence: adapt the weights every ``cadence``-th ``predict`` call (1: every step).
+            :class:`~agsf_torch.filters.weight_updates.WeightUpdate` object carrying its options
+            (:class:`~agsf_torch.filters.weight_updates.PenaltyWeightUpdate`: ``reg``, ``scaling``,
+            ``weight_ref``; both: ``cadence``, ``quadrature``, ``chunk_size``, ``compile``).
         adapt: ``False`` switches the weight update off (the filter is then the GSF).
-        quadrature: how the residual integrals under each product Gaussian are computed.
-            ``None`` (default) takes the fastest exact route the model offers: for the
-            Galerkin ``K``, closed-form Gaussian moments (``fokker_planck_moments``;
-            the attitude models have them), for the paper's ``L`` an interpolatory
-            product rule on the polynomial space of ``ℓ`` (``fpke_polynomial_space``:
-            840 nodes per pair for 6-state attitude instead of 9261); otherwise the
-            model's exact Gauss–Hermite rule (``fpke_quadrature_points``), else 7
-            points per axis for ``n ≤ 4`` and a level-7 Smolyak grid above.  Or an int (points per axis), a
-            tuple (points per axis), or ``(nodes [K, n], weights [K])`` for ``N(0, I)``
-            (finite, weights summing to 1), applied as ``x = m + chol(S) ξ`` with the
-            lower Cholesky factor — e.g. :func:`agsf_torch.quadrature.six_n_plus_one`,
-            the authors' own rule.
-        chunk_size: quadrature nodes (or, with a product rule, component pairs) per
-            batched evaluation, a positive integer (``None``: sized automatically to
-            bound memory); zero, negative or fractional values are a ``ValueError``.
-        compile: evaluate the node kernels with ``torch.compile`` (fused elementwise
-            work; a one-off compilation of 10–20 s per shape, kept in the on-disk
-            inductor cache); unused by the closed-form Galerkin path.
-        **kwargs: passed to :class:`GaussianSumFilter`.
+        **options: passed to :class:`GaussianSumFilter` (``substeps``, ``update_iterations``,
+            ``gate_probability``, ``repair_covariance``, ``min_eigenvalue``).
 
     The filter follows one run (one batch of trajectories) at a time: the weight
     update's state (cadence counter, reference weights) lives in the filter —
@@ -73,34 +63,19 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
     """
 
     def __init__(
-        self,
-        model: ContinuousModel,
-        reg: float | Tensor = _UNSET,
-        scaling: str = _UNSET,
-        weight_ref: str = _UNSET,
-        *,
-        weight_update: str | WeightUpdate = "penalty",
-        cadence: int = _UNSET,
-        adapt: bool = True,
-        quadrature: Any = _UNSET,
-        chunk_size: int | None = _UNSET,
-        compile: bool = _UNSET,
-        **kwargs: Any,
+        self, model: ContinuousModel, *, weight_update: str | WeightUpdate = "penalty", adapt: bool = True, **options: Any
     ) -> None:
-        super().__init__(model, **kwargs)
-        given = {
-            k: v
-            for k, v in {
-                "reg": reg, "scaling": scaling, "weight_ref": weight_ref, "cadence": cadence,
-                "quadrature": quadrature, "chunk_size": chunk_size, "compile": compile,
-            }.items()
-            if v is not _UNSET
-        }
-        if weight_update == "galerkin":
-            penalty_only = sorted(set(given) & _PENALTY_ONLY)
-            if penalty_only:
-                raise ValueError(f"{', '.join(penalty_only)} configure(s) the penalty weight update, not weight_update='galerkin'")
-        update = make_weight_update(weight_update, **given)
+        misplaced = sorted(set(options) & _WEIGHT_UPDATE_OPTIONS.keys())
+        if misplaced:
+            name = misplaced[0]
+            owner = weight_update if isinstance(weight_update, WeightUpdate) else _WEIGHT_UPDATE_OPTIONS[name]
+            owner_name = type(owner).__name__ if isinstance(owner, WeightUpdate) else owner.__name__
+            raise TypeError(
+                f"{', '.join(misplaced)} configure{'s' if len(misplaced) == 1 else ''} the weight update, not the filter: "
+                f"pass weight_update={owner_name}({name}=...)"
+            )
+        super().__init__(model, **options)
+        update = make_weight_update(weight_update)
         update.bind(model)
         self.weight_update = update
         self.adapt = bool(adapt)
@@ -111,6 +86,24 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
         keys = super().diagnostic_keys(step)
         return keys + ("weights_adapted",) + tuple(self.weight_update.diagnostic_keys) if step == "predict" else keys
 
+    def check_mixture(self, mixture: GaussianMixture) -> None:
+        """As the GSF's, and the weight update's own limits (e.g. ``N ≤ MAX_COMPONENTS``), before any work."""
+        super().check_mixture(mixture)
+        if self.adapt:
+            self.weight_update.check(mixture)
+
+    def _adapt_weights(
+        self, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, dt: float
+    ) -> tuple[GaussianMixture, dict[str, Any]]:
+        log_weights, extra = self.weight_update(self.model, prior, propagated, u, dt, enabled=self.adapt)
+        if log_weights is None:
+            return propagated, extra
+        return propagated.replace(log_weights=log_weights, validate=False), extra
+
+    def _after_update(self, posterior: GaussianMixture) -> None:
+        self.weight_update.observe_update(posterior.log_weights)
+
+    # --------------------------------------------------------------- run state
     def reset(self) -> None:
         """Start a new run: the weight update forgets its counter and reference."""
         self.weight_update.reset()
@@ -122,21 +115,6 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict` (validated before anything changes)."""
         if not isinstance(state, dict) or set(state) != {"weight_update"}:
-            raise ValueError(f"adaptive filter state must be {{'weight_update': ...}}, got keys {sorted(state) if isinstance(state, dict) else state!r}")
+            got = sorted(state) if isinstance(state, dict) else state
+            raise ValueError(f"adaptive filter state must be {{'weight_update': ...}}, got keys {got!r}")
         self.weight_update.load_state_dict(state["weight_update"])
-
-    def _check_mixture(self, mixture: GaussianMixture) -> None:
-        super()._check_mixture(mixture)
-        if self.adapt:
-            self.weight_update.check(mixture)  # e.g. N ≤ MAX_COMPONENTS, before any work
-
-    def _after_update(self, posterior: GaussianMixture) -> None:
-        self.weight_update.observe_update(posterior.log_weights)
-
-    def _adapt_weights(
-        self, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, dt: float
-    ) -> tuple[GaussianMixture, dict[str, Any]]:
-        log_weights, extra = self.weight_update(self.model, prior, propagated, u, dt, enabled=self.adapt)
-        if log_weights is None:
-            return propagated, extra
-        return propagated.replace(log_weights=log_weights, validate=False), extra

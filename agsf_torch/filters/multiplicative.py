@@ -30,13 +30,11 @@ converts back; the returned MRP is always the short set ``|p| ≤ 1``.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from ..gating import chi2_threshold, innovation_gate
 from ..mixture import GaussianMixture
 from ..models.attitude import AttitudeModel
 from ..models.base import MeasurementModel
@@ -45,14 +43,13 @@ from ..rotations import (
     quat_multiply,
     rotvec_to_quat,
 )
-from ..update import kalman_update
+from ..update import ComponentUpdate
+from .base import BaseFilter, UpdateFrame
 from .error_state import ErrorStateMeasurement, _exp_and_right_jacobian, _sym, error_state_to_mrp, mrp_to_error_state, rotation_series
-from .diagnostics_view import StepDiagnostics
-from .gaussian_sum import check_batched, diagnostic_keys
 
 __all__ = ["MultiplicativeEKF", "mrp_to_error_state", "error_state_to_mrp", "rotation_series"]  # helpers from error_state
 
-class MultiplicativeEKF:
+class MultiplicativeEKF(BaseFilter):
     """Batched multiplicative EKF on an :class:`~agsf_torch.models.AttitudeModel` (3- or 6-state).
 
     Same contract as :class:`~agsf_torch.filters.GaussianSumFilter` (the Monte Carlo
@@ -112,14 +109,14 @@ class MultiplicativeEKF:
 
     Args:
         model: the attitude model (``estimate_bias``, ``sigma_v``, ``sigma_u``, known ``bias``).
-        update_iterations: linearisations per update (≥ 1; 1 is the classic MEKF).
-        gate_probability: ``None`` (every measurement used) or ``p`` in (0, 1): the
-            per-block χ² innovation gate of :mod:`agsf_torch.gating`, as in the GSF.
         discrete_noise: ``"farrenkopf"`` (default) or ``"exact"`` (above).
         covariance_reset: also transport the covariance in the reset (default ``False``).
+        **options: ``update_iterations`` (≥ 1; 1 is the classic MEKF), ``gate_probability``
+            (the per-block χ² innovation gate of :mod:`agsf_torch.gating`, as in the GSF)
+            (:class:`~agsf_torch.filters.base.BaseFilter`).
 
     Diagnostics (``.diagnostics`` after each call, as the GSF's): predict —
-    ``weight_entropy [...]`` (zeros), ``covariance_repairs`` (0); update —
+    ``weight_entropy [...]`` (zeros), ``covariance_repairs`` (0 unless ``repair_covariance``); update —
     ``log_likelihood [...]``, ``nis [..., 1]``, ``nis_mixture [...]``, ``dof [...]``,
     ``weight_entropy``, ``covariance_repairs`` and, with gating, ``gate_*``.
 
@@ -132,50 +129,29 @@ class MultiplicativeEKF:
         mean, cov = mekf.estimate(belief)
     """
 
+    model_type = AttitudeModel
+    num_components = 1
+    mixture_nis = False  # one component: the mixture NIS is the component's
+
     def __init__(
-        self,
-        model: AttitudeModel,
-        *,
-        update_iterations: int = 1,
-        gate_probability: float | None = None,
-        discrete_noise: str = "farrenkopf",
-        covariance_reset: bool = False,
+        self, model: AttitudeModel, *, discrete_noise: str = "farrenkopf", covariance_reset: bool = False, **options: Any
     ) -> None:
-        if not isinstance(model, AttitudeModel):
-            raise TypeError(f"MultiplicativeEKF needs an AttitudeModel, got {type(model).__name__}")
-        if isinstance(update_iterations, bool) or int(update_iterations) != update_iterations or update_iterations < 1:
-            raise ValueError(f"update_iterations must be a positive integer, got {update_iterations!r}")
-        if gate_probability is not None:
-            chi2_threshold(gate_probability, 1)  # validates p
+        super().__init__(model, **options)
         if discrete_noise not in ("farrenkopf", "exact"):
             raise ValueError(f"discrete_noise must be 'farrenkopf' or 'exact', got {discrete_noise!r}")
-        self.model = model
-        self.update_iterations = int(update_iterations)
-        self.gate_probability = None if gate_probability is None else float(gate_probability)
         self.discrete_noise = discrete_noise
         self.covariance_reset = bool(covariance_reset)
-        self.diagnostics: StepDiagnostics = StepDiagnostics()
 
-    # ----------------------------------------------------------------- checks
-    def _check_mixture(self, mixture: GaussianMixture) -> None:
-        if not isinstance(mixture, GaussianMixture):
-            raise TypeError(f"mixture must be a GaussianMixture, got {type(mixture).__name__}")
-        if mixture.num_components != 1:
-            raise ValueError(f"MultiplicativeEKF needs a one-component mixture, got {mixture.num_components} components")
-        if mixture.state_dim != self.model.state_dim:
-            raise ValueError(f"mixture state dimension {mixture.state_dim} != model state_dim {self.model.state_dim}")
-
-    @staticmethod
-    def _check_positive_definite(P: Tensor, where: str) -> None:
-        info = torch.linalg.cholesky_ex(P).info
-        if bool((info != 0).any()):
-            idx = (info != 0).nonzero()[0].tolist()
-            raise ValueError(f"error-state covariance is not positive definite {where} at trajectory index {tuple(idx)}")
-
-    def _to_error_state(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor, Tensor]:
+    # ------------------------------------------------------------ error state
+    def _to_error_state(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor, Tensor, int]:
+        """``(q̂ [..., 4], b̂ [..., 3 or 0], P_δ [..., n, n], repairs)`` of a one-component belief."""
         q, b, P = mrp_to_error_state(mixture.means[..., 0, :], mixture.covs[..., 0, :, :])
-        self._check_positive_definite(P, "in the input belief")
-        return q, b, P
+        P, repairs = self._checked(P, "in the input belief")
+        return q, b, P, repairs
+
+    def _checked(self, P: Tensor, where: str) -> tuple[Tensor, int]:
+        P, repairs = self._ensure_positive_definite(P.unsqueeze(-3), where, "the error-state covariance")
+        return P[..., 0, :, :], repairs
 
     def _to_mixture(self, mixture: GaussianMixture, q: Tensor, b: Tensor, P: Tensor) -> GaussianMixture:
         mean, cov = error_state_to_mrp(q, b, P)
@@ -215,131 +191,53 @@ class MultiplicativeEKF:
         return Phi, Q
 
     # ------------------------------------------------------------- the steps
-    def predict(self, mixture: GaussianMixture, u: Tensor | None, dt: float) -> GaussianMixture:
-        """Propagate the reference quaternion (exactly) and the error covariance over ``dt``.
-
-        Args:
-            mixture: one-component MRP belief at ``t`` (batch shape ``[...]``).
-            u: gyro reading ``ω̃`` ``[..., 3]`` (rad/s), held over the interval.
-            dt: interval (s), finite and > 0.
-
-        Returns:
-            The belief at ``t + dt`` (batch shape: ``[...]`` broadcast with ``u``'s).
-        """
-        self._check_mixture(mixture)
-        if not (isinstance(dt, (int, float)) or torch.is_tensor(dt)) or isinstance(dt, bool):
-            raise ValueError(f"dt must be a finite positive number, got {dt!r}")
-        if torch.is_tensor(dt) and dt.numel() != 1:
-            raise ValueError(f"dt must be a scalar, got shape {tuple(dt.shape)}")
-        dt = float(dt)
-        if not (math.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be a finite positive number, got {dt}")
-        if u is None:
-            raise ValueError("u (the gyro reading, [..., 3] rad/s) is required by the attitude model")
-        u = torch.as_tensor(u, dtype=mixture.means.dtype, device=mixture.means.device)
-        check_batched("u", u, mixture.batch_shape, last=3)
-        q, b, P = self._to_error_state(mixture)
+    def _propagate(self, mixture: GaussianMixture, u: Tensor | None, dt: float) -> tuple[GaussianMixture, int]:
+        """The reference quaternion exactly, the error covariance by ``Φ P Φᵀ + Q_d`` (class docstring);
+        ``u = ω̃ [..., 3]`` (rad/s), held over the interval."""
+        q, b, P, repairs = self._to_error_state(mixture)
         omega = u - (b if self.model.estimate_bias else self.model.bias.to(u))
         q = quat_multiply(*torch.broadcast_tensors(rotvec_to_quat(omega * dt), q))
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
         Phi, Q = self.transition(omega, dt)
         P = _sym(Phi @ P @ Phi.transpose(-1, -2) + Q)
         b = b.expand(*q.shape[:-1], b.shape[-1])
-        out = self._to_mixture(mixture, q, b, P)
-        self.diagnostics = StepDiagnostics({"weight_entropy": out.entropy_of_weights(), "covariance_repairs": 0})
-        return out
+        return self._to_mixture(mixture, q, b, P), repairs
 
-    def update(self, mixture: GaussianMixture, y: Tensor, measurement: MeasurementModel) -> GaussianMixture:
-        """Multiplicative measurement update and reset.
-
-        Args:
-            mixture: one-component predicted MRP belief (batch ``[...]``).
-            y: measurement ``[..., d]`` (masked entries are ignored but must be finite), checked by
-                ``measurement.check_measurement`` and :func:`~agsf_torch.update.check_innovation`
-                before anything changes.
-            measurement: any measurement model of the MRP state (``predict``, ``jacobian``,
-                ``noise_cov``, ``mask``), e.g. :class:`~agsf_torch.models.StarVectorMeasurement`.
-
-        Returns:
-            The posterior MRP belief; trajectories without a valid entry are returned unchanged.
-        """
-        self._check_mixture(mixture)
-        if not isinstance(measurement, MeasurementModel):
-            raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
-        y = torch.as_tensor(y, dtype=mixture.means.dtype, device=mixture.means.device)
-        check_batched("y", y, mixture.batch_shape)
-        y = measurement.check_measurement(y)  # the model's own checks (size d, unit vectors…), as the GSF
-        q, b, P = self._to_error_state(mixture)
+    def _update_frame(self, mixture: GaussianMixture, measurement: MeasurementModel) -> UpdateFrame:
+        """The error state about the reference ``(q̂, b̂)``: zero mean, ``P_δ``, the measurement seen from it."""
+        q, b, P, _ = self._to_error_state(mixture)
         n = mixture.state_dim
-        err_meas = ErrorStateMeasurement(measurement, q, b)
         zero_w = torch.zeros(P.shape[:-2] + (1,), dtype=P.dtype, device=P.device)
         zero_x = torch.zeros(P.shape[:-2] + (1, n), dtype=P.dtype, device=P.device)
-        covs = P.unsqueeze(-3)
-        gate: dict[str, Tensor] = {}
-        mask = None
-        if self.gate_probability is not None:
-            block = measurement.block_size or y.shape[-1]
-            threshold = chi2_threshold(self.gate_probability, block)
-            accepted, gate_nis, mask, overridden = innovation_gate(zero_w, zero_x, covs, y, err_meas, threshold)
-            gate = {
-                "gate_rejected": (~accepted).sum(-1),
-                "gate_nis": gate_nis,
-                "gate_accepted": accepted,
-                "gate_overridden": overridden,
-            }
-        res = kalman_update(zero_w, zero_x, covs, y, err_meas, self.update_iterations, mask=mask, mixture_nis=False)
-        dx, P_post = res.means[..., 0, :], res.covs[..., 0, :, :]
+        return UpdateFrame(zero_w, zero_x, P.unsqueeze(-3), ErrorStateMeasurement(measurement, q, b), context=(q, b))
+
+    def _posterior(self, prior: GaussianMixture, frame: UpdateFrame, result: ComponentUpdate) -> tuple[GaussianMixture, int]:
+        """The reset (class docstring); trajectories without a valid entry keep their belief exactly."""
+        q, b = frame.context
+        n = prior.state_dim
+        dx, P_post = result.means[..., 0, :], result.covs[..., 0, :, :]
         batch = dx.shape[:-1]
         q_post = quat_multiply(rotvec_to_quat(dx[..., :3]), q.expand(*batch, 4))
         q_post = q_post / torch.linalg.vector_norm(q_post, dim=-1, keepdim=True)
         b_post = b.expand(*batch, n - 3) + dx[..., 3:]
         if self.covariance_reset:
             _, J, _ = _exp_and_right_jacobian(dx[..., :3])
-            Gam = torch.eye(n, dtype=P.dtype, device=P.device).expand(*batch, n, n).clone()
+            Gam = torch.eye(n, dtype=P_post.dtype, device=P_post.device).expand(*batch, n, n).clone()
             Gam[..., :3, :3] = J
             P_post = _sym(Gam @ P_post @ Gam.transpose(-1, -2))
-        self._check_positive_definite(P_post, "after the measurement update")
-        out = self._to_mixture(mixture, q_post, b_post, P_post)
-        # trajectories without a valid entry keep their belief exactly
-        keep = (res.dof == 0)[..., None, None]
-        means = torch.where(keep, mixture.means.expand_as(out.means), out.means)
-        cov_out = torch.where(keep[..., None], mixture.covs.expand_as(out.covs), out.covs)
+        P_post, repairs = self._checked(P_post, "after the measurement update")
+        out = self._to_mixture(prior, q_post, b_post, P_post)
+        keep = (result.dof == 0)[..., None, None]
+        means = torch.where(keep, prior.means.expand_as(out.means), out.means)
+        cov_out = torch.where(keep[..., None], prior.covs.expand_as(out.covs), out.covs)
         means, cov_out = self.model.canonicalize(means, cov_out)
-        out = out.replace(means=means, covs=cov_out, validate=False)  # checked above; kept entries are the input's
-        self.diagnostics = StepDiagnostics({
-            "log_likelihood": res.log_likelihood,
-            "nis": res.nis,
-            "nis_mixture": res.nis[..., 0],
-            "dof": res.dof,
-            "weight_entropy": out.entropy_of_weights(),
-            "covariance_repairs": 0,
-            **gate,
-        })
-        return out
-
-    def diagnostic_keys(self, step: str) -> tuple[str, ...]:
-        """The keys of ``filt.diagnostics`` after a ``"predict"`` or ``"update"`` (the GSF's)."""
-        return diagnostic_keys(step, self.gate_probability is not None)
-
-    # ------------------------------------------------------------- run state
-    def reset(self) -> None:
-        """Start a new run (the MEKF keeps no run state besides the belief it is given)."""
-
-    def state_dict(self) -> dict[str, Any]:
-        """The filter's run state, for checkpoints: none, ``{}``."""
-        return {}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict` (only ``{}`` is valid)."""
-        if state != {}:
-            got = sorted(state) if isinstance(state, dict) else state
-            raise ValueError(f"MultiplicativeEKF keeps no run state; got {got!r}")
+        return out.replace(means=means, covs=cov_out, validate=False), repairs  # checked above; kept entries are the input's
 
     def estimate(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor]:
-        """Point estimate and covariance in MRP coordinates.
+        """Point estimate and covariance in MRP coordinates: the one component.
 
         Returns:
             ``(mean [..., n], cov [..., n, n])``.
         """
-        self._check_mixture(mixture)
+        self.check_mixture(mixture)
         return mixture.means[..., 0, :], mixture.covs[..., 0, :, :]

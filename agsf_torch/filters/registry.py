@@ -4,47 +4,34 @@ The CLI's choices, configuration validation, learning and the benchmark all read
 :data:`FILTERS`; a new filter is one entry here::
 
     from agsf_torch.filters.registry import make_filter
-    filt = make_filter("AGSF-galerkin", model, update_iterations=3)
+    filt = make_filter("AGSF-galerkin", model, update_iterations=3, cadence=2)
 
-Options (:class:`FilterOptions`) are shared by all entries; each builder takes the
-ones its filter has and ignores the rest, so one configuration builds every filter.
+Options are declared once, as fields of frozen dataclasses: :class:`~agsf_torch.filters.options.FilterOptions`
+(every filter) and each weight update's own
+(:class:`~agsf_torch.filters.weight_updates.PenaltyWeightUpdate`,
+:class:`~agsf_torch.filters.weight_updates.GalerkinWeightUpdate`).  :func:`make_filter` takes
+any of them by name and gives each filter the ones it has, so one configuration builds
+every filter; :data:`CONFIG_OPTIONS` lists those a configuration file can set.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, fields
+import dataclasses
+from dataclasses import dataclass
 from typing import Any
 
 from ..models.base import ContinuousModel
 from .adaptive import AdaptiveGaussianSumFilter
+from .base import BaseFilter, Filter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
 from .multiplicative import MultiplicativeEKF
+from .options import ConfigOption, FilterOptions, config_options
+from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
 
-__all__ = ["FilterOptions", "FilterSpec", "FILTERS", "FILTER_NAMES", "ADAPTIVE_FILTERS", "make_filter", "filter_spec"]
-
-
-@dataclass(frozen=True)
-class FilterOptions:
-    """Options of the registered filters (each uses the ones it has).
-
-    Attributes:
-        update_iterations: linearisations per measurement update (all filters).
-        gate_probability: innovation gate ``p`` or ``None`` (all filters).
-        reg: λ of the paper's weight QP (``AGSF``); a float or a 0-d tensor (learning).
-        scaling: ``"trace"`` or ``"none"``, scaling of the FPKE matrix (``AGSF``).
-        weight_ref: ``"update"`` or ``"previous"``, reference weights of the QP (``AGSF``).
-        compile: ``torch.compile`` the FPKE kernel (adaptive filters).
-        cadence: adapt the weights every ``cadence``-th predict (adaptive filters).
-    """
-
-    update_iterations: int = 1
-    gate_probability: float | None = None
-    reg: Any = 1.0
-    scaling: str = "trace"
-    weight_ref: str = "update"
-    compile: bool = False
-    cadence: int = 1
+__all__ = [
+    "FilterSpec", "FILTERS", "FILTER_NAMES", "ADAPTIVE_FILTERS", "OPTION_CLASSES", "CONFIG_OPTIONS", "make_filter",
+    "filter_spec",
+]
 
 
 @dataclass(frozen=True)
@@ -54,45 +41,60 @@ class FilterSpec:
     Attributes:
         name: the name users write (CLI, configuration files, learning).
         description: one line for help texts.
+        cls: the filter class (built as ``cls(model, **FilterOptions…)``).
         mixture: ``True`` if it carries ``components`` components, ``False`` for one.
-        adaptive: ``True`` if it adapts the weights during propagation.
-        build: ``build(model, options) -> filter``.
+        weight_update: the weight update class of an adaptive filter (built from its own
+            options and passed as ``weight_update=``), or ``None``.
     """
 
     name: str
     description: str
+    cls: type[BaseFilter]
     mixture: bool
-    adaptive: bool
-    build: Callable[[ContinuousModel, FilterOptions], GaussianSumFilter]
+    weight_update: type[WeightUpdate] | None = None
+
+    @property
+    def adaptive(self) -> bool:
+        """Whether the filter adapts its weights during propagation."""
+        return self.weight_update is not None
+
+    def build(self, model: ContinuousModel, **options: Any) -> Filter:
+        """The filter on ``model`` with the ``options`` its classes declare (others are ignored)."""
+        kwargs = _own(FilterOptions, options)
+        FilterOptions(**kwargs)  # validated here, whatever the filter does with them
+        if self.weight_update is not None:
+            kwargs["weight_update"] = self.weight_update(**_own(self.weight_update, options))
+        return self.cls(model, **kwargs)
 
 
-def _common(o: FilterOptions) -> dict[str, Any]:
-    return {"update_iterations": o.update_iterations, "gate_probability": o.gate_probability}
+def _own(cls: type, options: dict[str, Any]) -> dict[str, Any]:
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    return {k: v for k, v in options.items() if k in names}
 
 
 FILTERS: dict[str, FilterSpec] = {
     spec.name: spec
     for spec in (
-        FilterSpec("EKF", "extended Kalman filter (one component)", False, False,
-                   lambda m, o: ExtendedKalmanFilter(m, **_common(o))),
-        FilterSpec("GSF", "Gaussian sum filter, weights fixed between measurements", True, False,
-                   lambda m, o: GaussianSumFilter(m, **_common(o))),
-        FilterSpec("AGSF", "adaptive GSF, the paper's weight QP (method.md §3)", True, True,
-                   lambda m, o: AdaptiveGaussianSumFilter(
-                       m, reg=o.reg, scaling=o.scaling, weight_ref=o.weight_ref, compile=o.compile,
-                       cadence=o.cadence, **_common(o))),
-        FilterSpec("AGSF-galerkin", "adaptive GSF, the authors' later Galerkin update (method.md §3b)", True, True,
-                   lambda m, o: AdaptiveGaussianSumFilter(
-                       m, weight_update="galerkin", compile=o.compile, cadence=o.cadence, **_common(o))),
-        FilterSpec("MEKF", "multiplicative EKF (one component), the industry baseline", False, False,
-                   lambda m, o: MultiplicativeEKF(m, **_common(o))),
+        FilterSpec("EKF", "extended Kalman filter (one component)", ExtendedKalmanFilter, False),
+        FilterSpec("GSF", "Gaussian sum filter, weights fixed between measurements", GaussianSumFilter, True),
+        FilterSpec("AGSF", "adaptive GSF, the paper's weight QP (method.md §3)", AdaptiveGaussianSumFilter, True,
+                   PenaltyWeightUpdate),
+        FilterSpec("AGSF-galerkin", "adaptive GSF, the authors' later Galerkin update (method.md §3b)",
+                   AdaptiveGaussianSumFilter, True, GalerkinWeightUpdate),
+        FilterSpec("MEKF", "multiplicative EKF (one component), the industry baseline", MultiplicativeEKF, False),
     )
 }
 #: Every registered name, in registry order.
 FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)
 #: The names of the filters that adapt their weights during propagation.
 ADAPTIVE_FILTERS: tuple[str, ...] = tuple(n for n, s in FILTERS.items() if s.adaptive)
-_OPTION_NAMES = tuple(f.name for f in fields(FilterOptions))
+#: The dataclasses that declare the registered filters' options.
+OPTION_CLASSES: tuple[type, ...] = (FilterOptions,) + tuple(
+    dict.fromkeys(s.weight_update for s in FILTERS.values() if s.weight_update is not None)
+)
+#: The options a configuration file can set, by name (:func:`~agsf_torch.filters.options.config_options`).
+CONFIG_OPTIONS: dict[str, ConfigOption] = config_options(*OPTION_CLASSES)
+_OPTION_NAMES = tuple(dict.fromkeys(f.name for cls in OPTION_CLASSES for f in dataclasses.fields(cls) if f.init))
 
 
 def filter_spec(name: str) -> FilterSpec:
@@ -102,16 +104,17 @@ def filter_spec(name: str) -> FilterSpec:
     return FILTERS[name]
 
 
-def make_filter(name: str, model: ContinuousModel, **options: Any) -> GaussianSumFilter:
+def make_filter(name: str, model: ContinuousModel, **options: Any) -> Filter:
     """Build the registered filter ``name`` on ``model``.
 
     Args:
         name: one of :data:`FILTER_NAMES`.
         model: the continuous-time model.
-        **options: fields of :class:`FilterOptions` (unknown keys are an error).
+        **options: fields of :data:`OPTION_CLASSES` (a filter takes the ones its classes declare;
+            names no class declares are an error).
     """
     spec = filter_spec(name)
     unknown = sorted(set(options) - set(_OPTION_NAMES))
     if unknown:
         raise ValueError(f"unknown filter option(s) {unknown}; known: {', '.join(_OPTION_NAMES)}")
-    return spec.build(model, FilterOptions(**options))
+    return spec.build(model, **options)

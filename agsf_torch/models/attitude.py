@@ -42,6 +42,7 @@ class AttitudeModel(ContinuousModel):
     """
 
     input_dim = 3
+    input_description = "the gyro reading ω̃, rad/s"
 
     def __init__(
         self,

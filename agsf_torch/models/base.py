@@ -143,6 +143,8 @@ class ContinuousModel(nn.Module):
     state_dim: int
     #: Size ``m`` of the input ``u [..., m]``; ``None``: not declared (no input, or one the model checks itself).
     input_dim: int | None = None
+    #: What the input is, for error messages (e.g. ``"the gyro reading ω̃, rad/s"``), or ``None``.
+    input_description: str | None = None
 
     def check_input(self, u: Tensor | None) -> None:
         """Raise ``ValueError`` unless ``u`` fits :attr:`input_dim`: ``u [..., m]`` with ``m = input_dim``.
@@ -153,11 +155,13 @@ class ContinuousModel(nn.Module):
         m = self.input_dim
         if m is None:
             return
+        what = f"{type(self).__name__}'s input" + (f": {self.input_description}" if self.input_description else "")
         if u is None:
-            raise ValueError(f"{type(self).__name__} needs an input u [..., {m}], got None")
+            desc = f" ({self.input_description})" if self.input_description else ""
+            raise ValueError(f"{type(self).__name__} needs an input u [..., {m}]{desc}, got None")
         if u.dim() < 1 or u.shape[-1] != m:
             raise ValueError(
-                f"u must have shape [..., {m}] ({type(self).__name__}'s input), got {tuple(u.shape)}; "
+                f"u must have shape [..., {m}] ({what}), got {tuple(u.shape)}; "
                 "it is not broadcast over the input's entries"
             )
 

@@ -87,5 +87,5 @@ def test_faults_preset_and_fault_validation():
     with pytest.raises(ValueError, match=r"config key 'faults': faults\[0\]: SensorFault: end \(1.0\) must be after start"):
         ExperimentConfig(faults=[{"kind": "star_outage", "start": 2.0, "end": 1.0}])
     for p in (-0.1, 1.0):
-        with pytest.raises(ValueError, match="config key 'gate_probability' must be 0"):
+        with pytest.raises(ValueError, match=r"config key 'gate_probability': gate probability must lie in \(0, 1\), got .* \(or 0.0: off\)"):
             ExperimentConfig(gate_probability=p)

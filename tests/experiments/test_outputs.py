@@ -99,7 +99,7 @@ def test_grid_values_are_normalised_and_duplicates_refused():
         parse_grid(["reg=1,1.0"], base)
     with pytest.raises(ValueError, match="grid key 'reg' is given twice"):
         parse_grid(["reg=1", "reg=2"], base)
-    with pytest.raises(ValueError, match="'reg' must be finite and ≥ 0"):
+    with pytest.raises(ValueError, match="config key 'reg': reg must be a finite number ≥ 0"):
         parse_grid(["reg=-1"], base)
 
 

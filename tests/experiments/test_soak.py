@@ -70,5 +70,5 @@ def test_soak_adaptive_6_state_ten_minutes():
     """256 runs, 6-state AGSF (5 components), weights adapted once per second, ten simulated
     minutes (69 min measured, sharing the machine).  The full hour with adaptation at every step (``agsf soak --filter AGSF``)
     costs ~2.6 s per step at B = 256 on 2 cores: ~26 h."""
-    v = soak_verdict(run_soak(soak_config("AGSF", duration=600.0, adapt_cadence=10)))
+    v = soak_verdict(run_soak(soak_config("AGSF", duration=600.0, cadence=10)))
     assert v["passed"], v

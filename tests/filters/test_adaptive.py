@@ -7,7 +7,7 @@ import torch
 
 from agsf_torch import GaussianMixture
 from agsf_torch.experiments.sine_benchmark import run_sine_benchmark
-from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.models.benchmarks import SineDriftModel
 from tests.conftest import random_mrps
@@ -18,7 +18,7 @@ F64 = torch.float64
 def _sine_filters():
     return {
         "gsf": GaussianSumFilter(SineDriftModel(), substeps=10),
-        "agsf": AdaptiveGaussianSumFilter(SineDriftModel(), quadrature=40, substeps=10),
+        "agsf": AdaptiveGaussianSumFilter(SineDriftModel(), weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10),
     }
 
 
@@ -85,7 +85,7 @@ def test_switched_off_equals_gsf_exactly(gen, estimate_bias):
 def test_fpke_error_is_reduced_without_penalty(gen):
     """With λ → 0 the QP minimises wᵀLw itself: the FPKE error can only go down."""
     model, mix, u, meas, y = _attitude_setup(gen, False, B=64)
-    agsf = AdaptiveGaussianSumFilter(model, reg=1e-9)
+    agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(reg=1e-9))
     agsf.predict(mix, u, 0.1)
     d = agsf.diagnostics
     assert bool((d["fpke_error_after"] <= d["fpke_error_before"] * (1 + 1e-6)).all())
@@ -94,7 +94,7 @@ def test_fpke_error_is_reduced_without_penalty(gen):
 
 def test_unscaled_paper_form_runs(gen):
     model, mix, u, meas, y = _attitude_setup(gen, False, B=16)
-    agsf = AdaptiveGaussianSumFilter(model, scaling="none")
+    agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(scaling="none"))
     out = agsf.predict(mix, u, 0.1)
     torch.testing.assert_close(out.weights.sum(-1), torch.ones(16, dtype=F64), rtol=0, atol=1e-12)
 
@@ -125,14 +125,14 @@ def test_singular_covariance_is_named_or_repaired(gen):
 )
 def test_bad_options_raise(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        AdaptiveGaussianSumFilter(AttitudeModel(), **kwargs)
+        AdaptiveGaussianSumFilter(AttitudeModel(), weight_update=PenaltyWeightUpdate(**kwargs))
 
 
 @pytest.mark.slow
 def test_compiled_kernel_equals_eager(gen):
     model, mix, u, meas, y = _attitude_setup(gen, False, B=32)
     eager = AdaptiveGaussianSumFilter(model).predict(mix, u, 0.1)
-    compiled = AdaptiveGaussianSumFilter(model, compile=True).predict(mix, u, 0.1)
+    compiled = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(compile=True)).predict(mix, u, 0.1)
     torch.testing.assert_close(compiled.log_weights, eager.log_weights, rtol=1e-10, atol=1e-12)
 
 
@@ -177,14 +177,18 @@ def test_components_beyond_the_qp_limit_are_refused_before_any_work():
 
 @pytest.mark.parametrize("bad", [0, -1, -3, 2.5, True, "4", [4], float("inf"), float("nan")])
 @pytest.mark.parametrize("weight_update", ["penalty", "galerkin"])
-def test_bad_chunk_size_is_refused_at_construction_and_when_set(weight_update, bad):
-    """One check (fpke.matrices.check_chunk_size) for every path: the filter, the update, the matrices."""
+def test_bad_chunk_size_is_refused_and_options_are_frozen(weight_update, bad):
+    """One check (fpke.matrices.check_chunk_size) for every path: the update and the matrices; the options
+    of a built update cannot change."""
+    from dataclasses import FrozenInstanceError
+
+    from agsf_torch.filters.weight_updates import WEIGHT_UPDATES
     from agsf_torch.fpke.matrices import check_chunk_size
 
     with pytest.raises(ValueError, match="chunk_size must be a positive integer or None"):
-        AdaptiveGaussianSumFilter(AttitudeModel(), weight_update=weight_update, chunk_size=bad)
-    filt = AdaptiveGaussianSumFilter(AttitudeModel(), weight_update=weight_update, chunk_size=8)
-    with pytest.raises(ValueError, match="chunk_size must be a positive integer or None"):
+        WEIGHT_UPDATES[weight_update](chunk_size=bad)
+    filt = AdaptiveGaussianSumFilter(AttitudeModel(), weight_update=WEIGHT_UPDATES[weight_update](chunk_size=8))
+    with pytest.raises(FrozenInstanceError):
         filt.weight_update.chunk_size = bad
     assert filt.weight_update.chunk_size == 8
     with pytest.raises(ValueError, match="chunk_size must be a positive integer or None"):
@@ -216,7 +220,7 @@ def test_counter_does_not_move_when_the_fpke_matrix_is_not_finite(gen):
     model, mix, u, meas, y = _attitude_setup(gen, False, B=4, N=3)
     u = u[:4].clone()
     u[1, 0] = 0.123
-    filt = AdaptiveGaussianSumFilter(Broken(), cadence=2)
+    filt = AdaptiveGaussianSumFilter(Broken(), weight_update=PenaltyWeightUpdate(cadence=2))
     filt.predict(mix, u, 0.1)
     assert filt.weight_update.state_dict()["step"] == 1
     before = filt.state_dict()

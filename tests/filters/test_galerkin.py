@@ -51,8 +51,8 @@ def test_sine_forecast_against_the_grid_fpke():
     than the paper's penalised update."""
     filters = {
         "gsf": GaussianSumFilter(SineDriftModel(), substeps=10),
-        "penalty": AdaptiveGaussianSumFilter(SineDriftModel(), quadrature=40, substeps=10),
-        "galerkin": AdaptiveGaussianSumFilter(SineDriftModel(), weight_update="galerkin", quadrature=40, substeps=10),
+        "penalty": AdaptiveGaussianSumFilter(SineDriftModel(), weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10),
+        "galerkin": AdaptiveGaussianSumFilter(SineDriftModel(), weight_update=GalerkinWeightUpdate(quadrature=40), substeps=10),
     }
     ise = {k: float(v[-1]) for k, v in run_sine_benchmark(filters).items() if k != "time"}
     print(f"ISE at t = 8: {ise}")
@@ -92,7 +92,7 @@ def _lorenz_scores(num: int, substeps: int):
         "gsf": GaussianSumFilter(model),
         "penalty": AdaptiveGaussianSumFilter(model),
         "galerkin": AdaptiveGaussianSumFilter(model, weight_update="galerkin"),
-        "galerkin_6n+1": AdaptiveGaussianSumFilter(model, weight_update="galerkin", quadrature=six_n_plus_one(3)),
+        "galerkin_6n+1": AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=six_n_plus_one(3))),
     }
     mixtures = {}
     for name, f in filters.items():
@@ -192,7 +192,7 @@ def test_gradcheck_through_the_galerkin_qp():
     """Gradients of a forecast statistic through the Galerkin QP (the KKT solve on the optimal
     support) with respect to the drift input and the prior spread, checked by finite differences."""
     model = SineDriftModel()
-    filt = AdaptiveGaussianSumFilter(model, weight_update="galerkin", quadrature=20)
+    filt = AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=20))
 
     def fn(shift, scale):
         filt.reset()
@@ -215,8 +215,8 @@ def test_cadence_uses_the_time_since_the_last_adaptation(gen):
     changes; on the sine model cadence 2 at dt equals cadence 1 at 2·dt for the first adaptation."""
     model = SineDriftModel()
     mix = GaussianMixture(weights=torch.tensor([0.1, 0.9], dtype=F64), means=torch.tensor([[-0.2], [0.2]], dtype=F64), covs=torch.ones(2, 1, 1, dtype=F64))
-    every2 = AdaptiveGaussianSumFilter(model, weight_update="galerkin", cadence=2, quadrature=30)
-    once = AdaptiveGaussianSumFilter(model, weight_update="galerkin", quadrature=30)
+    every2 = AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(cadence=2, quadrature=30))
+    once = AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=30))
     a = every2.predict(every2.predict(mix, None, 0.05), None, 0.05)
     b = GaussianSumFilter(model).predict(GaussianSumFilter(model).predict(mix, None, 0.05), None, 0.05)
     b = b.replace(log_weights=once.weight_update(model, mix, b, None, 0.1)[0])
@@ -249,11 +249,11 @@ def test_a_user_weight_update_plugs_in(gen):
 
 def test_state_dict_round_trip_and_reset(gen):
     model, mix, u, meas, y = _attitude(gen, False)
-    a = AdaptiveGaussianSumFilter(model, cadence=3)
+    a = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=3))
     m = a.update(a.predict(mix, u, 0.1), y, meas)
     state = a.state_dict()
     assert state["weight_update"]["step"] == 1 and torch.equal(state["weight_update"]["ref_log_weights"], m.log_weights)
-    b = AdaptiveGaussianSumFilter(model, cadence=3)
+    b = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=3))
     b.load_state_dict(state)
     for _ in range(3):
         ma, mb = a.predict(m, u, 0.1), b.predict(m, u, 0.1)
@@ -267,30 +267,37 @@ def test_state_dict_round_trip_and_reset(gen):
 # ------------------------------------------------------------------ bad input
 
 
+def _galerkin(**options):
+    return {"weight_update": GalerkinWeightUpdate(**options)}
+
+
 @pytest.mark.parametrize(
-    "kwargs, match",
+    "make, error, match",
     [
-        ({"weight_update": "fancy"}, r"one of \['galerkin', 'penalty'\]"),
-        ({"weight_update": "galerkin", "reg": 0.5}, "reg configure"),
-        ({"weight_update": "galerkin", "scaling": "none"}, "scaling configure"),
-        ({"weight_update": GalerkinWeightUpdate(), "cadence": 2}, "pass them to GalerkinWeightUpdate"),
-        ({"weight_update": "galerkin", "chunk_size": 0}, "chunk_size must be a positive integer"),
-        ({"weight_update": "galerkin", "chunk_size": -3}, "chunk_size must be a positive integer"),
-        ({"weight_update": "galerkin", "cadence": 0}, "cadence must be a positive integer"),
-        ({"weight_update": "galerkin", "quadrature": (torch.zeros(5, 2), torch.full((5,), 0.2))}, r"nodes \[K, 3\]"),
-        ({"weight_update": "galerkin", "quadrature": (torch.zeros(4, 3), torch.full((5,), 0.2))}, r"shapes"),
-        ({"weight_update": "galerkin", "quadrature": (torch.full((5, 3), float("nan")), torch.full((5,), 0.2))}, "nodes must be finite"),
-        ({"weight_update": "galerkin", "quadrature": (torch.zeros(5, 3), torch.full((5,), float("inf")))}, "weights must be finite"),
-        ({"weight_update": "galerkin", "quadrature": (torch.zeros(5, 3), torch.full((5,), 0.3))}, "sum to 1"),
-        ({"weight_update": "galerkin", "quadrature": (3, 3)}, "one point count per state axis"),
-        ({"weight_update": "galerkin", "quadrature": "dense"}, "quadrature must be"),
-        ({"weight_update": "galerkin", "quadrature": 0}, "must be ≥ 1"),
+        (lambda: {"weight_update": "fancy"}, ValueError, r"one of \['galerkin', 'penalty'\]"),
+        (lambda: _galerkin(reg=0.5), TypeError, "unexpected keyword argument 'reg'"),
+        (lambda: _galerkin(scaling="none"), TypeError, "unexpected keyword argument 'scaling'"),
+        (lambda: {"weight_update": GalerkinWeightUpdate(), "cadence": 2}, TypeError,
+         r"cadence configures the weight update, not the filter: pass weight_update=GalerkinWeightUpdate\(cadence="),
+        (lambda: {"weight_update": "galerkin", "reg": 0.5}, TypeError, r"weight_update=PenaltyWeightUpdate\(reg="),
+        (lambda: _galerkin(chunk_size=0), ValueError, "chunk_size must be a positive integer"),
+        (lambda: _galerkin(chunk_size=-3), ValueError, "chunk_size must be a positive integer"),
+        (lambda: _galerkin(cadence=0), ValueError, "cadence must be a positive integer"),
+        (lambda: _galerkin(quadrature=(torch.zeros(5, 2), torch.full((5,), 0.2))), ValueError, r"nodes \[K, 3\]"),
+        (lambda: _galerkin(quadrature=(torch.zeros(4, 3), torch.full((5,), 0.2))), ValueError, r"shapes"),
+        (lambda: _galerkin(quadrature=(torch.full((5, 3), float("nan")), torch.full((5,), 0.2))), ValueError, "nodes must be finite"),
+        (lambda: _galerkin(quadrature=(torch.zeros(5, 3), torch.full((5,), float("inf")))), ValueError, "weights must be finite"),
+        (lambda: _galerkin(quadrature=(torch.zeros(5, 3), torch.full((5,), 0.3))), ValueError, "sum to 1"),
+        (lambda: _galerkin(quadrature=(3, 3)), ValueError, "one point count per state axis"),
+        (lambda: _galerkin(quadrature="dense"), ValueError, "quadrature must be"),
+        (lambda: _galerkin(quadrature=0), ValueError, "must be ≥ 1"),
     ],
 )
-def test_bad_options_raise(kwargs, match):
-    make = lambda: AdaptiveGaussianSumFilter(AttitudeModel(), **kwargs)  # noqa: E731
-    with pytest.raises(ValueError, match=match):
-        make()
+def test_bad_options_raise(make, error, match):
+    """Bad options are refused when the update or the filter is built, naming the option; options of the
+    weight update given to the filter are refused with the call that sets them."""
+    with pytest.raises(error, match=match):
+        AdaptiveGaussianSumFilter(AttitudeModel(), **make())
 
 
 def test_bad_update_objects_raise():
@@ -307,7 +314,7 @@ def test_bad_update_objects_raise():
 def test_error_in_a_step_changes_no_state(gen):
     """A non-finite K (a NaN input reaching the drift) raises before the counter moves."""
     model = SineDriftModel()
-    filt = AdaptiveGaussianSumFilter(model, weight_update="galerkin", quadrature=10)
+    filt = AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=10))
     mix = GaussianMixture(weights=torch.tensor([0.5, 0.5], dtype=F64), means=torch.tensor([[0.0], [1.0]], dtype=F64), covs=torch.ones(2, 1, 1, dtype=F64))
     prop = GaussianSumFilter(model).predict(mix, None, 0.1)
     bad = prop.replace(means=torch.tensor([[float("nan")], [1.0]], dtype=F64), validate=False)
@@ -352,16 +359,15 @@ def test_a_measurement_update_restarts_the_galerkin_interval(gen):
     """With cadence 2 and an update in between, the adaptation integrates the weights' rate over
     the time since the update (one interval), not since the last adaptation (two)."""
     model, mix, u, meas, y = _attitude(gen, False, B=4, N=3)
-    filt = AdaptiveGaussianSumFilter(model, weight_update="galerkin", cadence=2)
+    seen = {}
+
+    class Spy(GalerkinWeightUpdate):
+        def compute(self, model, prior, propagated, u, elapsed):
+            seen["elapsed"] = elapsed
+            return super().compute(model, prior, propagated, u, elapsed)
+
+    filt = AdaptiveGaussianSumFilter(model, weight_update=Spy(cadence=2))
     one = filt.update(filt.predict(mix, u, 0.1), y, meas)
     assert filt.weight_update.state_dict()["elapsed"] == 0.0
-    seen = {}
-    original = filt.weight_update.compute
-
-    def spy(model, prior, propagated, u, elapsed):
-        seen["elapsed"] = elapsed
-        return original(model, prior, propagated, u, elapsed)
-
-    filt.weight_update.compute = spy
     filt.predict(one, u, 0.1)
     assert seen["elapsed"] == pytest.approx(0.1, abs=1e-15)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from agsf_torch import GaussianMixture
-from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter
+from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 
 F64 = torch.float64
@@ -27,7 +27,7 @@ def _nll(cls, estimate_bias, log_sv, log_su, log_ss, log_scale, bias, reg):
     mean = torch.cat((p, torch.zeros(B, 3, dtype=F64)), -1)[:, :n]
     P0 = torch.diag(torch.tensor([1e-4] * 3 + [1e-8] * 3, dtype=F64)[:n]) * log_scale.exp()
     mix = GaussianMixture.from_gaussian(mean, P0.expand(B, n, n), N)
-    filt = cls(model, reg=reg) if cls is AdaptiveGaussianSumFilter else cls(model)
+    filt = cls(model, weight_update=PenaltyWeightUpdate(reg=reg)) if cls is AdaptiveGaussianSumFilter else cls(model)
     meas = StarVectorMeasurement(r, sigma=log_ss.exp())
     y = StarVectorMeasurement(r, sigma=1e-3).predict(p + 1e-3)
     total = 0.0

@@ -45,7 +45,7 @@ def test_residual_mean_equals_quadrature_under_any_gaussian(gen, estimate_bias):
 
 
 def test_models_without_moments_fall_back_to_quadrature():
-    from agsf_torch.filters.weight_updates import has_gaussian_moments
+    from agsf_torch.filters.weight_updates.base import has_gaussian_moments
 
     assert has_gaussian_moments(AttitudeModel()) and not has_gaussian_moments(LorenzModel())
     with pytest.raises(ValueError, match="gives no Gaussian moments"):

@@ -125,7 +125,7 @@ def test_gyro_input_must_have_three_axes(gen, estimate_bias, shape):
     n = model.state_dim
     x = _states(gen, 4, estimate_bias)
     u = torch.ones(shape, dtype=torch.float64)
-    match = rf"u must have shape \[\.\.\., 3\] \(AttitudeModel's input\), got {re.escape(str(tuple(shape)))}"
+    match = rf"u must have shape \[\.\.\., 3\] \(AttitudeModel's input: the gyro reading ω̃, rad/s\), got {re.escape(str(tuple(shape)))}"
     for call in (
         lambda: model.drift(x, u),
         lambda: model.drift_jacobian(x, u),
@@ -134,22 +134,22 @@ def test_gyro_input_must_have_three_axes(gen, estimate_bias, shape):
     ):
         with pytest.raises(ValueError, match=match):
             call()
-    with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\], got None"):
+    with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\] \(the gyro reading ω̃, rad/s\), got None"):
         model.drift(x, None)
 
 
 @pytest.mark.parametrize("estimate_bias", [False, True])
 def test_filters_refuse_a_one_axis_gyro_before_any_change(gen, estimate_bias):
     from agsf_torch import GaussianMixture
-    from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+    from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 
     model = AttitudeModel(estimate_bias=estimate_bias)
     n = model.state_dim
     mix = GaussianMixture.from_gaussian(_states(gen, 2, estimate_bias), 1e-4 * torch.eye(n, dtype=torch.float64).expand(2, n, n), 3)
-    agsf = AdaptiveGaussianSumFilter(model, cadence=1)
+    agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=1))
     for filt in (GaussianSumFilter(model), agsf):
-        with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 3\] \(AttitudeModel's input\), got \(2, 1\)"):
+        with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 3\] \(AttitudeModel's input: the gyro reading ω̃, rad/s\), got \(2, 1\)"):
             filt.predict(mix, torch.full((2, 1), 0.01, dtype=torch.float64), 0.1)
-        with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\], got None"):
+        with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\] \(the gyro reading ω̃, rad/s\), got None"):
             filt.predict(mix, None, 0.1)
     assert agsf.weight_update.state_dict()["step"] == 0

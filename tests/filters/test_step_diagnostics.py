@@ -10,7 +10,7 @@ import torch
 
 from agsf_torch import GaussianMixture
 from agsf_torch.filters import GaussianSumFilter, MultiplicativeEKF
-from agsf_torch.filters.diagnostics_view import StepDiagnostics, summarize_value
+from agsf_torch.filters.step_diagnostics import StepDiagnostics, summarize_value
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.rotations import mrp_to_dcm
 

@@ -1,0 +1,215 @@
+"""The weight-update step: its options, run state and cadence, and the FPKE quadrature options.
+
+:class:`WeightUpdate` is the base of every weight update (the package's two and a user's own);
+:class:`QuadratureUpdate` adds the options of the two FPKE updates (the integration rule and
+its evaluation).  See :mod:`agsf_torch.filters.weight_updates`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+from ...fpke import ComponentRates, residual_rule
+from ...fpke.matrices import check_chunk_size
+from ...mixture import GaussianMixture
+from ...models.base import ContinuousModel
+from ...propagation import moment_derivatives
+from ...qp import MAX_COMPONENTS
+from ..options import option, positive_int
+
+__all__ = ["WeightUpdate", "WeightUpdateRun", "QuadratureUpdate", "component_rates", "has_gaussian_moments", "check_finite_matrix"]
+
+
+def component_rates(model: ContinuousModel, mixture: GaussianMixture, u: Tensor | None) -> ComponentRates:
+    """The mixture's components with their moment rates ``μ̇ᵢ, Ṗᵢ`` at ``u`` (``[..., m]``, one per trajectory, or ``None``)."""
+    rates = moment_derivatives(model, mixture.means, mixture.covs, None if u is None else u.unsqueeze(-2))
+    chol = torch.linalg.cholesky(mixture.covs)  # positive definiteness was ensured by predict
+    return ComponentRates(mixture.means, chol, rates.mean_rate, rates.cov_rate)
+
+
+def has_gaussian_moments(model: ContinuousModel) -> bool:
+    """Whether ``model`` gives closed-form Gaussian moments of its Fokker–Planck terms."""
+    return type(model).fokker_planck_moments is not ContinuousModel.fokker_planck_moments
+
+
+def check_finite_matrix(name: str, value: Tensor) -> None:
+    bad = ~torch.isfinite(value).flatten(-2).all(-1)
+    if bool(bad.any()):
+        raise ValueError(f"{name} is not finite at trajectory index {tuple(bad.nonzero()[0].tolist())}")
+
+
+@dataclass
+class WeightUpdateRun:
+    """A weight update's run state (mutable; the options are not).
+
+    Attributes:
+        step: intervals counted since the run started.
+        elapsed: time since the last adaptation or measurement update (s).
+        reference: the penalty update's reference log-weights ``[..., N]`` (``None`` before the first).
+    """
+
+    step: int = 0
+    elapsed: float = 0.0
+    reference: Tensor | None = None
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class WeightUpdate:
+    """A correction of the forecast weights after each propagation interval.
+
+    Subclasses implement :meth:`compute`; this base class runs it every ``cadence``-th
+    interval and keeps the counter.  One object serves one filter: its run state
+    (:attr:`run`) is that filter's (passing the same object to two filters shares it, and
+    :meth:`bind` rebinds it to the last filter's model).  State changes only after a step
+    succeeds: an error leaves the update as it was (:meth:`check` runs before the interval
+    is counted, :meth:`compute` must not change the run state before it can no longer fail).
+
+    Options are fields (keyword-only, validated in ``__post_init__``, frozen); objects compare
+    by identity, since each carries its own run.
+
+    Attributes:
+        cadence: adapt every ``cadence``-th ``predict`` call (1: every interval).
+    """
+
+    cadence: int = field(default=1, metadata=option("adaptive filters adapt their weights every cadence-th propagation step", config="int"))
+    run: WeightUpdateRun = field(default_factory=WeightUpdateRun, init=False, repr=False)
+
+    #: Short name used in configurations and reports.
+    name: ClassVar[str] = "custom"
+    #: Diagnostics keys :meth:`compute` returns (besides ``weights_adapted``).
+    DIAGNOSTICS: ClassVar[tuple[str, ...]] = ()
+    #: Keys of :meth:`state_dict` beyond ``kind``, ``step`` and ``elapsed``.
+    extra_state_keys: ClassVar[tuple[str, ...]] = ()
+
+    def __post_init__(self) -> None:
+        positive_int("cadence", self.cadence)
+
+    @property
+    def diagnostic_keys(self) -> tuple[str, ...]:
+        """The keys :meth:`compute` returns (besides ``weights_adapted``)."""
+        return self.DIAGNOSTICS
+
+    def bind(self, model: ContinuousModel) -> None:
+        """Called once by the filter with its model (build quadrature rules here)."""
+
+    def __call__(
+        self, model: ContinuousModel, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, dt: float,
+        *, enabled: bool = True,
+    ) -> tuple[Tensor | None, dict[str, Any]]:
+        """Count the interval and, on the cadence, return new log-weights ``[..., N]``.
+
+        Args:
+            prior: the belief before the interval; propagated: after it (weights unchanged).
+            u: input ``[..., m]`` (one per trajectory) or ``None``; dt: the interval (s).
+            enabled: ``False`` counts the interval without adapting.
+
+        Returns:
+            ``(log_weights or None, diagnostics)``; ``None`` when this interval is not adapted.
+        """
+        if enabled:
+            self.check(propagated)
+        step, elapsed = self.run.step + 1, self.run.elapsed + float(dt)
+        if not enabled or step % self.cadence != 0 or propagated.num_components == 1:
+            self.run.step, self.run.elapsed = step, elapsed
+            return None, {"weights_adapted": False}
+        log_weights, extra = self.compute(model, prior, propagated, u, elapsed)
+        self.run.step, self.run.elapsed = step, 0.0
+        return log_weights, {**extra, "weights_adapted": True}
+
+    def check(self, mixture: GaussianMixture) -> None:
+        """Raise ``ValueError`` if this update cannot adapt ``mixture`` (default: it can).  Called on every
+        enabled interval before it is counted, and by the adaptive filter before it propagates."""
+
+    def compute(
+        self, model: ContinuousModel, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, elapsed: float
+    ) -> tuple[Tensor, dict[str, Any]]:
+        """New log-weights ``[..., N]`` and diagnostics; ``u [..., m]`` or ``None``; ``elapsed`` is the time
+        since the last adaptation (s).  Must not change the run state before it can no longer fail."""
+        raise NotImplementedError
+
+    def observe_update(self, log_weights: Tensor) -> None:
+        """Called by the filter after each measurement update with the posterior log-weights ``[..., N]``:
+        the weights are new, so the time over which they are held restarts (``elapsed = 0``)."""
+        self.run.elapsed = 0.0
+
+    def reset(self) -> None:
+        """Forget the run: restart the cadence counter (and any reference)."""
+        self.run.step, self.run.elapsed, self.run.reference = 0, 0.0, None
+
+    def state_dict(self) -> dict[str, Any]:
+        """The update's run state (numbers, strings and tensors only), tagged with its ``kind``."""
+        return {"kind": self.name, "step": self.run.step, "elapsed": self.run.elapsed}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`; validated before anything changes."""
+        step, elapsed = self._parse_counter(state)
+        self.run.step, self.run.elapsed = step, elapsed
+
+    def _parse_counter(self, state: Any) -> tuple[int, float]:
+        """Check ``state`` is this kind's state with exactly the expected keys; return ``(step, elapsed)``."""
+        keys = {"kind", "step", "elapsed", *self.extra_state_keys}
+        if isinstance(state, dict) and "kind" in state and state["kind"] != self.name:
+            raise ValueError(f"the state is a {state['kind']!r} weight update's, not this {self.name!r} one's")
+        if not isinstance(state, dict) or set(state) != keys:
+            got = sorted(state) if isinstance(state, dict) else state
+            raise ValueError(f"{type(self).__name__} state must have the keys {sorted(keys)}, got {got!r}")
+        step, elapsed = state["step"], state["elapsed"]
+        if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+            raise ValueError(f"weight-update state 'step' must be an integer ≥ 0, got {step!r}")
+        if isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)) or not 0.0 <= float(elapsed) < float("inf"):
+            raise ValueError(f"weight-update state 'elapsed' must be a finite number ≥ 0, got {elapsed!r}")
+        return step, float(elapsed)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class QuadratureUpdate(WeightUpdate):
+    """Shared options of the two FPKE weight updates: the rule and its evaluation.
+
+    Attributes:
+        quadrature: how the residual integrals under each product Gaussian are computed.
+            ``None`` (default) takes the fastest exact route the model offers: for the
+            Galerkin ``K``, closed-form Gaussian moments (``fokker_planck_moments``;
+            the attitude models have them), for the paper's ``L`` an interpolatory
+            product rule on the polynomial space of ``ℓ`` (``fpke_polynomial_space``:
+            840 nodes per pair for 6-state attitude instead of 9261); otherwise the
+            model's exact Gauss–Hermite rule (``fpke_quadrature_points``), else 7
+            points per axis for ``n ≤ 4`` and a level-7 Smolyak grid above.  Or an int
+            (points per axis), a tuple (points per axis), or ``(nodes [K, n], weights [K])``
+            for ``N(0, I)`` (finite, weights summing to 1), applied as ``x = m + chol(S) ξ``
+            with the lower Cholesky factor — e.g. :func:`agsf_torch.quadrature.six_n_plus_one`,
+            the authors' own rule.
+        chunk_size: quadrature nodes (or, with a product rule, component pairs) per
+            batched evaluation, a positive integer (``None``: sized automatically to
+            bound memory).
+        compile: evaluate the node kernels with ``torch.compile`` (fused elementwise
+            work; a one-off compilation of 10–20 s per shape, kept in the on-disk
+            inductor cache); unused by the closed-form Galerkin path.
+    """
+
+    quadrature: Any = field(default=None, metadata=option("the residual integrals' rule (None: the model's exact one)"))
+    chunk_size: int | None = field(default=None, metadata=option("quadrature nodes or pairs per batched evaluation (None: automatic)"))
+    compile: bool = field(default=False, metadata=option("torch.compile the FPKE node kernels of the adaptive filters", config="bool"))
+    rule: dict = field(default_factory=dict, init=False, repr=False)
+
+    #: Residual factors in the integrand: 2 for ``ℓᵢℓⱼ``, 1 for ``ℓⱼ``.
+    factors: ClassVar[int] = 2
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_chunk_size(self.chunk_size)
+        if not isinstance(self.compile, bool):
+            raise ValueError(f"compile must be True or False, got {self.compile!r}")
+
+    def bind(self, model: ContinuousModel) -> None:
+        self.rule["nodes"], self.rule["weights"] = residual_rule(model, self.quadrature, self.factors)
+
+    def check(self, mixture: GaussianMixture) -> None:
+        """The weight QP (:func:`~agsf_torch.qp.solve_simplex_qp`) takes ``N ≤ MAX_COMPONENTS`` components."""
+        if mixture.num_components > MAX_COMPONENTS:
+            raise ValueError(
+                f"the weight QP handles N ≤ {MAX_COMPONENTS} components, got a mixture of {mixture.num_components}"
+            )
