@@ -12,7 +12,7 @@ The Monte Carlo runner, the soak, the adaptation study, learning (through the
 filter's likelihood) and the sine benchmark all consume :func:`filter_steps`;
 what is specific to a sensor (for attitude: gyro gaps, the known bias, star
 measurements from observations) is an adapter that turns its data into
-:class:`StepInput` (:mod:`agsf_torch.attitude_inputs`).  This module knows no
+:class:`StepInput` (:mod:`agsf_torch.attitude.inputs`).  This module knows no
 sensor and no simulator.
 """
 
@@ -59,7 +59,7 @@ class StepInput:
         u: the input over the interval ``[B, m]`` or ``None``.
         measurement: ``(y [B, d], MeasurementModel)`` at the end of the interval, or ``None``.
         correct: ``correct(mixture) -> mixture`` applied after the prediction, or ``None``
-            (e.g. :meth:`agsf_torch.input_gaps.GyroHold.inflate` for held inputs).
+            (e.g. :meth:`agsf_torch.attitude.gyro_hold.GyroHold.inflate` for held inputs).
         extra: per-step values ``[B]`` copied into every filter's diagnostics.
         context: anything the source wants back with the step (e.g. the truth); the loop ignores it.
     """

@@ -32,7 +32,7 @@ away) sits thousands of σ out once the filter has converged.  Gating is
 **not** able to reject an outlier smaller than the current uncertainty (e.g. in
 the first frame after a 7° prior); and an overconfident filter may reject good
 stars, which is why gaps must inflate the covariance honestly
-(:mod:`agsf_torch.input_gaps`).
+(:mod:`agsf_torch.attitude.gyro_hold`).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ from agsf_torch.experiments.factories import make_env, make_filters, prior_covar
 from agsf_torch.experiments.runner import run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter, MultiplicativeEKF
 from agsf_torch.gating import innovation_gate
-from agsf_torch.metrics import chi2_band
+from agsf_torch.consistency import chi2_band
 from agsf_torch.mixture import GaussianMixture
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
 from agsf_torch.update import evaluate_measurement, kalman_update

@@ -40,9 +40,9 @@ import numpy as np
 import torch
 
 from ..density import PosteriorReference
-from ..files import save_figure, write_json, write_text
+from ..storage.files import save_figure, write_json, write_text
 from ..filters.registry import FILTER_NAMES
-from ..metrics import nees, rms
+from ..consistency import nees, rms
 from ..rotations import attitude_error_angle
 from .config import ExperimentConfig, load_config
 from .experiment import make_env, make_filters, mean_ci95, prepare_output, prior_covariance

@@ -48,8 +48,8 @@ __all__ = ["main", "tensorboard_command"]
 def _simulate(args: argparse.Namespace) -> int:
     import envs
 
-    from ..files import write_json
-    from ..recordings import FORMAT
+    from ..storage.files import write_json
+    from ..attitude.recordings import FORMAT
     from .experiment import prepare_output
     from .recorded import record_environment
     from .resources import refuse_if_too_large, simulation_memory
@@ -147,13 +147,13 @@ def _sweep(args: argparse.Namespace) -> int:
         print(f"agsf: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        from ..files import read_json_lines
+        from ..storage.files import read_json_lines
 
         results = Path(args.out) / "results.jsonl"
         done = len(read_json_lines(results))
         print(f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume", file=sys.stderr)
         return 130
-    from ..files import write_text
+    from ..storage.files import write_text
     from .sweep import results_table
 
     table = results_table(rows)
@@ -169,7 +169,7 @@ def _bench(args: argparse.Namespace) -> int:
     from .bench import format_table, run_bench
 
     _threads(args)
-    from ..files import write_text
+    from ..storage.files import write_text
 
     report = run_bench(Path(args.out), compile=not args.no_compile, quick=args.quick)
     table = format_table(report)
@@ -180,7 +180,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _soak(args: argparse.Namespace) -> int:
-    from ..files import write_json
+    from ..storage.files import write_json
     from .config import parse_override
     from .soak import run_soak, soak_config, soak_verdict
 

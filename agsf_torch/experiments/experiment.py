@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from ..files import write_json
+from ..storage.files import write_json
 from .config import ExperimentConfig
 from .factories import make_env, make_filters, prior_covariance
 from .figures import write_figures
@@ -36,14 +36,14 @@ def run_experiment(
     With ``recording`` the filters replay that file (it must hold the truth and
     ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps) instead of a simulation;
     the experiment is identified by the configuration and the recording's *contents*
-    (:meth:`~agsf_torch.recordings.Recording.content_digest`), so new contents at the same
+    (:meth:`~agsf_torch.attitude.recordings.Recording.content_digest`), so new contents at the same
     path are a different experiment and never replace earlier results.
 
     Everything is validated (the recording, the memory estimate of :func:`.resources.check_memory`,
     unless ``force``, and the output folder) before ``out`` is created.
     """
     if recording is not None:
-        from ..recordings import Recording
+        from ..attitude.recordings import Recording
         from .recorded import RecordingEnv
 
         rec = Recording.load(recording)

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ..files import save_figure
+from ..storage.files import save_figure
 
 __all__ = [
     "ARCSEC_PER_RAD",

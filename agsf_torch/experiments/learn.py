@@ -9,9 +9,9 @@ import numpy as np
 import torch
 
 from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
-from ..files import write_json, write_text
-from ..learning import PARAMETERS, fit_attitude_parameters
-from ..recordings import Recording
+from ..storage.files import write_json, write_text
+from ..attitude.learning import PARAMETERS, fit_attitude_parameters
+from ..attitude.recordings import Recording
 from ..constants import DEG_PER_HOUR
 from .config import ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
@@ -27,7 +27,7 @@ def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]
     Returns:
         ``(configured, likelihood_kwargs)``: the configured parameter values (the
         filter's: σ scaled by the ``filter_*_scale`` keys) and the keyword arguments of
-        :func:`~agsf_torch.learning.attitude_log_likelihood` — the EKF with the
+        :func:`~agsf_torch.attitude.learning.attitude_log_likelihood` — the EKF with the
         configuration's update iterations, innovation gate and star noise model, the prior
         drawn as the runner draws it (:func:`~agsf_torch.filter_loop.sample_prior`).
     """

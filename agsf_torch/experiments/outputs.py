@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..files import atomic_open, read_json, write_json
+from ..storage.files import atomic_open, read_json, write_json
 from .runner import MonteCarloResult
 
 __all__ = ["OutputConflict", "check_output", "prepare_output", "save_runs", "save_npz"]

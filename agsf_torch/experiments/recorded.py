@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from ..recordings import Recording
+from ..attitude.recordings import Recording
 
 __all__ = ["record_environment", "RecordingEnv"]
 

@@ -13,7 +13,7 @@ import hashlib
 import json
 from pathlib import Path
 
-from ..files import write_json, write_text
+from ..storage.files import write_json, write_text
 from ..filters.registry import ADAPTIVE_FILTERS
 from .config import load_config
 from .experiment import prepare_output, run_experiment

@@ -14,9 +14,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..attitude_inputs import AttitudeInputs, as_float64
+from ..attitude.inputs import AttitudeInputs, as_float64
 from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
-from ..metrics import nees, rms
+from ..consistency import nees, rms
 from ..rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector
 
 __all__ = [
@@ -112,7 +112,7 @@ def monte_carlo_steps(
     """Drive every filter over ``num_steps`` gyro periods, yielding one :class:`Step` per period.
 
     The environment side of the one filter loop (:func:`agsf_torch.filter_loop.filter_steps`):
-    the attitude adapter (:class:`~agsf_torch.attitude_inputs.AttitudeInputs`) turns each
+    the attitude adapter (:class:`~agsf_torch.attitude.inputs.AttitudeInputs`) turns each
     observation into the filters' input, and the environment is stepped with the first
     filter's estimate as action.  Behind :func:`run_monte_carlo` (which keeps every step),
     the soak and the adaptation study (which keep running statistics); arguments as there.
@@ -206,7 +206,7 @@ def run_monte_carlo(
         progress: show a progress bar, labelled ``label``.
         callback: optional ``callback(step, name, filter, mixture)`` after each step.
         noise_model: star-vector noise model of the filters (``"isotropic"`` or ``"tangent"``).
-        gyro_hold_sigma: σ_h of :class:`~agsf_torch.input_gaps.GyroHold`, which bridges
+        gyro_hold_sigma: σ_h of :class:`~agsf_torch.attitude.gyro_hold.GyroHold`, which bridges
             gyro samples the environment marks invalid (``gyro_valid``); default
             ``σ_v/√Δt`` of the first filter's model.
 

@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..files import append_line, write_text
-from ..metrics import nees
+from ..storage.files import append_line, write_text
+from ..consistency import nees
 from .config import ExperimentConfig, load_preset
 from .experiment import make_env, make_filters, prepare_output, prior_covariance
 from .resources import check_memory

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.stats import t as student_t
 
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
-from ..metrics import chi2_band, rms
+from ..consistency import chi2_band, rms
 from .config import ExperimentConfig
 
 __all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key"]

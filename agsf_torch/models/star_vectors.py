@@ -5,7 +5,7 @@ camera's observed directions (``body``, an observation's ``star_body``): off by 
 ``1e-12`` they are taken as they are, by at most :data:`UNIT_TOLERANCE` they are
 normalised with a warning, beyond it they are refused, naming the vector, its index and
 its norm (:func:`unit_vectors`; the same rule as recorded sensor logs,
-:mod:`agsf_torch.recordings`).  A measurement ``y`` handed to a filter is ``C r + v``
+:mod:`agsf_torch.attitude.recordings`).  A measurement ``y`` handed to a filter is ``C r + v``
 with the model's noise ``v``, unit only up to that noise: it is used as it is, and
 refused only beyond ``max(UNIT_TOLERANCE, 10 σ)`` of the unit sphere (σ the radial noise
 of the noise model; a larger radial draw has probability < 1e-22), which catches zero,

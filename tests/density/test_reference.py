@@ -18,7 +18,7 @@ from agsf_torch.density import PosteriorReference, density_score
 from agsf_torch.mixture import GaussianMixture
 from agsf_torch.models import FunctionMeasurement, LinearModel
 from agsf_torch.models.benchmarks import SineDriftModel
-from agsf_torch.reference import FokkerPlanckGrid
+from agsf_torch.density.grid import FokkerPlanckGrid
 from tests.density.conftest import f64, gaussian
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from agsf_torch.experiments import bench
-from agsf_torch.experiments.bench_peers import _problem, attitude_rk4_step, filterpy_loop, numpy_batch
+from agsf_torch.experiments.bench import run as bench
+from agsf_torch.experiments.bench.peers import _problem, attitude_rk4_step, filterpy_loop, numpy_batch
 
 
 def test_qp_comparison_reports_agreement():

@@ -21,8 +21,8 @@ from hypothesis import strategies as st
 
 from agsf_torch.experiments import cli
 from agsf_torch.experiments.config import MAX_SEED
-from agsf_torch.learning import PARAMETERS
-from agsf_torch.recordings import Recording
+from agsf_torch.attitude.learning import PARAMETERS
+from agsf_torch.attitude.recordings import Recording
 
 TINY = ["--set", "runs=2", "--set", "duration=0.3", "--set", 'filters=["EKF"]', "--quiet"]
 

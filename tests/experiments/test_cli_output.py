@@ -17,7 +17,7 @@ import pytest
 
 from agsf_torch.experiments import cli
 from agsf_torch.experiments.sweep import results_table
-from agsf_torch.files import read_json_lines
+from agsf_torch.storage.files import read_json_lines
 
 TINY = ["--set", "runs=2", "--set", "duration=0.3", "--set", 'filters=["EKF"]', "--quiet"]
 

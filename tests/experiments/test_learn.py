@@ -11,7 +11,7 @@ from agsf_torch.experiments.experiment import make_env, make_filters, prior_cova
 from agsf_torch.experiments.learn import learning_problem
 from agsf_torch.experiments.recorded import RecordingEnv, record_environment
 from agsf_torch.experiments.runner import monte_carlo_steps
-from agsf_torch.learning import attitude_log_likelihood
+from agsf_torch.attitude.learning import attitude_log_likelihood
 
 
 def _faults_with_an_early_dropout():

@@ -10,7 +10,7 @@ import torch
 import envs
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter, GaussianSumFilter
-from agsf_torch.metrics import chi2_band
+from agsf_torch.consistency import chi2_band
 from agsf_torch.models import AttitudeModel
 
 F64 = torch.float64

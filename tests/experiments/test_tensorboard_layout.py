@@ -178,36 +178,6 @@ def test_resuming_a_sweep_duplicates_no_session_or_curve(sweep, tmp_path):
     assert len(acc.Scalars("GSF/rms_deg_vs_ms")) == len(np.load(out / "configs" / last["digest"] / "runs.npz")["time"])
 
 
-def test_resuming_a_sweep_of_the_earlier_layout_gives_each_configuration_one_named_run(sweep, tmp_path):
-    """Earlier layout: an empty root run, an HParams run per digest, the curves in configs/<digest>/tensorboard."""
-    from torch.utils.tensorboard import SummaryWriter
-
-    base, done, rows = sweep
-    out = tmp_path / "sweep"
-    shutil.copytree(done, out)
-    tb = out / "tensorboard"
-    for row in rows:
-        run = tb / run_name(row["params"])
-        *curves, _session = sorted(run.glob(EVENTS_GLOB))
-        for f in curves:
-            target = out / "configs" / row["digest"] / "tensorboard"
-            target.mkdir(parents=True, exist_ok=True)
-            f.rename(target / f.name)
-        shutil.rmtree(run)
-        with SummaryWriter(str(tb)) as writer:  # the root writer, and a session per digest
-            writer.add_hparams({"reg": str(row["params"]["reg"])}, row["metrics"], run_name=row["digest"])
-    assert len(tensorboard_view(tb)[2].session_groups) == 2
-    ran = []
-    assert run_sweep(base, GRID, out, progress=False, runner=lambda cfg, *a, **k: ran.append(cfg)) == rows and not ran
-    assert sorted(p.name for p in tb.iterdir()) == ["reg=0.5", "reg=1.0"] and not list(tb.glob(EVENTS_GLOB))
-    assert not list((out / "configs").rglob(EVENTS_GLOB))
-    runs, experiment, groups = tensorboard_view(tb)
-    assert [(i.name, i.differs) for i in experiment.hparam_infos] == [("reg", True)]
-    assert sorted(g.name for g in groups.session_groups) == runs == ["reg=0.5", "reg=1.0"]
-    for run in runs:
-        assert accumulate(tb / run).Scalars("GSF/rms_deg_vs_ms")
-
-
 # -------------------------------------------------------------- agsf reproduce
 
 

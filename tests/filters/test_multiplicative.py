@@ -22,7 +22,7 @@ from agsf_torch import rotations as rot
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter
 from agsf_torch.filters.multiplicative import MultiplicativeEKF, error_state_to_mrp, mrp_to_error_state
-from agsf_torch.metrics import chi2_band
+from agsf_torch.consistency import chi2_band
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
 from envs.gyro import Gyro
 from tests.conftest import random_mrps

@@ -1,4 +1,4 @@
-"""Peak resident memory of one workload, run as its own process (``python -m agsf_torch.experiments.bench_memory``).
+"""Peak resident memory of one workload, run as its own process (``python -m agsf_torch.experiments.bench.memory``).
 
 ``gsf --batch B --chunk C``: a B × N = 5 6-state GSF sweep of 100 predict steps, in chunks of C trajectories.
 ``adaptive --update NAME --batch B``: one adaptive predict step (6-state, N = 5) with the weight update NAME.
@@ -13,13 +13,13 @@ import resource
 
 import torch
 
-from ..filters.registry import make_filter
-from ..models import AttitudeModel
-from .bench_harness import WEIGHT_UPDATE_FILTERS, attitude_mixture
+from ...filters.registry import make_filter
+from ...models import AttitudeModel
+from .harness import WEIGHT_UPDATE_FILTERS, attitude_mixture
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m agsf_torch.experiments.bench_memory")
+    parser = argparse.ArgumentParser(prog="python -m agsf_torch.experiments.bench.memory")
     parser.add_argument("workload", choices=("gsf", "adaptive"))
     parser.add_argument("--batch", type=int, required=True)
     parser.add_argument("--chunk", type=int, default=16384)

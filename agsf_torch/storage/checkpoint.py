@@ -5,7 +5,7 @@ lists and dicts, so it loads with ``torch.load(weights_only=True)`` (no code
 execution).  It holds, per filter, the mixture (log-weights, means, covariances)
 and the filter's run state (``filter.state_dict()``: the adaptive filter's
 weight-update counter and reference weights), plus any caller state (for example an environment's ``state_dict()`` and a
-:class:`~agsf_torch.input_gaps.GyroHold`'s).  Restoring it
+:class:`~agsf_torch.attitude.gyro_hold.GyroHold`'s).  Restoring it
 and continuing gives the same numbers, bit for bit, as never stopping.
 """
 
@@ -18,8 +18,8 @@ from typing import Any
 import torch
 
 from .files import atomic_open
-from .filters.base import Filter
-from .mixture import GaussianMixture
+from ..filters.base import Filter
+from ..mixture import GaussianMixture
 
 __all__ = ["save_checkpoint", "load_checkpoint", "FORMAT"]
 
@@ -36,7 +36,7 @@ def save_checkpoint(
     filters: Mapping[str, Filter],
     extra: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Write a checkpoint atomically (:func:`agsf_torch.files.atomic_open`: a temporary file, flushed
+    """Write a checkpoint atomically (:func:`agsf_torch.storage.files.atomic_open`: a temporary file, flushed
     to disk and renamed into place).
 
     Args:

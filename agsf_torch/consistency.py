@@ -1,4 +1,9 @@
-"""Consistency diagnostics: do the filter's covariances match its errors and innovations?
+"""Consistency of a filter: its errors and innovations against its own covariances.
+
+The metrics: RMS, NEES ``eᵀP⁻¹e`` (Cholesky solve) and the χ² band of an averaged NEES or NIS
+(the NIS itself comes with each measurement update, ``filt.diagnostics``; the weight
+entropy is :meth:`agsf_torch.GaussianMixture.entropy_of_weights`).  The checks, each
+saying in words whether it passes and what a failure suggests:
 
 * **NEES** (needs the truth): the run- and time-averaged ``eᵀP⁻¹e`` against the
   two-sided 95 % χ² band of the run average (``n`` degrees of freedom per run).
@@ -10,8 +15,6 @@
 * **Whiteness**: the lag-1 autocorrelation of the standardised NIS sequence of
   each run, averaged over runs, against ``±1.96/√(count)``.
 * **FPKE error**: reported (mean before/after the weight update), not judged.
-
-Each check says in words whether it passes and what a failure suggests.
 """
 
 from __future__ import annotations
@@ -20,10 +23,45 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+from scipy.stats import chi2
+from torch import Tensor
 
-from .metrics import chi2_band
+__all__ = ["nees", "rms", "chi2_band", "Check", "consistency_checks", "format_report"]
 
-__all__ = ["Check", "consistency_checks", "format_report"]
+
+
+def nees(error: Tensor, cov: Tensor) -> Tensor:
+    """Normalised estimation error squared ``eᵀ P⁻¹ e`` (Cholesky solve).
+
+    Args:
+        error: ``[..., n]``; cov: ``[..., n, n]``.
+
+    Returns:
+        ``[...]``.
+    """
+    L = torch.linalg.cholesky(cov)
+    z = torch.linalg.solve_triangular(L, error.unsqueeze(-1), upper=False).squeeze(-1)
+    return (z * z).sum(-1)
+
+
+def rms(values, dim: int = 0):
+    """Root mean square along ``dim``: ``sqrt(mean(v²))``, of a tensor or a NumPy array (same type back)."""
+    if torch.is_tensor(values):
+        return torch.sqrt((values * values).mean(dim))
+    values = np.asarray(values)
+    return np.sqrt((values * values).mean(dim))
+
+
+def chi2_band(dof: float, num_samples: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided band for the average of ``num_samples`` independent χ²(dof) values.
+
+    The sum is χ²(dof·num_samples), so the average lies in
+    ``[χ²_{α/2}, χ²_{1−α/2}] / num_samples`` with probability ``confidence``.
+    """
+    a = (1.0 - confidence) / 2.0
+    k = dof * num_samples
+    return float(chi2.ppf(a, k) / num_samples), float(chi2.ppf(1.0 - a, k) / num_samples)
 
 
 @dataclass(frozen=True)

@@ -31,9 +31,9 @@ from typing import Any
 
 import torch
 
-from ..files import write_json
-from .bench_harness import WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
-from .bench_report import format_table, targets
+from ...storage.files import write_json
+from .harness import WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
+from .report import format_table, targets
 
 __all__ = ["run_bench", "format_table", "targets"]
 
@@ -43,8 +43,8 @@ F64 = torch.float64
 def bench_adaptive(estimate_bias: bool, B: int, N: int = 5, repeats: int = 5, compile: bool = False) -> dict[str, Any]:
     """One predict step of GSF, AGSF (Galerkin) and AGSF (penalty; also with its compiled node kernel if
     ``compile``), timed side by side; the penalty ratio is the faster of the two."""
-    from ..filters.registry import make_filter
-    from ..models import AttitudeModel
+    from ...filters.registry import make_filter
+    from ...models import AttitudeModel
 
     model = AttitudeModel(estimate_bias=estimate_bias)
     mix = attitude_mixture(B, N, estimate_bias, torch.Generator().manual_seed(0))
@@ -67,7 +67,7 @@ import time, sys
 t0 = time.perf_counter()
 import torch
 sys.path.insert(0, {root!r})
-from agsf_torch.experiments.bench_harness import attitude_mixture
+from agsf_torch.experiments.bench.harness import attitude_mixture
 from agsf_torch.filters.registry import make_filter
 from agsf_torch.models import AttitudeModel
 model = AttitudeModel(estimate_bias=True)
@@ -94,7 +94,7 @@ def bench_first_step(cases: tuple[tuple[str, bool], ...]) -> list[dict[str, Any]
 
 def bench_qp(B: int = 8192, N: int = 5, clarabel_samples: int = 300) -> dict[str, Any]:
     """The batched torch solver against Clarabel called directly, one problem at a time (the filter's form ``L̃ + λI``)."""
-    from ..qp import kkt_residual, solve_simplex_qp, solve_simplex_qp_clarabel
+    from ...qp import kkt_residual, solve_simplex_qp, solve_simplex_qp_clarabel
 
     gen = torch.Generator().manual_seed(2)
     A = torch.randn(B, N, N, generator=gen, dtype=F64)
@@ -117,9 +117,9 @@ def bench_qp(B: int = 8192, N: int = 5, clarabel_samples: int = 300) -> dict[str
 
 def bench_peers(B: int = 8192, N: int = 5, filterpy_samples: int = 2000) -> dict[str, Any]:
     """The GSF's predict (6-state) against the filterpy loop and the NumPy batch (:mod:`.bench_peers`)."""
-    from ..filters.registry import make_filter
-    from ..models import AttitudeModel
-    from .bench_peers import filterpy_loop, numpy_batch
+    from ...filters.registry import make_filter
+    from ...models import AttitudeModel
+    from .peers import filterpy_loop, numpy_batch
 
     filt = make_filter("GSF", AttitudeModel(estimate_bias=True))
     mix = attitude_mixture(B, N, True, torch.Generator().manual_seed(1))
@@ -147,11 +147,11 @@ def propagation_flops(n: int) -> float:
 
 
 def _peak_rss(module_args: list[str]) -> dict[str, Any]:
-    """Run ``python -m agsf_torch.experiments.bench_memory ARGS`` and return its JSON line with the wall time."""
+    """Run ``python -m agsf_torch.experiments.bench.memory ARGS`` and return its JSON line with the wall time."""
     root = str(Path(__file__).resolve().parents[2])
     t = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-m", "agsf_torch.experiments.bench_memory", *module_args],
+    out = subprocess.run([sys.executable, "-m", "agsf_torch.experiments.bench.memory", *module_args],
                          capture_output=True, text=True, check=True, env=env)
     return {**json.loads(out.stdout.strip().splitlines()[-1]), "seconds": time.perf_counter() - t}
 

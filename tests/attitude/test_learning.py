@@ -9,7 +9,7 @@ import torch
 
 import envs
 from agsf_torch.experiments.recorded import record_environment
-from agsf_torch.learning import fit_attitude_parameters
+from agsf_torch.attitude.learning import fit_attitude_parameters
 
 F64 = torch.float64
 DEG_PER_HOUR = math.pi / 180 / 3600
@@ -64,7 +64,7 @@ def test_bad_requests():
 
 
 def test_a_diverging_fit_stops_with_the_last_finite_parameters(monkeypatch):
-    import agsf_torch.learning as learning
+    import agsf_torch.attitude.learning as learning
 
     calls = {"n": 0}
     real = learning.attitude_log_likelihood

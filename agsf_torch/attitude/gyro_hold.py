@@ -26,7 +26,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .mixture import GaussianMixture
+from ..mixture import GaussianMixture
 
 __all__ = ["GyroHold"]
 

@@ -35,7 +35,7 @@ def test_learn_command_flags_the_configured_gyro_noise(tmp_path, capsys):
 def test_whiteness_check_on_synthetic_innovations():
     import numpy as np
 
-    from agsf_torch.diagnostics import consistency_checks
+    from agsf_torch.consistency import consistency_checks
 
     rng = np.random.default_rng(0)
     T, B, dof = 200, 20, 15

@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .files import atomic_open
-from .models.star_vectors import UNIT_ROUNDING, UNIT_TOLERANCE  # the filters' rule for star unit vectors
+from ..storage.files import atomic_open
+from ..models.star_vectors import UNIT_ROUNDING, UNIT_TOLERANCE  # the filters' rule for star unit vectors
 
 __all__ = ["Recording", "FORMAT", "UNIT_TOLERANCE"]
 
@@ -112,7 +112,7 @@ class Recording:
         """Write the archive (``.npz``, compressed) atomically; returns the path written.
 
         ``.npz`` is appended to a path without it (as :func:`numpy.savez` does).  The
-        archive is written by :func:`agsf_torch.files.atomic_open` (a temporary file in the
+        archive is written by :func:`agsf_torch.storage.files.atomic_open` (a temporary file in the
         destination folder, flushed and renamed over the destination), so an interruption leaves
         either the previous file or the complete new one, never a torn archive (an
         exception removes the temporary file; a killed process may leave a hidden

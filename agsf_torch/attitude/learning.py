@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .attitude_inputs import AttitudeInputs, recording_inputs
-from .filter_loop import FilterSetup, filter_steps, initial_mixtures
-from .filters.registry import filter_spec, make_filter
-from .models import AttitudeModel
+from .inputs import AttitudeInputs, recording_inputs
+from ..filter_loop import FilterSetup, filter_steps, initial_mixtures
+from ..filters.registry import filter_spec, make_filter
+from ..models import AttitudeModel
 from .recordings import Recording
 
 __all__ = ["PARAMETERS", "FitResult", "attitude_log_likelihood", "fit_attitude_parameters"]
@@ -82,7 +82,7 @@ def attitude_log_likelihood(
     The recording drives the one filter loop (:func:`agsf_torch.filter_loop.filter_steps`)
     through the attitude adapter, as ``agsf run`` does: invalid gyro samples
     (``gyro_valid``) are held with the covariance inflation of
-    :class:`~agsf_torch.input_gaps.GyroHold`; the 3-state model subtracts its ``bias``
+    :class:`~agsf_torch.attitude.gyro_hold.GyroHold`; the 3-state model subtracts its ``bias``
     parameter (the bias is learned here, not known).
 
     Args:

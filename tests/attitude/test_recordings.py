@@ -14,7 +14,7 @@ from agsf_torch.experiments.recorded import RecordingEnv, record_environment
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import GaussianSumFilter
 from agsf_torch.models import AttitudeModel
-from agsf_torch.recordings import Recording
+from agsf_torch.attitude.recordings import Recording
 
 F64 = torch.float64
 

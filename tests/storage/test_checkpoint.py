@@ -7,7 +7,7 @@ import torch
 
 import envs
 from agsf_torch import GaussianMixture
-from agsf_torch.checkpoint import load_checkpoint, save_checkpoint
+from agsf_torch.storage.checkpoint import load_checkpoint, save_checkpoint
 from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 

@@ -5,7 +5,7 @@ whether the observations come from the simulator or from a recording:
 
 * **gyro gaps**: a sample marked invalid (``gyro_valid`` false) is bridged by the
   last valid reading, and the prediction's attitude covariance is inflated for the
-  error the hold makes (:class:`~agsf_torch.input_gaps.GyroHold`);
+  error the hold makes (:class:`~agsf_torch.attitude.gyro_hold.GyroHold`);
 * **known bias** (``known_bias=True``, the paper's 3-state filter): the true bias
   term ``½(b_k + b_{k+1})`` of the gyro model is removed from the reading, so the
   caller passes the true bias with each observation.  With ``known_bias=False`` the
@@ -28,9 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .filter_loop import StepInput
-from .input_gaps import GyroHold
-from .models.star_vectors import StarVectorMeasurement
+from ..filter_loop import StepInput
+from .gyro_hold import GyroHold
+from ..models.star_vectors import StarVectorMeasurement
 from .recordings import Recording
 
 __all__ = ["AttitudeInputs", "recording_inputs", "as_float64"]

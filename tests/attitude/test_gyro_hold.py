@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from agsf_torch import GaussianMixture
-from agsf_torch.input_gaps import GyroHold
+from agsf_torch.attitude.gyro_hold import GyroHold
 
 F64 = torch.float64
 
@@ -67,7 +67,7 @@ def _obs(gyro, valid):
 
 def test_known_bias_must_have_three_axes():
     """A true bias [B, 1] would be subtracted from all three axes: refused, before the hold moves."""
-    from agsf_torch.attitude_inputs import AttitudeInputs
+    from agsf_torch.attitude.inputs import AttitudeInputs
 
     adapter = AttitudeInputs(sigma_s=1e-5, gyro_hold_sigma=1e-6, known_bias=True)
     gyro = torch.ones(2, 3, dtype=F64)
@@ -84,7 +84,7 @@ def test_known_bias_must_have_three_axes():
 
 def test_start_begins_a_new_run():
     """The first held sample of a new run is not the previous run's last reading."""
-    from agsf_torch.attitude_inputs import AttitudeInputs
+    from agsf_torch.attitude.inputs import AttitudeInputs
 
     adapter = AttitudeInputs(sigma_s=1e-5, gyro_hold_sigma=1e-6)
     valid, held = torch.ones(2, dtype=torch.bool), torch.zeros(2, dtype=torch.bool)
@@ -131,7 +131,7 @@ def test_hold_refuses_another_batch_and_bad_variances_and_states():
 
 def test_a_refused_star_frame_leaves_the_hold_and_bias_as_they_were():
     """A frame with a non-unit catalogue vector is refused before the gyro hold counts the interval."""
-    from agsf_torch.attitude_inputs import AttitudeInputs
+    from agsf_torch.attitude.inputs import AttitudeInputs
 
     adapter = AttitudeInputs(sigma_s=1e-5, gyro_hold_sigma=1e-6, known_bias=True)
     bias = torch.full((2, 3), 1e-6, dtype=F64)

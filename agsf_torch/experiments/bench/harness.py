@@ -9,7 +9,7 @@ from typing import Any
 
 import torch
 
-from ..mixture import GaussianMixture
+from ...mixture import GaussianMixture
 
 __all__ = ["median_time", "side_by_side", "attitude_mixture", "WEIGHT_UPDATE_FILTERS"]
 
@@ -48,7 +48,7 @@ def side_by_side(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, f
 def attitude_mixture(B: int, N: int, estimate_bias: bool, gen: torch.Generator) -> GaussianMixture:
     """The benchmark's belief: ``B`` random attitudes (MRP σ 0.3) with the prior ``1e-3`` MRP², ``1e-12`` (rad/s)²,
     split into ``N`` components (6-state with ``estimate_bias``, else 3-state)."""
-    from ..mixture import GaussianMixture
+    from ...mixture import GaussianMixture
 
     n = 6 if estimate_bias else 3
     p = 0.3 * torch.randn(B, 3, generator=gen, dtype=F64)

@@ -1,0 +1,11 @@
+"""The attitude application: what joins a gyro and a star camera to the generic filters.
+
+* :mod:`.inputs` — the filter loop's attitude adapter (observations → steps);
+* :mod:`.gyro_hold` — bridging missing or saturated gyro samples, with the covariance they cost;
+* :mod:`.recordings` — sensor logs on disk (a user's own data), identified by content;
+* :mod:`.learning` — maximum-likelihood fits of the noise model through the filter.
+
+The attitude *model* and the star-vector *measurement* are models like any other
+(:mod:`agsf_torch.models`), and the multiplicative EKF a filter like any other
+(:mod:`agsf_torch.filters`).
+"""

@@ -1,0 +1,49 @@
+"""``agsf sweep``: a resumable grid of configurations, each a batched Monte Carlo.
+
+Every finished configuration is appended as one JSON line to ``results.jsonl``
+(with the configuration's digest) as soon as it finishes; a rerun with the same
+base and grid skips the digests already there, so an interrupted sweep loses
+only the configurations that were running.
+
+TensorBoard (``tensorboard --logdir out/tensorboard``) gets one run per
+configuration, named by its swept parameters (``reg=0.5,scaling=trace``,
+:func:`.tensorboard_log.run_name`; a digest is appended only where two names would
+collide).  That run holds both the configuration's time series (simulated time on
+the x-axis, see :mod:`.tensorboard_log`) and its HParams session (its parameters,
+its metrics, and the sweep's complete grid as the experiment configuration), so the
+HParams tab opens onto each configuration's curves::
+
+    out/tensorboard/reg=0.5,scaling=trace/   events: curves + HParams session
+    out/tensorboard/reg=1.0,scaling=trace/   ...
+    out/configs/<digest>/                    the configuration's experiment folder
+                                             (runs.npz, summary.json, figures)
+
+The configuration's events are moved there from its folder when it is recorded,
+just before its row is appended (a rerun replaces the run of a configuration
+interrupted in between).
+
+Two backends run the pending configurations:
+
+* ``"local"`` (default): one after another in this process.
+* ``"ray"``: one Ray task per configuration (``num_cpus=cpus_per_task``), run
+  in parallel on a local Ray instance or on an existing cluster.  Each task runs
+  the configuration's Monte Carlo into a temporary folder *on its worker* and
+  returns the folder's files; the driver (this process) is the only writer of
+  ``out``: it unpacks each configuration's folder to ``out/configs/<digest>`` and
+  appends its row in the order the tasks finish.  ``out`` therefore needs no
+  shared filesystem.  A task whose worker or node dies is retried by Ray
+  (``max_retries``); a configuration that still fails does not stop the others:
+  the driver records every configuration that finishes, then raises
+  :class:`SweepFailed` naming the failed ones, and a rerun runs only those.
+
+Both backends give the same rows for the same seeds: a configuration's numbers
+depend only on its fields (counter-based random streams seeded by ``seed``) and
+not on the process or the number of torch threads that computes them (tested
+bit for bit).  Only the order of the rows in ``results.jsonl`` may differ.
+"""
+
+from .ray_backend import RayUnavailable, SweepFailed
+from .rows import results_table
+from .run import BACKENDS, SweepBusy, parse_grid, run_sweep
+
+__all__ = ["parse_grid", "run_sweep", "results_table", "SweepFailed", "SweepBusy", "RayUnavailable", "BACKENDS"]

@@ -1,0 +1,86 @@
+"""A sweep's rows: the metrics each configuration contributes, and the results table."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+__all__ = ["config_metrics", "results_table"]
+
+
+def config_metrics(summary: dict[str, Any]) -> dict[str, float]:
+    """The row metrics of one configuration's ``summary.json``: per filter its mean RMS between star frames
+    (deg) and its time-averaged NEES, and the paired AGSF − GSF difference (deg) when there is one."""
+    m: dict[str, float] = {}
+    for name, f in summary["filters"].items():
+        if "between_updates" in f:
+            m[f"{name}/mean_rms_between_updates_deg"] = f["between_updates"]["mean_rms_deg"]
+        m[f"{name}/time_averaged_nees"] = f["time_averaged_nees"]
+    d = summary.get("agsf_minus_gsf", {}).get("between_updates")
+    if d:
+        m["agsf_minus_gsf_deg"] = d["mean_deg"]
+    return m
+
+
+_RMS_SUFFIX = "/mean_rms_between_updates_deg"
+_NEES_SUFFIX = "/time_averaged_nees"
+_DIFFERENCE_KEY = "agsf_minus_gsf_deg"
+
+
+def _table_cell(value: Any) -> str:
+    """A parameter or metric as table text: strings as they are, floats in 4 significant digits,
+    anything else as JSON; ``|`` escaped for Markdown."""
+    if value is None:
+        text = "—"
+    elif isinstance(value, str):
+        text = value
+    elif isinstance(value, float):
+        text = f"{value:.4g}"
+    else:
+        text = json.dumps(value)
+    return text.replace("|", "\\|")
+
+
+def results_table(rows: list[dict[str, Any]]) -> str:
+    """A sweep's rows (``{"digest", "params", "metrics"}``, as in ``results.jsonl``) as one
+    Markdown table, one line per configuration in the order of ``rows``.
+
+    Columns: the configuration's digest (its folder ``configs/<digest>/``), every swept
+    parameter, then per filter its mean RMS between star frames (deg) and its time-averaged
+    NEES (dimensionless), and ``AGSF − GSF`` (deg, the paired difference of the mean RMS
+    between frames) when any row has it.  A metric a row lacks is shown as ``—``.  Cells are
+    padded so that the table also reads as plain text.
+
+    Raises:
+        ValueError: a row without a ``params`` or ``metrics`` mapping (named by its index).
+    """
+    if not rows:
+        return "no finished configurations"
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict) or not isinstance(row.get("params"), dict) or not isinstance(row.get("metrics"), dict):
+            raise ValueError(f"sweep row {i} must be a mapping with 'params' and 'metrics' mappings, got {row!r}")
+    params = list(dict.fromkeys(k for row in rows for k in row["params"]))
+    filters = list(dict.fromkeys(
+        k.split("/", 1)[0] for row in rows for k in row["metrics"] if k.endswith((_RMS_SUFFIX, _NEES_SUFFIX))
+    ))
+    difference = any(_DIFFERENCE_KEY in row["metrics"] for row in rows)
+    header = ["config", *params]
+    for name in filters:
+        header += [f"{name} RMS (deg)", f"{name} NEES"]
+    if difference:
+        header.append("AGSF − GSF (deg)")
+    body = []
+    for row in rows:
+        m = row["metrics"]
+        cells = [_table_cell(row.get("digest")), *(_table_cell(row["params"].get(k)) for k in params)]
+        for name in filters:
+            cells += [_table_cell(m.get(name + _RMS_SUFFIX)), _table_cell(m.get(name + _NEES_SUFFIX))]
+        if difference:
+            cells.append(_table_cell(m.get(_DIFFERENCE_KEY)))
+        body.append(cells)
+    widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"
+
+    return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in body)])

@@ -1,0 +1,177 @@
+"""``agsf sweep``: the grid of configurations, their validation, the output folder's lock and the local backend.
+
+See :mod:`agsf_torch.experiments.sweep` for the folder layout and the two backends.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from ...storage.files import append_line, repair_json_lines
+from ..config import ExperimentConfig, parse_override
+from ..experiment import prepare_output, run_experiment
+from ..resources import check_memory
+from ..tensorboard_log import hparam_domains, move_events, run_names, write_hparams_session
+from .ray_backend import import_ray, run_on_ray
+from .rows import config_metrics
+
+__all__ = ["parse_grid", "run_sweep", "SweepBusy", "BACKENDS"]
+
+BACKENDS = ("local", "ray")
+
+
+def parse_grid(items: list[str], base: ExperimentConfig | None = None) -> dict[str, list[Any]]:
+    """``["key=v1,v2", …]`` → ``{key: [v1, v2]}`` (values parsed as TOML; keys validated).
+
+    With ``base``, each value is normalised as the configuration stores it (``1`` and
+    ``1.0`` of a float key are the same value), so a grid names each experiment once.
+
+    Raises:
+        ValueError: a malformed entry, a key given twice, an unsweepable key, a value the
+            configuration refuses, or a value listed twice (after normalisation).
+    """
+    grid: dict[str, list[Any]] = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"grid entry {item!r} must look like key=v1,v2,...")
+        key, values = (part.strip() for part in item.split("=", 1))
+        if key in ("runs", "filters"):
+            raise ValueError(f"config key '{key}' cannot be swept")
+        if key in grid:
+            raise ValueError(f"grid key '{key}' is given twice; list all its values in one --grid {key}=v1,v2,...")
+        parsed = [parse_override(f"{key}={v}")[1] for v in values.split(",")]
+        if base is not None:
+            parsed = [getattr(base.replace(**{key: v}), key) for v in parsed]
+        seen: list[Any] = []
+        for v in parsed:
+            if v in seen:
+                raise ValueError(f"grid key '{key}' lists the value {v!r} twice")
+            seen.append(v)
+        grid[key] = parsed
+    if not grid:
+        raise ValueError("a sweep needs at least one --grid key=v1,v2,...")
+    return grid
+
+
+class SweepBusy(ValueError):
+    """Another sweep is writing the same output folder."""
+
+
+def run_sweep(
+    base: ExperimentConfig,
+    grid: dict[str, list[Any]],
+    out: Path,
+    *,
+    progress: bool = True,
+    runner: Callable[..., dict[str, Any]] = run_experiment,
+    backend: str = "local",
+    address: str | None = None,
+    cpus_per_task: int = 1,
+    max_retries: int = 3,
+    force: bool = False,
+) -> list[dict[str, Any]]:
+    """Run every combination of ``grid`` on top of ``base``; returns all result rows.
+
+    Every configuration (and its memory estimate, :func:`.resources.check_memory`, unless
+    ``force``) is validated before any work starts or anything is created.  ``out`` holds
+    ``experiment.json``, ``results.jsonl`` (one row ``{"digest", "params",
+    "metrics"}`` per finished configuration), ``configs/<digest>/`` (that
+    configuration's experiment folder, its events moved out) and ``tensorboard/<params>/``
+    (its curves and HParams session, see the module docstring).  Digests
+    already in ``results.jsonl`` are skipped; its rows are appended as complete lines,
+    and a torn last line (an interrupted write) is dropped with a warning and rerun.
+    One sweep at a time may write ``out``: a second one raises :class:`SweepBusy`.
+
+    Args:
+        runner: runs one configuration, ``runner(cfg, out, progress=, kind=)`` →
+            summary (:func:`run_experiment`; tests inject failures through it).
+            With ``backend="ray"`` it runs on the workers, so it must be picklable.
+        backend: ``"local"`` (in this process, one configuration after another)
+            or ``"ray"`` (one Ray task per configuration, see the module docstring).
+        address: Ray only.  ``None``: the cluster named by ``RAY_ADDRESS`` if set,
+            else a new local Ray instance (shut down at the end); ``"auto"``: the
+            cluster this machine belongs to (``ray start``); ``"ray://HOST:10001"``:
+            a remote cluster through Ray Client.  If Ray is already initialised in
+            this process, that connection is used and ``address`` is ignored.
+        cpus_per_task: Ray only: CPUs each task reserves; its torch threads are set
+            to the same number.
+        max_retries: Ray only: retries of a task whose worker or node died
+            (exceptions raised by the runner are not retried: they are deterministic).
+
+    Raises:
+        SweepFailed: (Ray) some configurations failed; all others were recorded.
+        RayUnavailable: ``backend="ray"`` without Ray installed.
+        SweepBusy: another sweep holds ``out``'s lock.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown sweep backend {backend!r}; choose from {', '.join(BACKENDS)}")
+    if address is not None and backend != "ray":
+        raise ValueError("a Ray address needs backend='ray' (--backend ray)")
+    if cpus_per_task < 1:
+        raise ValueError(f"cpus_per_task must be ≥ 1, got {cpus_per_task}")
+    if backend == "ray":
+        import_ray()  # fail before any work or folder if the extra is missing
+    grid = {key: [getattr(base.replace(**{key: v}), key) for v in values] for key, values in grid.items()}  # 1 ≡ 1.0
+    configs, digests = [], set()
+    for values in itertools.product(*grid.values()):
+        params = dict(zip(grid, values))
+        cfg = base.replace(**params)  # validates every configuration first
+        check_memory(cfg, force=force)
+        if cfg.digest() not in digests:  # grid values the configuration stores alike: run once
+            digests.add(cfg.digest())
+            configs.append((params, cfg))
+    digest = hashlib.sha256(json.dumps({"base": base.digest(), "grid": grid}, sort_keys=True).encode()).hexdigest()[:16]
+    out = prepare_output(Path(out), "sweep", digest, {"base": base.to_dict(), "grid": grid})
+    with _sweep_lock(out):
+        return _run_pending(configs, out, progress, runner, backend, address, cpus_per_task, max_retries)
+
+
+@contextmanager
+def _sweep_lock(out: Path):
+    """Hold ``out/.sweep.lock`` (:mod:`filelock`) for the sweep; refuse if another sweep holds it."""
+    from filelock import FileLock, Timeout
+
+    lock = FileLock(str(out / ".sweep.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        raise SweepBusy(f"another agsf sweep is writing {out}; wait for it to finish (or rerun it later to resume)") from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task, max_retries) -> list[dict[str, Any]]:
+    """Run the configurations without a row in ``results.jsonl`` (the lock held); returns all rows."""
+    results = out / "results.jsonl"
+    rows = repair_json_lines(results)
+    done = {r["digest"] for r in rows}
+    pending = [(params, cfg) for params, cfg in configs if cfg.digest() not in done]
+    # names and domains from every configuration of the sweep: the same on every (resumed) run
+    names = run_names((params, cfg.digest()) for params, cfg in configs)
+    domains = hparam_domains(params for params, _ in configs)
+
+    def record(params: dict[str, Any], cfg: ExperimentConfig, summary_metrics: dict[str, float]) -> None:
+        run_dir = out / "tensorboard" / names[cfg.digest()]
+        move_events(out / "configs" / cfg.digest() / "tensorboard", run_dir)
+        write_hparams_session(run_dir, params, summary_metrics, domains)
+        row = {"digest": cfg.digest(), "params": params, "metrics": summary_metrics}
+        append_line(results, json.dumps(row))
+        rows.append(row)
+
+    if backend == "local":
+        for params, cfg in pending:
+            summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
+            record(params, cfg, config_metrics(summary))
+    elif pending:
+        run_on_ray(pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs))
+    return rows
+
+
