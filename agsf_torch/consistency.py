@@ -30,7 +30,6 @@ from torch import Tensor
 __all__ = ["nees", "rms", "chi2_band", "Check", "consistency_checks", "format_report"]
 
 
-
 def nees(error: Tensor, cov: Tensor) -> Tensor:
     """Normalised estimation error squared ``eᵀ P⁻¹ e`` (Cholesky solve).
 
@@ -97,7 +96,11 @@ def consistency_checks(
         lo, hi = chi2_band(state_dim, B, confidence)
         checks.append(
             _band_check(
-                "nees", "NEES", float(np.mean(nees)), lo, hi,
+                "nees",
+                "NEES",
+                float(np.mean(nees)),
+                lo,
+                hi,
                 "the covariance matches the errors",
                 "the filter is over-confident (errors larger than its covariance)",
                 "the filter is under-confident (covariance too large)",
@@ -111,14 +114,22 @@ def consistency_checks(
         lo, hi = chi2_band(k, count, confidence)
         checks.append(
             _band_check(
-                "nis", "NIS / expected", float(nis[valid].sum() / expected.sum()), lo / k, hi / k,
+                "nis",
+                "NIS / expected",
+                float(nis[valid].sum() / expected.sum()),
+                lo / k,
+                hi / k,
                 "innovations match the measurement model",
                 "innovations are larger than the filter expects — measurement or process noise under-modelled",
                 "innovations are smaller than the filter expects — noise over-modelled",
             )
         )
         # whiteness: lag-1 autocorrelation of the standardised NIS per run
-        z = np.where(valid, (nis - tangent_fraction * nis_dof) / np.sqrt(2.0 * np.maximum(tangent_fraction * nis_dof, 1e-300)), np.nan)
+        z = np.where(
+            valid,
+            (nis - tangent_fraction * nis_dof) / np.sqrt(2.0 * np.maximum(tangent_fraction * nis_dof, 1e-300)),
+            np.nan,
+        )
         frames = valid.any(1)
         Z, V = z[frames], valid[frames]  # [F, B]
         count_b = V.sum(0)
@@ -151,7 +162,14 @@ def _band_check(key: str, label: str, v: float, lo: float, hi: float, inside: st
 
 
 def format_report(name: str, checks: list[Check], fpke: tuple[float, float] | None = None) -> str:
-    lines = [f"{name}: " + ("all checks pass" if all(c.passed for c in checks) else "FAILED: " + ", ".join(c.name for c in checks if not c.passed))]
+    lines = [
+        f"{name}: "
+        + (
+            "all checks pass"
+            if all(c.passed for c in checks)
+            else "FAILED: " + ", ".join(c.name for c in checks if not c.passed)
+        )
+    ]
     lines += [f"  [{'pass' if c.passed else 'FAIL'}] {c.text}" for c in checks]
     if fpke is not None:
         lines.append(f"  [info] FPKE error wᵀLw (mean): {fpke[0]:.4g} before, {fpke[1]:.4g} after the weight update")

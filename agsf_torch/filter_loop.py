@@ -29,7 +29,16 @@ from torch import Tensor
 from .filters.base import Filter
 from .mixture import GaussianMixture
 
-__all__ = ["FilterSetup", "StepInput", "FilterStep", "LoopStep", "filter_steps", "initial_mixtures", "sample_prior", "PRIOR_SEED_OFFSET"]
+__all__ = [
+    "FilterSetup",
+    "StepInput",
+    "FilterStep",
+    "LoopStep",
+    "filter_steps",
+    "initial_mixtures",
+    "sample_prior",
+    "PRIOR_SEED_OFFSET",
+]
 
 #: Offset of the prior draw's generator seed from the run seed (the simulator uses the run seed itself).
 PRIOR_SEED_OFFSET = 7919
@@ -87,8 +96,15 @@ class FilterStep:
             ``[B, n, n]``, computed when first read.
     """
 
-    def __init__(self, filt: Filter, mixture: GaussianMixture, nis: Tensor, dof: Tensor,
-                 log_likelihood: Tensor | None, extra: dict[str, Tensor]) -> None:
+    def __init__(
+        self,
+        filt: Filter,
+        mixture: GaussianMixture,
+        nis: Tensor,
+        dof: Tensor,
+        log_likelihood: Tensor | None,
+        extra: dict[str, Tensor],
+    ) -> None:
         self.filter = filt
         self.mixture = mixture
         self.nis = nis

@@ -73,7 +73,7 @@ def innovation_gate(
     y: Tensor,
     measurement: MeasurementModel,
     threshold: float,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per-block χ² gate of the mixture's predicted innovation (module docstring).
 
     Args:
@@ -140,12 +140,16 @@ def _block_factor(log_weights: Tensor, nu: Tensor, H: Tensor, covs: Tensor, R: T
     L_P, info = torch.linalg.cholesky_ex(covs)
     if bool((info != 0).any()):
         idx = (info != 0).nonzero()[0].tolist()
-        raise ValueError(f"the component covariance P is not positive definite at trajectory index {tuple(idx[:-1])}, component {idx[-1]}")
+        raise ValueError(
+            f"the component covariance P is not positive definite at trajectory index {tuple(idx[:-1])}, component {idx[-1]}"
+        )
     HL = (H @ L_P).reshape(*H.shape[:-2], G, s, covs.shape[-1]).movedim(-3, -4)  # [..., G, N, s, n]
     R_blocks = R.reshape(*R.shape[:-2], G, s, G, s).diagonal(dim1=-4, dim2=-2).movedim(-1, -3)  # [..., G, s, s]
     L_R, info = torch.linalg.cholesky_ex(R_blocks)
     if bool((info != 0).any()):
         idx = (info != 0).nonzero()[0].tolist()
-        raise ValueError(f"the measurement noise covariance R is not positive definite in block {idx[-1]} (index {tuple(idx)})")
+        raise ValueError(
+            f"the measurement noise covariance R is not positive definite in block {idx[-1]} (index {tuple(idx)})"
+        )
     _, L = moment_matched_factor(log_weights.unsqueeze(-2), nu.movedim(-3, -2), HL, L_R)
     return L

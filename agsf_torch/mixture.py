@@ -22,7 +22,9 @@ def _describe(value: object) -> str:
     return f"{type(value).__name__} {value!r}"[:120]
 
 
-def as_real_tensor(name: str, value: object, dtype: torch.dtype | None = None, device: torch.device | None = None) -> Tensor:
+def as_real_tensor(
+    name: str, value: object, dtype: torch.dtype | None = None, device: torch.device | None = None
+) -> Tensor:
     """``value`` as a real floating-point tensor, or ``ValueError`` naming ``name``.
 
     A floating-point tensor keeps its dtype unless ``dtype`` is given; integer and bool
@@ -31,8 +33,10 @@ def as_real_tensor(name: str, value: object, dtype: torch.dtype | None = None, d
     dicts…) are refused.
     """
     try:
-        t = torch.as_tensor(value, device=device) if torch.is_tensor(value) else torch.as_tensor(
-            value, dtype=dtype or torch.float64, device=device
+        t = (
+            torch.as_tensor(value, device=device)
+            if torch.is_tensor(value)
+            else torch.as_tensor(value, dtype=dtype or torch.float64, device=device)
         )
     except (TypeError, ValueError, RuntimeError) as exc:
         raise ValueError(f"{name} must be a real tensor, got {_describe(value)} ({exc})") from None
@@ -237,7 +241,9 @@ class GaussianMixture:
         return cls(weights=w, means=mu, covs=P, validate=False)
 
 
-def split_gaussian(mean: Tensor, cov: Tensor, num_components: int, spread: float = 0.5) -> tuple[Tensor, Tensor, Tensor]:
+def split_gaussian(
+    mean: Tensor, cov: Tensor, num_components: int, spread: float = 0.5
+) -> tuple[Tensor, Tensor, Tensor]:
     """Split a Gaussian into ``N`` components along its principal axis, preserving mean and covariance.
 
     With ``λ, v`` the largest eigenpair of ``P`` and ``u_i`` equally spaced in

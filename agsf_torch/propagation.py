@@ -15,7 +15,6 @@ components advance in one batched call.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import torch
@@ -95,15 +94,23 @@ def propagate_moments(
         Pf = cov.expand(*lead, n, n).reshape(-1, n, n)
         uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(-1, u.shape[-1])
         parts = [
-            _propagate(model, mf[a : a + PROPAGATION_CHUNK], Pf[a : a + PROPAGATION_CHUNK],
-                       None if uf is None else uf[a : a + PROPAGATION_CHUNK], dt, substeps)
+            _propagate(
+                model,
+                mf[a : a + PROPAGATION_CHUNK],
+                Pf[a : a + PROPAGATION_CHUNK],
+                None if uf is None else uf[a : a + PROPAGATION_CHUNK],
+                dt,
+                substeps,
+            )
             for a in range(0, count, PROPAGATION_CHUNK)
         ]
         return torch.cat([q[0] for q in parts]).reshape(*lead, n), torch.cat([q[1] for q in parts]).reshape(*lead, n, n)
     return _propagate(model, mean, cov, u, dt, substeps)
 
 
-def _propagate(model: ContinuousModel, mean: Tensor, cov: Tensor, u: Tensor | None, dt: float, substeps: int) -> tuple[Tensor, Tensor]:
+def _propagate(
+    model: ContinuousModel, mean: Tensor, cov: Tensor, u: Tensor | None, dt: float, substeps: int
+) -> tuple[Tensor, Tensor]:
     h = dt / substeps
     n = mean.shape[-1]
     eye = torch.eye(n, dtype=mean.dtype, device=mean.device)

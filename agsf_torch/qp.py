@@ -191,7 +191,10 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int | No
         if N <= MAX_ENUMERATION:
             S = torch.as_tensor(_supports(N), device=H.device)  # [K, N]
             chunk_size = chunk_size or idx.numel()
-            out = [_solve_chunk(Hr[i : i + chunk_size], cr[i : i + chunk_size], S) for i in range(0, idx.numel(), chunk_size)]
+            out = [
+                _solve_chunk(Hr[i : i + chunk_size], cr[i : i + chunk_size], S)
+                for i in range(0, idx.numel(), chunk_size)
+            ]
             w = w.index_copy(0, idx, torch.cat(out))
             iterations += S.shape[0]
         else:
@@ -217,7 +220,9 @@ def _support_solve(H: Tensor, c: Tensor, m: Tensor) -> tuple[Tensor, Tensor, Ten
     """
     N = H.shape[-1]
     # KKT matrix per (problem, support); variables off the support are pinned to 0 by identity rows
-    top = torch.cat((H.unsqueeze(1) * (m.unsqueeze(-1) * m.unsqueeze(-2)) + torch.diag_embed(1.0 - m), -m.unsqueeze(-1)), -1)
+    top = torch.cat(
+        (H.unsqueeze(1) * (m.unsqueeze(-1) * m.unsqueeze(-2)) + torch.diag_embed(1.0 - m), -m.unsqueeze(-1)), -1
+    )
     bottom = torch.cat((m, torch.zeros_like(m[..., :1])), -1).unsqueeze(-2)
     A = torch.cat((top, bottom), -2)
     rhs = torch.cat((-c.unsqueeze(1) * m, torch.ones_like(m[..., :1])), -1)
@@ -287,7 +292,11 @@ def _interior_point(H: Tensor, c: Tensor, max_iterations: int = 60, tol: float =
         L, info = torch.linalg.cholesky_ex(H + torch.diag_embed(s / w))
         bad = info != 0
         if bool(bad.any()):  # H + D lost definiteness to rounding: regularise those problems
-            L2 = torch.linalg.cholesky(H[bad] + torch.diag_embed(s[bad] / w[bad]) + 1e-12 * scale[bad, :, None] * torch.eye(N, dtype=H.dtype))
+            L2 = torch.linalg.cholesky(
+                H[bad]
+                + torch.diag_embed(s[bad] / w[bad])
+                + 1e-12 * scale[bad, :, None] * torch.eye(N, dtype=H.dtype, device=H.device)
+            )
             L = L.index_put((bad.nonzero().squeeze(-1),), L2)
         Kone = torch.cholesky_solve(one, L).squeeze(-1)  # K⁻¹1
 
@@ -422,4 +431,3 @@ def solve_simplex_qp_cvxpy(H: Tensor | np.ndarray, c: Tensor | np.ndarray | None
         prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
         out[k] = w.value
     return out.reshape(*batch, N)
-

@@ -41,7 +41,9 @@ def _gh_1d(m: int) -> tuple[np.ndarray, np.ndarray]:
     return x, w / math.sqrt(2.0 * math.pi)
 
 
-def gauss_hermite(points: int | tuple[int, ...], dim: int | None = None, dtype=torch.float64, device=None) -> QuadratureRule:
+def gauss_hermite(
+    points: int | tuple[int, ...], dim: int | None = None, dtype=torch.float64, device=None
+) -> QuadratureRule:
     """Tensor-product Gauss–Hermite rule for ``N(0, I)``.
 
     Args:
@@ -195,7 +197,9 @@ class ProductRule:
         return c.flatten(-g)
 
 
-def product_rule(groups: tuple[tuple[tuple[int, ...], int], ...], dim: int, dtype=torch.float64, device=None) -> ProductRule:
+def product_rule(
+    groups: tuple[tuple[tuple[int, ...], int], ...], dim: int, dtype=torch.float64, device=None
+) -> ProductRule:
     """:class:`ProductRule` for functions of total degree ``≤ d_g`` in the coordinates ``axes_g`` of each group.
 
     Args:

@@ -279,7 +279,11 @@ def _cholesky_or_raise(A: Tensor, need: Tensor, what: str, components: bool = Tr
     bad = (info != 0) & need
     if bool(bad.any()):
         idx = _first_index(bad)
-        at = f"trajectory index {tuple(idx[:-1])}, component {idx[-1]}" if components else f"trajectory index {tuple(idx)}"
+        at = (
+            f"trajectory index {tuple(idx[:-1])}, component {idx[-1]}"
+            if components
+            else f"trajectory index {tuple(idx)}"
+        )
         raise ValueError(f"{what} is not positive definite at {at}")
     return L
 

@@ -151,9 +151,7 @@ def check_period(owner: str, name: str, value: Any) -> float:
     """A step period (s): finite, > 0 and ≥ :data:`MIN_PERIOD`; ``ValueError`` naming the field otherwise."""
     v = check_real(owner, name, value, positive=True)
     if v < MIN_PERIOD:
-        raise ValueError(
-            f"{owner}: {name} must be ≥ {MIN_PERIOD:g} s (sampling at most at 1 GHz), got {value!r}"
-        )
+        raise ValueError(f"{owner}: {name} must be ≥ {MIN_PERIOD:g} s (sampling at most at 1 GHz), got {value!r}")
     return v
 
 

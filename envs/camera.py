@@ -36,7 +36,8 @@ tensor.  ``index="dense"`` tests every star (same results, bit for bit).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch

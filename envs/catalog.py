@@ -248,7 +248,7 @@ class StarCatalog:
         cache: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float64,
-    ) -> "StarCatalog":
+    ) -> StarCatalog:
         """The Hipparcos 2 catalogue cut at ``max_magnitude`` (Hp).
 
         Args:
@@ -279,7 +279,7 @@ class StarCatalog:
         *,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float64,
-    ) -> "StarCatalog":
+    ) -> StarCatalog:
         """A synthetic catalogue from inertial directions (handy for tests).
 
         Args:
@@ -333,6 +333,10 @@ def shared_hipparcos(max_magnitude: float = DEFAULT_MAX_MAGNITUDE, device: torch
     if torch.device(device).type == "cpu":
         return catalog
     return StarCatalog(
-        catalog.ids.numpy(), catalog.ra.numpy(), catalog.dec.numpy(), catalog.magnitude.numpy(),
-        max_magnitude=catalog.max_magnitude, device=device,
+        catalog.ids.numpy(),
+        catalog.ra.numpy(),
+        catalog.dec.numpy(),
+        catalog.magnitude.numpy(),
+        max_magnitude=catalog.max_magnitude,
+        device=device,
     )

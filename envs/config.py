@@ -180,7 +180,7 @@ class StarTrackerConfig:
         return int(round(self.star_period / self.dt))
 
     @classmethod
-    def from_overrides(cls, config: "StarTrackerConfig | None" = None, **overrides: Any) -> "StarTrackerConfig":
+    def from_overrides(cls, config: StarTrackerConfig | None = None, **overrides: Any) -> StarTrackerConfig:
         """``config`` (default: defaults) with fields replaced by ``overrides``.
 
         Raises:

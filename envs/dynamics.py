@@ -19,7 +19,8 @@ this held rate (:mod:`envs.gyro`), so the truth and the measurement model agree.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence, Union
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -43,7 +44,7 @@ DEFAULT_OMEGA0 = 2.0 * math.pi / 100.0
 DEFAULT_RATE = (DEFAULT_OMEGA0, DEFAULT_OMEGA0, 0.0)
 """Default truth rate ω₀[1, 1, 0] (rad/s)."""
 
-RateLike = Union[Sequence[float], Tensor, Callable[[Tensor], Tensor]]
+RateLike = Sequence[float] | Tensor | Callable[[Tensor], Tensor]
 
 
 def propagate_quat(q: Tensor, omega: Tensor, dt: float) -> Tensor:

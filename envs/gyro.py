@@ -14,7 +14,8 @@ Units: σ_v in rad/s^½ (angle random walk), σ_u in rad/s^{3/2} (rate random wa
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor

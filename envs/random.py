@@ -39,8 +39,8 @@ episode.  (:func:`envs.camera.random_attitude_quat` uses stream 7001 by default.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence, Union
 
 import torch
 from torch import Tensor
@@ -62,7 +62,7 @@ __all__ = [
     "next_episode_seeds",
 ]
 
-IntLike = Union[int, Tensor]
+IntLike = int | Tensor
 
 _U64 = 1 << 64
 

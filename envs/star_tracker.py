@@ -45,7 +45,8 @@ implementation as stepping, on blocks of steps: :mod:`envs.simulator`).
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -290,7 +291,9 @@ class StarTrackerAttitudeVectorEnv(VectorEnv):
         """
         n = self.config.max_steps if num_steps is None else num_steps
         if isinstance(n, bool) or int(n) != n or not 0 <= int(n) <= self.config.max_steps:
-            raise ValueError(f"num_steps must be an integer in [0, max_steps={self.config.max_steps}], got {num_steps!r}")
+            raise ValueError(
+                f"num_steps must be an integer in [0, max_steps={self.config.max_steps}], got {num_steps!r}"
+            )
         self.reset(seed=seed)
         out = self.sim.simulate(int(n))
         self._needs_reset = self.sim.step_index >= self.config.max_steps

@@ -24,10 +24,10 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from agsf_torch import GaussianMixture  # noqa: E402
+from agsf_torch.density.grid import FokkerPlanckGrid, integrated_squared_error  # noqa: E402
 from agsf_torch.experiments.sine_benchmark import DT, NUM_STEPS, sine_prior  # noqa: E402
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GalerkinWeightUpdate, GaussianSumFilter, PenaltyWeightUpdate  # noqa: E402
 from agsf_torch.models import LorenzModel, SineDriftModel  # noqa: E402
-from agsf_torch.density.grid import FokkerPlanckGrid, integrated_squared_error  # noqa: E402
 
 F64 = torch.float64
 STYLE = {"GSF": ":", "AGSF (penalty)": "--", "AGSF (Galerkin)": "-"}
@@ -41,8 +41,12 @@ def sine_figure(path: Path) -> None:
     model = SineDriftModel()
     filters = {
         "GSF": GaussianSumFilter(model, substeps=10),
-        "AGSF (penalty)": AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10),
-        "AGSF (Galerkin)": AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=40), substeps=10),
+        "AGSF (penalty)": AdaptiveGaussianSumFilter(
+            model, weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10
+        ),
+        "AGSF (Galerkin)": AdaptiveGaussianSumFilter(
+            model, weight_update=GalerkinWeightUpdate(quadrature=40), substeps=10
+        ),
     }
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(grid, exact, "k", lw=2.5, alpha=0.35, label="exact (FPKE on a grid)")
@@ -93,7 +97,12 @@ def lorenz_figure(path: Path, samples: int = 200_000, substeps: int = 10) -> Non
     ax.plot(t, lobe, "k", lw=2.5, alpha=0.35, label=f"mass with x₁ > 0 ({samples:,} Euler–Maruyama samples)")
     for name in filters:
         ax.plot(t, weights[name], linestyle=STYLE[name], label=f"{name}: weight of the x₁ > 0 component")
-    ax.set(xlabel="time (s)", ylabel="probability", ylim=(0, 0.6), title="Lorenz (σ=10, ρ=28, β=8/3, Q=diag(1,1,2)), Δt = 0.01")
+    ax.set(
+        xlabel="time (s)",
+        ylabel="probability",
+        ylim=(0, 0.6),
+        title="Lorenz (σ=10, ρ=28, β=8/3, Q=diag(1,1,2)), Δt = 0.01",
+    )
     ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()

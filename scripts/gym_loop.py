@@ -33,7 +33,10 @@ def main() -> None:
 
     if args.batch:
         env = gymnasium.make_vec(
-            "agsf/StarTrackerAttitude-v0", num_envs=args.batch, vectorization_mode="vector_entry_point", max_steps=args.steps
+            "agsf/StarTrackerAttitude-v0",
+            num_envs=args.batch,
+            vectorization_mode="vector_entry_point",
+            max_steps=args.steps,
         )
     else:
         env = gymnasium.make("agsf/StarTrackerAttitude-v0", max_steps=args.steps)

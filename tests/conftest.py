@@ -1,4 +1,4 @@
-"""Shared fixtures: seeded generators and random attitudes."""
+"""Shared fixtures: the seeded generator (``pytest --seed N``) and random attitudes."""
 
 from __future__ import annotations
 
@@ -8,22 +8,29 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import random_mrps
+
 if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)  # one thread per xdist worker: no oversubscription of the cores
 
 
+#: The shared generator's seed unless ``pytest --seed N`` chooses another.
+DEFAULT_SEED = 1234
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--seed",
+        type=int,
+        default=DEFAULT_SEED,
+        help=f"seed of the shared random generator fixture `gen` (default {DEFAULT_SEED}); the tests must hold for any",
+    )
+
+
 @pytest.fixture
-def gen() -> torch.Generator:
-    """A fixed-seed CPU generator (every test's randomness goes through one)."""
-    return torch.Generator().manual_seed(1234)
-
-
-def random_mrps(num: int, gen: torch.Generator, max_norm: float = 1.0) -> torch.Tensor:
-    """Uniformly random attitudes as MRPs ``[num, 3]`` with ``|p| ≤ 1``, scaled to ``max_norm``."""
-    q = torch.randn(num, 4, generator=gen, dtype=torch.float64)
-    q = q / q.norm(dim=-1, keepdim=True)
-    q = q * torch.where(q[:, 3:] < 0, -1.0, 1.0)
-    return max_norm * q[:, :3] / (1.0 + q[:, 3:])
+def gen(request: pytest.FixtureRequest) -> torch.Generator:
+    """A seeded CPU generator (every test's randomness goes through one); ``pytest --seed N`` reseeds it."""
+    return torch.Generator().manual_seed(request.config.getoption("--seed"))
 
 
 @pytest.fixture

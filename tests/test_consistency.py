@@ -10,7 +10,12 @@ SMALL = ["runs=48", "duration=20.0", "update_iterations=3", 'filters=["EKF"]', "
 
 
 def test_diagnose_passes_the_matched_and_flags_the_mis_modelled(tmp_path, capsys):
-    assert cli.main(["diagnose", "case1", "--quiet", "--out", str(tmp_path / "ok"), *sum([["--set", s] for s in SMALL], [])]) == 0
+    assert (
+        cli.main(
+            ["diagnose", "case1", "--quiet", "--out", str(tmp_path / "ok"), *sum([["--set", s] for s in SMALL], [])]
+        )
+        == 0
+    )
     ok = json.loads((tmp_path / "ok" / "diagnose.json").read_text())
     assert ok["passed"]
     # star noise twice what the filter assumes
@@ -23,8 +28,20 @@ def test_diagnose_passes_the_matched_and_flags_the_mis_modelled(tmp_path, capsys
 
 
 def test_learn_command_flags_the_configured_gyro_noise(tmp_path, capsys):
-    args = ["--set", "runs=16", "--set", "duration=15.0", "--set", "star_period=5.0", "--set", "sigma_v=2e-5",
-            "--set", "filter_sigma_v_scale=0.5", "--set", "update_iterations=3"]
+    args = [
+        "--set",
+        "runs=16",
+        "--set",
+        "duration=15.0",
+        "--set",
+        "star_period=5.0",
+        "--set",
+        "sigma_v=2e-5",
+        "--set",
+        "filter_sigma_v_scale=0.5",
+        "--set",
+        "update_iterations=3",
+    ]
     assert cli.main(["learn", "case1", "--learn", "sigma_v", "--out", str(tmp_path / "l"), *args]) == 0
     res = json.loads((tmp_path / "l" / "learn.json").read_text())
     assert abs(res["learned"]["sigma_v"] / 2e-5 - 1) < 0.15

@@ -11,9 +11,8 @@ from agsf_torch.models import AttitudeModel, ContinuousModel
 from agsf_torch.propagation import moment_derivatives
 from agsf_torch.quadrature import gauss_hermite
 from tests import linear_system as ls
+from tests.helpers import F64
 from tests.models.test_base import Pendulum
-
-F64 = torch.float64
 
 
 class GenericAttitude(ContinuousModel):
@@ -81,7 +80,10 @@ def _fd_residual_at(model, x, u, mean, cov, h):
         return torch.exp(torch.distributions.MultivariateNormal(m, P).log_prob(z))
 
     eps = 1e-6
-    dp_dt = (pdf(x, mean + eps * r.mean_rate, cov + eps * r.cov_rate) - pdf(x, mean - eps * r.mean_rate, cov - eps * r.cov_rate)) / (2 * eps)
+    dp_dt = (
+        pdf(x, mean + eps * r.mean_rate, cov + eps * r.cov_rate)
+        - pdf(x, mean - eps * r.mean_rate, cov - eps * r.cov_rate)
+    ) / (2 * eps)
     eye = torch.eye(n, dtype=F64)
 
     def fp(z):
@@ -156,7 +158,9 @@ def _grid_residuals(gen):
     g = torch.linspace(-0.4, 0.4, 121, dtype=F64)
     X = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     dv = float(g[1] - g[0]) ** 3
-    one = lambda i: ComponentRates(*(t[i : i + 1] for t in (rates.means, rates.chol, rates.mean_rates, rates.cov_rates)))  # noqa: E731
+    one = lambda i: ComponentRates(
+        *(t[i : i + 1] for t in (rates.means, rates.chol, rates.mean_rates, rates.cov_rates))
+    )  # noqa: E731
     Ls = torch.stack([fpke_residual(model, X, u, torch.zeros(1, dtype=F64), one(i)) for i in range(N)])
     return model, mean, cov, u, rates, X, dv, Ls
 
@@ -173,7 +177,10 @@ def test_fpke_matrix_equals_brute_force_integral(gen):
 def _six_state_rates(gen):
     model = AttitudeModel(estimate_bias=True, sigma_v=0.05, sigma_u=0.02)
     N = 3
-    mean = torch.cat((0.1 * torch.randn(2, N, 3, generator=gen, dtype=F64), 0.01 * torch.randn(2, N, 3, generator=gen, dtype=F64)), -1)
+    mean = torch.cat(
+        (0.1 * torch.randn(2, N, 3, generator=gen, dtype=F64), 0.01 * torch.randn(2, N, 3, generator=gen, dtype=F64)),
+        -1,
+    )
     A = torch.randn(2, N, 6, 6, generator=gen, dtype=F64)
     cov = 0.003 * (A @ A.transpose(-1, -2) / 6 + 0.2 * torch.eye(6, dtype=F64))
     u = torch.tensor([[0.3, -0.2, 0.5], [0.1, 0.4, -0.3]], dtype=F64)
@@ -254,10 +261,19 @@ def test_galerkin_rule_is_exact_for_attitude(gen, estimate_bias):
         dense_pts, dense2_pts, coarse_pts = (10, 10, 10), (12, 12, 12), (3, 3, 3)
     K = {
         name: galerkin_matrices(model, u, rates, *gauss_hermite(pts))
-        for name, pts in (("exact", model.fpke_quadrature_points(1)), ("dense", dense_pts), ("dense2", dense2_pts), ("coarse", coarse_pts))
+        for name, pts in (
+            ("exact", model.fpke_quadrature_points(1)),
+            ("dense", dense_pts),
+            ("dense2", dense2_pts),
+            ("coarse", coarse_pts),
+        )
     }
-    rel = lambda a: float(((K[a].drift - K["dense"].drift).abs() / K["dense"].drift.abs().amax((-2, -1), keepdim=True)).max())  # noqa: E731
-    print(f"Galerkin K vs a dense rule: exact rule {rel('exact'):.2e}, another dense rule {rel('dense2'):.2e}, one point fewer {rel('coarse'):.2e}")
+    rel = lambda a: float(
+        ((K[a].drift - K["dense"].drift).abs() / K["dense"].drift.abs().amax((-2, -1), keepdim=True)).max()
+    )  # noqa: E731
+    print(
+        f"Galerkin K vs a dense rule: exact rule {rel('exact'):.2e}, another dense rule {rel('dense2'):.2e}, one point fewer {rel('coarse'):.2e}"
+    )
     assert rel("exact") <= 10 * rel("dense2") + 1e-13
     assert rel("coarse") > 100 * rel("exact")
     assert torch.equal(K["exact"].mass, K["dense"].mass)  # closed form, no quadrature

@@ -13,9 +13,8 @@ from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
 from agsf_torch.gating import chi2_threshold, innovation_gate
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
 from agsf_torch.rotations import mrp_to_dcm
-from tests.conftest import random_mrps
+from tests.helpers import F64, random_mrps
 
-F64 = torch.float64
 SIGMA = 1e-5
 
 
@@ -95,7 +94,9 @@ def test_consistency_rule_keeps_a_frame_that_disagrees_as_a_whole(gen):
     assert (nis > 1e3).all() and overridden.all() and accepted.all() and entry_mask.all()
     # with two valid stars, one failing star is rejected only if the other passes
     mix2, y2, r2, _ = _frame(gen, M=2, bad_slot=1)
-    acc2, _, _, ov2 = innovation_gate(mix2.log_weights, mix2.means, mix2.covs, y2, StarVectorMeasurement(r2, sigma=SIGMA), 21.1)
+    acc2, _, _, ov2 = innovation_gate(
+        mix2.log_weights, mix2.means, mix2.covs, y2, StarVectorMeasurement(r2, sigma=SIGMA), 21.1
+    )
     assert acc2[:, 0].all() and not acc2[:, 1].any() and not ov2.any()
 
 
@@ -115,7 +116,9 @@ def test_single_block_measurements_are_gated_as_they_stand(gen):
     mix = GaussianMixture.from_gaussian(torch.zeros(2, 1, dtype=F64), torch.eye(1, dtype=F64).expand(2, 1, 1), 1)
     meas = FunctionMeasurement(lambda x: x, torch.eye(1, dtype=F64))
     y = torch.tensor([[1.0], [10.0]], dtype=F64)
-    accepted, nis, _, overridden = innovation_gate(mix.log_weights, mix.means, mix.covs, y, meas, chi2_threshold(0.999, 1))
+    accepted, nis, _, overridden = innovation_gate(
+        mix.log_weights, mix.means, mix.covs, y, meas, chi2_threshold(0.999, 1)
+    )
     assert nis[:, 0].tolist() == pytest.approx([0.5, 50.0])
     assert accepted[:, 0].tolist() == [True, False] and not overridden.any()
 

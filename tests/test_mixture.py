@@ -9,18 +9,14 @@ from scipy.stats import multivariate_normal
 
 from agsf_torch import GaussianMixture
 from agsf_torch.mixture import split_gaussian
-
-
-def _spd(gen, *shape, n=3, scale=1.0):
-    A = torch.randn(*shape, n, n, generator=gen, dtype=torch.float64)
-    return scale * (A @ A.transpose(-1, -2) + 0.1 * torch.eye(n, dtype=torch.float64))
+from tests.helpers import random_spd
 
 
 @pytest.mark.parametrize("N", [1, 2, 3, 5, 9])
 @pytest.mark.parametrize("n", [1, 3, 6])
 def test_split_preserves_moments(gen, N, n):
     mean = torch.randn(7, n, generator=gen, dtype=torch.float64)
-    cov = _spd(gen, 7, n=n, scale=1e-3)
+    cov = random_spd(gen, 7, n=n, scale=1e-3)
     mix = GaussianMixture.from_gaussian(mean, cov, N)
     assert mix.weights.shape == (7, N) and mix.means.shape == (7, N, n)
     m, P = mix.moments()
@@ -41,7 +37,7 @@ def test_log_prob_matches_scipy(gen):
     N, n = 4, 3
     w = torch.rand(2, N, generator=gen, dtype=torch.float64)
     mu = torch.randn(2, N, n, generator=gen, dtype=torch.float64)
-    P = _spd(gen, 2, N, n=n)
+    P = random_spd(gen, 2, N, n=n)
     mix = GaussianMixture(weights=w, means=mu, covs=P)
     x = torch.randn(2, 11, n, generator=gen, dtype=torch.float64)
     lp = mix.log_prob(x)
@@ -53,10 +49,18 @@ def test_log_prob_matches_scipy(gen):
 
 def test_log_weights_constructor_and_entropy(gen):
     lw = torch.tensor([[0.0, -1000.0, float("-inf")]], dtype=torch.float64)
-    mix = GaussianMixture(log_weights=lw, means=torch.zeros(1, 3, 2, dtype=torch.float64), covs=torch.eye(2, dtype=torch.float64).expand(1, 3, 2, 2))
+    mix = GaussianMixture(
+        log_weights=lw,
+        means=torch.zeros(1, 3, 2, dtype=torch.float64),
+        covs=torch.eye(2, dtype=torch.float64).expand(1, 3, 2, 2),
+    )
     torch.testing.assert_close(mix.weights.sum(-1), torch.ones(1, dtype=torch.float64))
     assert float(mix.entropy_of_weights()) == pytest.approx(0.0, abs=1e-300)
-    uni = GaussianMixture(weights=torch.ones(1, 4), means=torch.zeros(1, 4, 1, dtype=torch.float64), covs=torch.ones(1, 4, 1, 1, dtype=torch.float64))
+    uni = GaussianMixture(
+        weights=torch.ones(1, 4),
+        means=torch.zeros(1, 4, 1, dtype=torch.float64),
+        covs=torch.ones(1, 4, 1, 1, dtype=torch.float64),
+    )
     assert float(uni.entropy_of_weights()) == pytest.approx(np.log(4), rel=1e-14)
 
 
@@ -74,7 +78,10 @@ def test_log_weights_constructor_and_entropy(gen):
     ],
 )
 def test_bad_input_raises(kwargs, match):
-    args = {"means": torch.zeros(1, 2, 2, dtype=torch.float64), "covs": torch.eye(2, dtype=torch.float64).expand(1, 2, 2, 2)}
+    args = {
+        "means": torch.zeros(1, 2, 2, dtype=torch.float64),
+        "covs": torch.eye(2, dtype=torch.float64).expand(1, 2, 2, 2),
+    }
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         GaussianMixture(**args)
@@ -82,11 +89,15 @@ def test_bad_input_raises(kwargs, match):
 
 def test_from_gaussian_rejects_bad_prior():
     with pytest.raises(ValueError, match="positive definite"):
-        GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.diag(torch.tensor([1.0, -1.0], dtype=torch.float64)), 3)
+        GaussianMixture.from_gaussian(
+            torch.zeros(2, dtype=torch.float64), torch.diag(torch.tensor([1.0, -1.0], dtype=torch.float64)), 3
+        )
     with pytest.raises(ValueError, match="num_components"):
         GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 0)
     with pytest.raises(ValueError, match="spread"):
-        GaussianMixture.from_gaussian(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 3, spread=1.0)
+        GaussianMixture.from_gaussian(
+            torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 3, spread=1.0
+        )
 
 
 def test_integer_and_bool_inputs_become_float64():
@@ -112,7 +123,11 @@ def test_integer_and_bool_inputs_become_float64():
     ],
 )
 def test_non_numeric_fields_are_named(field, value, match):
-    args = {"weights": torch.ones(1, 2), "means": torch.zeros(1, 2, 2, dtype=torch.float64), "covs": torch.eye(2, dtype=torch.float64).expand(1, 2, 2, 2)}
+    args = {
+        "weights": torch.ones(1, 2),
+        "means": torch.zeros(1, 2, 2, dtype=torch.float64),
+        "covs": torch.eye(2, dtype=torch.float64).expand(1, 2, 2, 2),
+    }
     args[field] = value
     with pytest.raises(ValueError, match=match):
         GaussianMixture(**args)
@@ -126,7 +141,11 @@ def test_check_covariance_refuses_integer_matrices():
 
 
 def test_replace_validates_by_default():
-    mix = GaussianMixture(weights=torch.ones(2, 3), means=torch.zeros(2, 3, 2, dtype=torch.float64), covs=torch.eye(2, dtype=torch.float64).expand(2, 3, 2, 2))
+    mix = GaussianMixture(
+        weights=torch.ones(2, 3),
+        means=torch.zeros(2, 3, 2, dtype=torch.float64),
+        covs=torch.eye(2, dtype=torch.float64).expand(2, 3, 2, 2),
+    )
     nan_means = mix.means.clone()
     nan_means[1, 2, 0] = float("nan")
     with pytest.raises(ValueError, match=r"means must be finite; non-finite entry at batch index \(1, 2\)"):

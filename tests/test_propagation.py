@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 
 from agsf_torch.models import AttitudeModel
 from agsf_torch.propagation import moment_derivatives, propagate_moments
-from tests.conftest import random_mrps
+from tests.helpers import random_mrps
 
 
 def _reference(model, mean, cov, u, dt):

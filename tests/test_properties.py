@@ -14,16 +14,9 @@ from agsf_torch import GaussianMixture
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.qp import solve_simplex_qp
+from tests.helpers import F64, random_spd
 
-F64 = torch.float64
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-
-
-def _spd(seed: int, shape: tuple[int, ...], n: int, scale: float) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    A = torch.randn(*shape, n, n, generator=g, dtype=F64)
-    S = scale * (A @ A.transpose(-1, -2) / n + 0.05 * torch.eye(n, dtype=F64))
-    return 0.5 * (S + S.transpose(-1, -2))  # a rounded A @ Aᵀ is not exactly symmetric; a covariance must be
 
 
 def _assert_valid(mix: GaussianMixture) -> None:
@@ -46,7 +39,7 @@ def _assert_valid(mix: GaussianMixture) -> None:
 )
 def test_split_preserves_moments_and_validity(n, N, batch, log_scale, spread, seed):
     shape = tuple(batch)
-    cov = _spd(seed, shape, n, 10.0**log_scale)
+    cov = random_spd(torch.Generator().manual_seed(seed), *shape, n=n, scale=10.0**log_scale, floor=0.05)
     mean = torch.randn(*shape, n, generator=torch.Generator().manual_seed(seed + 1), dtype=F64)
     mix = GaussianMixture.from_gaussian(mean, cov, N, spread)
     _assert_valid(mix)
@@ -112,7 +105,9 @@ def test_adaptive_weights_stay_on_the_simplex(B, N, reg, scaling, weight_ref, se
     model = AttitudeModel()
     mean = 0.5 * torch.randn(B, 3, generator=g, dtype=F64)
     mix = GaussianMixture.from_gaussian(mean, 1e-3 * torch.eye(3, dtype=F64).expand(B, 3, 3), N)
-    filt = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(reg=reg, scaling=scaling, weight_ref=weight_ref))
+    filt = AdaptiveGaussianSumFilter(
+        model, weight_update=PenaltyWeightUpdate(reg=reg, scaling=scaling, weight_ref=weight_ref)
+    )
     u = 0.1 * torch.randn(B, 3, generator=g, dtype=F64)
     for _ in range(2):
         mix = filt.predict(mix, u, 0.1)
@@ -136,7 +131,9 @@ def test_qp_solution_is_feasible_and_optimal(N, log_scale, seed):
 @SETTINGS
 @given(
     field=st.sampled_from(["sigma_v", "sigma_u"]),
-    bad=st.one_of(st.floats(max_value=-1e-300, allow_infinity=False, allow_nan=False), st.just(math.nan), st.just(math.inf)),
+    bad=st.one_of(
+        st.floats(max_value=-1e-300, allow_infinity=False, allow_nan=False), st.just(math.nan), st.just(math.inf)
+    ),
 )
 def test_invalid_noise_raises(field, bad):
     try:

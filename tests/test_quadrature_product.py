@@ -9,8 +9,7 @@ import pytest
 import torch
 
 from agsf_torch.quadrature import gauss_hermite, product_rule
-
-F64 = torch.float64
+from tests.helpers import F64
 
 
 def _random_polynomial(gen, groups):

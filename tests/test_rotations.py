@@ -11,7 +11,9 @@ from agsf_torch import rotations as rot
 
 def test_cross_matrix(gen):
     a, b = torch.randn(2, 50, 3, generator=gen, dtype=torch.float64)
-    torch.testing.assert_close(rot.cross_matrix(a) @ b[..., None], torch.linalg.cross(a, b)[..., None], rtol=0, atol=1e-14)
+    torch.testing.assert_close(
+        rot.cross_matrix(a) @ b[..., None], torch.linalg.cross(a, b)[..., None], rtol=0, atol=1e-14
+    )
 
 
 def test_mrp_to_dcm_matches_scipy(mrps):
@@ -53,17 +55,21 @@ def test_dcm_is_proper_orthogonal(mrps):
 
 
 def test_quat_multiply_composes_matrices(gen):
-    from tests.conftest import random_mrps
+    from tests.helpers import random_mrps
 
     pa, pb = random_mrps(1000, gen), random_mrps(1000, gen)
     qa, qb = rot.mrp_to_quat(pa), rot.mrp_to_quat(pb)
     torch.testing.assert_close(
         rot.quat_to_dcm(rot.quat_multiply(qa, qb)), rot.mrp_to_dcm(pa) @ rot.mrp_to_dcm(pb), rtol=0, atol=1e-12
     )
-    torch.testing.assert_close(rot.mrp_to_dcm(rot.mrp_compose(pa, pb)), rot.mrp_to_dcm(pa) @ rot.mrp_to_dcm(pb), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        rot.mrp_to_dcm(rot.mrp_compose(pa, pb)), rot.mrp_to_dcm(pa) @ rot.mrp_to_dcm(pb), rtol=0, atol=1e-12
+    )
     # scipy: as_matrix() is Cᵀ, so C(a)C(b) = (R_b R_a)ᵀ
     R = Rotation.from_mrp(pb.numpy()) * Rotation.from_mrp(pa.numpy())
-    np.testing.assert_allclose(rot.mrp_to_dcm(rot.mrp_compose(pa, pb)).numpy(), R.as_matrix().transpose(0, 2, 1), atol=1e-12)
+    np.testing.assert_allclose(
+        rot.mrp_to_dcm(rot.mrp_compose(pa, pb)).numpy(), R.as_matrix().transpose(0, 2, 1), atol=1e-12
+    )
 
 
 def test_shadow_set_same_attitude_and_jacobian(mrps):
@@ -79,11 +85,13 @@ def test_kinematics_matrix_identity(mrps):
     B = rot.mrp_kinematics_matrix(mrps)
     s = (mrps**2).sum(-1)
     eye = torch.eye(3, dtype=torch.float64)
-    torch.testing.assert_close(B @ B.transpose(-1, -2) / ((1 + s) ** 2)[:, None, None], eye.expand_as(B), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        B @ B.transpose(-1, -2) / ((1 + s) ** 2)[:, None, None], eye.expand_as(B), rtol=0, atol=1e-12
+    )
 
 
 def test_attitude_error_angle(gen, mrps):
-    from tests.conftest import random_mrps
+    from tests.helpers import random_mrps
 
     pa = random_mrps(len(mrps), gen)
     ang = rot.attitude_error_angle(pa, mrps)
@@ -96,7 +104,7 @@ def test_attitude_error_angle(gen, mrps):
 
 
 def test_attitude_error_vector_small_angle(gen):
-    from tests.conftest import random_mrps
+    from tests.helpers import random_mrps
 
     p_true = random_mrps(200, gen)
     dtheta = 1e-4 * torch.randn(200, 3, generator=gen, dtype=torch.float64)
@@ -111,11 +119,13 @@ def test_rotvec_to_quat_matches_scipy(gen):
     phi[:10] *= 1e-12
     q = rot.rotvec_to_quat(phi)
     # scipy's rotation vector is active: C(q) = R(φ)ᵀ
-    np.testing.assert_allclose(rot.quat_to_dcm(q).numpy(), Rotation.from_rotvec(phi.numpy()).as_matrix().transpose(0, 2, 1), atol=1e-12)
+    np.testing.assert_allclose(
+        rot.quat_to_dcm(q).numpy(), Rotation.from_rotvec(phi.numpy()).as_matrix().transpose(0, 2, 1), atol=1e-12
+    )
 
 
 def test_batched_over_leading_dims(gen):
-    from tests.conftest import random_mrps
+    from tests.helpers import random_mrps
 
     p = random_mrps(24, gen).reshape(2, 3, 4, 3)
     torch.testing.assert_close(rot.mrp_to_dcm(p).reshape(24, 3, 3), rot.mrp_to_dcm(p.reshape(24, 3)))
@@ -126,7 +136,7 @@ def test_attitude_error_angle_does_not_depend_on_the_batch(gen):
     """Trajectory i's error angle is the same bits whether computed alone or in a batch of any size
     (torch's atan2 takes a SIMD path for full vectors and a scalar one for the tail, which differ
     in the last bit for a few per cent of arguments)."""
-    from tests.conftest import random_mrps
+    from tests.helpers import random_mrps
 
     pa, pb = random_mrps(4099, gen), random_mrps(4099, gen)
     batch = rot.attitude_error_angle(pa, pb)
@@ -142,4 +152,6 @@ def test_attitude_error_jacobian_is_the_derivative_of_the_error_vector():
     for p in (torch.zeros(3, dtype=torch.float64), 0.7 * torch.randn(3, generator=gen, dtype=torch.float64)):
         J = torch.autograd.functional.jacobian(lambda pe: attitude_error_vector(pe, p), p)
         torch.testing.assert_close(attitude_error_jacobian(p), J, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(attitude_error_jacobian(torch.zeros(3, dtype=torch.float64)), 4.0 * torch.eye(3, dtype=torch.float64))
+    torch.testing.assert_close(
+        attitude_error_jacobian(torch.zeros(3, dtype=torch.float64)), 4.0 * torch.eye(3, dtype=torch.float64)
+    )

@@ -16,18 +16,17 @@ import pytest
 import torch
 
 from agsf_torch import update as update_module
+from agsf_torch.consistency import chi2_band
 from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.factories import make_env, make_filters, prior_covariance
 from agsf_torch.experiments.runner import run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter, MultiplicativeEKF
 from agsf_torch.gating import innovation_gate
-from agsf_torch.consistency import chi2_band
 from agsf_torch.mixture import GaussianMixture
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
 from agsf_torch.update import evaluate_measurement, kalman_update
-from tests.conftest import random_mrps
+from tests.helpers import F64, random_mrps
 
-F64 = torch.float64
 PRIOR_VAR = 1e-3  # MRP² per axis: ≈ 7° per axis, the paper's prior
 
 
@@ -37,7 +36,9 @@ def _frame(gen, B, N, sigma, M=5, fov_deg=8.0, noise_model="isotropic", mean_err
     view (the geometry of the paper's star tracker)."""
     truth = random_mrps(B, gen, max_norm=0.5)
     bore = torch.randn(B, 1, 3, generator=gen, dtype=F64)
-    r = bore / bore.norm(dim=-1, keepdim=True) + math.radians(fov_deg / 4) * torch.randn(B, M, 3, generator=gen, dtype=F64)
+    r = bore / bore.norm(dim=-1, keepdim=True) + math.radians(fov_deg / 4) * torch.randn(
+        B, M, 3, generator=gen, dtype=F64
+    )
     r = r / r.norm(dim=-1, keepdim=True)
     means = truth[:, None] + mean_error * torch.randn(B, N, 3, generator=gen, dtype=F64)
     covs = PRIOR_VAR * torch.eye(3, dtype=F64).expand(B, N, 3, 3)
@@ -81,7 +82,9 @@ def _check_against_exact(res, log_w, means, covs, y, meas, *, mean_tol, cov_tol,
     joint = log_w + log_beta  # log-likelihood and weights: the NIS's accuracy on its scale
     scale = nis_tol * float(log_beta.abs().max()) + 1e-9
     torch.testing.assert_close(res.log_likelihood, torch.logsumexp(joint, -1), rtol=0, atol=scale)
-    torch.testing.assert_close(res.log_weights, joint - torch.logsumexp(joint, -1, keepdim=True), rtol=0, atol=2 * scale)
+    torch.testing.assert_close(
+        res.log_weights, joint - torch.logsumexp(joint, -1, keepdim=True), rtol=0, atol=2 * scale
+    )
     # the posterior covariances are symmetric positive definite
     assert torch.equal(res.covs, res.covs.transpose(-1, -2))
     assert bool((torch.linalg.cholesky_ex(res.covs).info == 0).all())
@@ -133,12 +136,16 @@ def test_mixture_and_gate_nis_for_a_precise_sensor(gen):
         w = [mpmath.exp(mpmath.mpf(float(v))) for v in log_w[b]]
         nus = [_mp(y[b] - h[b, i]) for i in range(3)]
         Ss = [_mp(H[b, i]) * _mp(covs[b, i]) * _mp(H[b, i]).T + _mp(meas.noise_cov()) for i in range(3)]
-        for rows, got in [(slice(0, 15), res.nis_mixture[b])] + [(slice(3 * j, 3 * j + 3), gate_nis[b, j]) for j in range(5)]:
+        for rows, got in [(slice(0, 15), res.nis_mixture[b])] + [
+            (slice(3 * j, 3 * j + 3), gate_nis[b, j]) for j in range(5)
+        ]:
             idx = list(range(15))[rows]
             Ssub = [mpmath.matrix([[S[i, k] for k in idx] for i in idx]) for S in Ss]
             nv = [mpmath.matrix([v[i] for i in idx]) for v in nus]
             nu_bar = sum((wi * v for wi, v in zip(w, nv)), mpmath.zeros(len(idx), 1))
-            S_bar = sum((wi * (S + (v - nu_bar) * (v - nu_bar).T) for wi, S, v in zip(w, Ssub, nv)), mpmath.zeros(len(idx)))
+            S_bar = sum(
+                (wi * (S + (v - nu_bar) * (v - nu_bar).T) for wi, S, v in zip(w, Ssub, nv)), mpmath.zeros(len(idx))
+            )
             expect = float((nu_bar.T * mpmath.lu_solve(S_bar, nu_bar))[0])
             assert abs(float(got) - expect) <= 1e-8 * expect
 
@@ -234,12 +241,26 @@ def test_case1_runs_with_a_precise_sensor(iterations, noise_model):
     both frames are σ-level: NEES below the χ²₃ 1 − 1e-6 quantile (30.7) for every run and filter."""
     cfg = load_config(
         "case1",
-        ["runs=3", "duration=2.0", "sigma_s=1e-9", "compile=false", "components=3", f"update_iterations={iterations}",
-         f"star_noise_model={noise_model!r}".replace("'", '"'), 'filters=["EKF", "GSF", "AGSF"]'],
+        [
+            "runs=3",
+            "duration=2.0",
+            "sigma_s=1e-9",
+            "compile=false",
+            "components=3",
+            f"update_iterations={iterations}",
+            f"star_noise_model={noise_model!r}".replace("'", '"'),
+            'filters=["EKF", "GSF", "AGSF"]',
+        ],
     )
     res = run_monte_carlo(
-        make_env(cfg), make_filters(cfg), num_steps=cfg.num_steps, prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s, seed=cfg.seed, estimate_bias=cfg.estimate_bias, noise_model=cfg.star_noise_model,
+        make_env(cfg),
+        make_filters(cfg),
+        num_steps=cfg.num_steps,
+        prior_cov=prior_covariance(cfg),
+        sigma_s=cfg.sigma_s,
+        seed=cfg.seed,
+        estimate_bias=cfg.estimate_bias,
+        noise_model=cfg.star_noise_model,
     )
     frames = np.flatnonzero(res.star_frame)
     assert len(frames) == 2

@@ -69,7 +69,11 @@ class GyroHold:
         if gyro.dim() != 2 or gyro.shape[-1] != 3:
             raise ValueError(f"gyro must have shape [B, 3], got {tuple(gyro.shape)}")
         B = gyro.shape[0]
-        valid = torch.ones(B, dtype=torch.bool) if valid is None else torch.as_tensor(valid, dtype=torch.bool).reshape(-1)
+        valid = (
+            torch.ones(B, dtype=torch.bool, device=gyro.device)
+            if valid is None
+            else torch.as_tensor(valid, dtype=torch.bool, device=gyro.device).reshape(-1)
+        )
         if valid.shape != (B,):
             raise ValueError(f"gyro_valid must have shape [{B}], got {tuple(valid.shape)}")
         if not bool(torch.isfinite(gyro[valid]).all()):
@@ -81,7 +85,7 @@ class GyroHold:
             )
         if self.last is None:
             self.last = torch.zeros_like(gyro)
-            self.held_steps = torch.zeros(B, dtype=torch.int64)
+            self.held_steps = torch.zeros(B, dtype=torch.int64, device=gyro.device)
         assert self.held_steps is not None
         u = torch.where(valid[:, None], gyro, self.last)
         self.last = u.clone()
@@ -104,13 +108,19 @@ class GyroHold:
         angle_variance = torch.as_tensor(angle_variance)
         B = mixture.batch_shape
         if len(B) != 1 or angle_variance.shape != B:
-            raise ValueError(f"angle_variance must have the mixture's batch shape [B] = {tuple(B)}, got {tuple(angle_variance.shape)}")
+            raise ValueError(
+                f"angle_variance must have the mixture's batch shape [B] = {tuple(B)}, got {tuple(angle_variance.shape)}"
+            )
         if mixture.state_dim < 3:
-            raise ValueError(f"the mixture's state must start with the 3 MRP entries, got state dimension {mixture.state_dim}")
+            raise ValueError(
+                f"the mixture's state must start with the 3 MRP entries, got state dimension {mixture.state_dim}"
+            )
         bad = ~torch.isfinite(angle_variance) | (angle_variance < 0)
         if bool(bad.any()):
             k = int(bad.nonzero()[0])
-            raise ValueError(f"angle_variance must be finite and ≥ 0 (rad²), got {float(angle_variance[k])} at trajectory {k}")
+            raise ValueError(
+                f"angle_variance must be finite and ≥ 0 (rad²), got {float(angle_variance[k])} at trajectory {k}"
+            )
         n = mixture.state_dim
         diag = torch.zeros(n, dtype=mixture.covs.dtype, device=mixture.covs.device)
         diag[:3] = 1.0 / 16.0

@@ -29,8 +29,8 @@ import torch
 from torch import Tensor
 
 from ..filter_loop import StepInput
-from .gyro_hold import GyroHold
 from ..models.star_vectors import StarVectorMeasurement
+from .gyro_hold import GyroHold
 from .recordings import Recording
 
 __all__ = ["AttitudeInputs", "recording_inputs", "as_float64"]
@@ -54,8 +54,14 @@ class AttitudeInputs:
     later observation.
     """
 
-    def __init__(self, *, sigma_s: float | Tensor, gyro_hold_sigma: float | Tensor, known_bias: bool = False,
-                 noise_model: str = "isotropic") -> None:
+    def __init__(
+        self,
+        *,
+        sigma_s: float | Tensor,
+        gyro_hold_sigma: float | Tensor,
+        known_bias: bool = False,
+        noise_model: str = "isotropic",
+    ) -> None:
         self.sigma_s = sigma_s
         self.hold = GyroHold(gyro_hold_sigma)
         self.known_bias = bool(known_bias)
@@ -78,9 +84,13 @@ class AttitudeInputs:
             raise ValueError("known_bias=True needs the true gyro bias with every observation")
         bias = as_float64(truth_bias)
         if bias.shape != gyro.shape:
-            raise ValueError(f"truth_bias must have the gyro's shape {tuple(gyro.shape)} ([B, 3], rad/s), got {tuple(bias.shape)}")
+            raise ValueError(
+                f"truth_bias must have the gyro's shape {tuple(gyro.shape)} ([B, 3], rad/s), got {tuple(bias.shape)}"
+            )
         if not bool(torch.isfinite(bias).all()):
-            raise ValueError(f"truth_bias must be finite; non-finite at index {tuple((~torch.isfinite(bias)).nonzero()[0].tolist())}")
+            raise ValueError(
+                f"truth_bias must be finite; non-finite at index {tuple((~torch.isfinite(bias)).nonzero()[0].tolist())}"
+            )
         return bias
 
     def start(self, obs: Mapping[str, Any], dt: float, truth_bias: Tensor | None = None) -> None:
@@ -93,7 +103,9 @@ class AttitudeInputs:
         hold.step(gyro, valid, dt)
         self.hold, self._bias = hold, bias
 
-    def __call__(self, obs: Mapping[str, Any], dt: float, truth_bias: Tensor | None = None, context: Any = None) -> StepInput:
+    def __call__(
+        self, obs: Mapping[str, Any], dt: float, truth_bias: Tensor | None = None, context: Any = None
+    ) -> StepInput:
         """The input of the interval of length ``dt`` that ends at ``obs``.
 
         Args:
@@ -109,7 +121,11 @@ class AttitudeInputs:
         measurement = None  # built (and checked) before the hold or the bias move
         mask = as_float64(obs["star_mask"], torch.bool)
         if bool(mask.any()):
-            stars = {"star_body": as_float64(obs["star_body"]), "star_inertial": as_float64(obs["star_inertial"]), "star_mask": mask}
+            stars = {
+                "star_body": as_float64(obs["star_body"]),
+                "star_inertial": as_float64(obs["star_inertial"]),
+                "star_mask": mask,
+            }
             measurement = StarVectorMeasurement.from_observation(stars, self.sigma_s, noise_model=self.noise_model)
         u, held_var = self.hold.step(gyro, valid, dt)
         if bias is not None:

@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .inputs import AttitudeInputs, recording_inputs
 from ..filter_loop import FilterSetup, filter_steps, initial_mixtures
 from ..filters.registry import filter_spec, make_filter
 from ..models import AttitudeModel
+from .inputs import AttitudeInputs, recording_inputs
 from .recordings import Recording
 
 __all__ = ["PARAMETERS", "FitResult", "attitude_log_likelihood", "fit_attitude_parameters"]
@@ -167,7 +167,9 @@ def fit_attitude_parameters(
         return -attitude_log_likelihood(rec, unpack(x), prior_mean=prior_mean, prior_cov=prior_cov, **likelihood_kwargs)
 
     x = x0.clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+    opt = torch.optim.LBFGS(
+        [x], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12
+    )
     history: list[float] = []
     last_finite = x0.clone()
     state = {"diverged": False}
@@ -183,7 +185,11 @@ def fit_attitude_parameters(
         history.append(float(loss.detach()))
         last_finite.copy_(x.detach())
         if log is not None:
-            log(len(history), float(loss.detach()), {k: v.detach().tolist() for k, v in unpack(x.detach()).items() if k in learn})
+            log(
+                len(history),
+                float(loss.detach()),
+                {k: v.detach().tolist() for k, v in unpack(x.detach()).items() if k in learn},
+            )
         return loss
 
     try:
@@ -220,4 +226,3 @@ def fit_attitude_parameters(
 def _plain(t: Tensor):
     t = t.detach()
     return float(t) if t.numel() == 1 else [float(v) for v in t.reshape(-1)]
-

@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..storage.files import atomic_open
 from ..models.star_vectors import UNIT_ROUNDING, UNIT_TOLERANCE  # the filters' rule for star unit vectors
+from ..storage.files import atomic_open
 
 __all__ = ["Recording", "FORMAT", "UNIT_TOLERANCE"]
 
@@ -56,7 +56,16 @@ _REQUIRED = ("time", "gyro", "star_body", "star_inertial", "star_mask")
 _OPTIONAL = ("gyro_valid", "truth_mrp", "truth_bias")
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a member's header, or an empty archive's directory (numpy's test)
 # What reading a damaged archive raises from inside zipfile / zlib / numpy.
-_READ_ERRORS = (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError, struct.error, KeyError)
+_READ_ERRORS = (
+    OSError,
+    EOFError,
+    ValueError,
+    zipfile.BadZipFile,
+    zlib.error,
+    NotImplementedError,
+    struct.error,
+    KeyError,
+)
 
 
 @dataclass(frozen=True)
@@ -97,7 +106,9 @@ class Recording:
         B, t = self.num_trajectories, torch.as_tensor
         return {
             "gyro": t(self.gyro[:, k]),
-            "gyro_valid": torch.ones(B, 1, dtype=torch.bool) if self.gyro_valid is None else t(self.gyro_valid[:, k, None]),
+            "gyro_valid": torch.ones(B, 1, dtype=torch.bool)
+            if self.gyro_valid is None
+            else t(self.gyro_valid[:, k, None]),
             "star_body": t(self.star_body[:, k]),
             "star_inertial": t(self.star_inertial[:, k]),
             "star_mask": t(self.star_mask[:, k]),
@@ -126,7 +137,7 @@ class Recording:
         return final
 
     @classmethod
-    def load(cls, path: str | Path) -> "Recording":
+    def load(cls, path: str | Path) -> Recording:
         """Read and validate an archive written by :meth:`save` or by the user's own tools.
 
         Raises:
@@ -237,7 +248,9 @@ def _validate(a: dict[str, np.ndarray | None]) -> None:
     steps = np.diff(time)
     if (steps <= 0).any():
         row = int(np.argmax(steps <= 0)) + 1
-        raise ValueError(f"recording: column 'time' is not strictly increasing at row {row} ({time[row - 1]} → {time[row]})")
+        raise ValueError(
+            f"recording: column 'time' is not strictly increasing at row {row} ({time[row - 1]} → {time[row]})"
+        )
     a["time"] = time
     gyro = _real_column("gyro", a["gyro"])
     if gyro.ndim != 3 or gyro.shape[1:] != (T, 3):
@@ -275,7 +288,9 @@ def _validate(a: dict[str, np.ndarray | None]) -> None:
         bad = ~np.isfinite(v)
         if bad.any():
             idx = [int(i) for i in np.argwhere(bad)[0]]
-            raise ValueError(f"recording: column '{key}' is not finite at trajectory {idx[0]}, row {idx[1]}, entry {tuple(idx[2:])}")
+            raise ValueError(
+                f"recording: column '{key}' is not finite at trajectory {idx[0]}, row {idx[1]}, entry {tuple(idx[2:])}"
+            )
     mask = a["star_mask"]
     for key in ("star_body", "star_inertial"):
         v = a[key]

@@ -16,7 +16,7 @@ One concept per module:
 * :mod:`~agsf_torch.density.score` — the density score and its lineage-aware standard
   error (:func:`density_score`, :func:`effective_sample_size`);
 * :mod:`~agsf_torch.density.reference` — the sampler (:class:`PosteriorReference`):
-  forecast, bootstrap update, resampling, per-step diagnostics (:class:`StepRecord`);
+  forecast, bootstrap update, resampling, per-step diagnostics (:class:`ReferenceStepRecord`);
 * :mod:`~agsf_torch.density.redraw` — its path-space redraw where the bootstrap
   collapses: Laplace (Gauss–Newton) fits of the posterior of ``x₀`` along the
   noise-free flow, and importance sampling over all frames;
@@ -26,8 +26,8 @@ One concept per module:
 """
 
 from .charts import CHARTS, canonical_points, chart_for, mixture_log_density
+from .frames import ReferenceStepRecord
 from .proposal import InitialStateProposal
-from .frames import StepRecord
 from .reference import PosteriorReference
 from .score import density_score, effective_sample_size
 
@@ -38,7 +38,7 @@ __all__ = [
     "mixture_log_density",
     "effective_sample_size",
     "density_score",
-    "StepRecord",
+    "ReferenceStepRecord",
     "InitialStateProposal",
     "PosteriorReference",
 ]

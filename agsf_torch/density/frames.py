@@ -1,5 +1,5 @@
 """What :class:`~agsf_torch.density.PosteriorReference` records: its measurement frames and the
-diagnostics of every step (:class:`StepRecord`)."""
+diagnostics of every step (:class:`ReferenceStepRecord`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from torch import Tensor
 
 from ..models.base import MeasurementModel
 
-__all__ = ["StepRecord"]
+__all__ = ["ReferenceStepRecord"]
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ def _point_eval(measurement: MeasurementModel, x: Tensor, jacobian: bool = False
 
 
 @dataclass(frozen=True)
-class StepRecord:
+class ReferenceStepRecord:
     """Diagnostics of one :class:`PosteriorReference` step (``predict`` or ``update``).
 
     Attributes:

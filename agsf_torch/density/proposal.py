@@ -77,8 +77,18 @@ class InitialStateProposal:
         defensive_weight: ``α``; t_dof: ``ν`` (integer); t_scale: ``s``; chart: as everywhere.
     """
 
-    def __init__(self, prior: GaussianMixture, modes: Tensor, covs: Tensor, shares: Tensor, *,
-                 defensive_weight: float, t_dof: int, t_scale: float, chart: str) -> None:
+    def __init__(
+        self,
+        prior: GaussianMixture,
+        modes: Tensor,
+        covs: Tensor,
+        shares: Tensor,
+        *,
+        defensive_weight: float,
+        t_dof: int,
+        t_scale: float,
+        chart: str,
+    ) -> None:
         self.prior, self.modes, self.chart = prior, modes, chart
         self.alpha, self.nu = float(defensive_weight), int(t_dof)
         self.log_shares = torch.log(shares)
@@ -96,8 +106,9 @@ class InitialStateProposal:
         """``K`` draws per trajectory, ``[B, K, n]``."""
         B, M, n = self.modes.shape
         dtype, device = self.modes.dtype, self.modes.device
-        probs = torch.cat((torch.full((B, 1), self.alpha, dtype=dtype, device=device),
-                           (1.0 - self.alpha) * self.log_shares.exp()), -1)
+        probs = torch.cat(
+            (torch.full((B, 1), self.alpha, dtype=dtype, device=device), (1.0 - self.alpha) * self.log_shares.exp()), -1
+        )
         comp = torch.multinomial(probs, K, replacement=True, generator=generator)  # [B, K]
         idx = (comp - 1).clamp_min(0)
         mu = torch.gather(self.modes, 1, idx[..., None].expand(-1, -1, n))
@@ -130,9 +141,19 @@ class InitialStateProposal:
         w = torch.linalg.solve_triangular(self.chol, delta.transpose(-1, -2), upper=False)  # [B, M, n, K]
         maha = (w * w).sum(-2)
         logdet = 2.0 * torch.log(self.chol.diagonal(dim1=-2, dim2=-1)).sum(-1, keepdim=True)
-        log_t = (math.lgamma((nu + n) / 2) - math.lgamma(nu / 2) - 0.5 * n * math.log(nu * math.pi)
-                 - 0.5 * logdet - 0.5 * (nu + n) * torch.log1p(maha / nu)) + log_jac  # [B, M, K]
+        log_t = (
+            math.lgamma((nu + n) / 2)
+            - math.lgamma(nu / 2)
+            - 0.5 * n * math.log(nu * math.pi)
+            - 0.5 * logdet
+            - 0.5 * (nu + n) * torch.log1p(maha / nu)
+        ) + log_jac  # [B, M, K]
         log_t = torch.where(torch.isnan(log_t), torch.full_like(log_t, -math.inf), log_t)
-        parts = torch.cat(((math.log(self.alpha) + self.prior.log_prob(x)).unsqueeze(1),
-                           math.log(1.0 - self.alpha) + self.log_shares.unsqueeze(-1) + log_t), 1)
+        parts = torch.cat(
+            (
+                (math.log(self.alpha) + self.prior.log_prob(x)).unsqueeze(1),
+                math.log(1.0 - self.alpha) + self.log_shares.unsqueeze(-1) + log_t,
+            ),
+            1,
+        )
         return torch.logsumexp(parts, 1)

@@ -87,8 +87,10 @@ class _PathSpaceRedraw:
             k2 = rhs(*_axpy3((x, S, Sig), k1, dt / 2), uu)
             k3 = rhs(*_axpy3((x, S, Sig), k2, dt / 2), uu)
             k4 = rhs(*_axpy3((x, S, Sig), k3, dt), uu)
-            x, S, Sig = (None if a is None else a + dt / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
-                         for a, b1, b2, b3, b4 in zip((x, S, Sig), k1, k2, k3, k4))
+            x, S, Sig = (
+                None if a is None else a + dt / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
+                for a, b1, b2, b3, b4 in zip((x, S, Sig), k1, k2, k3, k4)
+            )
             if self.chart == "mrp":
                 x, S, Sig = _switch_flow(x, S, Sig)
             collect(i + 1)
@@ -187,8 +189,10 @@ class _PathSpaceRedraw:
             if best is None:
                 best = (r, Lam, R_tot)
             else:
-                best = tuple(torch.where(improved.reshape(*improved.shape, *([1] * (a.dim() - 2))), a, b)
-                             for a, b in zip((r, Lam, R_tot), best))
+                best = tuple(
+                    torch.where(improved.reshape(*improved.shape, *([1] * (a.dim() - 2))), a, b)
+                    for a, b in zip((r, Lam, R_tot), best)
+                )
             if it == self.gauss_newton_iterations:
                 break
             r_b, Lam_b, R_b = best
@@ -260,9 +264,16 @@ class _PathSpaceRedraw:
         c = 0.5 * ev + 0.5 / M
         pr = self.prior
         prior = pr.replace(log_weights=pr.log_weights[sub], means=pr.means[sub], covs=pr.covs[sub], validate=False)
-        proposal = InitialStateProposal(prior, mode, C, c / c.sum(-1, keepdim=True),
-                                        defensive_weight=self.defensive_weight, t_dof=self.t_dof,
-                                        t_scale=self.t_scale, chart=self.chart)
+        proposal = InitialStateProposal(
+            prior,
+            mode,
+            C,
+            c / c.sum(-1, keepdim=True),
+            defensive_weight=self.defensive_weight,
+            t_dof=self.t_dof,
+            t_scale=self.t_scale,
+            chart=self.chart,
+        )
         x0 = proposal.sample(K, self.generator)
         log_q = proposal.log_prob(x0)
         log_p0 = prior.log_prob(x0)  # [b, K]
@@ -302,6 +313,6 @@ def _block_diag_list(blocks: list[Tensor]) -> Tensor:
     s = 0
     for b in blocks:
         d = b.shape[-1]
-        out[..., s:s + d, s:s + d] = b
+        out[..., s : s + d, s : s + d] = b
         s += d
     return out

@@ -21,19 +21,20 @@ whole paths of the model's Itô SDE ``dx = f(x, u) dt + g(x) dβ``, ``E[dβ dβ�
 
 Every step is an exact importance-sampling or SMC step for that chain, so for fixed
 ``substeps`` all estimates are consistent as ``K → ∞`` (redraw weights are bounded,
-``p₀/q ≤ 1/α``).  Every step's ESS and lineage count are recorded (:class:`StepRecord`).
+``p₀/q ≤ 1/α``).  Every step's ESS and lineage count are recorded (:class:`ReferenceStepRecord`).
 """
 
 from __future__ import annotations
 
 import math
+
 import torch
 from torch import Tensor
 
 from ..mixture import GaussianMixture, check_covariance
 from ..models.base import ContinuousModel, MeasurementModel
 from .charts import _check_chart, canonical_points, chart_for
-from .frames import StepRecord, _Frame, _point_eval
+from .frames import ReferenceStepRecord, _Frame, _point_eval
 from .redraw import _PathSpaceRedraw
 from .score import density_score, effective_sample_size
 
@@ -119,8 +120,12 @@ class PosteriorReference(_PathSpaceRedraw):
             if len(prior.batch_shape) != 1:
                 raise ValueError(f"prior must have batch shape [B], got {tuple(prior.batch_shape)}")
             check_covariance("prior covs", prior.covs)
-            prior = prior.replace(log_weights=prior.log_weights.to(torch.float64), means=prior.means.to(torch.float64),
-                                  covs=prior.covs.to(torch.float64), validate=False)  # checked above
+            prior = prior.replace(
+                log_weights=prior.log_weights.to(torch.float64),
+                means=prior.means.to(torch.float64),
+                covs=prior.covs.to(torch.float64),
+                validate=False,
+            )  # checked above
         else:
             if prior_mean is None or prior_cov is None:
                 raise ValueError("give prior_mean and prior_cov (or prior=)")
@@ -136,17 +141,48 @@ class PosteriorReference(_PathSpaceRedraw):
             if not bool(torch.isfinite(mean).all()):
                 raise ValueError("prior_mean must be finite")
             check_covariance("prior_cov", cov)
-            prior = GaussianMixture(log_weights=torch.zeros(B, 1, dtype=mean.dtype, device=mean.device),
-                                    means=mean.unsqueeze(1), covs=cov.unsqueeze(1), validate=False)
+            prior = GaussianMixture(
+                log_weights=torch.zeros(B, 1, dtype=mean.dtype, device=mean.device),
+                means=mean.unsqueeze(1),
+                covs=cov.unsqueeze(1),
+                validate=False,
+            )
         if lineage_threshold is not None and not 0.0 <= float(lineage_threshold) < 1.0:
             raise ValueError(f"lineage_threshold must lie in [0, 1), got {lineage_threshold}")
-        self._init(model, prior, num_samples, generator, substeps, chart, redraw_threshold, resample_threshold,
-                   defensive_weight, t_dof, t_scale, particle_starts, gauss_newton_iterations)
+        self._init(
+            model,
+            prior,
+            num_samples,
+            generator,
+            substeps,
+            chart,
+            redraw_threshold,
+            resample_threshold,
+            defensive_weight,
+            t_dof,
+            t_scale,
+            particle_starts,
+            gauss_newton_iterations,
+        )
         self.lineage_threshold = self.redraw_threshold if lineage_threshold is None else float(lineage_threshold)
 
     # ------------------------------------------------------------------ set-up
-    def _init(self, model, prior, num_samples, generator, substeps, chart, redraw_threshold, resample_threshold,
-              defensive_weight, t_dof, t_scale, particle_starts, gauss_newton_iterations) -> None:
+    def _init(
+        self,
+        model,
+        prior,
+        num_samples,
+        generator,
+        substeps,
+        chart,
+        redraw_threshold,
+        resample_threshold,
+        defensive_weight,
+        t_dof,
+        t_scale,
+        particle_starts,
+        gauss_newton_iterations,
+    ) -> None:
         if not isinstance(model, ContinuousModel):
             raise ValueError(f"model must be a ContinuousModel, got {type(model).__name__}")
         B, _, n = prior.means.shape
@@ -154,13 +190,20 @@ class PosteriorReference(_PathSpaceRedraw):
             raise ValueError(f"prior state dimension {n} != model state_dim {model.state_dim}")
         if not isinstance(generator, torch.Generator):
             raise ValueError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-        for name, v, lo in (("num_samples", num_samples, 2), ("substeps", substeps, 1), ("t_dof", t_dof, 1),
-                            ("particle_starts", particle_starts, 0),
-                            ("gauss_newton_iterations", gauss_newton_iterations, 1)):
+        for name, v, lo in (
+            ("num_samples", num_samples, 2),
+            ("substeps", substeps, 1),
+            ("t_dof", t_dof, 1),
+            ("particle_starts", particle_starts, 0),
+            ("gauss_newton_iterations", gauss_newton_iterations, 1),
+        ):
             if isinstance(v, bool) or int(v) != v or v < lo:
                 raise ValueError(f"{name} must be an integer ≥ {lo}, got {v}")
-        for name, v in (("redraw_threshold", redraw_threshold), ("resample_threshold", resample_threshold),
-                        ("defensive_weight", defensive_weight)):
+        for name, v in (
+            ("redraw_threshold", redraw_threshold),
+            ("resample_threshold", resample_threshold),
+            ("defensive_weight", defensive_weight),
+        ):
             if not 0.0 < float(v) < 1.0:
                 raise ValueError(f"{name} must lie in (0, 1), got {v}")
         if not float(t_scale) > 0 or not math.isfinite(float(t_scale)):
@@ -192,7 +235,7 @@ class PosteriorReference(_PathSpaceRedraw):
         self.samples = canonical_points(x0, self.chart)
         self.log_weights = torch.zeros(B, K, dtype=self._dtype, device=self._device)
         self.lineage = self._own_lineage()
-        self.history: list[StepRecord] = []
+        self.history: list[ReferenceStepRecord] = []
 
     # ------------------------------------------------------------- utilities
     def _randn(self, *shape: int) -> Tensor:
@@ -293,19 +336,27 @@ class PosteriorReference(_PathSpaceRedraw):
             raise ValueError(f"measurement noise covariance is not positive definite at trajectory {bad}")
         logdet = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
         dof = valid.sum(-1)
-        return _Frame(len(self._intervals), y, measurement, valid, R_eff, L,
-                      -0.5 * (logdet + dof * math.log(2.0 * math.pi)))
+        return _Frame(
+            len(self._intervals), y, measurement, valid, R_eff, L, -0.5 * (logdet + dof * math.log(2.0 * math.pi))
+        )
 
     def _record(self, frame: bool, redrawn=None, resampled=None, boot=None, redraw=None) -> None:
         B = self.batch_size
         false = torch.zeros(B, dtype=torch.bool, device=self._device)
         nan = torch.full((B,), math.nan, dtype=self._dtype, device=self._device)
         lineages = _count_distinct(self.lineage)
-        self.history.append(StepRecord(
-            self.time, frame, effective_sample_size(self.log_weights) if not frame else self._pre_resample_ess,
-            lineages, false if redrawn is None else redrawn, false if resampled is None else resampled,
-            nan if boot is None else boot, nan if redraw is None else redraw,
-        ))
+        self.history.append(
+            ReferenceStepRecord(
+                self.time,
+                frame,
+                effective_sample_size(self.log_weights) if not frame else self._pre_resample_ess,
+                lineages,
+                false if redrawn is None else redrawn,
+                false if resampled is None else resampled,
+                nan if boot is None else boot,
+                nan if redraw is None else redraw,
+            )
+        )
 
     # ------------------------------------------------------------------ steps
     def predict(self, u: Tensor | None, dt: float) -> None:
@@ -415,11 +466,13 @@ class PosteriorReference(_PathSpaceRedraw):
         return density_score(self.samples, self.log_weights, mixture, chart=self.chart, lineage=self.lineage)
 
     def stacked_history(self) -> dict[str, Tensor]:
-        """The per-step diagnostics as ``[T]`` / ``[T, B]`` tensors (see :class:`StepRecord`)."""
+        """The per-step diagnostics as ``[T]`` / ``[T, B]`` tensors (see :class:`ReferenceStepRecord`)."""
         if not self.history:
             return {}
-        out = {"time": torch.tensor([r.time for r in self.history], dtype=torch.float64),
-               "frame": torch.tensor([r.frame for r in self.history])}
+        out = {
+            "time": torch.tensor([r.time for r in self.history], dtype=torch.float64),
+            "frame": torch.tensor([r.frame for r in self.history]),
+        }
         for key in ("ess", "lineages", "redrawn", "resampled", "bootstrap_ess", "redraw_ess"):
             out[key] = torch.stack([getattr(r, key) for r in self.history])
         return out

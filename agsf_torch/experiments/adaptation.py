@@ -39,11 +39,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..density import PosteriorReference
-from ..storage.files import save_figure, write_json, write_text
-from ..filters.registry import FILTER_NAMES
 from ..consistency import nees, rms
+from ..density import PosteriorReference
+from ..filters.registry import FILTER_NAMES
 from ..rotations import attitude_error_angle
+from ..storage.files import save_figure, write_json, write_text
 from .config import ExperimentConfig, load_config
 from .experiment import make_env, make_filters, mean_ci95, prepare_output, prior_covariance
 from .factories import filter_model
@@ -85,7 +85,11 @@ def scenario_config(name: str, runs: int, overrides: list[str] | None = None) ->
 def _windows(frames: np.ndarray) -> dict[str, np.ndarray]:
     first = int(np.argmax(frames)) if frames.any() else len(frames)
     idx = np.arange(len(frames))
-    return {"before_first_frame": idx < first, "between_frames": (~frames) & (idx >= first), "all": np.ones_like(frames)}
+    return {
+        "before_first_frame": idx < first,
+        "between_frames": (~frames) & (idx >= first),
+        "all": np.ones_like(frames),
+    }
 
 
 def run_scenario(
@@ -112,22 +116,32 @@ def run_scenario(
     model = next(iter(filters.values())).filter.model
     P0 = prior_covariance(cfg)
     steps = monte_carlo_steps(
-        env, filters, num_steps=cfg.num_steps, prior_cov=P0, sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
-        seed=cfg.seed, estimate_bias=cfg.estimate_bias, noise_model=cfg.star_noise_model,
+        env,
+        filters,
+        num_steps=cfg.num_steps,
+        prior_cov=P0,
+        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
+        seed=cfg.seed,
+        estimate_bias=cfg.estimate_bias,
+        noise_model=cfg.star_noise_model,
     )
     if progress:
         from tqdm import tqdm
 
         steps = tqdm(steps, desc=cfg.name, unit="step", total=cfg.num_steps)
     rec: dict[str, list] = {"time": [], "frame": [], "ess": [], "ess_small": []}
-    per: dict[str, dict[str, list]] = {f: {"error_angle": [], "nees": [], "score": [], "score_se": [], "score_small": []} for f in filters}
+    per: dict[str, dict[str, list]] = {
+        f: {"error_angle": [], "nees": [], "score": [], "score_se": [], "score_small": []} for f in filters
+    }
     refs: list[PosteriorReference] = []
     for step in steps:
         if not refs:
             for k, (K, s) in enumerate(((samples, seed), (max(2, samples // 4), seed + 1))):
                 gen = torch.Generator().manual_seed(int(s) * 1000 + 17)
                 refs.append(
-                    PosteriorReference(model, step.prior_mean, P0, num_samples=K, generator=gen, lineage_threshold=lineage_threshold)
+                    PosteriorReference(
+                        model, step.prior_mean, P0, num_samples=K, generator=gen, lineage_threshold=lineage_threshold
+                    )
                 )
         for ref in refs:
             ref.predict(step.u, cfg.dt)
@@ -195,10 +209,14 @@ def summarize_scenario(res: dict[str, Any], cfg: ExperimentConfig) -> dict[str, 
             ms, los, his = mean_ci95(sc)
             dc, dlo, dhi = mean_ci95(sc - sc_small)
             entry[wname] = {
-                "rms_deg": m, "rms_deg_ci95": [lo, hi],
-                "nees": mn, "nees_ci95": [lon, hin],
-                "density_score": ms, "density_score_ci95": [los, his],
-                "density_score_minus_small_reference": dc, "density_score_minus_small_reference_ci95": [dlo, dhi],
+                "rms_deg": m,
+                "rms_deg_ci95": [lo, hi],
+                "nees": mn,
+                "nees_ci95": [lon, hin],
+                "density_score": ms,
+                "density_score_ci95": [los, his],
+                "density_score_minus_small_reference": dc,
+                "density_score_minus_small_reference_ci95": [dlo, dhi],
             }
         entry["rms_deg_t"] = np.degrees(rms(r["error_angle"], 1)).tolist()
         entry["nees_t"] = r["nees"].mean(1).tolist()
@@ -238,7 +256,9 @@ def _figure(path: Path, name: str, summary: dict[str, Any]) -> None:
     axes[1].axhline(n, color="k", lw=0.6, alpha=0.6)
     axes[0].set(xlabel="time (s)", ylabel="RMS attitude error (deg)", title=f"{name}: RMS over runs")
     axes[1].set(xlabel="time (s)", ylabel=f"mean NEES (ideal {n})", title="consistency")
-    axes[2].set(xlabel="time (s)", ylabel="mean log-density of exact samples (nats)", title="density score (higher is better)")
+    axes[2].set(
+        xlabel="time (s)", ylabel="mean log-density of exact samples (nats)", title="density score (higher is better)"
+    )
     axes[2].set_yscale("symlog", linthresh=10.0)  # scores span a few nats to −10⁵ for overconfident filters
     for a in axes:
         a.grid(True, which="both", alpha=0.3)
@@ -271,7 +291,9 @@ def _scores_figure(path: Path, summaries: dict[str, dict[str, Any]]) -> None:
         ax.bar(np.arange(len(names)) + offset, vals, width, yerr=errs, label=f, capsize=2)
     ax.axhline(0, color="k", lw=0.6)
     ax.set_xticks(np.arange(len(names)), names, rotation=20)
-    ax.set(ylabel="density score − GSF's (nats, 95 % CI)", title="time-averaged density score relative to the classic GSF")
+    ax.set(
+        ylabel="density score − GSF's (nats, 95 % CI)", title="time-averaged density score relative to the classic GSF"
+    )
     ax.set_yscale("symlog", linthresh=0.1)
     ax.legend(fontsize=8)
     ax.grid(True, axis="y", alpha=0.3)
@@ -297,8 +319,14 @@ def _tensorboard(folder: Path, summary: dict[str, Any], res: dict[str, Any]) -> 
 
 
 def run_adaptation_study(
-    scenarios: list[str], out: Path, *, runs: int = 32, samples: int = 1024, overrides: list[str] | None = None,
-    progress: bool = True, force: bool = False,
+    scenarios: list[str],
+    out: Path,
+    *,
+    runs: int = 32,
+    samples: int = 1024,
+    overrides: list[str] | None = None,
+    progress: bool = True,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Run the scenarios, write ``summary.json``, figures, TensorBoard logs and ``results.md`` under ``out``.
 
@@ -315,9 +343,13 @@ def run_adaptation_study(
     for cfg in configs.values():
         check_memory(cfg, force=force)
     digest = hashlib.sha256(
-        json.dumps({"configs": {k: c.digest() for k, c in configs.items()}, "samples": samples}, sort_keys=True).encode()
+        json.dumps(
+            {"configs": {k: c.digest() for k, c in configs.items()}, "samples": samples}, sort_keys=True
+        ).encode()
     ).hexdigest()[:16]
-    out = prepare_output(Path(out), "adaptation", digest, {"samples": samples, **{k: c.to_dict() for k, c in configs.items()}})
+    out = prepare_output(
+        Path(out), "adaptation", digest, {"samples": samples, **{k: c.to_dict() for k, c in configs.items()}}
+    )
     summaries: dict[str, Any] = {}
     for name, cfg in configs.items():
         res = run_scenario(cfg, samples=samples, progress=progress)
@@ -326,7 +358,10 @@ def run_adaptation_study(
         _tensorboard(out / "tensorboard" / name, summaries[name], res)
         write_json(out / "summary.json", summaries)
     _scores_figure(out / "scores.png", summaries)
-    table = "\n\n".join(f"{w.replace('_', ' ')}:\n\n{study_table(summaries, w)}" for w in ("before_first_frame", "between_frames", "all"))
+    table = "\n\n".join(
+        f"{w.replace('_', ' ')}:\n\n{study_table(summaries, w)}"
+        for w in ("before_first_frame", "between_frames", "all")
+    )
     write_text(out / "results.md", table + "\n")
     return summaries
 

@@ -19,6 +19,14 @@ Subcommands:
   (default one simulated hour, 256 runs, 6-state) with running statistics and a
   pass/fail verdict: no NaN, covariances positive definite, errors inside ±3σ,
   flat memory (:mod:`agsf_torch.experiments.soak`).
+* ``agsf diagnose CONFIG [--set …] --out DIR`` — run a configuration and judge its
+  consistency in words: NEES, NIS and whiteness against their χ² bands
+  (:mod:`agsf_torch.experiments.diagnose`).
+* ``agsf learn CONFIG --learn NAMES [--recording FILE] --out DIR`` — maximum-likelihood
+  fits of the noise model through the filter, with 95 % intervals
+  (:mod:`agsf_torch.experiments.learn`).
+* ``agsf bench --out DIR`` — what the filters cost beside their peers, every target met
+  or not (:mod:`agsf_torch.experiments.bench`).
 
 Every experiment writes ``summary.json``, ``runs.npz``, PNG figures and
 TensorBoard events (see :mod:`agsf_torch.experiments.experiment`); each command ends
@@ -39,7 +47,15 @@ import numpy as np
 import torch
 
 from .cli_terminal import (
-    FORCE_HELP, Parser, messages, nonnegative_float, one_line, positive_float, positive_int, seed, tensorboard_command,
+    FORCE_HELP,
+    Parser,
+    messages,
+    nonnegative_float,
+    one_line,
+    positive_float,
+    positive_int,
+    seed,
+    tensorboard_command,
 )
 
 __all__ = ["main", "tensorboard_command"]
@@ -48,18 +64,23 @@ __all__ = ["main", "tensorboard_command"]
 def _simulate(args: argparse.Namespace) -> int:
     import envs
 
-    from ..storage.files import write_json
     from ..attitude.recordings import FORMAT
+    from ..storage.files import write_json
     from .experiment import prepare_output
     from .recorded import record_environment
     from .resources import refuse_if_too_large, simulation_memory
 
     if args.seed > envs.random.SEED_MASK - (args.runs - 1):
-        raise ValueError(f"--seed must be ≤ {envs.random.SEED_MASK - (args.runs - 1)} with --runs {args.runs}, got {args.seed}")
+        raise ValueError(
+            f"--seed must be ≤ {envs.random.SEED_MASK - (args.runs - 1)} with --runs {args.runs}, got {args.seed}"
+        )
     params = {"runs": args.runs, "steps": args.steps, "star_period": args.star_period, "seed": args.seed}
-    config = envs.StarTrackerConfig(max_steps=args.steps, star_period=args.star_period)  # validates before anything is created
+    config = envs.StarTrackerConfig(
+        max_steps=args.steps, star_period=args.star_period
+    )  # validates before anything is created
     refuse_if_too_large(
-        simulation_memory(args.runs, args.steps, config.max_stars), f"simulating --runs {args.runs} × --steps {args.steps}",
+        simulation_memory(args.runs, args.steps, config.max_stars),
+        f"simulating --runs {args.runs} × --steps {args.steps}",
         force=args.force,
     )
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, config=config)
@@ -70,7 +91,11 @@ def _simulate(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     counts = np.bincount(rec.star_mask[:, rec.star_frames()].sum(-1).ravel(), minlength=env.config.max_stars + 1)
     summary = {
-        **params, "command": "simulate", "format": FORMAT, "recording_digest": rec.content_digest(), "seconds": elapsed,
+        **params,
+        "command": "simulate",
+        "format": FORMAT,
+        "recording_digest": rec.content_digest(),
+        "seconds": elapsed,
         "stars_per_frame_histogram": counts.tolist(),
     }
     write_json(out / "summary.json", summary, indent=2)
@@ -118,7 +143,12 @@ def _adaptation(args: argparse.Namespace) -> int:
     _threads(args)
     names = list(SCENARIOS) if "all" in args.scenario else list(dict.fromkeys(args.scenario))
     summaries = run_adaptation_study(
-        names, Path(args.out), runs=args.runs, samples=args.samples, overrides=list(args.set), progress=not args.quiet,
+        names,
+        Path(args.out),
+        runs=args.runs,
+        samples=args.samples,
+        overrides=list(args.set),
+        progress=not args.quiet,
         force=args.force,
     )
     for window in ("before_first_frame", "between_frames", "all"):
@@ -142,7 +172,9 @@ def _sweep(args: argparse.Namespace) -> int:
         _threads(args)
         kw = {}
     try:
-        rows = run_sweep(base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, force=args.force, **kw)
+        rows = run_sweep(
+            base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, force=args.force, **kw
+        )
     except (RayUnavailable, SweepFailed) as exc:
         print(f"agsf: error: {exc}", file=sys.stderr)
         return 1
@@ -151,7 +183,10 @@ def _sweep(args: argparse.Namespace) -> int:
 
         results = Path(args.out) / "results.jsonl"
         done = len(read_json_lines(results))
-        print(f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume", file=sys.stderr)
+        print(
+            f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume",
+            file=sys.stderr,
+        )
         return 130
     from ..storage.files import write_text
     from .sweep import results_table
@@ -159,8 +194,10 @@ def _sweep(args: argparse.Namespace) -> int:
     table = results_table(rows)
     write_text(Path(args.out) / "results.md", table + "\n")
     print(table)
-    print(f"{len(rows)} configurations: {args.out}/results.md (this table), {args.out}/results.jsonl (the rows), "
-          f"{args.out}/configs/<config>/ (each one's figures and data)")
+    print(
+        f"{len(rows)} configurations: {args.out}/results.md (this table), {args.out}/results.jsonl (the rows), "
+        f"{args.out}/configs/<config>/ (each one's figures and data)"
+    )
     print(f"TensorBoard (hparams): {tensorboard_command(args.out)}")
     return 0
 
@@ -258,18 +295,24 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="one configuration (a TOML file or a preset name)")
     p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior, faults)")
     p.add_argument("--recording", default=None, help="replay a recorded .npz file (with truth) instead of simulating")
-    p.add_argument("--out", required=True, help="output folder (created; an existing one must hold the same experiment)")
+    p.add_argument(
+        "--out", required=True, help="output folder (created; an existing one must hold the same experiment)"
+    )
     common(p)
     p.set_defaults(func=_run)
 
     p = sub.add_parser("reproduce", help="the paper's three cases (star frames at 1, 0.5, 0.2 Hz)")
     p.add_argument(
-        "--case", choices=["1", "2", "3", "all"], default="all",
+        "--case",
+        choices=["1", "2", "3", "all"],
+        default="all",
         help="the paper's case: star frames at 1 Hz (1), 0.5 Hz (2), 0.2 Hz (3), or all three (default)",
     )
     p.add_argument("--runs", type=positive_int, default=None, help="Monte Carlo runs (preset: 100)")
     p.add_argument("--duration", type=positive_float, default=None, help="simulated seconds per run (preset: 30)")
-    p.add_argument("--out", default="runs/reproduce", help="output folder (default: runs/reproduce; one subfolder per case)")
+    p.add_argument(
+        "--out", default="runs/reproduce", help="output folder (default: runs/reproduce; one subfolder per case)"
+    )
     common(p)
     p.set_defaults(func=_reproduce)
 
@@ -281,7 +324,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="where adapting the weights pays: RMS, NEES and density score of EKF, GSF, AGSF, AGSF-galerkin and MEKF",
     )
     p.add_argument(
-        "--scenario", nargs="+", default=["all"],
+        "--scenario",
+        nargs="+",
+        default=["all"],
         choices=["all", *SCENARIOS],
         help="scenarios to run (default: all)",
     )
@@ -296,12 +341,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...", help="a swept key")
     p.add_argument("--out", required=True, help="output folder (rerun the same command on it to resume)")
     p.add_argument(
-        "--backend", choices=["local", "ray"], default="local",
+        "--backend",
+        choices=["local", "ray"],
+        default="local",
         help="local: one configuration after another in this process; ray: one Ray task per configuration "
         "(needs agsf-torch[ray]; --threads then sets each task's CPUs, default 1)",
     )
     p.add_argument(
-        "--address", default=None,
+        "--address",
+        default=None,
         help="Ray cluster to use (with --backend ray): 'auto' (this node's cluster) or ray://HEAD:10001; "
         "default: RAY_ADDRESS if set, else a new local Ray instance",
     )
@@ -316,7 +364,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("learn", help="maximum-likelihood fit of noise-model parameters through the filter")
     p.add_argument("config", help="TOML file or preset (simulation and filter settings)")
     p.add_argument("--learn", required=True, help="comma-separated: sigma_v, sigma_u, sigma_s, bias, reg, prior_scale")
-    p.add_argument("--recording", default=None, help="a recorded .npz file instead of simulating (needs truth for the prior)")
+    p.add_argument(
+        "--recording", default=None, help="a recorded .npz file instead of simulating (needs truth for the prior)"
+    )
     p.add_argument("--max-iter", type=positive_int, default=40, help="L-BFGS iterations of the fit (default 40)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
@@ -327,17 +377,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=positive_int, default=256, help="Monte Carlo runs (batch, default 256)")
     p.add_argument("--duration", type=positive_float, default=3600.0, help="simulated seconds (default one hour)")
     p.add_argument("--report-every", type=positive_float, default=60.0, help="simulated seconds per report row")
-    p.add_argument("--warmup", type=nonnegative_float, default=60.0, help="seconds excluded from the verdict (prior convergence)")
-    p.add_argument("--seed", type=seed, default=1, help="seeds truth, noise and prior draws; trajectory i is seeded seed + i (default 1)")
+    p.add_argument(
+        "--warmup", type=nonnegative_float, default=60.0, help="seconds excluded from the verdict (prior convergence)"
+    )
+    p.add_argument(
+        "--seed",
+        type=seed,
+        default=1,
+        help="seeds truth, noise and prior draws; trajectory i is seeded seed + i (default 1)",
+    )
     p.add_argument("--no-compile", action="store_true", help="eager FPKE quadrature (AGSF)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_soak)
 
-    p = sub.add_parser("bench", help="adaptive vs classic filter cost, first step, QP vs Clarabel, filterpy/NumPy peers, memory; targets met or not")
+    p = sub.add_parser(
+        "bench",
+        help="adaptive vs classic filter cost, first step, QP vs Clarabel, filterpy/NumPy peers, memory; targets met or not",
+    )
     p.add_argument("--out", default="runs/bench", help="output folder (default: runs/bench)")
     p.add_argument("--quick", action="store_true", help="smaller samples (a smoke run, not the reference numbers)")
-    p.add_argument("--no-compile", action="store_true", help="skip the compiled penalty kernel's first-step measurement")
+    p.add_argument(
+        "--no-compile", action="store_true", help="skip the compiled penalty kernel's first-step measurement"
+    )
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     p.set_defaults(func=_bench)
     return parser

@@ -20,8 +20,16 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
-    "FORCE_HELP", "Parser", "integer", "positive_int", "positive_float", "nonnegative_float", "seed", "one_line",
-    "messages", "tensorboard_command",
+    "FORCE_HELP",
+    "Parser",
+    "integer",
+    "positive_int",
+    "positive_float",
+    "nonnegative_float",
+    "seed",
+    "one_line",
+    "messages",
+    "tensorboard_command",
 ]
 
 
@@ -128,12 +136,12 @@ def messages(quiet: bool):
         with warnings.catch_warnings():
             # torch's own inductor lowering calls its deprecated torch._prims_common.check
             warnings.filterwarnings(
-                "ignore", message=r"`torch\._prims_common\.check` is deprecated", category=FutureWarning,
+                "ignore",
+                message=r"`torch\._prims_common\.check` is deprecated",
+                category=FutureWarning,
                 module=r"torch\._inductor\.",
             )
             yield
     finally:
         logger.removeHandler(handler)
         logger.setLevel(level)
-
-

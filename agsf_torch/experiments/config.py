@@ -15,17 +15,24 @@ import dataclasses
 import hashlib
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import tomllib
+
 from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR
 from ..filters.registry import ADAPTIVE_FILTERS, CONFIG_OPTIONS, FILTER_NAMES
 
 __all__ = [
-    "ExperimentConfig", "load_config", "load_preset", "preset_names", "parse_override", "FILTER_NAMES", "DEFAULT_FILTERS",
+    "ExperimentConfig",
+    "load_config",
+    "load_preset",
+    "preset_names",
+    "parse_override",
+    "FILTER_NAMES",
+    "DEFAULT_FILTERS",
     "MAX_SEED",
 ]
 
@@ -118,8 +125,16 @@ class _ExperimentFields:
                 if not isinstance(value, list):
                     raise ValueError(f"config key '{key}' must be a list, got {value!r}")
         positive = (
-            "duration", "dt", "star_period", "sigma_s", "fov_deg", "focal_length", "prior_var",
-            "prior_bias_sigma_deg_per_hr", "filter_sigma_s_scale", "filter_sigma_v_scale",
+            "duration",
+            "dt",
+            "star_period",
+            "sigma_s",
+            "fov_deg",
+            "focal_length",
+            "prior_var",
+            "prior_bias_sigma_deg_per_hr",
+            "filter_sigma_s_scale",
+            "filter_sigma_v_scale",
         )
         for key in positive:
             v = getattr(self, key)
@@ -139,14 +154,18 @@ class _ExperimentFields:
         if self.fov_deg >= 180.0:
             raise ValueError(f"config key 'fov_deg' must be < 180, got {self.fov_deg!r}")
         if self.star_noise_model not in ("isotropic", "tangent"):
-            raise ValueError(f"config key 'star_noise_model' must be 'isotropic' or 'tangent', got {self.star_noise_model!r}")
+            raise ValueError(
+                f"config key 'star_noise_model' must be 'isotropic' or 'tangent', got {self.star_noise_model!r}"
+            )
         from envs.faults import parse_faults
 
         try:
             parse_faults(self.faults)
         except ValueError as exc:
             raise ValueError(f"config key 'faults': {exc}") from None
-        if len(self.rate_axes) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes):
+        if len(self.rate_axes) != 3 or not all(
+            isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes
+        ):
             raise ValueError(f"config key 'rate_axes' must be 3 finite numbers, got {self.rate_axes!r}")
         for key, opt in CONFIG_OPTIONS.items():  # each declaring class validates its own option
             for owner in opt.owners:
@@ -155,8 +174,14 @@ class _ExperimentFields:
                 except ValueError as exc:
                     off = "" if opt.off is None else f" (or {opt.off!r}: off)"
                     raise ValueError(f"config key '{key}': {exc}{off}") from None
-        if not self.filters or any(f not in FILTER_NAMES for f in self.filters) or len(set(self.filters)) != len(self.filters):
-            raise ValueError(f"config key 'filters' must be a non-empty list of distinct names from {FILTER_NAMES}, got {self.filters!r}")
+        if (
+            not self.filters
+            or any(f not in FILTER_NAMES for f in self.filters)
+            or len(set(self.filters)) != len(self.filters)
+        ):
+            raise ValueError(
+                f"config key 'filters' must be a non-empty list of distinct names from {FILTER_NAMES}, got {self.filters!r}"
+            )
         from ..qp import MAX_COMPONENTS
 
         if self.components > MAX_COMPONENTS and any(f in ADAPTIVE_FILTERS for f in self.filters):
@@ -191,10 +216,18 @@ class _ExperimentFields:
     def env_settings(self) -> dict[str, Any]:
         """The simulator's settings (:class:`envs.StarTrackerConfig` fields) of this configuration."""
         return {
-            "max_steps": self.num_steps, "dt": self.dt, "star_period": self.star_period, "sigma_v": self.sigma_v,
-            "sigma_u": self.sigma_u, "initial_bias": self.gyro_bias_deg_per_hr * DEG_PER_HOUR, "sigma_s": self.sigma_s,
-            "fov_deg": self.fov_deg, "focal_length": self.focal_length, "max_stars": self.max_stars,
-            "rate": [self.omega0 * a for a in self.rate_axes], "faults": self.faults,
+            "max_steps": self.num_steps,
+            "dt": self.dt,
+            "star_period": self.star_period,
+            "sigma_v": self.sigma_v,
+            "sigma_u": self.sigma_u,
+            "initial_bias": self.gyro_bias_deg_per_hr * DEG_PER_HOUR,
+            "sigma_s": self.sigma_s,
+            "fov_deg": self.fov_deg,
+            "focal_length": self.focal_length,
+            "max_stars": self.max_stars,
+            "rate": [self.omega0 * a for a in self.rate_axes],
+            "faults": self.faults,
         }
 
     def to_dict(self) -> dict[str, Any]:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..storage.files import write_json, write_text
 from ..consistency import consistency_checks, format_report
+from ..storage.files import write_json, write_text
 from .config import ExperimentConfig
 from .experiment import run_experiment
 from .factories import filter_model

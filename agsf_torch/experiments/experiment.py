@@ -22,13 +22,25 @@ from .statistics import mean_ci95, paired_difference, summarize
 from .tensorboard_log import write_tensorboard
 
 __all__ = [
-    "make_env", "make_filters", "prior_covariance", "run_experiment", "summarize", "prepare_output", "OutputConflict",
-    "mean_ci95", "paired_difference",
+    "make_env",
+    "make_filters",
+    "prior_covariance",
+    "run_experiment",
+    "summarize",
+    "prepare_output",
+    "OutputConflict",
+    "mean_ci95",
+    "paired_difference",
 ]
 
 
 def run_experiment(
-    cfg: ExperimentConfig, out: Path, *, progress: bool = True, kind: str = "run", recording: str | Path | None = None,
+    cfg: ExperimentConfig,
+    out: Path,
+    *,
+    progress: bool = True,
+    kind: str = "run",
+    recording: str | Path | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
@@ -48,7 +60,11 @@ def run_experiment(
 
         rec = Recording.load(recording)
         env = RecordingEnv(rec)
-        if env.num_envs != cfg.runs or env.config.max_steps < cfg.num_steps or abs(env.config.dt - cfg.dt) > 1e-9 * cfg.dt:
+        if (
+            env.num_envs != cfg.runs
+            or env.config.max_steps < cfg.num_steps
+            or abs(env.config.dt - cfg.dt) > 1e-9 * cfg.dt
+        ):
             raise ValueError(
                 f"recording {recording} has {env.num_envs} trajectories × {env.config.max_steps} steps of {env.config.dt} s; "
                 f"the configuration needs runs={cfg.runs}, ≥ {cfg.num_steps} steps of dt={cfg.dt}"

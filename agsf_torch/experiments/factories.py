@@ -22,7 +22,9 @@ def make_env(cfg: ExperimentConfig):
 
 def filter_model(cfg: ExperimentConfig) -> AttitudeModel:
     """The attitude model every filter of a configuration runs on (σ_v scaled by ``filter_sigma_v_scale``)."""
-    return AttitudeModel(estimate_bias=cfg.estimate_bias, sigma_v=cfg.sigma_v * cfg.filter_sigma_v_scale, sigma_u=cfg.sigma_u)
+    return AttitudeModel(
+        estimate_bias=cfg.estimate_bias, sigma_v=cfg.sigma_v * cfg.filter_sigma_v_scale, sigma_u=cfg.sigma_u
+    )
 
 
 def make_filters(cfg: ExperimentConfig) -> dict[str, FilterSetup]:

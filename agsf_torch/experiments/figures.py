@@ -167,7 +167,8 @@ def axes_figure(summary: dict[str, Any]) -> Any:
     fig = _figure((3.5 * ncol, 2.5 * len(names) + 1.3))
     grid = fig.subplots(len(names), ncol, squeeze=False, sharex=True)
     groups: dict[str, tuple[list[Any], list[np.ndarray], list[np.ndarray]]] = {
-        "attitude": ([], [], []), "bias": ([], [], [])
+        "attitude": ([], [], []),
+        "bias": ([], [], []),
     }
     for row, name in enumerate(names):
         err_rad = np.asarray(filters[name]["error_run0_rad"], dtype=float)
@@ -213,9 +214,7 @@ def axes_figure(summary: dict[str, Any]) -> Any:
     what = "rotation error about the true body axes (arcsec)"
     what += " and gyro bias error (deg/h)" if bias else ""
     state = "" if bias else "; attitude-only state (no bias states)"
-    fig.suptitle(
-        f"{summary['config']['name']}, run 0: {what} with ±3σ of each filter's covariance{state}", fontsize=11
-    )
+    fig.suptitle(f"{summary['config']['name']}, run 0: {what} with ±3σ of each filter's covariance{state}", fontsize=11)
     fig.tight_layout(rect=(0, 0.45 / fig.get_figheight(), 1, 1))
     return fig
 
@@ -237,8 +236,14 @@ def weights_figure(summary: dict[str, Any]) -> Any:
         fig = _figure((6.0, 2.5))
         ax = fig.add_subplot()
         ax.axis("off")
-        ax.text(0.5, 0.5, "no mixture filter in this experiment:\nno component weights to show",
-                ha="center", va="center", transform=ax.transAxes)
+        ax.text(
+            0.5,
+            0.5,
+            "no mixture filter in this experiment:\nno component weights to show",
+            ha="center",
+            va="center",
+            transform=ax.transAxes,
+        )
         return fig
     ncomp = max(w.shape[1] for w in shown.values())
     fig = _figure((12.0, 2.9 * len(shown) + 1.0))
@@ -253,9 +258,18 @@ def weights_figure(summary: dict[str, Any]) -> Any:
         for i in range(N):
             frac = (N - 1 - i) / max(N - 1, 1)
             (line,) = ax.plot(
-                t, w[:, i], color=f"C{i % 10}", ls=_LINESTYLES[i % len(_LINESTYLES)], lw=1.0 + 2.2 * frac,
-                alpha=0.85, marker=_MARKERS[i % len(_MARKERS)], markersize=5, markevery=(i * every // N, every),
-                zorder=2 + i, label=f"component {i + 1}", gid=f"{name}/weight/{i}",
+                t,
+                w[:, i],
+                color=f"C{i % 10}",
+                ls=_LINESTYLES[i % len(_LINESTYLES)],
+                lw=1.0 + 2.2 * frac,
+                alpha=0.85,
+                marker=_MARKERS[i % len(_MARKERS)],
+                markersize=5,
+                markevery=(i * every // N, every),
+                zorder=2 + i,
+                label=f"component {i + 1}",
+                gid=f"{name}/weight/{i}",
             )
             if len(handles) <= i:  # the first panel with this many components names them
                 handles.append(line)
@@ -285,11 +299,25 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
     others = [n for n, f in summary["filters"].items() if "fpke_error_before_mean" not in f]
     for name in recorded:
         f = summary["filters"][name]
-        ax.plot(t, f["fpke_error_before_mean"], color=colors[name], lw=2.6, alpha=0.45,
-                label=f"{name}: before the weight update (propagated weights)", gid=f"{name}/fpke_before")
+        ax.plot(
+            t,
+            f["fpke_error_before_mean"],
+            color=colors[name],
+            lw=2.6,
+            alpha=0.45,
+            label=f"{name}: before the weight update (propagated weights)",
+            gid=f"{name}/fpke_before",
+        )
         if "fpke_error_after_mean" in f:
-            ax.plot(t, f["fpke_error_after_mean"], color=colors[name], ls="--", lw=1.0,
-                    label=f"{name}: after the weight update (adapted weights)", gid=f"{name}/fpke_after")
+            ax.plot(
+                t,
+                f["fpke_error_after_mean"],
+                color=colors[name],
+                ls="--",
+                lw=1.0,
+                label=f"{name}: after the weight update (adapted weights)",
+                gid=f"{name}/fpke_after",
+            )
     first = next(iter(summary["filters"].values()))
     n = np.asarray(first["error_run0_rad"]).shape[-1]
     chart = "MRP, bias in rad/s" if n >= 6 else "MRP"
@@ -308,11 +336,25 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
             labels.append("star frame")
         ax.legend(handles, labels, fontsize=8)
         if others:
-            ax.text(0.99, 0.01, "no FPKE residual recorded by: " + ", ".join(others), transform=ax.transAxes,
-                    fontsize=8, ha="right", va="bottom", color="0.3")
+            ax.text(
+                0.99,
+                0.01,
+                "no FPKE residual recorded by: " + ", ".join(others),
+                transform=ax.transAxes,
+                fontsize=8,
+                ha="right",
+                va="bottom",
+                color="0.3",
+            )
     else:
-        ax.text(0.5, 0.5, "no filter in this experiment records the FPKE residual", ha="center", va="center",
-                transform=ax.transAxes)
+        ax.text(
+            0.5,
+            0.5,
+            "no filter in this experiment records the FPKE residual",
+            ha="center",
+            va="center",
+            transform=ax.transAxes,
+        )
     fig.tight_layout()
     return fig
 

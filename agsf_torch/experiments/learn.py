@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
-from ..storage.files import write_json, write_text
 from ..attitude.learning import PARAMETERS, fit_attitude_parameters
 from ..attitude.recordings import Recording
 from ..constants import DEG_PER_HOUR
+from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
+from ..storage.files import write_json, write_text
 from .config import ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
 from .recorded import record_environment
@@ -36,7 +36,13 @@ def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]
     P0 = prior_covariance(cfg)
     n = P0.shape[0]
     zeros = np.zeros_like(rec.truth_mrp[:, 0])
-    truth0 = torch.cat((torch.as_tensor(rec.truth_mrp[:, 0]), torch.as_tensor(rec.truth_bias[:, 0] if rec.truth_bias is not None else zeros)), -1)[:, :n]
+    truth0 = torch.cat(
+        (
+            torch.as_tensor(rec.truth_mrp[:, 0]),
+            torch.as_tensor(rec.truth_bias[:, 0] if rec.truth_bias is not None else zeros),
+        ),
+        -1,
+    )[:, :n]
     mean0 = sample_prior(truth0, P0, torch.Generator().manual_seed(cfg.seed + PRIOR_SEED_OFFSET))
     configured = {
         "sigma_v": cfg.sigma_v * cfg.filter_sigma_v_scale,
@@ -47,15 +53,24 @@ def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]
         "prior_scale": 1.0,
     }
     kwargs = {
-        "prior_mean": mean0, "prior_cov": P0, "filter_kind": "EKF", "estimate_bias": cfg.estimate_bias,
-        "update_iterations": cfg.update_iterations, "noise_model": cfg.star_noise_model,
+        "prior_mean": mean0,
+        "prior_cov": P0,
+        "filter_kind": "EKF",
+        "estimate_bias": cfg.estimate_bias,
+        "update_iterations": cfg.update_iterations,
+        "noise_model": cfg.star_noise_model,
         "gate_probability": cfg.filter_options()["gate_probability"],
     }
     return configured, kwargs
 
 
 def learn(
-    cfg: ExperimentConfig, names: list[str], out: Path, *, recording: str | Path | None = None, max_iter: int = 40,
+    cfg: ExperimentConfig,
+    names: list[str],
+    out: Path,
+    *,
+    recording: str | Path | None = None,
+    max_iter: int = 40,
     force: bool = False,
 ) -> str:
     """Fit ``names`` by maximum likelihood (EKF, ``cfg.update_iterations``); report learned vs configured.
@@ -76,7 +91,9 @@ def learn(
         check_memory(cfg, force=force)
         rec, source = record_environment(make_env(cfg), cfg.num_steps, cfg.seed), "simulated"
     configured, kwargs = learning_problem(cfg, rec)
-    out = prepare_output(Path(out), "learn", f"{cfg.digest()}:{','.join(names)}:{source}:max_iter={max_iter}", cfg.to_dict())
+    out = prepare_output(
+        Path(out), "learn", f"{cfg.digest()}:{','.join(names)}:{source}:max_iter={max_iter}", cfg.to_dict()
+    )
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(str(out / "tensorboard"))
@@ -88,16 +105,21 @@ def learn(
                 writer.add_scalar(f"learn/{k}" + (f"_{j}" if isinstance(v, list) else ""), x, i)
 
     try:
-        res = fit_attitude_parameters(
-            rec, configured, names, max_iter=max_iter, log=log, **kwargs
-        )
+        res = fit_attitude_parameters(rec, configured, names, max_iter=max_iter, log=log, **kwargs)
     finally:
         writer.close()
     lines = [f"learn ({res.message}; −log-likelihood {res.nll:.6g} after {len(res.history)} evaluations):"]
     for k in names:
         flag = "consistent with the data" if res.inside[k] else "OUTSIDE the 95 % interval: mis-modelled"
-        lines.append(f"  {k}: learned {res.learned[k]}, 95 % interval {res.interval[k]}, configured {res.configured[k]} — {flag}")
+        lines.append(
+            f"  {k}: learned {res.learned[k]}, 95 % interval {res.interval[k]}, configured {res.configured[k]} — {flag}"
+        )
     report = "\n".join(lines)
-    write_json(out / "learn.json", res.__dict__, indent=2, default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o))
+    write_json(
+        out / "learn.json",
+        res.__dict__,
+        indent=2,
+        default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o),
+    )
     write_text(out / "learn.md", report + "\n")
     return report

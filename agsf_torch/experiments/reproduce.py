@@ -13,8 +13,8 @@ import hashlib
 import json
 from pathlib import Path
 
-from ..storage.files import write_json, write_text
 from ..filters.registry import ADAPTIVE_FILTERS
+from ..storage.files import write_json, write_text
 from .config import load_config
 from .experiment import prepare_output, run_experiment
 from .resources import check_memory
@@ -33,7 +33,9 @@ def reproduce(
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
     for cfg in configs.values():
         check_memory(cfg, force=force)
-    digest = hashlib.sha256(json.dumps({k: c.digest() for k, c in configs.items()}, sort_keys=True).encode()).hexdigest()[:16]
+    digest = hashlib.sha256(
+        json.dumps({k: c.digest() for k, c in configs.items()}, sort_keys=True).encode()
+    ).hexdigest()[:16]
     out = prepare_output(Path(out), "reproduce", digest, {k: c.to_dict() for k, c in configs.items()})
     hparams = {name: case_hparams(name, cfg.to_dict()) for name, cfg in configs.items()}
     domains = hparam_domains(hparams.values())
@@ -104,7 +106,11 @@ def results_table(combined: dict) -> str:
         rows = [(case, w, d) for case, c in combined.items() for w, d in (c.get(key) or {}).items()]
         if not rows:
             continue
-        lines += ["", f"| case | window | {label} − GSF mean RMS (deg) | 95% CI | relative |", "| --- | --- | --- | --- | --- |"]
+        lines += [
+            "",
+            f"| case | window | {label} − GSF mean RMS (deg) | 95% CI | relative |",
+            "| --- | --- | --- | --- | --- |",
+        ]
         for case, window, d in rows:
             lines.append(
                 f"| {case} | {window.replace('_', ' ')} | {d['mean_deg']:.3g} | [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}] | {100 * d['relative']:.2f} % |"

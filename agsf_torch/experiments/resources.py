@@ -23,7 +23,12 @@ from dataclasses import dataclass
 from .config import ExperimentConfig
 
 __all__ = [
-    "MemoryEstimate", "estimated_memory", "simulation_memory", "available_memory", "check_memory", "refuse_if_too_large",
+    "MemoryEstimate",
+    "estimated_memory",
+    "simulation_memory",
+    "available_memory",
+    "check_memory",
+    "refuse_if_too_large",
     "TooLarge",
 ]
 
@@ -102,7 +107,7 @@ def _read_int(path: str, prefix: str = "", scale: int = 1) -> int | None:
         with open(path, encoding="ascii") as fh:
             for line in fh:
                 if line.startswith(prefix):
-                    word = line[len(prefix):].split()[0]
+                    word = line[len(prefix) :].split()[0]
                     return int(word) * scale if word.isdigit() else None
     except (OSError, IndexError):
         pass
@@ -131,7 +136,9 @@ def _gb(b: int) -> str:
     return f"{b / 2**30:.3g} GB"
 
 
-def refuse_if_too_large(est: MemoryEstimate, what: str, *, force: bool = False, budget: int | None = None) -> MemoryEstimate:
+def refuse_if_too_large(
+    est: MemoryEstimate, what: str, *, force: bool = False, budget: int | None = None
+) -> MemoryEstimate:
     """Raise :class:`TooLarge` if ``est.total`` exceeds ``budget`` (default :func:`available_memory`)
     and not ``force``; ``what`` names the work and the keys that drive its size."""
     budget = available_memory() if budget is None else budget
@@ -143,7 +150,9 @@ def refuse_if_too_large(est: MemoryEstimate, what: str, *, force: bool = False, 
     return est
 
 
-def check_memory(cfg: ExperimentConfig, *, force: bool = False, keep_steps: bool = True, budget: int | None = None) -> MemoryEstimate:
+def check_memory(
+    cfg: ExperimentConfig, *, force: bool = False, keep_steps: bool = True, budget: int | None = None
+) -> MemoryEstimate:
     """Refuse ``cfg`` if :func:`estimated_memory` exceeds ``budget`` (default :func:`available_memory`).
 
     Raises:

@@ -15,13 +15,20 @@ import torch
 from torch import Tensor
 
 from ..attitude.inputs import AttitudeInputs, as_float64
-from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
 from ..consistency import nees, rms
+from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
 from ..rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector
 
 __all__ = [
-    "FilterSetup", "FilterStep", "FilterTrace", "MonteCarloResult", "Step", "monte_carlo_steps", "run_monte_carlo",
-    "rotation_error", "sample_prior",
+    "FilterSetup",
+    "FilterStep",
+    "FilterTrace",
+    "MonteCarloResult",
+    "SimulatedStep",
+    "monte_carlo_steps",
+    "run_monte_carlo",
+    "rotation_error",
+    "sample_prior",
 ]
 
 
@@ -73,7 +80,7 @@ class MonteCarloResult:
 
 
 @dataclass
-class Step:
+class SimulatedStep:
     """Everything of one step for every filter: ``time`` (s), ``star_frame``, the truth
     ``x_true [B, n]`` / ``truth_mrp [B, 3]``, ``filters``: name → :class:`FilterStep`, and
     what the filters were given: ``u [B, 3]`` (the gyro input of the interval, bias-compensated
@@ -109,7 +116,7 @@ def monte_carlo_steps(
     noise_model: str = "isotropic",
     gyro_hold_sigma: float | None = None,
 ):
-    """Drive every filter over ``num_steps`` gyro periods, yielding one :class:`Step` per period.
+    """Drive every filter over ``num_steps`` gyro periods, yielding one :class:`SimulatedStep` per period.
 
     The environment side of the one filter loop (:func:`agsf_torch.filter_loop.filter_steps`):
     the attitude adapter (:class:`~agsf_torch.attitude.inputs.AttitudeInputs`) turns each
@@ -123,7 +130,9 @@ def monte_carlo_steps(
         raise ValueError(f"the filters' model has {n} states, but estimate_bias={estimate_bias}")
     prior_cov = torch.as_tensor(prior_cov, dtype=torch.float64)
     if prior_cov.shape != (n, n):
-        raise ValueError(f"prior_cov must be [{n}, {n}] for estimate_bias={estimate_bias}, got {tuple(prior_cov.shape)}")
+        raise ValueError(
+            f"prior_cov must be [{n}, {n}] for estimate_bias={estimate_bias}, got {tuple(prior_cov.shape)}"
+        )
     if env.config.max_steps < num_steps:
         raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
     obs, info = env.reset(seed=seed)
@@ -136,8 +145,9 @@ def monte_carlo_steps(
     dt = float(env.config.dt)
     if gyro_hold_sigma is None:
         gyro_hold_sigma = float(filters[first].filter.model.sigma_v) / dt**0.5
-    adapter = AttitudeInputs(sigma_s=sigma_s, gyro_hold_sigma=gyro_hold_sigma, known_bias=not estimate_bias,
-                             noise_model=noise_model)
+    adapter = AttitudeInputs(
+        sigma_s=sigma_s, gyro_hold_sigma=gyro_hold_sigma, known_bias=not estimate_bias, noise_model=noise_model
+    )
     adapter.start(obs, dt, truth_b)
     action = {"mrp": filters[first].filter.estimate(mixtures[first])[0][:, :3]}
 
@@ -152,8 +162,18 @@ def monte_carlo_steps(
         action["mrp"] = step.filters[first].mean[:, :3]
         time, truth_p, x_true = step.input.context
         errors = {name: fs.filter.model.state_error(fs.mean, x_true) for name, fs in step.filters.items()}
-        yield Step(step.index, time, step.input.measurement is not None, x_true, truth_p, step.filters,
-                   step.input.u, step.input.measurement, mean0, errors)
+        yield SimulatedStep(
+            step.index,
+            time,
+            step.input.measurement is not None,
+            x_true,
+            truth_p,
+            step.filters,
+            step.input.u,
+            step.input.measurement,
+            mean0,
+            errors,
+        )
 
 
 def rotation_error(mean: Tensor, cov: Tensor, x_true: Tensor) -> tuple[Tensor, Tensor]:
@@ -217,8 +237,15 @@ def run_monte_carlo(
     records: dict[str, dict[str, list]] = {name: {k: [] for k in FilterTrace.__dataclass_fields__} for name in filters}
     times, frames = [], []
     steps = monte_carlo_steps(
-        env, filters, num_steps=num_steps, prior_cov=prior_cov, sigma_s=sigma_s, seed=seed,
-        estimate_bias=estimate_bias, noise_model=noise_model, gyro_hold_sigma=gyro_hold_sigma,
+        env,
+        filters,
+        num_steps=num_steps,
+        prior_cov=prior_cov,
+        sigma_s=sigma_s,
+        seed=seed,
+        estimate_bias=estimate_bias,
+        noise_model=noise_model,
+        gyro_hold_sigma=gyro_hold_sigma,
     )
     if progress:
         from tqdm import tqdm

@@ -15,11 +15,11 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
+from ..density.grid import FokkerPlanckGrid, integrated_squared_error
 from ..filter_loop import StepInput, filter_steps
 from ..filters.gaussian_sum import GaussianSumFilter
 from ..mixture import GaussianMixture
 from ..models.base import FunctionMeasurement
-from ..density.grid import FokkerPlanckGrid, integrated_squared_error
 
 __all__ = ["sine_prior", "run_sine_benchmark", "DT", "NUM_STEPS"]
 
@@ -81,7 +81,8 @@ def run_sine_benchmark(
     out: dict[str, np.ndarray] = {"time": DT * np.arange(1, NUM_STEPS + 1)}
     y = torch.tensor(ys, dtype=torch.float64)[:, None]
     inputs = [
-        StepInput(DT, None, (y[k], meas) if measure_every and (k + 1) % measure_every == 0 else None) for k in range(NUM_STEPS)
+        StepInput(DT, None, (y[k], meas) if measure_every and (k + 1) % measure_every == 0 else None)
+        for k in range(NUM_STEPS)
     ]
     for filt in filters.values():
         filt.reset()
@@ -89,6 +90,8 @@ def run_sine_benchmark(
     mixtures = {name: sine_prior() for name in filters}
     for step in filter_steps(filters, mixtures, inputs):
         for name, fs in step.filters.items():
-            ise[name][step.index] = integrated_squared_error(torch.exp(fs.mixture.log_prob(xg)).numpy(), refs[step.index], grid)
+            ise[name][step.index] = integrated_squared_error(
+                torch.exp(fs.mixture.log_prob(xg)).numpy(), refs[step.index], grid
+            )
     out.update(ise)
     return out

@@ -32,17 +32,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..storage.files import append_line, write_text
 from ..consistency import nees
+from ..constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
+from ..filters.registry import ADAPTIVE_FILTERS
+from ..storage.files import append_line, write_text
 from .config import ExperimentConfig, load_preset
 from .experiment import make_env, make_filters, prepare_output, prior_covariance
 from .resources import check_memory
-from ..constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
-from ..filters.registry import ADAPTIVE_FILTERS
 from .runner import monte_carlo_steps
 
 __all__ = ["soak_config", "run_soak", "soak_verdict", "rss_mb"]
-
 
 
 def rss_mb() -> float:
@@ -59,8 +58,13 @@ def rss_mb() -> float:
 def soak_config(filter_name: str = "GSF", **changes: Any) -> ExperimentConfig:
     """The soak's default configuration: case 1, 6-state, iterated update, 256 runs, one hour."""
     base = load_preset("case1").replace(
-        name=f"soak-{filter_name}", runs=256, duration=3600.0, estimate_bias=True, update_iterations=3,
-        filters=[filter_name], compile=filter_name in ADAPTIVE_FILTERS,
+        name=f"soak-{filter_name}",
+        runs=256,
+        duration=3600.0,
+        estimate_bias=True,
+        update_iterations=3,
+        filters=[filter_name],
+        compile=filter_name in ADAPTIVE_FILTERS,
     )
     return base.replace(**changes) if changes else base
 
@@ -141,8 +145,13 @@ def run_soak(
     rows: list[dict[str, Any]] = []
     start = time.perf_counter()
     steps = monte_carlo_steps(
-        env, setups, num_steps=cfg.num_steps, prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale, seed=cfg.seed, estimate_bias=cfg.estimate_bias,
+        env,
+        setups,
+        num_steps=cfg.num_steps,
+        prior_cov=prior_covariance(cfg),
+        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
+        seed=cfg.seed,
+        estimate_bias=cfg.estimate_bias,
         noise_model=cfg.star_noise_model,
     )
     try:
@@ -168,7 +177,10 @@ def run_soak(
                     f"{k}: {v['rms_arcsec']:.3f}″ NEES {v['mean_nees']:.2f} in3σ {min(v['inside_3sigma']):.4f}"
                     for k, v in row["filters"].items()
                 )
-                print(f"t = {row['time_s']:7.1f} s  wall {row['wall_s']:7.1f} s  RSS {row['rss_mb']:7.1f} MB  {f}", flush=True)
+                print(
+                    f"t = {row['time_s']:7.1f} s  wall {row['wall_s']:7.1f} s  RSS {row['rss_mb']:7.1f} MB  {f}",
+                    flush=True,
+                )
     finally:
         steps.close()
     return rows

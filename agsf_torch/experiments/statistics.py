@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import t as student_t
 
-from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 from ..consistency import chi2_band, rms
+from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 from .config import ExperimentConfig
 
 __all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key"]
@@ -103,5 +103,3 @@ def paired_difference(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
     """Paired per-run difference ``a − b`` (deg): mean, Student-t 95 % interval and relative to ``mean(b)``."""
     m, lo, hi = mean_ci95(np.asarray(a) - np.asarray(b))
     return {"mean_deg": m, "ci95_deg": [lo, hi], "relative": float(m / np.mean(b))}
-
-

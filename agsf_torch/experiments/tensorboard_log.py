@@ -50,8 +50,17 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "write_tensorboard", "time_steps", "run_name", "run_names", "hparam_value", "hparam_domains",
-    "write_hparams_session", "clear_events", "move_events", "METRIC_PREFIX", "EVENTS_GLOB",
+    "write_tensorboard",
+    "time_steps",
+    "run_name",
+    "run_names",
+    "hparam_value",
+    "hparam_domains",
+    "write_hparams_session",
+    "clear_events",
+    "move_events",
+    "METRIC_PREFIX",
+    "EVENTS_GLOB",
 ]
 
 METRIC_PREFIX = "summary/"
@@ -175,7 +184,7 @@ def run_names(configs: Iterable[tuple[Mapping[str, Any], str]]) -> dict[str, str
     names = {}
     for digest, name in plain.items():
         if counts[name] > 1 or len(name) > _MAX_NAME:
-            name = f"{name[:_MAX_NAME - 17]}-{digest[:16]}"
+            name = f"{name[: _MAX_NAME - 17]}-{digest[:16]}"
         names[digest] = name
     return names
 
@@ -248,7 +257,9 @@ def write_hparams_session(
         ],
     )
     # no group name: each session is its own group, named by its run
-    start = plugin_data_pb2.SessionStartInfo(start_time_secs=time.time() if start_time_secs is None else start_time_secs)
+    start = plugin_data_pb2.SessionStartInfo(
+        start_time_secs=time.time() if start_time_secs is None else start_time_secs
+    )
     for k, v in hp.items():
         if isinstance(v, bool):
             start.hparams[k].bool_value = v
@@ -259,12 +270,20 @@ def write_hparams_session(
     writer = SummaryWriter(str(run_dir))
     try:
         fw = writer.file_writer
-        fw.add_summary(_hparams_summary(metadata.EXPERIMENT_TAG, plugin_data_pb2.HParamsPluginData(experiment=experiment)))
-        fw.add_summary(_hparams_summary(metadata.SESSION_START_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_start_info=start)))
+        fw.add_summary(
+            _hparams_summary(metadata.EXPERIMENT_TAG, plugin_data_pb2.HParamsPluginData(experiment=experiment))
+        )
+        fw.add_summary(
+            _hparams_summary(
+                metadata.SESSION_START_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_start_info=start)
+            )
+        )
         for k, v in metrics.items():
             writer.add_scalar(METRIC_PREFIX + k, float(v), 0)
         end = plugin_data_pb2.SessionEndInfo(status=api_pb2.STATUS_SUCCESS, end_time_secs=time.time())
-        fw.add_summary(_hparams_summary(metadata.SESSION_END_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_end_info=end)))
+        fw.add_summary(
+            _hparams_summary(metadata.SESSION_END_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_end_info=end))
+        )
     finally:
         writer.close()
 

@@ -63,7 +63,12 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
     """
 
     def __init__(
-        self, model: ContinuousModel, *, weight_update: str | WeightUpdate = "penalty", adapt: bool = True, **options: Any
+        self,
+        model: ContinuousModel,
+        *,
+        weight_update: str | WeightUpdate = "penalty",
+        adapt: bool = True,
+        **options: Any,
     ) -> None:
         misplaced = sorted(set(options) & _WEIGHT_UPDATE_OPTIONS.keys())
         if misplaced:

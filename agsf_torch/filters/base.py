@@ -279,15 +279,17 @@ class BaseFilter:
         result = self._kalman_step(frame, y, mask)
         posterior, repairs = self._posterior(mixture, frame, result)
         nis_mixture = result.nis_mixture if result.nis_mixture is not None else result.nis[..., 0]
-        self.diagnostics = StepDiagnostics({
-            "log_likelihood": result.log_likelihood,
-            "nis": result.nis,
-            "nis_mixture": nis_mixture,
-            "dof": result.dof,
-            "weight_entropy": posterior.entropy_of_weights(),
-            "covariance_repairs": repairs,
-            **gate,
-        })
+        self.diagnostics = StepDiagnostics(
+            {
+                "log_likelihood": result.log_likelihood,
+                "nis": result.nis,
+                "nis_mixture": nis_mixture,
+                "dof": result.dof,
+                "weight_entropy": posterior.entropy_of_weights(),
+                "covariance_repairs": repairs,
+                **gate,
+            }
+        )
         self._after_update(posterior)  # last: nothing above can fail after the run state moves
         return posterior
 
@@ -324,8 +326,14 @@ class BaseFilter:
         """Joseph-form update of every component and Bayes' rule on the weights
         (:func:`agsf_torch.update.kalman_update`)."""
         return kalman_update(
-            frame.log_weights, frame.means, frame.covs, y, frame.measurement, self.update_iterations,
-            mask=mask, mixture_nis=self.mixture_nis,
+            frame.log_weights,
+            frame.means,
+            frame.covs,
+            y,
+            frame.measurement,
+            self.update_iterations,
+            mask=mask,
+            mixture_nis=self.mixture_nis,
         )
 
     def _posterior(

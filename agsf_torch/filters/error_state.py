@@ -8,7 +8,6 @@ maps to ``(q̂, b̂, P_δ)`` by ``T = blockdiag(¼B(p), I)`` and back (see
 constant-rate rotation kinematics used by the discrete error dynamics.
 """
 
-
 from __future__ import annotations
 
 import math
@@ -177,5 +176,3 @@ class ErrorStateMeasurement(MeasurementModel):
 
     def mask(self) -> Tensor | None:
         return self.inner.mask()
-
-

@@ -45,9 +45,22 @@ from ..rotations import (
 )
 from ..update import ComponentUpdate
 from .base import BaseFilter, UpdateFrame
-from .error_state import ErrorStateMeasurement, _exp_and_right_jacobian, _sym, error_state_to_mrp, mrp_to_error_state, rotation_series
+from .error_state import (
+    ErrorStateMeasurement,
+    _exp_and_right_jacobian,
+    _sym,
+    error_state_to_mrp,
+    mrp_to_error_state,
+    rotation_series,
+)
 
-__all__ = ["MultiplicativeEKF", "mrp_to_error_state", "error_state_to_mrp", "rotation_series"]  # helpers from error_state
+__all__ = [
+    "MultiplicativeEKF",
+    "mrp_to_error_state",
+    "error_state_to_mrp",
+    "rotation_series",
+]  # helpers from error_state
+
 
 class MultiplicativeEKF(BaseFilter):
     """Batched multiplicative EKF on an :class:`~agsf_torch.models.AttitudeModel` (3- or 6-state).
@@ -134,7 +147,12 @@ class MultiplicativeEKF(BaseFilter):
     mixture_nis = False  # one component: the mixture NIS is the component's
 
     def __init__(
-        self, model: AttitudeModel, *, discrete_noise: str = "farrenkopf", covariance_reset: bool = False, **options: Any
+        self,
+        model: AttitudeModel,
+        *,
+        discrete_noise: str = "farrenkopf",
+        covariance_reset: bool = False,
+        **options: Any,
     ) -> None:
         super().__init__(model, **options)
         if discrete_noise not in ("farrenkopf", "exact"):
@@ -211,7 +229,9 @@ class MultiplicativeEKF(BaseFilter):
         zero_x = torch.zeros(P.shape[:-2] + (1, n), dtype=P.dtype, device=P.device)
         return UpdateFrame(zero_w, zero_x, P.unsqueeze(-3), ErrorStateMeasurement(measurement, q, b), context=(q, b))
 
-    def _posterior(self, prior: GaussianMixture, frame: UpdateFrame, result: ComponentUpdate) -> tuple[GaussianMixture, int]:
+    def _posterior(
+        self, prior: GaussianMixture, frame: UpdateFrame, result: ComponentUpdate
+    ) -> tuple[GaussianMixture, int]:
         """The reset (class docstring); trajectories without a valid entry keep their belief exactly."""
         q, b = frame.context
         n = prior.state_dim
@@ -231,7 +251,9 @@ class MultiplicativeEKF(BaseFilter):
         means = torch.where(keep, prior.means.expand_as(out.means), out.means)
         cov_out = torch.where(keep[..., None], prior.covs.expand_as(out.covs), out.covs)
         means, cov_out = self.model.canonicalize(means, cov_out)
-        return out.replace(means=means, covs=cov_out, validate=False), repairs  # checked above; kept entries are the input's
+        return out.replace(
+            means=means, covs=cov_out, validate=False
+        ), repairs  # checked above; kept entries are the input's
 
     def estimate(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor]:
         """Point estimate and covariance in MRP coordinates: the one component.

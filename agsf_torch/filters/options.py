@@ -72,7 +72,9 @@ def config_options(*classes: type) -> dict[str, ConfigOption]:
             if f.name in out:
                 known = out[f.name]
                 if (known.kind, known.default) != (kind, default):
-                    raise TypeError(f"option {f.name!r} is declared differently by {known.owners[0].__name__} and {cls.__name__}")
+                    raise TypeError(
+                        f"option {f.name!r} is declared differently by {known.owners[0].__name__} and {cls.__name__}"
+                    )
                 out[f.name] = dataclasses.replace(known, owners=known.owners + (cls,))
             else:
                 out[f.name] = ConfigOption(f.name, kind, default, f.metadata["help"], off, (cls,))
@@ -96,12 +98,16 @@ class FilterOptions:
     """
 
     update_iterations: int = field(
-        default=1, metadata=option("linearisations per measurement update (1: the EKF update; more: iterated)", config="int")
+        default=1,
+        metadata=option("linearisations per measurement update (1: the EKF update; more: iterated)", config="int"),
     )
     gate_probability: float | None = field(
         default=None,
-        metadata=option("innovation gate of every filter: 0 = off (the method), else p in (0, 1), e.g. 0.9999",
-                        config="float", off=0.0),
+        metadata=option(
+            "innovation gate of every filter: 0 = off (the method), else p in (0, 1), e.g. 0.9999",
+            config="float",
+            off=0.0,
+        ),
     )
 
     def __post_init__(self) -> None:

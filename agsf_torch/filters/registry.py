@@ -29,7 +29,13 @@ from .options import ConfigOption, FilterOptions, config_options
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
 
 __all__ = [
-    "FilterSpec", "FILTERS", "FILTER_NAMES", "ADAPTIVE_FILTERS", "OPTION_CLASSES", "CONFIG_OPTIONS", "make_filter",
+    "FilterSpec",
+    "FILTERS",
+    "FILTER_NAMES",
+    "ADAPTIVE_FILTERS",
+    "OPTION_CLASSES",
+    "CONFIG_OPTIONS",
+    "make_filter",
     "filter_spec",
 ]
 
@@ -77,10 +83,20 @@ FILTERS: dict[str, FilterSpec] = {
     for spec in (
         FilterSpec("EKF", "extended Kalman filter (one component)", ExtendedKalmanFilter, False),
         FilterSpec("GSF", "Gaussian sum filter, weights fixed between measurements", GaussianSumFilter, True),
-        FilterSpec("AGSF", "adaptive GSF, the paper's weight QP (method.md §3)", AdaptiveGaussianSumFilter, True,
-                   PenaltyWeightUpdate),
-        FilterSpec("AGSF-galerkin", "adaptive GSF, the authors' later Galerkin update (method.md §3b)",
-                   AdaptiveGaussianSumFilter, True, GalerkinWeightUpdate),
+        FilterSpec(
+            "AGSF",
+            "adaptive GSF, the paper's weight QP (method.md §3)",
+            AdaptiveGaussianSumFilter,
+            True,
+            PenaltyWeightUpdate,
+        ),
+        FilterSpec(
+            "AGSF-galerkin",
+            "adaptive GSF, the authors' later Galerkin update (method.md §3b)",
+            AdaptiveGaussianSumFilter,
+            True,
+            GalerkinWeightUpdate,
+        ),
         FilterSpec("MEKF", "multiplicative EKF (one component), the industry baseline", MultiplicativeEKF, False),
     )
 }

@@ -12,6 +12,15 @@ from .residual import ComponentRates, fpke_residual, log_normal, residual_factor
 from .rules import residual_rule
 
 __all__ = [
-    "ComponentRates", "residual_factor", "fpke_residual", "log_normal", "ProductGaussians", "product_gaussians",
-    "fpke_matrix", "FPKEMatrix", "galerkin_matrices", "GalerkinMatrices", "residual_rule",
+    "ComponentRates",
+    "residual_factor",
+    "fpke_residual",
+    "log_normal",
+    "ProductGaussians",
+    "product_gaussians",
+    "fpke_matrix",
+    "FPKEMatrix",
+    "galerkin_matrices",
+    "GalerkinMatrices",
+    "residual_rule",
 ]

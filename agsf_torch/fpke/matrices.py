@@ -16,8 +16,8 @@ from torch import Tensor
 
 from ..models.base import ContinuousModel
 from ..quadrature import ProductRule
-from .pairs import ProductGaussians, product_gaussians
 from .moments import residual_mean
+from .pairs import ProductGaussians, product_gaussians
 from .residual import ComponentRates, residual_factor
 
 __all__ = ["FPKEMatrix", "fpke_matrix", "GalerkinMatrices", "galerkin_matrices", "check_chunk_size"]
@@ -33,7 +33,14 @@ def _product_chunk(
 
 
 def _pair_chunk(
-    model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, wq: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
+    model: ContinuousModel,
+    m: Tensor,
+    LS: Tensor,
+    xi: Tensor,
+    wq: Tensor,
+    u: Tensor | None,
+    ri: ComponentRates,
+    rj: ComponentRates,
 ) -> Tensor:
     """``Σ_k w_k ℓᵢ(x_k) ℓⱼ(x_k)`` over one chunk of nodes, ``[..., Pc]``."""
     vi, vj = _product_chunk(model, m, LS, xi, u, ri, rj)
@@ -41,7 +48,14 @@ def _pair_chunk(
 
 
 def _galerkin_chunk(
-    model: ContinuousModel, m: Tensor, LS: Tensor, xi: Tensor, wq: Tensor, u: Tensor | None, ri: ComponentRates, rj: ComponentRates
+    model: ContinuousModel,
+    m: Tensor,
+    LS: Tensor,
+    xi: Tensor,
+    wq: Tensor,
+    u: Tensor | None,
+    ri: ComponentRates,
+    rj: ComponentRates,
 ) -> Tensor:
     """``(Σ_k w_k ℓᵢ(x_k), Σ_k w_k ℓⱼ(x_k))`` over one chunk of nodes, stacked ``[2, ..., Pc]``."""
     vi, vj = _product_chunk(model, m, LS, xi, u, ri, rj)
@@ -66,7 +80,8 @@ class _AnnouncedCompile:
             return self._compiled_fn(*args)
         _log.info(
             "compiling the FPKE kernel %r with torch.compile (first step only: a few seconds once "
-            "torch's on-disk cache holds it, about 20 s the first time on a machine)", self.name,
+            "torch's on-disk cache holds it, about 20 s the first time on a machine)",
+            self.name,
         )
         t0 = time.perf_counter()
         out = self._compiled_fn(*args)
@@ -112,8 +127,15 @@ def _pairs(rates: ComponentRates) -> tuple[ProductGaussians, Tensor]:
 
 
 def _integrate_pairs(
-    kernel, model: ContinuousModel, u: Tensor | None, rates: ComponentRates, nodes: Tensor, node_weights: Tensor,
-    chunk_size: int | None, max_chunk_elements: int, out_shape: tuple[int, ...],
+    kernel,
+    model: ContinuousModel,
+    u: Tensor | None,
+    rates: ComponentRates,
+    nodes: Tensor,
+    node_weights: Tensor,
+    chunk_size: int | None,
+    max_chunk_elements: int,
+    out_shape: tuple[int, ...],
 ) -> tuple[ProductGaussians, Tensor, Tensor]:
     """The pairs' product Gaussians, ``log max z_ij`` ``[...]`` and ``kernel`` accumulated over the
     rule's nodes in chunks that bound memory."""
@@ -134,8 +156,13 @@ def _integrate_pairs(
 
 
 def _product_rule_pairs(
-    kernel, model: ContinuousModel, u: Tensor | None, prod: ProductGaussians, rule: ProductRule,
-    chunk_size: int | None, max_chunk_elements: int,
+    kernel,
+    model: ContinuousModel,
+    u: Tensor | None,
+    prod: ProductGaussians,
+    rule: ProductRule,
+    chunk_size: int | None,
+    max_chunk_elements: int,
 ) -> Tensor:
     """``E[ℓᵢℓⱼ] = ĉᵢ·ĉⱼ`` for every pair ``[..., P]`` with a :class:`ProductRule`, in chunks of
     pairs (``chunk_size`` pairs, or as many as keep ``[pairs, K, n, n]`` under ``max_chunk_elements``)."""
@@ -156,8 +183,15 @@ def _product_rule_pairs(
     out = []
     for a in range(0, m.shape[0], chunk_size):
         sl = slice(a, a + chunk_size)
-        vi, vj = kernel(model, m[sl], LS[sl], xi, None if uf is None else uf[sl],
-                        ri.map(lambda t, dim: t[sl]), rj.map(lambda t, dim: t[sl]))
+        vi, vj = kernel(
+            model,
+            m[sl],
+            LS[sl],
+            xi,
+            None if uf is None else uf[sl],
+            ri.map(lambda t, dim: t[sl]),
+            rj.map(lambda t, dim: t[sl]),
+        )
         c = rule.coefficients(torch.stack((vi, vj)))
         out.append((c[0] * c[1]).sum(-1))
     return torch.cat(out).reshape(lead)
@@ -287,7 +321,9 @@ def galerkin_matrices(
         prod, log_scale = _pairs(rates)
         moments = model.fokker_planck_moments(prod.mean, prod.cov, None if u is None else u.unsqueeze(-2))
         if moments is None:
-            raise ValueError(f"{type(model).__name__} gives no Gaussian moments (fokker_planck_moments); pass a quadrature rule")
+            raise ValueError(
+                f"{type(model).__name__} gives no Gaussian moments (fokker_planck_moments); pass a quadrature rule"
+            )
         acc = residual_mean(moments, prod.cov, prod.sides, *prod.side_moments())  # [2, ..., P]: E[ℓᵢ], E[ℓⱼ]
     else:
         prod, log_scale, acc = _integrate_pairs(
@@ -300,5 +336,3 @@ def galerkin_matrices(
     drift[..., j, i] = z * acc[0]  # K_ji = z_ij E[ℓᵢ]
     drift[..., i, j] = z * acc[1]  # K_ij = z_ij E[ℓⱼ] (on the diagonal both are E[ℓᵢ])
     return GalerkinMatrices(mass, drift, log_scale)
-
-

@@ -98,7 +98,9 @@ def residual_factor(terms: FokkerPlanckTerms, x: Tensor, rates: ComponentRates) 
     return sum_last(per_axis * z) + tr_D_Pinv + scalars
 
 
-def fpke_residual(model: ContinuousModel, x: Tensor, u: Tensor | None, log_weights: Tensor, rates: ComponentRates) -> Tensor:
+def fpke_residual(
+    model: ContinuousModel, x: Tensor, u: Tensor | None, log_weights: Tensor, rates: ComponentRates
+) -> Tensor:
     """Pointwise FPKE residual of the mixture, ``e(x) = Σᵢ wᵢ pᵢ(x) ℓᵢ(x)``.
 
     Args:
@@ -124,5 +126,3 @@ def log_normal(x: Tensor, mean: Tensor, chol: Tensor) -> Tensor:
     z = torch.linalg.solve_triangular(Lb, d.expand(*shape, d.shape[-1]).unsqueeze(-1), upper=False).squeeze(-1)
     logdet = torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)
     return -0.5 * (z * z).sum(-1) - logdet - 0.5 * x.shape[-1] * math.log(2.0 * math.pi)
-
-

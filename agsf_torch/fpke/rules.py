@@ -49,7 +49,11 @@ def residual_rule(model: ContinuousModel, quadrature, factors: int) -> tuple[Ten
         if quadrature < 1:
             raise ValueError(f"quadrature points per axis must be ≥ 1, got {quadrature}")
         return gauss_hermite(quadrature, n)
-    if isinstance(quadrature, tuple) and quadrature and all(isinstance(q, int) and not isinstance(q, bool) for q in quadrature):
+    if (
+        isinstance(quadrature, tuple)
+        and quadrature
+        and all(isinstance(q, int) and not isinstance(q, bool) for q in quadrature)
+    ):
         if len(quadrature) != n:
             raise ValueError(f"quadrature needs one point count per state axis ({n}), got {quadrature}")
         return gauss_hermite(quadrature)
@@ -62,7 +66,9 @@ def residual_rule(model: ContinuousModel, quadrature, factors: int) -> tuple[Ten
             f"quadrature must be None, an int, a tuple of ints or (nodes [K, {n}], weights [K]), got {type(quadrature).__name__}"
         ) from None
     if nodes.dim() != 2 or nodes.shape[1] != n or weights.shape != nodes.shape[:1] or nodes.shape[0] == 0:
-        raise ValueError(f"quadrature (nodes [K, {n}], weights [K]) has shapes {tuple(nodes.shape)}, {tuple(weights.shape)}")
+        raise ValueError(
+            f"quadrature (nodes [K, {n}], weights [K]) has shapes {tuple(nodes.shape)}, {tuple(weights.shape)}"
+        )
     if not bool(torch.isfinite(nodes).all()):
         raise ValueError("quadrature nodes must be finite")
     if not bool(torch.isfinite(weights).all()):

@@ -16,12 +16,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
 from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
+from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
 from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative, sum_last
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
-
 
 
 class AttitudeModel(ContinuousModel):
@@ -78,7 +77,11 @@ class AttitudeModel(ContinuousModel):
         """``¼B(p)ω = ¼[(1 − s)ω + 2 p×ω + 2p(pᵀω)]`` without forming ``B``."""
         s = sum_last(p * p, keepdim=True)
         pw = sum_last(p * w.expand_as(p) if w.dim() < p.dim() else p * w, keepdim=True)
-        return 0.25 * ((1.0 - s) * w + 2.0 * torch.linalg.cross(p, w.expand_as(p) if w.dim() < p.dim() else w, dim=-1) + 2.0 * pw * p)
+        return 0.25 * (
+            (1.0 - s) * w
+            + 2.0 * torch.linalg.cross(p, w.expand_as(p) if w.dim() < p.dim() else w, dim=-1)
+            + 2.0 * pw * p
+        )
 
     # ------------------------------------------------------------ protocol
     def drift(self, x: Tensor, u: Tensor) -> Tensor:
@@ -260,8 +263,14 @@ class AttitudeModel(ContinuousModel):
         else:
             J, v = J_pp, v_p
         return FokkerPlanckMoments(
-            scalar=scalar, transport=v, transport_jacobian=J, field=(1.0 + 2.0 * Es + Es2).squeeze(-1),
-            field_gradient=field_grad, field_hessian=field_hess, pattern=pattern, constant=constant,
+            scalar=scalar,
+            transport=v,
+            transport_jacobian=J,
+            field=(1.0 + 2.0 * Es + Es2).squeeze(-1),
+            field_gradient=field_grad,
+            field_hessian=field_hess,
+            pattern=pattern,
+            constant=constant,
         )
 
     def fpke_polynomial_space(self) -> tuple[tuple[tuple[int, ...], int], ...]:

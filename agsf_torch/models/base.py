@@ -310,7 +310,9 @@ class MeasurementModel(nn.Module):
         """
         mask = self.mask()
         if mask is not None and (mask.dim() < 1 or mask.shape[-1] != y.shape[-1]):
-            raise ValueError(f"the measurement mask has shape {tuple(mask.shape)}, y has {tuple(y.shape)}: their last dims differ")
+            raise ValueError(
+                f"the measurement mask has shape {tuple(mask.shape)}, y has {tuple(y.shape)}: their last dims differ"
+            )
         return y
 
 
@@ -372,10 +374,16 @@ class FunctionMeasurement(MeasurementModel):
         return self.R.shape[-1]
 
     def _check_output(self, name: str, value: Tensor, trailing: tuple[int, ...]) -> Tensor:
-        if not torch.is_tensor(value) or value.dim() < len(trailing) or tuple(value.shape[-len(trailing):]) != trailing:
+        if (
+            not torch.is_tensor(value)
+            or value.dim() < len(trailing)
+            or tuple(value.shape[-len(trailing) :]) != trailing
+        ):
             got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
             want = ", ".join(map(str, trailing))
-            raise ValueError(f"{name} must return [..., {want}] (d = {self.measurement_dim}, noise_cov's size), got {got}")
+            raise ValueError(
+                f"{name} must return [..., {want}] (d = {self.measurement_dim}, noise_cov's size), got {got}"
+            )
         return value
 
     def predict(self, x: Tensor) -> Tensor:

@@ -137,7 +137,9 @@ class StarVectorMeasurement(MeasurementModel):
         if mask is not None:
             mask = torch.as_tensor(mask, dtype=torch.bool, device=r.device)
             if mask.shape != r.shape[:-1]:
-                raise ValueError(f"mask must have shape {tuple(r.shape[:-1])} (r_inertial[..., M]), got {tuple(mask.shape)}")
+                raise ValueError(
+                    f"mask must have shape {tuple(r.shape[:-1])} (r_inertial[..., M]), got {tuple(mask.shape)}"
+                )
         if body is not None:
             body = torch.as_tensor(body, dtype=r.dtype, device=r.device)
             if body.shape != r.shape:
@@ -154,7 +156,7 @@ class StarVectorMeasurement(MeasurementModel):
     @classmethod
     def from_observation(
         cls, obs: Mapping[str, Tensor], sigma: float | Tensor, **kwargs
-    ) -> tuple[Tensor, "StarVectorMeasurement"]:
+    ) -> tuple[Tensor, StarVectorMeasurement]:
         """Build the measurement and the stacked vector ``y`` from an observation dict.
 
         Args:
@@ -169,7 +171,9 @@ class StarVectorMeasurement(MeasurementModel):
         body = torch.as_tensor(obs["star_body"])
         inertial = torch.as_tensor(obs["star_inertial"])
         if body.shape != inertial.shape:
-            raise ValueError(f"star_body {tuple(body.shape)} and star_inertial {tuple(inertial.shape)} must have equal shapes")
+            raise ValueError(
+                f"star_body {tuple(body.shape)} and star_inertial {tuple(inertial.shape)} must have equal shapes"
+            )
         if kwargs.get("noise_model") == "tangent":
             kwargs.setdefault("body", body)
         meas = cls(inertial, torch.as_tensor(obs["star_mask"]), sigma, **kwargs)
@@ -187,9 +191,16 @@ class StarVectorMeasurement(MeasurementModel):
         refused, naming the star, its batch index and its norm."""
         M = self.num_stars
         if y.dim() < 1 or y.shape[-1] != 3 * M:
-            raise ValueError(f"y has shape {tuple(y.shape)}: {y.shape[-1] if y.dim() else 0} entries but the measurement model predicts {3 * M} (3 for each of {M} stars)")
+            raise ValueError(
+                f"y has shape {tuple(y.shape)}: {y.shape[-1] if y.dim() else 0} entries but the measurement model predicts {3 * M} (3 for each of {M} stars)"
+            )
         radial = float(self.sigma.detach()) if self.noise_model == "isotropic" else self.radial_sigma
-        _off_unit("y (measured star vectors)", y.unflatten(-1, (M, 3)), self.star_mask, max(UNIT_TOLERANCE, _RADIAL_NOISE_BOUND * radial))
+        _off_unit(
+            "y (measured star vectors)",
+            y.unflatten(-1, (M, 3)),
+            self.star_mask,
+            max(UNIT_TOLERANCE, _RADIAL_NOISE_BOUND * radial),
+        )
         return y
 
     def predict(self, x: Tensor) -> Tensor:

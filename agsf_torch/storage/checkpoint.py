@@ -17,9 +17,9 @@ from typing import Any
 
 import torch
 
-from .files import atomic_open
 from ..filters.base import Filter
 from ..mixture import GaussianMixture
+from .files import atomic_open
 
 __all__ = ["save_checkpoint", "load_checkpoint", "FORMAT"]
 
@@ -48,8 +48,7 @@ def save_checkpoint(
     state = {
         "format": FORMAT,
         "filters": {
-            name: {"mixture": _mixture_state(mixtures[name]), "filter": filters[name].state_dict()}
-            for name in mixtures
+            name: {"mixture": _mixture_state(mixtures[name]), "filter": filters[name].state_dict()} for name in mixtures
         },
         "extra": dict(extra or {}),
     }
@@ -108,7 +107,9 @@ def _read(path: Path) -> Any:
         raise ValueError(f"{path} is not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
 
 
-def load_checkpoint(path: str | Path, filters: Mapping[str, Filter]) -> tuple[dict[str, GaussianMixture], dict[str, Any]]:
+def load_checkpoint(
+    path: str | Path, filters: Mapping[str, Filter]
+) -> tuple[dict[str, GaussianMixture], dict[str, Any]]:
     """Read a checkpoint (``weights_only=True``), restore the filters' run state, return
     ``(mixtures, extra)``.
 

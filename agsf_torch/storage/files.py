@@ -28,7 +28,13 @@ from pathlib import Path
 from typing import IO, Any
 
 __all__ = [
-    "atomic_open", "write_text", "write_json", "save_figure", "append_line", "read_json", "read_json_lines",
+    "atomic_open",
+    "write_text",
+    "write_json",
+    "save_figure",
+    "append_line",
+    "read_json",
+    "read_json_lines",
     "repair_json_lines",
 ]
 

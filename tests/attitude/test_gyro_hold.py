@@ -7,8 +7,7 @@ import torch
 
 from agsf_torch import GaussianMixture
 from agsf_torch.attitude.gyro_hold import GyroHold
-
-F64 = torch.float64
+from tests.helpers import F64
 
 
 def test_holds_the_last_valid_reading_and_grows_the_variance_quadratically():
@@ -27,12 +26,16 @@ def test_holds_the_last_valid_reading_and_grows_the_variance_quadratically():
     total = torch.stack(vars_).sum(0)
     # the angle error of a rate held for j steps is δω·jΔt: variance (σ_h·3Δt)² after 3 held steps
     assert total.tolist() == pytest.approx([(2e-6 * 3 * dt) ** 2] * 2, rel=1e-12)
-    assert torch.stack(vars_)[:, 0].tolist() == pytest.approx([0, (2e-7) ** 2, 3 * (2e-7) ** 2, 5 * (2e-7) ** 2, 0, 0, 0])
+    assert torch.stack(vars_)[:, 0].tolist() == pytest.approx(
+        [0, (2e-7) ** 2, 3 * (2e-7) ** 2, 5 * (2e-7) ** 2, 0, 0, 0]
+    )
 
 
 def test_inflate_adds_to_the_attitude_block_of_every_component_in_mrp_units():
     covs = torch.eye(6, dtype=F64).expand(2, 3, 6, 6) * 1e-8
-    mix = GaussianMixture(means=torch.zeros(2, 3, 6, dtype=F64), covs=covs.clone(), weights=torch.full((2, 3), 1 / 3, dtype=F64))
+    mix = GaussianMixture(
+        means=torch.zeros(2, 3, 6, dtype=F64), covs=covs.clone(), weights=torch.full((2, 3), 1 / 3, dtype=F64)
+    )
     out = GyroHold.inflate(mix, torch.tensor([16e-8, 0.0], dtype=F64))
     expected = covs.clone()
     expected[0, :, :3, :3] += 1e-8 * torch.eye(3, dtype=F64)
@@ -61,8 +64,13 @@ def test_bad_input_raises_and_state_round_trips():
 
 def _obs(gyro, valid):
     B = gyro.shape[0]
-    return {"gyro": gyro, "gyro_valid": valid, "star_mask": torch.zeros(B, 2, dtype=torch.bool),
-            "star_body": torch.zeros(B, 2, 3, dtype=F64), "star_inertial": torch.zeros(B, 2, 3, dtype=F64)}
+    return {
+        "gyro": gyro,
+        "gyro_valid": valid,
+        "star_mask": torch.zeros(B, 2, dtype=torch.bool),
+        "star_body": torch.zeros(B, 2, 3, dtype=F64),
+        "star_inertial": torch.zeros(B, 2, 3, dtype=F64),
+    }
 
 
 def test_known_bias_must_have_three_axes():
@@ -71,7 +79,9 @@ def test_known_bias_must_have_three_axes():
 
     adapter = AttitudeInputs(sigma_s=1e-5, gyro_hold_sigma=1e-6, known_bias=True)
     gyro = torch.ones(2, 3, dtype=F64)
-    with pytest.raises(ValueError, match=r"truth_bias must have the gyro's shape \(2, 3\) \(\[B, 3\], rad/s\), got \(2, 1\)"):
+    with pytest.raises(
+        ValueError, match=r"truth_bias must have the gyro's shape \(2, 3\) \(\[B, 3\], rad/s\), got \(2, 1\)"
+    ):
         adapter.start(_obs(gyro, torch.ones(2, dtype=torch.bool)), 0.1, torch.zeros(2, 1, dtype=F64))
     adapter.start(_obs(gyro, torch.ones(2, dtype=torch.bool)), 0.1, torch.zeros(2, 3, dtype=F64))
     last = adapter.hold.last.clone()
@@ -98,17 +108,32 @@ def test_start_begins_a_new_run():
 def test_hold_refuses_another_batch_and_bad_variances_and_states():
     hold = GyroHold(1e-6)
     hold.step(torch.ones(2, 3, dtype=F64), None, 0.1)
-    with pytest.raises(ValueError, match=r"gyro has shape \(3, 3\) but this hold follows a run of shape \(2, 3\); call reset\(\)"):
+    with pytest.raises(
+        ValueError, match=r"gyro has shape \(3, 3\) but this hold follows a run of shape \(2, 3\); call reset\(\)"
+    ):
         hold.step(torch.ones(3, 3, dtype=F64), torch.zeros(3, dtype=torch.bool), 0.1)
     assert hold.last.shape == (2, 3)
     hold.reset()
     assert hold.step(torch.ones(3, 3, dtype=F64), None, 0.1)[0].shape == (3, 3)
 
-    mix = GaussianMixture(means=torch.zeros(2, 1, 3, dtype=F64), covs=1e-8 * torch.eye(3, dtype=F64).expand(2, 1, 3, 3), weights=torch.ones(2, 1, dtype=F64))
+    mix = GaussianMixture(
+        means=torch.zeros(2, 1, 3, dtype=F64),
+        covs=1e-8 * torch.eye(3, dtype=F64).expand(2, 1, 3, 3),
+        weights=torch.ones(2, 1, dtype=F64),
+    )
     for bad, match in (
-        (torch.tensor([0.0, float("nan")], dtype=F64), r"angle_variance must be finite and ≥ 0 \(rad²\), got nan at trajectory 1"),
-        (torch.tensor([-1e-6, 0.0], dtype=F64), r"angle_variance must be finite and ≥ 0 \(rad²\), got -1e-06 at trajectory 0"),
-        (torch.zeros(2, 1, dtype=F64), r"angle_variance must have the mixture's batch shape \[B\] = \(2,\), got \(2, 1\)"),
+        (
+            torch.tensor([0.0, float("nan")], dtype=F64),
+            r"angle_variance must be finite and ≥ 0 \(rad²\), got nan at trajectory 1",
+        ),
+        (
+            torch.tensor([-1e-6, 0.0], dtype=F64),
+            r"angle_variance must be finite and ≥ 0 \(rad²\), got -1e-06 at trajectory 0",
+        ),
+        (
+            torch.zeros(2, 1, dtype=F64),
+            r"angle_variance must have the mixture's batch shape \[B\] = \(2,\), got \(2, 1\)",
+        ),
     ):
         with pytest.raises(ValueError, match=match):
             GyroHold.inflate(mix, bad)

@@ -8,12 +8,19 @@ import pytest
 import torch
 
 import envs
-from agsf_torch.experiments.recorded import record_environment
 from agsf_torch.attitude.learning import fit_attitude_parameters
+from agsf_torch.experiments.recorded import record_environment
+from tests.helpers import F64
 
-F64 = torch.float64
 DEG_PER_HOUR = math.pi / 180 / 3600
-BASE = dict(sigma_v=math.sqrt(10) * 1e-7, sigma_u=math.sqrt(10) * 1e-10, sigma_s=1e-5, bias=[0.1 * DEG_PER_HOUR] * 3, reg=1.0, prior_scale=1.0)
+BASE = dict(
+    sigma_v=math.sqrt(10) * 1e-7,
+    sigma_u=math.sqrt(10) * 1e-10,
+    sigma_s=1e-5,
+    bias=[0.1 * DEG_PER_HOUR] * 3,
+    reg=1.0,
+    prior_scale=1.0,
+)
 
 
 def _fit(learn, configured, B=24, steps=150, noise_model="isotropic", **env_kwargs):
@@ -22,7 +29,13 @@ def _fit(learn, configured, B=24, steps=150, noise_model="isotropic", **env_kwar
     g = torch.Generator().manual_seed(3)
     mean0 = torch.as_tensor(rec.truth_mrp[:, 0]) + 1e-4 * torch.randn(B, 3, generator=g, dtype=F64)
     return fit_attitude_parameters(
-        rec, {**BASE, **configured}, learn, prior_mean=mean0, prior_cov=1e-8 * torch.eye(3, dtype=F64), max_iter=30, update_iterations=3,
+        rec,
+        {**BASE, **configured},
+        learn,
+        prior_mean=mean0,
+        prior_cov=1e-8 * torch.eye(3, dtype=F64),
+        max_iter=30,
+        update_iterations=3,
         noise_model=noise_model,
     )
 

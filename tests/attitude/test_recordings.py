@@ -10,13 +10,12 @@ import pytest
 import torch
 
 import envs
+from agsf_torch.attitude.recordings import Recording
 from agsf_torch.experiments.recorded import RecordingEnv, record_environment
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import GaussianSumFilter
 from agsf_torch.models import AttitudeModel
-from agsf_torch.attitude.recordings import Recording
-
-F64 = torch.float64
+from tests.helpers import F64
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +124,10 @@ def test_gyro_valid_column_round_trips_replays_and_is_validated(tmp_path):
     with pytest.raises(ValueError, match=r"column 'gyro_valid' must have shape \[4, 31\]"):
         Recording(**a, gyro_valid=rec.gyro_valid[:, :30])
     # without the column every sample counts as valid
-    assert _run(RecordingEnv(Recording(**a, truth_mrp=rec.truth_mrp, truth_bias=rec.truth_bias))).extra["gyro_held"].sum() == 0
+    assert (
+        _run(RecordingEnv(Recording(**a, truth_mrp=rec.truth_mrp, truth_bias=rec.truth_bias))).extra["gyro_held"].sum()
+        == 0
+    )
 
 
 # ------------------------------------------------------------------ column dtypes, file errors, atomic save, digest
@@ -203,7 +205,9 @@ def test_load_refuses_pickled_object_columns_naming_them(tmp_path):
     a = _small()
     a["gyro"] = a["gyro"].astype(object)
     np.savez(tmp_path / "objects.npz", **a)
-    with pytest.raises(ValueError, match=rf"^recording {re.escape(str(tmp_path / 'objects.npz'))}: column 'gyro' cannot be read"):
+    with pytest.raises(
+        ValueError, match=rf"^recording {re.escape(str(tmp_path / 'objects.npz'))}: column 'gyro' cannot be read"
+    ):
         Recording.load(tmp_path / "objects.npz")
 
 

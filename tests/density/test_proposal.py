@@ -23,13 +23,24 @@ def test_initial_state_proposal_is_a_normalised_density(chart, n):
     if chart == "mrp":
         pm[0, 0, :3] = torch.tensor([0.6, 0.6, 0.5])
     A = torch.randn(B, 1, n, n, generator=gen, dtype=f64)
-    prior = GaussianMixture(weights=torch.ones(B, 1, dtype=f64), means=pm,
-                            covs=0.05 * (A @ A.transpose(-1, -2) + 0.2 * torch.eye(n, dtype=f64)))
+    prior = GaussianMixture(
+        weights=torch.ones(B, 1, dtype=f64),
+        means=pm,
+        covs=0.05 * (A @ A.transpose(-1, -2) + 0.2 * torch.eye(n, dtype=f64)),
+    )
     modes = pm + 0.2 * torch.randn(B, M, n, generator=gen, dtype=f64)
     A = torch.randn(B, M, n, n, generator=gen, dtype=f64)
     covs = 0.01 * (A @ A.transpose(-1, -2) + 0.1 * torch.eye(n, dtype=f64))
-    q = InitialStateProposal(prior, modes, covs, torch.tensor([[0.3, 0.7]] * B, dtype=f64),
-                             defensive_weight=0.2, t_dof=4, t_scale=1.2, chart=chart)
+    q = InitialStateProposal(
+        prior,
+        modes,
+        covs,
+        torch.tensor([[0.3, 0.7]] * B, dtype=f64),
+        defensive_weight=0.2,
+        t_dof=4,
+        t_scale=1.2,
+        chart=chart,
+    )
     x = q.sample(K, gen)
     r = torch.exp(prior.log_prob(x) - q.log_prob(x))  # [B, K], ≤ 1/α
     assert float(r.max()) <= 1.0 / 0.2 + 1e-9

@@ -96,8 +96,10 @@ def test_attitude_posterior_at_a_frame_matches_brute_force_importance_sampling()
     # the frame at t₀ itself: measurement of the initial attitude
     p_true0 = quat_to_mrp(quat_multiply(rotvec_to_quat(-omega * 0.1), mrp_to_quat(truth[0])))
     r = meas.r_inertial
-    y = ((mrp_to_dcm(p_true0).unsqueeze(-3) @ r.unsqueeze(-1)).squeeze(-1)
-         + 1e-5 * torch.randn(B, 2, 3, generator=torch.Generator().manual_seed(2), dtype=f64)).flatten(-2)
+    y = (
+        (mrp_to_dcm(p_true0).unsqueeze(-3) @ r.unsqueeze(-1)).squeeze(-1)
+        + 1e-5 * torch.randn(B, 2, 3, generator=torch.Generator().manual_seed(2), dtype=f64)
+    ).flatten(-2)
     model = AttitudeModel()
     ref = PosteriorReference(model, m0, P0, num_samples=K, generator=torch.Generator().manual_seed(9))
     ref.update(y, meas)
@@ -112,9 +114,11 @@ def test_attitude_posterior_at_a_frame_matches_brute_force_importance_sampling()
     for b in range(B):
         x = rng.multivariate_normal(mu[b], 4 * P[b], size=N)
         pred = (_np_dcm(x)[:, None] @ r[b].numpy()[None, :, :, None])[..., 0].reshape(N, 6)
-        log_w = (multivariate_normal(m0[b].numpy(), P0.numpy()).logpdf(x)
-                 - 0.5 * ((y[b].numpy() - pred) ** 2).sum(-1) / 1e-10
-                 - multivariate_normal(mu[b], 4 * P[b]).logpdf(x))
+        log_w = (
+            multivariate_normal(m0[b].numpy(), P0.numpy()).logpdf(x)
+            - 0.5 * ((y[b].numpy() - pred) ** 2).sum(-1) / 1e-10
+            - multivariate_normal(mu[b], 4 * P[b]).logpdf(x)
+        )
         w = np.exp(log_w - log_w.max())
         w /= w.sum()
         phi = multivariate_normal(mu[b], P[b]).logpdf(x)

@@ -15,10 +15,10 @@ import scipy.linalg as sla
 import torch
 
 from agsf_torch.density import PosteriorReference, density_score
+from agsf_torch.density.grid import FokkerPlanckGrid
 from agsf_torch.mixture import GaussianMixture
 from agsf_torch.models import FunctionMeasurement, LinearModel
 from agsf_torch.models.benchmarks import SineDriftModel
-from agsf_torch.density.grid import FokkerPlanckGrid
 from tests.density.conftest import f64, gaussian
 
 
@@ -26,7 +26,9 @@ def expected_log_gaussian(mu_p, Sig_p, mu_q, Sig_q) -> float:
     """E_{N(μp, Σp)}[log N(x; μq, Σq)] in closed form."""
     d = mu_p - mu_q
     c = sla.cho_factor(Sig_q)
-    return -0.5 * (np.trace(sla.cho_solve(c, Sig_p)) + d @ sla.cho_solve(c, d) + np.linalg.slogdet(2 * np.pi * Sig_q)[1])
+    return -0.5 * (
+        np.trace(sla.cho_solve(c, Sig_p)) + d @ sla.cho_solve(c, d) + np.linalg.slogdet(2 * np.pi * Sig_q)[1]
+    )
 
 
 # ------------------------------------------------------------------ (a) linear-Gaussian
@@ -64,8 +66,14 @@ def test_linear_gaussian_score_matches_kalman_before_and_after_sharp_frames():
         3: (np.array([[1.0, 0.0]]), np.array([[1e-4]]), np.array([[0.62], [-0.05]])),
         6: (np.eye(2), 1e-3 * np.eye(2), np.array([[0.55, -0.4], [0.1, 0.3]])),
     }
-    ref = PosteriorReference(model, torch.tensor(m0), torch.tensor(P0), num_samples=K,
-                             generator=torch.Generator().manual_seed(3), substeps=20)
+    ref = PosteriorReference(
+        model,
+        torch.tensor(m0),
+        torch.tensor(P0),
+        num_samples=K,
+        generator=torch.Generator().manual_seed(3),
+        substeps=20,
+    )
     m, P = m0.copy(), np.stack([P0] * B)
     checked = 0
     for k in range(1, 11):
@@ -112,18 +120,24 @@ def test_sine_forecast_score_matches_fokker_planck_grid():
     cases = [(mean, var), (0.0, 2.0), (1.5, 1.0)]
 
     B, K = 2, 20000
-    prior = GaussianMixture(weights=torch.tensor([[0.1, 0.9]] * B, dtype=f64),
-                            means=torch.tensor([[[-0.2], [0.2]]] * B, dtype=f64),
-                            covs=torch.ones(B, 2, 1, 1, dtype=f64))
-    ref = PosteriorReference(SineDriftModel(), prior=prior, num_samples=K,
-                             generator=torch.Generator().manual_seed(7), substeps=10)
+    prior = GaussianMixture(
+        weights=torch.tensor([[0.1, 0.9]] * B, dtype=f64),
+        means=torch.tensor([[[-0.2], [0.2]]] * B, dtype=f64),
+        covs=torch.ones(B, 2, 1, 1, dtype=f64),
+    )
+    ref = PosteriorReference(
+        SineDriftModel(), prior=prior, num_samples=K, generator=torch.Generator().manual_seed(7), substeps=10
+    )
     for _ in range(20):
         ref.predict(None, 0.1)
     assert ref.time == pytest.approx(2.0)
     for mq, vq in cases:
         expected = np.trapezoid(p * (-0.5 * ((grid - mq) ** 2 / vq + np.log(2 * np.pi * vq))), grid)
-        mix = GaussianMixture(weights=torch.ones(B, 1, dtype=f64), means=torch.full((B, 1, 1), mq, dtype=f64),
-                              covs=torch.full((B, 1, 1, 1), vq, dtype=f64))
+        mix = GaussianMixture(
+            weights=torch.ones(B, 1, dtype=f64),
+            means=torch.full((B, 1, 1), mq, dtype=f64),
+            covs=torch.full((B, 1, 1, 1), vq, dtype=f64),
+        )
         score, se = ref.score(mix)
         assert np.all(np.abs(score.numpy() - expected) < 4.0 * se.numpy()), (mq, vq, score, expected, se)
         assert np.all(se.numpy() < 0.05)
@@ -135,8 +149,14 @@ def test_forecast_is_reproducible_from_the_generator():
     model = SineDriftModel()
     runs = []
     for _ in range(2):
-        ref = PosteriorReference(model, torch.zeros(3, 1, dtype=f64), torch.eye(1, dtype=f64), num_samples=50,
-                                 generator=torch.Generator().manual_seed(11), substeps=2)
+        ref = PosteriorReference(
+            model,
+            torch.zeros(3, 1, dtype=f64),
+            torch.eye(1, dtype=f64),
+            num_samples=50,
+            generator=torch.Generator().manual_seed(11),
+            substeps=2,
+        )
         ref.predict(None, 0.1)
         runs.append(ref.samples)
     assert torch.equal(runs[0], runs[1])

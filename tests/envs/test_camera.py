@@ -104,7 +104,9 @@ def test_grid_matches_dense_at_cube_edges_and_corners(default_catalog):
     g = torch.Generator().manual_seed(5)
     signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
     corners = signs.repeat(16, 1)
-    edges = torch.cat([signs * torch.tensor(m, dtype=torch.float64) for m in ([1, 1, 0], [0, 1, 1], [1, 0, 1])]).repeat(8, 1)
+    edges = torch.cat([signs * torch.tensor(m, dtype=torch.float64) for m in ([1, 1, 0], [0, 1, 1], [1, 0, 1])]).repeat(
+        8, 1
+    )
     base = torch.cat((corners, edges))
     jitter = torch.cat(
         [s * torch.randn(base.shape, generator=g, dtype=torch.float64) for s in (0.0, 1e-15, 1e-9, 1e-4, 1e-2)]
@@ -138,9 +140,7 @@ def test_memory_safe_at_8192_and_leading_dims(default_camera):
 
 
 def test_fewer_stars_are_padded_and_none_is_not_an_error():
-    r = torch.tensor(
-        [[0.0, 0.0, 1.0], [0.01, 0.02, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=torch.float64
-    )
+    r = torch.tensor([[0.0, 0.0, 1.0], [0.01, 0.02, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
     cam = StarCamera(StarCatalog.from_vectors(r))
     eye = torch.eye(3, dtype=torch.float64)[None]
     body, inertial, mask = cam.observe(eye, torch.randn(1, 5, 3, dtype=torch.float64))

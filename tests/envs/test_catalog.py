@@ -26,10 +26,9 @@ def _write_hip2(path: Path, rows: list[tuple[int, float, float, float]]) -> None
 
 def test_default_cut_and_sorting(default_catalog):
     cat = default_catalog
-    assert DEFAULT_MAX_MAGNITUDE == 7.0
-    assert len(cat) == 13943  # stars with Hp ≤ 7.0 in hip2.dat
+    assert len(cat) == 13943  # stars with Hp ≤ 7.0 (the default cut) in hip2.dat
     assert cat.magnitude.dtype == torch.float64 and cat.r.shape == (13943, 3)
-    assert bool((cat.magnitude <= 7.0).all())
+    assert bool((cat.magnitude <= DEFAULT_MAX_MAGNITUDE).all())
     assert bool((cat.magnitude[1:] >= cat.magnitude[:-1]).all())
     assert len(torch.unique(cat.ids)) == len(cat)
 
@@ -90,7 +89,10 @@ def test_changed_source_file_is_parsed_again(tmp_path):
     assert len(list(cache.glob("hip2-*.npz"))) == 2
     cat = StarCatalog.from_hipparcos(4.0, path=src, cache=cache)
     assert cat.ids.tolist() == [2]
-    assert cat.r[0].tolist() == pytest.approx(radec_to_unit(torch.tensor(1.0, dtype=torch.float64), torch.tensor(-0.5, dtype=torch.float64)).tolist(), abs=1e-10)
+    assert cat.r[0].tolist() == pytest.approx(
+        radec_to_unit(torch.tensor(1.0, dtype=torch.float64), torch.tensor(-0.5, dtype=torch.float64)).tolist(),
+        abs=1e-10,
+    )
 
 
 def test_cache_dir_env_var_and_fallback(tmp_path, monkeypatch):

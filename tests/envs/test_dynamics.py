@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
 from agsf_torch.rotations import attitude_error_angle, cross_matrix, mrp_to_quat, quat_to_dcm, quat_to_mrp
-from envs.dynamics import DEFAULT_OMEGA0, DEFAULT_RATE, AttitudeDynamics, propagate_quat
+from envs.dynamics import DEFAULT_RATE, AttitudeDynamics, propagate_quat
 
 
 def _mrp_rate(p: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -62,8 +60,6 @@ def test_many_steps_equal_the_matrix_exponential():
 
 
 def test_default_rate_profile():
-    assert DEFAULT_OMEGA0 == 2 * math.pi / 100
-    assert DEFAULT_RATE == (DEFAULT_OMEGA0, DEFAULT_OMEGA0, 0.0)
     dyn = AttitudeDynamics()
     t = torch.tensor([0.0, 3.0, 50.0], dtype=torch.float64)
     assert dyn.rate(t).tolist() == [list(DEFAULT_RATE)] * 3

@@ -152,8 +152,17 @@ def test_a_misidentified_star_slot_beyond_max_stars_is_refused():
     assert parse_faults([fault]) == (SensorFault(**fault),)  # without max_stars the slot is not checked
     assert StarTrackerConfig(max_stars=6, faults=[fault]).faults == (SensorFault(**fault),)
     body = torch.zeros(2, 3, 3, dtype=torch.float64)
-    with pytest.raises(ValueError, match=r"faults\[0\]: misidentified_star slot 5 does not exist: a frame reports max_stars=3"):
-        apply_star_faults(parse_faults([fault]), torch.eye(3, dtype=torch.float64), body, body, torch.ones(2, 3, dtype=torch.bool), torch.tensor(3.0))
+    with pytest.raises(
+        ValueError, match=r"faults\[0\]: misidentified_star slot 5 does not exist: a frame reports max_stars=3"
+    ):
+        apply_star_faults(
+            parse_faults([fault]),
+            torch.eye(3, dtype=torch.float64),
+            body,
+            body,
+            torch.ones(2, 3, dtype=torch.bool),
+            torch.tensor(3.0),
+        )
 
 
 @pytest.mark.parametrize(

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+import envs
 from envs import (
     AttitudeDynamics,
     Gyro,
@@ -37,7 +38,9 @@ def test_vector_fields_refuse_bool_and_string_entries(field, entry):
     n = VECTOR_FIELDS[field]
     value = [0.01] * n
     value[1] = entry
-    with pytest.raises(ValueError, match=rf"StarTrackerConfig: {field} must be {n} numbers.*, got .*: entry 1 is {entry!r}"):
+    with pytest.raises(
+        ValueError, match=rf"StarTrackerConfig: {field} must be {n} numbers.*, got .*: entry 1 is {entry!r}"
+    ):
         StarTrackerConfig(**{field: value})
 
 
@@ -50,9 +53,19 @@ def test_whole_field_bool_and_string_vectors_are_refused():
 
 def test_ints_and_numpy_numbers_are_accepted_as_floats():
     cfg = StarTrackerConfig(
-        dt=np.float64(0.1), star_period=1, sigma_v=0, sigma_u=np.int64(0), sigma_s=0, focal_length=np.float32(0.0625),
-        max_magnitude=7, rate=np.array([0, 0, 1]), initial_bias=0, fov_deg=torch.tensor(8), initial_attitude=(0, 0, 0),
-        max_stars=np.int64(4), max_steps=10.0,
+        dt=np.float64(0.1),
+        star_period=1,
+        sigma_v=0,
+        sigma_u=np.int64(0),
+        sigma_s=0,
+        focal_length=np.float32(0.0625),
+        max_magnitude=7,
+        rate=np.array([0, 0, 1]),
+        initial_bias=0,
+        fov_deg=torch.tensor(8),
+        initial_attitude=(0, 0, 0),
+        max_stars=np.int64(4),
+        max_steps=10.0,
     )
     assert (cfg.star_period, cfg.sigma_v, cfg.sigma_u, cfg.max_magnitude) == (1.0, 0.0, 0.0, 7.0)
     assert all(type(getattr(cfg, f)) is float for f in NUMBER_FIELDS)
@@ -93,14 +106,20 @@ def test_camera_refuses_bools_and_strings(default_catalog):
         (dict(sigma_u=1e300), r"gyro noise \(1-σ reading\) .* rad/s turns .* rad per step"),
         (dict(sigma_v=1e150), r"gyro noise \(1-σ reading\) .* rad/s turns .* rad per step"),
         (dict(dt=1e-12, star_period=1e-12), r"dt must be ≥ 1e-09 s .*, got 1e-12"),
-        (dict(dt=1e-9, star_period=1e308), r"star_period / dt must be a finite number of steps, got 1e\+308 / 1e-09 = inf"),
+        (
+            dict(dt=1e-9, star_period=1e308),
+            r"star_period / dt must be a finite number of steps, got 1e\+308 / 1e-09 = inf",
+        ),
         (dict(sigma_s=1e300), r"sigma_s must be ≤ 1 rad \(a small-angle noise model\), got 1e\+300"),
         (dict(sigma_s=2.0), r"sigma_s must be ≤ 1 rad"),
         (dict(focal_length=1e-160), r"focal_length must lie in \[1e-06, 1000\] m, got 1e-160"),
         (dict(focal_length=1e160), r"focal_length must lie in \[1e-06, 1000\] m, got 1e\+160"),
         (dict(principal_point=(1e300, 0.0)), r"principal_point x₀ = 1e\+300 m lies outside the imaged field"),
         (dict(principal_point=(0.0, -0.005)), r"principal_point y₀ = -0.005 m lies outside the imaged field .* 0.0045"),
-        (dict(initial_attitude=(1e200, 0.0, 0.0)), r"initial_attitude must have every MRP component within ±1e\+150 .*got 1e\+200 at index \[0\]"),
+        (
+            dict(initial_attitude=(1e200, 0.0, 0.0)),
+            r"initial_attitude must have every MRP component within ±1e\+150 .*got 1e\+200 at index \[0\]",
+        ),
         (dict(max_stars=10**9), r"max_stars must be ≤ 117955 \(.*Hipparcos.*\), got 1000000000"),
         (dict(max_steps=2**53 + 1), r"max_steps must be ≤ 9007199254740992 .*, got 9007199254740993"),
         (
@@ -114,11 +133,25 @@ def test_extreme_finite_config_values_are_refused(overrides, message):
         StarTrackerConfig(**overrides)
 
 
-def test_values_at_the_edge_of_the_ranges_are_accepted():
-    dt = 0.1
-    StarTrackerConfig(rate=(0.999 * math.pi / dt, 0.0, 0.0), initial_bias=(0.0, 0.999 * math.pi / dt, 0.0))
-    StarTrackerConfig(sigma_s=1.0, focal_length=1e-6, principal_point=(0.999e-6 * math.tan(math.radians(4.0)), 0.0))
-    StarTrackerConfig(dt=1e-9, star_period=1e-9, max_stars=117_955, initial_attitude=(1e150, -1e150, 0.0))
+@pytest.mark.parametrize(
+    "edge",
+    [
+        dict(rate=(0.999 * math.pi / 0.1, 0.0, 0.0), initial_bias=(0.0, 0.999 * math.pi / 0.1, 0.0)),
+        dict(sigma_s=1.0, focal_length=1e-6, principal_point=(0.999e-6 * math.tan(math.radians(4.0)), 0.0)),
+        dict(dt=1e-9, star_period=1e-9, max_stars=117_955, initial_attitude=(1e150, -1e150, 0.0)),
+    ],
+)
+def test_values_at_the_edge_of_the_ranges_are_accepted_kept_and_simulated(edge):
+    """Just inside every range: the configuration keeps the values as given, and an environment
+    built from it steps to finite observations."""
+    cfg = StarTrackerConfig(**edge)
+    for key, value in edge.items():
+        assert getattr(cfg, key) == value, key
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=2, max_steps=3, **edge)
+    obs, _ = env.reset(seed=5)
+    obs, *_ = env.step(torch.zeros(2, 3, dtype=torch.float64))
+    for key in ("gyro", "star_body", "star_inertial", "time"):
+        assert bool(torch.isfinite(torch.as_tensor(obs[key])).all()), key
 
 
 def test_component_classes_apply_the_same_ranges(default_catalog):
@@ -146,7 +179,9 @@ def test_a_rate_profile_turning_half_a_turn_per_step_is_refused_before_the_state
     for _ in range(10):
         venv.step(torch.zeros(2, 3))
     before = venv.sim.state_dict()
-    with pytest.raises(ValueError, match=r"AttitudeDynamics: rate\(t\) returned 50 rad/s at t = 1.05 s, .*turns 5 rad per step"):
+    with pytest.raises(
+        ValueError, match=r"AttitudeDynamics: rate\(t\) returned 50 rad/s at t = 1.05 s, .*turns 5 rad per step"
+    ):
         venv.step(torch.zeros(2, 3))
     after = venv.sim.state_dict()
     assert after["step_index"] == before["step_index"] == 10
@@ -164,7 +199,9 @@ def test_a_rate_profile_turning_half_a_turn_per_step_is_refused_before_the_state
     assert after["step_index"] == 1 and all(torch.equal(after[k], before[k]) for k in ("q", "seeds", "rate", "bias"))
     # a finished episode stays finished: the episode bookkeeping moves only after a successful reset
     speed[0] = 0.01
-    venv = StarTrackerAttitudeVectorEnv(2, max_steps=2, rate=lambda t: torch.full((*t.shape, 3), speed[0], dtype=t.dtype))
+    venv = StarTrackerAttitudeVectorEnv(
+        2, max_steps=2, rate=lambda t: torch.full((*t.shape, 3), speed[0], dtype=t.dtype)
+    )
     venv.reset(seed=0)
     for _ in range(2):
         venv.step(torch.zeros(2, 3))
@@ -183,13 +220,19 @@ def test_extreme_actions_are_refused_before_the_state_moves(value):
     before = venv.sim.state_dict()
     actions = torch.zeros(3, 3, dtype=torch.float64)
     actions[2, 1] = value
-    with pytest.raises(ValueError, match=rf"actions must have every MRP component within ±1e\+150 .*got {re.escape(f'{value:g}')} at index \[2, 1\]"):
+    with pytest.raises(
+        ValueError,
+        match=rf"actions must have every MRP component within ±1e\+150 .*got {re.escape(f'{value:g}')} at index \[2, 1\]",
+    ):
         venv.step(actions)
     after = venv.sim.state_dict()
     assert after["step_index"] == 0 and torch.equal(after["q"], before["q"])
     env = StarTrackerAttitudeEnv(max_steps=10)
     env.reset(seed=0)
-    with pytest.raises(ValueError, match=rf"action must have every MRP component within ±1e\+150 .*got {re.escape(f'{value:g}')} at index \[1\]"):
+    with pytest.raises(
+        ValueError,
+        match=rf"action must have every MRP component within ±1e\+150 .*got {re.escape(f'{value:g}')} at index \[1\]",
+    ):
         env.step(np.array([0.0, value, 0.0]))
     assert env.sim.step_index == 0
 

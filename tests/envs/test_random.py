@@ -63,7 +63,9 @@ def test_mix64_matches_published_splitmix64_sequence():
 
 def test_mix64_bit_exact_against_python_reference():
     rng = np.random.default_rng(0)
-    vals = [0, 1, -1, (1 << 63) - 1, -(1 << 63), 12345] + [int(v) for v in rng.integers(-(1 << 63), 1 << 63, 500, dtype=np.int64)]
+    vals = [0, 1, -1, (1 << 63) - 1, -(1 << 63), 12345] + [
+        int(v) for v in rng.integers(-(1 << 63), 1 << 63, 500, dtype=np.int64)
+    ]
     got = mix64(torch.tensor(vals, dtype=torch.int64))
     assert [_u64(int(g)) for g in got] == [_mix_ref(_u64(v)) for v in vals]
 
@@ -81,7 +83,7 @@ def test_as_int64_wraps_modulo_2_pow_64():
     assert as_int64(5) == 5
     assert as_int64((1 << 64) + 5) == 5
     assert as_int64(-1) == -1
-    assert as_int64((1 << 63)) == -(1 << 63)
+    assert as_int64(1 << 63) == -(1 << 63)
     assert as_int64((1 << 64) - 1) == -1
 
 

@@ -102,8 +102,14 @@ def _rate_profile(t: torch.Tensor) -> torch.Tensor:
     "overrides",
     [
         dict(star_period=0.5, max_steps=30),
-        dict(star_period=0.3, max_steps=30, rate=_rate_profile, star_noise="unit_vector",
-             initial_attitude=(0.1, -0.2, 0.3), max_stars=7),
+        dict(
+            star_period=0.3,
+            max_steps=30,
+            rate=_rate_profile,
+            star_noise="unit_vector",
+            initial_attitude=(0.1, -0.2, 0.3),
+            max_stars=7,
+        ),
     ],
 )
 def test_vector_env_equals_single_envs_bit_for_bit(overrides):

@@ -59,7 +59,9 @@ def test_files_figures_and_tensorboard(study):
         assert {f"density_score/{f}" for f in STUDY_FILTERS} <= set(tags)
         events = acc.Scalars("density_score/GSF")
         assert [e.step for e in events][:3] == [100, 200, 300]  # time in ms
-        np.testing.assert_allclose([e.value for e in events], summaries[name]["filters"]["GSF"]["density_score_t"], rtol=1e-6)
+        np.testing.assert_allclose(
+            [e.value for e in events], summaries[name]["filters"]["GSF"]["density_score_t"], rtol=1e-6
+        )
     assert (out / "scores.png").exists()
     assert "| ambiguous | MEKF |" in (out / "results.md").read_text()
 
@@ -76,5 +78,7 @@ def test_bad_input_creates_nothing(tmp_path):
     with pytest.raises(ValueError, match="unknown scenario"):
         scenario_config("nope", 4)
     assert not (tmp_path / "x").exists()
-    assert main(["adaptation", "--scenario", "case1", "--runs", "4", "--set", "runs=x", "--out", str(tmp_path / "y")]) == 2
+    assert (
+        main(["adaptation", "--scenario", "case1", "--runs", "4", "--set", "runs=x", "--out", str(tmp_path / "y")]) == 2
+    )
     assert not (tmp_path / "y").exists()

@@ -47,24 +47,58 @@ def test_flop_counts_follow_the_algorithm():
 
 def test_table_marks_targets():
     seconds = {"GSF": 0.01, "AGSF-galerkin": 0.04, "AGSF-penalty": 0.5}
-    adaptive = {"state_dim": 6, "N": 5, "B": 256, "seconds": seconds, "galerkin_ratio": 4.0, "penalty_ratio": 50.0, "penalty_seconds": 0.5}
-    qp = {"N": 5, "B": 64, "torch_seconds_per_problem": 1e-5, "clarabel_seconds_per_problem": 2e-3, "speedup": 200.0,
-          "torch_max_kkt_residual": 1e-16, "clarabel_max_kkt_residual": 1e-13, "max_abs_difference": 1e-11}
+    adaptive = {
+        "state_dim": 6,
+        "N": 5,
+        "B": 256,
+        "seconds": seconds,
+        "galerkin_ratio": 4.0,
+        "penalty_ratio": 50.0,
+        "penalty_seconds": 0.5,
+    }
+    qp = {
+        "N": 5,
+        "B": 64,
+        "torch_seconds_per_problem": 1e-5,
+        "clarabel_seconds_per_problem": 2e-3,
+        "speedup": 200.0,
+        "torch_max_kkt_residual": 1e-16,
+        "clarabel_max_kkt_residual": 1e-13,
+        "max_abs_difference": 1e-11,
+    }
     report = {
-        "machine": {"torch": torch.__version__, "threads": 2, "cpu_count": 2, "python": "3", "load_average_at_start": 0.1},
+        "machine": {
+            "torch": torch.__version__,
+            "threads": 2,
+            "cpu_count": 2,
+            "python": "3",
+            "load_average_at_start": 0.1,
+        },
         "matmul_peak_gflops": 10.0,
         "adaptive": [adaptive, {**adaptive, "state_dim": 3, "B": 1024}],
         "first_step": [{"update": "galerkin", "compile": False, "first_process_s": 3.0, "second_process_s": 2.5}],
         "qp": [qp],
-        "peers": {"B": 64, "gsf_component_steps_per_s": 1e5, "filterpy": {"what": "loop", "component_steps_per_s": 1e3},
-                  "numpy": {"what": "batch", "component_steps_per_s": 5e4}, "vs_filterpy": 100.0, "vs_numpy": 2.0},
+        "peers": {
+            "B": 64,
+            "gsf_component_steps_per_s": 1e5,
+            "filterpy": {"what": "loop", "component_steps_per_s": 1e3},
+            "numpy": {"what": "batch", "component_steps_per_s": 5e4},
+            "vs_filterpy": 100.0,
+            "vs_numpy": 2.0,
+        },
         "memory_sweep": {"what": "sweep", "batch": 65536, "peak_rss_mib": 1000.0, "seconds": 1.0},
-        "memory_adaptive": [{"what": "adaptive", "update": "galerkin", "batch": 8192, "peak_rss_mib": 9000.0, "seconds": 1.0}],
+        "memory_adaptive": [
+            {"what": "adaptive", "update": "galerkin", "batch": 8192, "peak_rss_mib": 9000.0, "seconds": 1.0}
+        ],
         "total_seconds": 1.0,
     }
     report["targets"] = bench.targets(report)
     table = bench.format_table(report)
-    met = {line.split("|")[1].strip(): line.split("|")[4].strip() for line in table.splitlines() if line.startswith("| ") and line.count("|") == 5}
+    met = {
+        line.split("|")[1].strip(): line.split("|")[4].strip()
+        for line in table.splitlines()
+        if line.startswith("| ") and line.count("|") == 5
+    }
     assert met["Galerkin AGSF predict ÷ GSF, 6-state N=5 B=256"] == "yes"
     assert met["penalty AGSF predict ÷ GSF, 6-state N=5 B=256"] == "no"
     assert met["weight QP N=5 B=64: speed-up per problem over Clarabel"] == "yes"

@@ -19,10 +19,10 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from agsf_torch.experiments import cli
-from agsf_torch.experiments.config import MAX_SEED
 from agsf_torch.attitude.learning import PARAMETERS
 from agsf_torch.attitude.recordings import Recording
+from agsf_torch.experiments import cli
+from agsf_torch.experiments.config import MAX_SEED
 
 TINY = ["--set", "runs=2", "--set", "duration=0.3", "--set", 'filters=["EKF"]', "--quiet"]
 
@@ -71,7 +71,7 @@ def _bad_override():
         st.integers(min_value=MAX_SEED + 1).map(lambda v: (f"seed={v}", "'seed'")),
         st.integers(max_value=0).map(lambda v: (f"runs={v}", "'runs'")),
         st.floats(max_value=0.0, allow_nan=False).map(lambda v: (f"duration={v!r}", "'duration'")),
-        st.integers(65, 10**6).map(lambda v: (f"components={v}\0filters=[\"AGSF\"]", "'components'")),
+        st.integers(65, 10**6).map(lambda v: (f'components={v}\0filters=["AGSF"]', "'components'")),
         st.integers(117_956, 10**12).map(lambda v: (f"max_stars={v}", "max_stars")),
         st.floats(1e3, 1e300).map(lambda v: (f"omega0={v!r}", "rate")),
         st.floats(1.0, 1e300).map(lambda v: (f"gate_probability={v!r}", "'gate_probability'")),
@@ -83,7 +83,11 @@ def _bad_override():
 def _bad_recording_file(path: Path, good: Path, data) -> str:
     """Write a broken recording at ``path``; returns what the message must contain."""
     raw = good.read_bytes()
-    kind = data.draw(st.sampled_from(["missing", "directory", "text", "empty", "truncated", "flipped", "complex", "non-unit", "runs"]))
+    kind = data.draw(
+        st.sampled_from(
+            ["missing", "directory", "text", "empty", "truncated", "flipped", "complex", "non-unit", "runs"]
+        )
+    )
     if kind == "missing":
         return path.name
     if kind == "directory":
@@ -104,7 +108,10 @@ def _bad_recording_file(path: Path, good: Path, data) -> str:
         assume(not same)  # a flip in bytes the archive does not check leaves the data intact
     else:
         rec = Recording.load(good)
-        arrays = {k: getattr(rec, k) for k in ("time", "gyro", "star_body", "star_inertial", "star_mask", "truth_mrp", "truth_bias")}
+        arrays = {
+            k: getattr(rec, k)
+            for k in ("time", "gyro", "star_body", "star_inertial", "star_mask", "truth_mrp", "truth_bias")
+        }
         if kind == "complex":
             arrays["gyro"] = arrays["gyro"].astype(np.complex128)
         elif kind == "non-unit":
@@ -144,21 +151,36 @@ def test_a_refused_command_exits_2_in_one_line_creates_nothing_and_the_corrected
             elif kind == "simulate":
                 arg = data.draw(st.sampled_from(["--star-period", "--seed", "--runs", "--steps"]))
                 value = {
-                    "--star-period": st.floats(0.01, 10.0).filter(lambda v: abs(v / 0.1 - round(v / 0.1)) > 1e-6).map(repr),
+                    "--star-period": st.floats(0.01, 10.0)
+                    .filter(lambda v: abs(v / 0.1 - round(v / 0.1)) > 1e-6)
+                    .map(repr),
                     "--seed": st.one_of(st.integers(max_value=-1), st.integers(min_value=MAX_SEED + 1)).map(str),
                     "--runs": st.integers(max_value=0).map(str),
                     "--steps": st.one_of(st.integers(max_value=0).map(str), st.just("ten")),
                 }[arg]
                 names = "star_period" if arg == "--star-period" else arg
-                _assert_refused(["simulate", "--runs", "2", "--steps", "3", arg, data.draw(value), "--out", out], d, names)
+                _assert_refused(
+                    ["simulate", "--runs", "2", "--steps", "3", arg, data.draw(value), "--out", out], d, names
+                )
             elif kind == "learn":
                 name = data.draw(st.from_regex(r"\A[a-z_]{1,12}\Z").filter(lambda s: s not in PARAMETERS))
-                _assert_refused(["learn", "case1", *TINY, "--learn", name, "--recording", str(recording), "--out", out], d, "--learn")
+                _assert_refused(
+                    ["learn", "case1", *TINY, "--learn", name, "--recording", str(recording), "--out", out],
+                    d,
+                    "--learn",
+                )
             elif kind == "sweep":
                 v = data.draw(st.integers(1, 9))
-                grid, names = data.draw(st.sampled_from([
-                    (f"reg={v},{v}.0", "twice"), (f"zz_key={v}", "zz_key"), (f"reg=-{v}", "'reg'"), (f"spread={v}", "'spread'"),
-                ]))
+                grid, names = data.draw(
+                    st.sampled_from(
+                        [
+                            (f"reg={v},{v}.0", "twice"),
+                            (f"zz_key={v}", "zz_key"),
+                            (f"reg=-{v}", "'reg'"),
+                            (f"spread={v}", "'spread'"),
+                        ]
+                    )
+                )
                 _assert_refused(["sweep", "case1", *TINY, "--grid", grid, "--out", out], d, names)
             elif kind == "config":
                 path = d / "mine.toml"
@@ -171,7 +193,9 @@ def test_a_refused_command_exits_2_in_one_line_creates_nothing_and_the_corrected
                     path.write_text("runs = [" + data.draw(st.text(alphabet="0123456789, ")))
                 elif case == "unknown key":
                     path.write_text('preset = "case1"\nzz_speed = 1\n')
-                names = {"missing": "does not exist", "directory": "not a file", "binary": "utf-8", "toml": "toml"}.get(case, "zz_speed")
+                names = {"missing": "does not exist", "directory": "not a file", "binary": "utf-8", "toml": "toml"}.get(
+                    case, "zz_speed"
+                )
                 _assert_refused(["run", str(path), *TINY, "--out", out], d, names)
             else:  # output folders that cannot hold the experiment
                 target = d / "taken"
@@ -181,19 +205,36 @@ def test_a_refused_command_exits_2_in_one_line_creates_nothing_and_the_corrected
                     names = "is a file"
                 else:
                     target.mkdir()
-                    marker = {"corrupt marker": '{"kind": "run", "dig', "other experiment": '{"kind": "run", "digest": "0"}'}
+                    marker = {
+                        "corrupt marker": '{"kind": "run", "dig',
+                        "other experiment": '{"kind": "run", "digest": "0"}',
+                    }
                     if case in marker:
                         (target / "experiment.json").write_text(marker[case])
                     else:
                         (target / "notes.txt").write_text("mine")
-                    names = {"corrupt marker": "corrupt", "other experiment": "different experiment"}.get(case, "not an agsf")
+                    names = {"corrupt marker": "corrupt", "other experiment": "different experiment"}.get(
+                        case, "not an agsf"
+                    )
                 _assert_refused(["run", "case1", *TINY, "--out", str(target)], d, names)
 
     refused()
     out = str(root / "corrected")
     corrected = {
         "simulate": ["simulate", "--runs", "2", "--steps", "3", "--star-period", "0.2", "--out", out],
-        "learn": ["learn", "case1", *TINY, "--learn", "sigma_v", "--max-iter", "1", "--recording", str(recording), "--out", out],
+        "learn": [
+            "learn",
+            "case1",
+            *TINY,
+            "--learn",
+            "sigma_v",
+            "--max-iter",
+            "1",
+            "--recording",
+            str(recording),
+            "--out",
+            out,
+        ],
         "recording": ["run", "case1", *TINY, "--recording", str(recording), "--out", out],
         "sweep": ["sweep", "case1", *TINY, "--grid", "reg=0.5,1", "--out", out],
     }.get(kind, ["run", "case1", *TINY, "--out", out])

@@ -42,7 +42,9 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
 
 def test_every_argument_of_every_subcommand_has_help():
     subcommands = _subparsers(cli.build_parser())
-    assert {"run", "reproduce", "sweep", "simulate", "soak", "learn", "diagnose", "adaptation", "bench"} <= set(subcommands)
+    assert {"run", "reproduce", "sweep", "simulate", "soak", "learn", "diagnose", "adaptation", "bench"} <= set(
+        subcommands
+    )
     missing = [
         f"agsf {name} {action.option_strings[0] if action.option_strings else action.dest}"
         for name, sub in subcommands.items()
@@ -66,7 +68,11 @@ def test_tensorboard_command_falls_back_to_the_module(tmp_path, monkeypatch):
     (tmp_path / "python").write_text("")
     monkeypatch.setattr(sys, "executable", str(tmp_path / "python"))
     assert shlex.split(cli.tensorboard_command("out")) == [
-        str(tmp_path / "python"), "-m", "tensorboard.main", "--logdir", "out",
+        str(tmp_path / "python"),
+        "-m",
+        "tensorboard.main",
+        "--logdir",
+        "out",
     ]
 
 
@@ -85,8 +91,19 @@ def test_run_prints_a_tensorboard_command_that_names_its_executable(tmp_path):
 
 def test_sweep_prints_its_results_table_and_writes_results_md(tmp_path):
     out = tmp_path / "sweep"
-    argv = ["sweep", "case1", *TINY, "--set", 'filters=["EKF", "GSF"]', "--set", "duration=1.2",
-            "--grid", "seed=3,5", "--out", str(out)]
+    argv = [
+        "sweep",
+        "case1",
+        *TINY,
+        "--set",
+        'filters=["EKF", "GSF"]',
+        "--set",
+        "duration=1.2",
+        "--grid",
+        "seed=3,5",
+        "--out",
+        str(out),
+    ]
     code, stdout, _ = _agsf(argv)
     assert code == 0
     rows = read_json_lines(out / "results.jsonl")
@@ -130,9 +147,13 @@ def test_torch_internal_deprecation_is_hidden_and_nothing_else():
         warnings.resetwarnings()  # only the command's own filter below (not the test configuration's)
         warnings.simplefilter("default")
         with cli.messages(quiet=True), warnings.catch_warnings(record=True) as caught:
-            warnings.warn_explicit(message, FutureWarning, "lowering.py", 1, module="torch._inductor.lowering", registry={})
+            warnings.warn_explicit(
+                message, FutureWarning, "lowering.py", 1, module="torch._inductor.lowering", registry={}
+            )
             warnings.warn_explicit(message, FutureWarning, "ours.py", 1, module="agsf_torch.ours", registry={})
-            warnings.warn_explicit("something else", FutureWarning, "lowering.py", 2, module="torch._inductor.lowering", registry={})
+            warnings.warn_explicit(
+                "something else", FutureWarning, "lowering.py", 2, module="torch._inductor.lowering", registry={}
+            )
     assert [(str(w.message), w.filename) for w in caught] == [(message, "ours.py"), ("something else", "lowering.py")]
 
 

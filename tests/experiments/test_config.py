@@ -70,7 +70,7 @@ def test_bad_overrides_and_files(tmp_path):
     with pytest.raises(ValueError, match="not valid TOML"):
         load_config(f)
     # TOML is data only: a would-be code string is just an invalid value
-    f.write_text('name = "__import__(\'os\').system(\'false\')"\nruns = "__import__(\'os\')"\n')
+    f.write_text("name = \"__import__('os').system('false')\"\nruns = \"__import__('os')\"\n")
     with pytest.raises(ValueError, match="'runs' must be an integer"):
         load_config(f)
 
@@ -84,8 +84,13 @@ def test_faults_preset_and_fault_validation():
     assert cfg.gate_probability == 0.9999 and cfg.estimate_bias and len(cfg.faults) == 4
     assert {f["kind"] for f in cfg.faults} == {"misidentified_star", "star_outage", "gyro_dropout", "gyro_saturation"}
     assert all(f["end"] <= cfg.duration for f in cfg.faults)
-    with pytest.raises(ValueError, match=r"config key 'faults': faults\[0\]: SensorFault: end \(1.0\) must be after start"):
+    with pytest.raises(
+        ValueError, match=r"config key 'faults': faults\[0\]: SensorFault: end \(1.0\) must be after start"
+    ):
         ExperimentConfig(faults=[{"kind": "star_outage", "start": 2.0, "end": 1.0}])
     for p in (-0.1, 1.0):
-        with pytest.raises(ValueError, match=r"config key 'gate_probability': gate probability must lie in \(0, 1\), got .* \(or 0.0: off\)"):
+        with pytest.raises(
+            ValueError,
+            match=r"config key 'gate_probability': gate probability must lie in \(0, 1\), got .* \(or 0.0: off\)",
+        ):
             ExperimentConfig(gate_probability=p)

@@ -80,7 +80,9 @@ def test_summary_matches_independent_recomputation(experiment):
             r.append(np.degrees(np.sqrt(np.mean(vals))))
         per_run[name] = np.array(r)
         assert summary["filters"][name]["between_updates"]["mean_rms_deg"] == pytest.approx(np.mean(r), rel=1e-12)
-        assert summary["filters"][name]["time_averaged_nees"] == pytest.approx(float(np.mean(data[f"{name}/nees"])), rel=1e-12)
+        assert summary["filters"][name]["time_averaged_nees"] == pytest.approx(
+            float(np.mean(data[f"{name}/nees"])), rel=1e-12
+        )
     d = per_run["AGSF"] - per_run["GSF"]
     half = student_t.ppf(0.975, B - 1) * np.std(d, ddof=1) / np.sqrt(B)
     got = summary["agsf_minus_gsf"]["between_updates"]
@@ -107,7 +109,7 @@ def test_output_folder_is_not_overwritten(experiment, tmp_path):
 
 
 def test_sweep_resumes_after_interruption(tmp_path):
-    base = load_config("case1", ["runs=4", "duration=1.0", "compile=false", "components=2", "filters=[\"GSF\", \"AGSF\"]"])
+    base = load_config("case1", ["runs=4", "duration=1.0", "compile=false", "components=2", 'filters=["GSF", "AGSF"]'])
     grid = parse_grid(["reg=0.1,1.0", "scaling=trace,none"])
     calls = []
 

@@ -10,7 +10,7 @@ misidentified star raises the RMS during the fault from 0.50″ to 160″.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -33,12 +33,16 @@ SCENARIOS = {
 }
 
 
-@lru_cache(maxsize=None)
+@cache
 def _run(faults: tuple = (), gate: float = 0.9999):
     cfg = BASE.replace(faults=[dict(f) for f in faults], gate_probability=gate)
     res = run_monte_carlo(
-        make_env(cfg), make_filters(cfg), num_steps=cfg.num_steps, prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s, seed=cfg.seed,
+        make_env(cfg),
+        make_filters(cfg),
+        num_steps=cfg.num_steps,
+        prior_cov=prior_covariance(cfg),
+        sigma_s=cfg.sigma_s,
+        seed=cfg.seed,
     )
     return res.time, res.traces["GSF"]
 

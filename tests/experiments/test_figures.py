@@ -24,8 +24,16 @@ FILTERS = ["EKF", "GSF", "AGSF"]
 
 def _summary(n: int = 3, components: int = 3, runs: int = 4, steps: int = 40, filters=FILTERS) -> dict:
     """A summary from ``summarize`` of synthetic per-run data (the keys ``runs.npz`` holds)."""
-    cfg = load_config("case1", [f"runs={runs}", "duration=4.0", f"filters={filters!r}".replace("'", '"'),
-                                f"components={components}", f"estimate_bias={'true' if n == 6 else 'false'}"])
+    cfg = load_config(
+        "case1",
+        [
+            f"runs={runs}",
+            "duration=4.0",
+            f"filters={filters!r}".replace("'", '"'),
+            f"components={components}",
+            f"estimate_bias={'true' if n == 6 else 'false'}",
+        ],
+    )
     rng = np.random.default_rng(3)
     dt = 0.1
     time = dt * np.arange(1, steps + 1)
@@ -130,8 +138,9 @@ def test_axes_figure_shows_the_bias_error_in_deg_per_hour_for_six_states(summary
         sig = np.array(summary6["filters"][name]["sigma_run0_rad"])
         for k in range(3, 6):
             np.testing.assert_allclose(lines[f"{name}/error/{k}"].get_ydata(), err[:, k] * DEG_PER_HOUR, rtol=1e-12)
-            np.testing.assert_allclose(lines[f"{name}/+3sigma/{k}"].get_ydata(), 3 * sig[:, k] * DEG_PER_HOUR,
-                                       rtol=1e-12)
+            np.testing.assert_allclose(
+                lines[f"{name}/+3sigma/{k}"].get_ydata(), 3 * sig[:, k] * DEG_PER_HOUR, rtol=1e-12
+            )
             assert "bias" in grid[row, k].get_title() and f"body {'xyz'[k - 3]}" in grid[row, k].get_title()
         assert "deg/h" in grid[row, 3].get_ylabel()
         assert "arcsec" in grid[row, 0].get_ylabel()

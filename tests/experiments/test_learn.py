@@ -6,12 +6,12 @@ import math
 
 import torch
 
+from agsf_torch.attitude.learning import attitude_log_likelihood
 from agsf_torch.experiments.config import load_preset
 from agsf_torch.experiments.experiment import make_env, make_filters, prior_covariance
 from agsf_torch.experiments.learn import learning_problem
 from agsf_torch.experiments.recorded import RecordingEnv, record_environment
 from agsf_torch.experiments.runner import monte_carlo_steps
-from agsf_torch.attitude.learning import attitude_log_likelihood
 
 
 def _faults_with_an_early_dropout():
@@ -23,7 +23,12 @@ def _faults_with_an_early_dropout():
     cfg = load_preset("faults")
     dropout = next(f for f in cfg.faults if f["kind"] == "gyro_dropout")
     return cfg.replace(
-        runs=3, duration=12.0, dt=0.125, star_period=1.0, filters=["EKF"], faults=[{**dropout, "start": 3.0, "end": 6.0}]
+        runs=3,
+        duration=12.0,
+        dt=0.125,
+        star_period=1.0,
+        filters=["EKF"],
+        faults=[{**dropout, "start": 3.0, "end": 6.0}],
     )
 
 
@@ -35,8 +40,13 @@ def test_learn_treats_a_gyro_dropout_as_run_does():
 
     run_total, held = torch.zeros((), dtype=torch.float64), 0
     steps = monte_carlo_steps(
-        RecordingEnv(rec), make_filters(cfg), num_steps=cfg.num_steps, prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale, seed=cfg.seed, estimate_bias=cfg.estimate_bias,
+        RecordingEnv(rec),
+        make_filters(cfg),
+        num_steps=cfg.num_steps,
+        prior_cov=prior_covariance(cfg),
+        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
+        seed=cfg.seed,
+        estimate_bias=cfg.estimate_bias,
         noise_model=cfg.star_noise_model,
     )
     for step in steps:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+
 import pytest
 
 from agsf_torch.experiments import cli
@@ -13,7 +14,12 @@ from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.experiment import OutputConflict, make_env, run_experiment
 from agsf_torch.experiments.recorded import record_environment
 from agsf_torch.experiments.resources import (
-    BASE_PROCESS, RETAINED_OVERHEAD, WORKING_OVERHEAD, TooLarge, check_memory, estimated_memory,
+    BASE_PROCESS,
+    RETAINED_OVERHEAD,
+    WORKING_OVERHEAD,
+    TooLarge,
+    check_memory,
+    estimated_memory,
 )
 from agsf_torch.experiments.sweep import SweepBusy, parse_grid, run_sweep
 
@@ -48,8 +54,19 @@ def test_learn_identifies_its_recording_by_content(tmp_path):
     cfg = _tiny()
     path = tmp_path / "rec.npz"
     record_environment(make_env(cfg), cfg.num_steps, seed=1).save(path)
-    args = ["learn", "case1", *sum([["--set", s] for s in TINY], []), "--learn", "sigma_v", "--max-iter", "1",
-            "--recording", str(path), "--out", str(tmp_path / "learn")]
+    args = [
+        "learn",
+        "case1",
+        *sum([["--set", s] for s in TINY], []),
+        "--learn",
+        "sigma_v",
+        "--max-iter",
+        "1",
+        "--recording",
+        str(path),
+        "--out",
+        str(tmp_path / "learn"),
+    ]
     assert cli.main(args) == 0
     kept = (tmp_path / "learn" / "learn.json").read_bytes()
     record_environment(make_env(cfg), cfg.num_steps, seed=2).save(path)
@@ -172,6 +189,8 @@ def test_the_memory_estimate_bounds_a_measured_peak(tmp_path):
         f"cli.main(['run', 'case1', '--set', 'runs=1024', '--quiet', '--out', {str(tmp_path / 'run')!r}]); "
         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
     )
-    peak_kb = int(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout.split()[-1])
+    peak_kb = int(
+        subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout.split()[-1]
+    )
     estimate = estimated_memory(cfg).total
     assert peak_kb * 1024 < estimate < 2 * peak_kb * 1024, (peak_kb / 2**20, estimate / 2**30)

@@ -8,12 +8,12 @@ import pytest
 import torch
 
 import envs
+from agsf_torch.consistency import chi2_band
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter, GaussianSumFilter
-from agsf_torch.consistency import chi2_band
 from agsf_torch.models import AttitudeModel
+from tests.helpers import F64
 
-F64 = torch.float64
 SIGMA_B0 = 0.2 * np.pi / 180 / 3600  # prior bias σ, rad/s
 
 
@@ -28,7 +28,14 @@ def _run(estimate_bias, iterations, B=200, T=300, rate=None, seed=1, callback=No
         "gsf": FilterSetup(GaussianSumFilter(model, update_iterations=iterations), 5),
     }
     res = run_monte_carlo(
-        env, filters, num_steps=T, prior_cov=P0, sigma_s=10e-6, seed=seed, estimate_bias=estimate_bias, callback=callback
+        env,
+        filters,
+        num_steps=T,
+        prior_cov=P0,
+        sigma_s=10e-6,
+        seed=seed,
+        estimate_bias=estimate_bias,
+        callback=callback,
     )
     return res, n
 
@@ -42,7 +49,9 @@ def test_case1_nees_inside_chi2_band(estimate_bias):
     lo, hi = chi2_band(n, 200)
     for name, tr in res.traces.items():
         avg = tr.nees.mean(0).mean()
-        print(f"{name} {n}-state: time-averaged NEES {avg:.3f}, band [{lo:.3f}, {hi:.3f}], final RMS {tr.rms_error()[-1] * 1e6:.2f} µrad")
+        print(
+            f"{name} {n}-state: time-averaged NEES {avg:.3f}, band [{lo:.3f}, {hi:.3f}], final RMS {tr.rms_error()[-1] * 1e6:.2f} µrad"
+        )
         assert lo <= avg <= hi
         if estimate_bias:
             err, sig = tr.error[:, -1, 3:], tr.sigma[:, -1, 3:]

@@ -28,15 +28,28 @@ def test_short_soak_rows_and_verdict(tmp_path):
 
 def test_verdict_fails_an_overconfident_filter():
     # the filters assume a fifth of the star noise: errors leave their 3σ bounds
-    rows = run_soak(soak_config("GSF", runs=8, duration=20.0, components=2, filter_sigma_s_scale=0.2), report_every=10.0)
+    rows = run_soak(
+        soak_config("GSF", runs=8, duration=20.0, components=2, filter_sigma_s_scale=0.2), report_every=10.0
+    )
     v = soak_verdict(rows, warmup=5.0)
     assert not v["passed"] and not v["filters"]["GSF"]["passed"]
     assert min(v["filters"]["GSF"]["inside_3sigma"]) < 0.9
 
 
 def test_verdict_flags_memory_growth_and_bad_arguments():
-    row = lambda t, mb: {"time_s": t, "rss_mb": mb, "filters": {"GSF": {  # noqa: E731
-        "rms_arcsec": 1.0, "mean_nees": 6.0, "inside_3sigma": [1.0] * 6, "nonfinite": 0, "min_eig_ratio": 1e-3}}}
+    row = lambda t, mb: {
+        "time_s": t,
+        "rss_mb": mb,
+        "filters": {
+            "GSF": {  # noqa: E731
+                "rms_arcsec": 1.0,
+                "mean_nees": 6.0,
+                "inside_3sigma": [1.0] * 6,
+                "nonfinite": 0,
+                "min_eig_ratio": 1e-3,
+            }
+        },
+    }
     v = soak_verdict([row(60, 500), row(120, 500), row(180, 700)], warmup=60.0)
     assert v["rss_growth_mb"] == 200 and not v["memory_flat"] and not v["passed"]
     assert soak_verdict([row(60, 500), row(120, 500), row(180, 510)], warmup=60.0)["passed"]
@@ -47,8 +60,24 @@ def test_verdict_flags_memory_growth_and_bad_arguments():
 
 
 def test_cli_soak_writes_the_verdict(tmp_path, capsys):
-    code = main(["soak", "--runs", "4", "--duration", "4", "--report-every", "2", "--warmup", "2",
-                 "--set", "components=2", "--out", str(tmp_path), "--quiet"])
+    code = main(
+        [
+            "soak",
+            "--runs",
+            "4",
+            "--duration",
+            "4",
+            "--report-every",
+            "2",
+            "--warmup",
+            "2",
+            "--set",
+            "components=2",
+            "--out",
+            str(tmp_path),
+            "--quiet",
+        ]
+    )
     verdict = json.loads((tmp_path / "verdict.json").read_text())
     assert code == (0 if verdict["passed"] else 1)
     assert verdict["filters"]["GSF"]["nonfinite"] == 0

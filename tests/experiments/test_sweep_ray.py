@@ -86,8 +86,12 @@ def check_rows_and_files_equal_local(local_out, local_rows, tmp_path):
     assert by_digest(json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()) == local_rows
     for digest in local_rows:
         mine, theirs = out / "configs" / digest, local_out / "configs" / digest
-        names = sorted(p.relative_to(mine).as_posix() for p in mine.rglob("*") if p.is_file() and "tensorboard" not in p.parts)
-        assert names == sorted(p.relative_to(theirs).as_posix() for p in theirs.rglob("*") if p.is_file() and "tensorboard" not in p.parts)
+        names = sorted(
+            p.relative_to(mine).as_posix() for p in mine.rglob("*") if p.is_file() and "tensorboard" not in p.parts
+        )
+        assert names == sorted(
+            p.relative_to(theirs).as_posix() for p in theirs.rglob("*") if p.is_file() and "tensorboard" not in p.parts
+        )
         assert (mine / "summary.json").read_text() == (theirs / "summary.json").read_text()
         a, b = np.load(mine / "runs.npz"), np.load(theirs / "runs.npz")
         assert sorted(a.files) == sorted(b.files)
@@ -115,7 +119,9 @@ def check_failed_task_keeps_the_others_and_the_rerun_runs_only_it(local_rows, tm
     assert metrics(rows) == {crashing: local_rows[crashing]["metrics"]}
     assert sorted(p.name for p in (out / "configs").iterdir()) == [crashing]
 
-    rerun = run_sweep(base, grid, out, progress=False, backend="ray", runner=functools.partial(marking_runner, marks=str(second)))
+    rerun = run_sweep(
+        base, grid, out, progress=False, backend="ray", runner=functools.partial(marking_runner, marks=str(second))
+    )
     assert calls(second) == {failing: 1}
     assert len(rerun) == 2 and metrics(rerun) == {d: local_rows[d]["metrics"] for d in digests}
 

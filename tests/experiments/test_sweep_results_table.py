@@ -31,7 +31,14 @@ def test_one_line_per_row_with_params_and_main_metrics():
     lines = results_table(ROWS).splitlines()
     assert len(lines) == 2 + len(ROWS)
     assert _cells(lines[0]) == [
-        "config", "reg", "filters", "GSF RMS (deg)", "GSF NEES", "AGSF RMS (deg)", "AGSF NEES", "AGSF − GSF (deg)",
+        "config",
+        "reg",
+        "filters",
+        "GSF RMS (deg)",
+        "GSF NEES",
+        "AGSF RMS (deg)",
+        "AGSF NEES",
+        "AGSF − GSF (deg)",
     ]
     assert set(lines[1]) <= {"|", "-", " "}
     assert _cells(lines[2]) == ["aaaa", "0.1", '["GSF", "AGSF"]', "0.01235", "3.142", "0.0111", "2.9", "-0.0001235"]

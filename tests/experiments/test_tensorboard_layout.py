@@ -6,7 +6,6 @@ mixture scalars; ``agsf reproduce`` makes each case a session; resuming a sweep 
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,12 @@ from agsf_torch.experiments.experiment import run_experiment
 from agsf_torch.experiments.reproduce import reproduce
 from agsf_torch.experiments.sweep import run_sweep
 from agsf_torch.experiments.tensorboard_log import (
-    EVENTS_GLOB, METRIC_PREFIX, hparam_domains, run_name, run_names, time_steps,
+    EVENTS_GLOB,
+    METRIC_PREFIX,
+    hparam_domains,
+    run_name,
+    run_names,
+    time_steps,
 )
 
 BASE = ["runs=2", "duration=0.5", 'filters=["EKF","GSF"]', "components=2"]
@@ -35,8 +39,10 @@ def accumulate(folder: Path) -> EventAccumulator:
 
 def hparams_data(acc: EventAccumulator) -> dict[str, plugin_data_pb2.HParamsPluginData]:
     """The run's HParams plugin data by tag (``_hparams_/experiment``, ``…/session_start_info``, …)."""
-    return {tag: plugin_data_pb2.HParamsPluginData.FromString(content)
-            for tag, content in acc.PluginTagToContent(metadata.PLUGIN_NAME).items()}
+    return {
+        tag: plugin_data_pb2.HParamsPluginData.FromString(content)
+        for tag, content in acc.PluginTagToContent(metadata.PLUGIN_NAME).items()
+    }
 
 
 def experiment_domains(experiment: api_pb2.Experiment) -> dict[str, tuple[list, bool]]:
@@ -61,7 +67,9 @@ def tensorboard_view(logdir: Path):
     ctx = backend_context.Context(base_plugin.TBContext(logdir=str(logdir), multiplexer=mux, data_provider=provider))
     request_context = context.RequestContext()
     experiment = get_experiment.Handler(request_context, ctx, "", api_pb2.GetExperimentRequest()).run()
-    request = api_pb2.ListSessionGroupsRequest(start_index=0, slice_size=1000, allowed_statuses=[api_pb2.STATUS_SUCCESS])
+    request = api_pb2.ListSessionGroupsRequest(
+        start_index=0, slice_size=1000, allowed_statuses=[api_pb2.STATUS_SUCCESS]
+    )
     groups = list_session_groups.Handler(request_context, ctx, "", request).run()
     return sorted(mux.Runs()), experiment, groups
 
@@ -80,7 +88,7 @@ def check_time_series(acc: EventAccumulator, data, summary: dict, filters: list[
         mixture = data[f"{name}/weights"].shape[-1] > 1
         own = [tag for tag in scalars + acc.Tags()["histograms"] if tag.startswith(f"{name}/")]
         assert all(tag.endswith("_vs_ms") for tag in own), own
-        has_mixture_tags = any(tag[len(name) + 1:].startswith(MIXTURE_ONLY) for tag in own)
+        has_mixture_tags = any(tag[len(name) + 1 :].startswith(MIXTURE_ONLY) for tag in own)
         assert has_mixture_tags == mixture, (name, own)
     assert not [tag for tag in scalars if tag.startswith("EKF/") and "weight" in tag]
     for i in range(data["GSF/weights"].shape[-1]):
@@ -183,8 +191,12 @@ def test_resuming_a_sweep_duplicates_no_session_or_curve(sweep, tmp_path):
 
 def test_reproduce_makes_each_case_an_hparams_session(tmp_path):
     out = tmp_path / "reproduce"
-    reproduce([1, 2], out, ["runs=2", "duration=2.0", 'filters=["EKF","GSF"]', "components=2", "compile=false"],
-              progress=False)
+    reproduce(
+        [1, 2],
+        out,
+        ["runs=2", "duration=2.0", 'filters=["EKF","GSF"]', "components=2", "compile=false"],
+        progress=False,
+    )
     combined = json.loads((out / "summary.json").read_text())
     runs, experiment, groups = tensorboard_view(out)
     assert runs == ["case1/tensorboard", "case2/tensorboard"]
@@ -230,7 +242,8 @@ def test_run_names_are_the_parameters_sanitized_and_unique():
     long = run_names([({"x": "y" * 500}, "f" * 16)])["f" * 16]
     assert len(long) <= 200 and long.endswith("-" + "f" * 16)
     assert hparam_domains([{"reg": 0.5, "axes": [1, 0]}, {"reg": 1.0, "axes": [1, 0]}]) == {
-        "reg": [0.5, 1.0], "axes": ["[1, 0]"],
+        "reg": [0.5, 1.0],
+        "axes": ["[1, 0]"],
     }
 
 

@@ -10,15 +10,15 @@ from agsf_torch.experiments.sine_benchmark import run_sine_benchmark
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.models.benchmarks import SineDriftModel
-from tests.conftest import random_mrps
-
-F64 = torch.float64
+from tests.helpers import F64, random_mrps
 
 
 def _sine_filters():
     return {
         "gsf": GaussianSumFilter(SineDriftModel(), substeps=10),
-        "agsf": AdaptiveGaussianSumFilter(SineDriftModel(), weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10),
+        "agsf": AdaptiveGaussianSumFilter(
+            SineDriftModel(), weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10
+        ),
     }
 
 
@@ -165,7 +165,11 @@ def test_components_beyond_the_qp_limit_are_refused_before_any_work():
     from agsf_torch.qp import MAX_COMPONENTS
 
     filt = AdaptiveGaussianSumFilter(AttitudeModel(), weight_update="galerkin")
-    mix = GaussianMixture.from_gaussian(torch.zeros(2, 3, dtype=torch.float64), 1e-3 * torch.eye(3, dtype=torch.float64).expand(2, 3, 3), MAX_COMPONENTS + 1)
+    mix = GaussianMixture.from_gaussian(
+        torch.zeros(2, 3, dtype=torch.float64),
+        1e-3 * torch.eye(3, dtype=torch.float64).expand(2, 3, 3),
+        MAX_COMPONENTS + 1,
+    )
     before = filt.weight_update.state_dict()
     with pytest.raises(ValueError, match=r"N ≤ 64 components, got a mixture of 65"):
         filt.predict(mix, torch.zeros(2, 3, dtype=torch.float64), 0.1)
@@ -205,7 +209,9 @@ def test_counter_does_not_move_when_the_update_refuses_the_mixture(kind):
     model = AttitudeModel()
     update = WEIGHT_UPDATES[kind](cadence=2)
     update.bind(model)
-    mix = GaussianMixture.from_gaussian(torch.zeros(2, 3, dtype=F64), 1e-3 * torch.eye(3, dtype=F64).expand(2, 3, 3), MAX_COMPONENTS + 1)
+    mix = GaussianMixture.from_gaussian(
+        torch.zeros(2, 3, dtype=F64), 1e-3 * torch.eye(3, dtype=F64).expand(2, 3, 3), MAX_COMPONENTS + 1
+    )
     u = torch.zeros(2, 1, 3, dtype=F64)
     for _ in range(2):
         with pytest.raises(ValueError, match=r"the weight QP handles N ≤ 64 components, got a mixture of 65"):

@@ -11,19 +11,25 @@ import torch
 
 from agsf_torch import GaussianMixture
 from agsf_torch.experiments.sine_benchmark import run_sine_benchmark
-from agsf_torch.filters import AdaptiveGaussianSumFilter, GalerkinWeightUpdate, GaussianSumFilter, PenaltyWeightUpdate, WeightUpdate
+from agsf_torch.filters import (
+    AdaptiveGaussianSumFilter,
+    GalerkinWeightUpdate,
+    GaussianSumFilter,
+    PenaltyWeightUpdate,
+    WeightUpdate,
+)
 from agsf_torch.models import AttitudeModel, LinearModel, LorenzModel
 from agsf_torch.models.benchmarks import SineDriftModel
 from agsf_torch.quadrature import gauss_hermite, six_n_plus_one
-from tests.conftest import random_mrps
 from tests.filters.test_adaptive import _attitude_setup
-
-F64 = torch.float64
+from tests.helpers import F64, random_mrps
 
 
 def _linear_mixture(gen, B=4, N=3):
     A = torch.tensor([[-0.3, 1.0], [-0.5, -0.2]], dtype=F64)
-    model = LinearModel(A, torch.eye(2, dtype=F64), torch.diag(torch.tensor([0.2, 0.1], dtype=F64)), B=torch.eye(2, dtype=F64))
+    model = LinearModel(
+        A, torch.eye(2, dtype=F64), torch.diag(torch.tensor([0.2, 0.1], dtype=F64)), B=torch.eye(2, dtype=F64)
+    )
     mean = torch.randn(B, N, 2, generator=gen, dtype=F64)
     L = torch.randn(B, N, 2, 2, generator=gen, dtype=F64)
     covs = L @ L.transpose(-1, -2) + 0.3 * torch.eye(2, dtype=F64)
@@ -51,8 +57,12 @@ def test_sine_forecast_against_the_grid_fpke():
     than the paper's penalised update."""
     filters = {
         "gsf": GaussianSumFilter(SineDriftModel(), substeps=10),
-        "penalty": AdaptiveGaussianSumFilter(SineDriftModel(), weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10),
-        "galerkin": AdaptiveGaussianSumFilter(SineDriftModel(), weight_update=GalerkinWeightUpdate(quadrature=40), substeps=10),
+        "penalty": AdaptiveGaussianSumFilter(
+            SineDriftModel(), weight_update=PenaltyWeightUpdate(quadrature=40), substeps=10
+        ),
+        "galerkin": AdaptiveGaussianSumFilter(
+            SineDriftModel(), weight_update=GalerkinWeightUpdate(quadrature=40), substeps=10
+        ),
     }
     ise = {k: float(v[-1]) for k, v in run_sine_benchmark(filters).items() if k != "time"}
     print(f"ISE at t = 8: {ise}")
@@ -92,7 +102,9 @@ def _lorenz_scores(num: int, substeps: int):
         "gsf": GaussianSumFilter(model),
         "penalty": AdaptiveGaussianSumFilter(model),
         "galerkin": AdaptiveGaussianSumFilter(model, weight_update="galerkin"),
-        "galerkin_6n+1": AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=six_n_plus_one(3))),
+        "galerkin_6n+1": AdaptiveGaussianSumFilter(
+            model, weight_update=GalerkinWeightUpdate(quadrature=six_n_plus_one(3))
+        ),
     }
     mixtures = {}
     for name, f in filters.items():
@@ -214,7 +226,11 @@ def test_cadence_uses_the_time_since_the_last_adaptation(gen):
     """With cadence k the update integrates the weights' rate over k·dt: on a linear model nothing
     changes; on the sine model cadence 2 at dt equals cadence 1 at 2·dt for the first adaptation."""
     model = SineDriftModel()
-    mix = GaussianMixture(weights=torch.tensor([0.1, 0.9], dtype=F64), means=torch.tensor([[-0.2], [0.2]], dtype=F64), covs=torch.ones(2, 1, 1, dtype=F64))
+    mix = GaussianMixture(
+        weights=torch.tensor([0.1, 0.9], dtype=F64),
+        means=torch.tensor([[-0.2], [0.2]], dtype=F64),
+        covs=torch.ones(2, 1, 1, dtype=F64),
+    )
     every2 = AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(cadence=2, quadrature=30))
     once = AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=30))
     a = every2.predict(every2.predict(mix, None, 0.05), None, 0.05)
@@ -277,16 +293,27 @@ def _galerkin(**options):
         (lambda: {"weight_update": "fancy"}, ValueError, r"one of \['galerkin', 'penalty'\]"),
         (lambda: _galerkin(reg=0.5), TypeError, "unexpected keyword argument 'reg'"),
         (lambda: _galerkin(scaling="none"), TypeError, "unexpected keyword argument 'scaling'"),
-        (lambda: {"weight_update": GalerkinWeightUpdate(), "cadence": 2}, TypeError,
-         r"cadence configures the weight update, not the filter: pass weight_update=GalerkinWeightUpdate\(cadence="),
+        (
+            lambda: {"weight_update": GalerkinWeightUpdate(), "cadence": 2},
+            TypeError,
+            r"cadence configures the weight update, not the filter: pass weight_update=GalerkinWeightUpdate\(cadence=",
+        ),
         (lambda: {"weight_update": "galerkin", "reg": 0.5}, TypeError, r"weight_update=PenaltyWeightUpdate\(reg="),
         (lambda: _galerkin(chunk_size=0), ValueError, "chunk_size must be a positive integer"),
         (lambda: _galerkin(chunk_size=-3), ValueError, "chunk_size must be a positive integer"),
         (lambda: _galerkin(cadence=0), ValueError, "cadence must be a positive integer"),
         (lambda: _galerkin(quadrature=(torch.zeros(5, 2), torch.full((5,), 0.2))), ValueError, r"nodes \[K, 3\]"),
         (lambda: _galerkin(quadrature=(torch.zeros(4, 3), torch.full((5,), 0.2))), ValueError, r"shapes"),
-        (lambda: _galerkin(quadrature=(torch.full((5, 3), float("nan")), torch.full((5,), 0.2))), ValueError, "nodes must be finite"),
-        (lambda: _galerkin(quadrature=(torch.zeros(5, 3), torch.full((5,), float("inf")))), ValueError, "weights must be finite"),
+        (
+            lambda: _galerkin(quadrature=(torch.full((5, 3), float("nan")), torch.full((5,), 0.2))),
+            ValueError,
+            "nodes must be finite",
+        ),
+        (
+            lambda: _galerkin(quadrature=(torch.zeros(5, 3), torch.full((5,), float("inf")))),
+            ValueError,
+            "weights must be finite",
+        ),
         (lambda: _galerkin(quadrature=(torch.zeros(5, 3), torch.full((5,), 0.3))), ValueError, "sum to 1"),
         (lambda: _galerkin(quadrature=(3, 3)), ValueError, "one point count per state axis"),
         (lambda: _galerkin(quadrature="dense"), ValueError, "quadrature must be"),
@@ -315,7 +342,11 @@ def test_error_in_a_step_changes_no_state(gen):
     """A non-finite K (a NaN input reaching the drift) raises before the counter moves."""
     model = SineDriftModel()
     filt = AdaptiveGaussianSumFilter(model, weight_update=GalerkinWeightUpdate(quadrature=10))
-    mix = GaussianMixture(weights=torch.tensor([0.5, 0.5], dtype=F64), means=torch.tensor([[0.0], [1.0]], dtype=F64), covs=torch.ones(2, 1, 1, dtype=F64))
+    mix = GaussianMixture(
+        weights=torch.tensor([0.5, 0.5], dtype=F64),
+        means=torch.tensor([[0.0], [1.0]], dtype=F64),
+        covs=torch.ones(2, 1, 1, dtype=F64),
+    )
     prop = GaussianSumFilter(model).predict(mix, None, 0.1)
     bad = prop.replace(means=torch.tensor([[float("nan")], [1.0]], dtype=F64), validate=False)
     with pytest.raises((ValueError, RuntimeError)):
@@ -337,7 +368,9 @@ def test_bad_state_dict_is_refused_without_change(gen):
             filt.load_state_dict(bad)
         assert filt.state_dict() == {"weight_update": {"kind": "galerkin", "step": 0, "elapsed": 0.0}}
     with pytest.raises(ValueError, match="not this 'penalty'"):
-        AdaptiveGaussianSumFilter(AttitudeModel()).load_state_dict({"weight_update": {"kind": "galerkin", "step": 0, "elapsed": 0.0, "ref_log_weights": None}})
+        AdaptiveGaussianSumFilter(AttitudeModel()).load_state_dict(
+            {"weight_update": {"kind": "galerkin", "step": 0, "elapsed": 0.0, "ref_log_weights": None}}
+        )
 
 
 def test_six_n_plus_one_rule_moments():
@@ -347,7 +380,9 @@ def test_six_n_plus_one_rule_moments():
     assert nodes.shape == (25, 4) and w.shape == (25,)
     torch.testing.assert_close(w.sum(), torch.tensor(1.0, dtype=F64), rtol=0, atol=1e-15)
     torch.testing.assert_close((w[:, None] * nodes).sum(0), torch.zeros(4, dtype=F64), rtol=0, atol=1e-15)
-    torch.testing.assert_close((w[:, None, None] * nodes[:, :, None] * nodes[:, None, :]).sum(0), torch.eye(4, dtype=F64), rtol=0, atol=1e-14)
+    torch.testing.assert_close(
+        (w[:, None, None] * nodes[:, :, None] * nodes[:, None, :]).sum(0), torch.eye(4, dtype=F64), rtol=0, atol=1e-14
+    )
     fourth = float((w * nodes[:, 0] ** 4).sum())
     ref = gauss_hermite(3, 1)
     assert abs(float((ref[1] * ref[0][:, 0] ** 4).sum()) - 3.0) < 1e-12 and abs(fourth - 3.0) > 0.05

@@ -9,14 +9,7 @@ from agsf_torch import GaussianMixture
 from agsf_torch import rotations as rot
 from agsf_torch.filters import ExtendedKalmanFilter, GaussianSumFilter
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
-from tests.conftest import random_mrps
-
-F64 = torch.float64
-
-
-def _unit(gen, *shape):
-    r = torch.randn(*shape, 3, generator=gen, dtype=F64)
-    return r / r.norm(dim=-1, keepdim=True)
+from tests.helpers import F64, random_mrps, random_unit_vectors
 
 
 def _setup(gen, B=6, N=5, estimate_bias=True, sigma=1e-5, prior_attitude_var=1e-3):
@@ -27,7 +20,7 @@ def _setup(gen, B=6, N=5, estimate_bias=True, sigma=1e-5, prior_attitude_var=1e-
     noise = torch.randn(B, n, generator=gen, dtype=F64) * prior_var.sqrt()
     mean0 = torch.cat((truth, torch.zeros(B, 3, dtype=F64)), -1)[:, :n] + noise
     mix = GaussianMixture.from_gaussian(mean0, torch.diag(prior_var).expand(B, n, n), N)
-    r = _unit(gen, B, 5)
+    r = random_unit_vectors(gen, B, 5)
     y = StarVectorMeasurement(r, sigma=sigma).predict(truth) + sigma * torch.randn(B, 15, generator=gen, dtype=F64)
     return model, mix, r, y
 

@@ -11,8 +11,7 @@ import torch
 from agsf_torch import GaussianMixture
 from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
-
-F64 = torch.float64
+from tests.helpers import F64
 
 
 def _nll(cls, estimate_bias, log_sv, log_su, log_ss, log_scale, bias, reg):
@@ -45,6 +44,4 @@ def test_gradcheck_log_likelihood(cls, estimate_bias):
         return torch.tensor(v, dtype=F64, requires_grad=True)
 
     args = (t(-5.0), t(-8.0), t(-6.0), t(0.0), t([1e-4, -2e-4, 3e-4]), t(1.0))
-    assert torch.autograd.gradcheck(
-        lambda *a: _nll(cls, estimate_bias, *a), args, eps=1e-6, atol=1e-5, rtol=1e-4
-    )
+    assert torch.autograd.gradcheck(lambda *a: _nll(cls, estimate_bias, *a), args, eps=1e-6, atol=1e-5, rtol=1e-4)

@@ -19,21 +19,13 @@ from scipy.stats import multivariate_normal
 import envs
 from agsf_torch import GaussianMixture
 from agsf_torch import rotations as rot
+from agsf_torch.consistency import chi2_band
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter
 from agsf_torch.filters.multiplicative import MultiplicativeEKF, error_state_to_mrp, mrp_to_error_state
-from agsf_torch.consistency import chi2_band
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
 from envs.gyro import Gyro
-from tests.conftest import random_mrps
-
-F64 = torch.float64
-
-
-def _spd(gen, B, n, scale):
-    A = torch.randn(B, n, n, generator=gen, dtype=F64)
-    P = scale * (A @ A.transpose(-1, -2) / n + 0.1 * torch.eye(n, dtype=F64))
-    return 0.5 * (P + P.transpose(-1, -2))
+from tests.helpers import F64, random_mrps, random_spd, random_unit_vectors
 
 
 def _belief(gen, B, estimate_bias, att_var=1e-4, bias_var=1e-10, max_norm=0.9):
@@ -42,13 +34,8 @@ def _belief(gen, B, estimate_bias, att_var=1e-4, bias_var=1e-10, max_norm=0.9):
     b = 1e-5 * torch.randn(B, 3, generator=gen, dtype=F64)
     mean = torch.cat((p, b), -1)[:, :n]
     scale = torch.tensor([att_var] * 3 + [bias_var] * 3, dtype=F64)[:n].sqrt()
-    P = scale[:, None] * _spd(gen, B, n, 1.0) * scale[None, :]
+    P = scale[:, None] * random_spd(gen, B, n=n) * scale[None, :]
     return GaussianMixture(weights=torch.ones(B, 1, dtype=F64), means=mean[:, None], covs=P[:, None])
-
-
-def _unit(gen, *shape):
-    r = torch.randn(*shape, 3, generator=gen, dtype=F64)
-    return r / r.norm(dim=-1, keepdim=True)
 
 
 # --------------------------------------------------------------------------- 1. belief conversion
@@ -192,7 +179,7 @@ def test_transition_and_discrete_noise_match_van_loan(gen, theta):
     of the series/closed-form switch (θ = 1); the Farrenkopf Q_d against the same reference
     within its documented error: Q₁₂ off by ≈ σ_u²Δt²θ/6, Q₁₁ by ≈ σ_u²Δt³θ²/60."""
     dt, sv, su = 0.5, 3e-4, 2e-4
-    axis = _unit(gen, 1)[0].numpy()
+    axis = random_unit_vectors(gen, 1)[0].numpy()
     omega = axis * theta / dt
     for estimate_bias in (False, True):
         n = 6 if estimate_bias else 3
@@ -266,7 +253,7 @@ def test_update_matches_a_textbook_mekf(gen, estimate_bias):
     B, M, sigma = 5, 4, 1e-4
     model = AttitudeModel(estimate_bias=estimate_bias)
     mix = _belief(gen, B, estimate_bias, att_var=1e-6, bias_var=1e-12)
-    r = _unit(gen, B, M)
+    r = random_unit_vectors(gen, B, M)
     truth = mix.means[:, 0, :3] + 1e-3 * torch.randn(B, 3, generator=gen, dtype=F64)
     y = StarVectorMeasurement(r, sigma=sigma).predict(truth) + sigma * torch.randn(B, 3 * M, generator=gen, dtype=F64)
     mask = torch.tensor([[True, True, False, True], [True] * 4, [False] * 4, [False, True, True, False], [True] * 4])
@@ -286,7 +273,9 @@ def test_update_matches_a_textbook_mekf(gen, estimate_bias):
         np.testing.assert_allclose(abs(float((q_post[i].numpy() * qe).sum())), 1.0, rtol=0, atol=1e-14)
         dq = Rotation.from_quat(q_post[i].numpy()) * Rotation.from_quat(qe).inv()
         assert dq.magnitude() < 1e-13
-        np.testing.assert_allclose(b_post[i].numpy(), be, rtol=0, atol=1e-8 * np.abs(be - b[i].numpy()).max(initial=0.0) + 1e-22)
+        np.testing.assert_allclose(
+            b_post[i].numpy(), be, rtol=0, atol=1e-8 * np.abs(be - b[i].numpy()).max(initial=0.0) + 1e-22
+        )
         np.testing.assert_allclose(P_post[i].numpy(), Pe, rtol=1e-8, atol=1e-9 * np.abs(Pe).max())
         assert float(diag["log_likelihood"][i]) == pytest.approx(ll, rel=1e-10)
         assert float(diag["nis"][i, 0]) == pytest.approx(nis, rel=1e-8)
@@ -306,11 +295,11 @@ def test_gate_rejects_a_misidentified_star(gen):
     B, M, sigma = 3, 5, 1e-5
     model = AttitudeModel()
     mix = _belief(gen, B, False, att_var=1e-10)
-    r = _unit(gen, B, M)
+    r = random_unit_vectors(gen, B, M)
     noise = sigma * torch.randn(B, 3 * M, generator=gen, dtype=F64)
     y = StarVectorMeasurement(r, sigma=sigma).predict(mix.means[:, 0]) + noise
     y_bad = y.clone()
-    y_bad[1, 6:9] = (rot.mrp_to_dcm(torch.tensor([0.0, 4.4e-4, 0.0], dtype=F64)) @ y[1, 6:9])  # star 2 turned 0.1°
+    y_bad[1, 6:9] = rot.mrp_to_dcm(torch.tensor([0.0, 4.4e-4, 0.0], dtype=F64)) @ y[1, 6:9]  # star 2 turned 0.1°
     gated = MultiplicativeEKF(model, gate_probability=1 - 1e-4)
     post = gated.update(mix, y_bad, StarVectorMeasurement(r, sigma=sigma))
     assert gated.diagnostics["gate_rejected"].tolist() == [0, 1, 0]
@@ -350,8 +339,10 @@ def test_monte_carlo_next_to_the_iterated_ekf(estimate_bias):
     lo, hi = chi2_band(n, B)
     rms = {k: float(tr.rms_error()[-1]) for k, tr in res.traces.items()}
     nees = {k: float(tr.nees.mean(1).mean()) for k, tr in res.traces.items()}
-    print(f"{n}-state: final RMS (µrad) { {k: round(v * 1e6, 3) for k, v in rms.items()} }, "
-          f"NEES { {k: round(v, 3) for k, v in nees.items()} }, band [{lo:.3f}, {hi:.3f}]")
+    print(
+        f"{n}-state: final RMS (µrad) { {k: round(v * 1e6, 3) for k, v in rms.items()} }, "
+        f"NEES { {k: round(v, 3) for k, v in nees.items()} }, band [{lo:.3f}, {hi:.3f}]"
+    )
     assert abs(rms["mekf"] / rms["iekf"] - 1) < 0.03
     assert lo <= nees["mekf"] <= hi
     assert abs(rms["imekf"] / rms["iekf"] - 1) < 1e-3
@@ -364,7 +355,7 @@ def test_bad_inputs_raise_before_anything_changes(gen):
     model = AttitudeModel(estimate_bias=True)
     mix = _belief(gen, 4, True)
     mekf = MultiplicativeEKF(model)
-    r = _unit(gen, 4, 5)
+    r = random_unit_vectors(gen, 4, 5)
     meas = StarVectorMeasurement(r, sigma=1e-5)
     y = meas.predict(mix.means[:, 0])
     u = torch.zeros(4, 3, dtype=F64)
@@ -402,7 +393,9 @@ def test_bad_inputs_raise_before_anything_changes(gen):
         mekf.update(mix, y[:3], meas)
     with pytest.raises(TypeError, match="MeasurementModel"):
         mekf.update(mix, y, lambda x: x)
-    broken = mix.replace(covs=mix.covs * torch.tensor([1.0, -1.0, 1.0, 1.0], dtype=F64)[:, None, None, None], validate=False)
+    broken = mix.replace(
+        covs=mix.covs * torch.tensor([1.0, -1.0, 1.0, 1.0], dtype=F64)[:, None, None, None], validate=False
+    )
     with pytest.raises(ValueError, match=r"not positive definite in the input belief at trajectory index \(1,\)"):
         mekf.predict(broken, u, 0.1)
     assert mekf.diagnostics is diag_before

@@ -6,22 +6,28 @@ import pytest
 import torch
 
 from agsf_torch import GaussianMixture
-from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, MultiplicativeEKF
+from agsf_torch.filters import AdaptiveGaussianSumFilter, Filter, GaussianSumFilter, MultiplicativeEKF
 from agsf_torch.filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES, FILTERS, make_filter
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
-
-F64 = torch.float64
+from tests.helpers import F64
 
 
 def test_registry_names_and_kinds():
-    assert FILTER_NAMES == ("EKF", "GSF", "AGSF", "AGSF-galerkin", "MEKF")
-    assert ADAPTIVE_FILTERS == ("AGSF", "AGSF-galerkin")
     model = AttitudeModel(estimate_bias=True)
-    kinds = {"EKF": GaussianSumFilter, "GSF": GaussianSumFilter, "AGSF": AdaptiveGaussianSumFilter,
-             "AGSF-galerkin": AdaptiveGaussianSumFilter, "MEKF": MultiplicativeEKF}
+    kinds = {
+        "EKF": GaussianSumFilter,
+        "GSF": GaussianSumFilter,
+        "AGSF": AdaptiveGaussianSumFilter,
+        "AGSF-galerkin": AdaptiveGaussianSumFilter,
+        "MEKF": MultiplicativeEKF,
+    }
+    assert set(FILTER_NAMES) == set(kinds)  # every registered filter is checked here
     for name in FILTER_NAMES:
         filt = make_filter(name, model, update_iterations=2)
         assert isinstance(filt, kinds[name]) and filt.update_iterations == 2
+        assert isinstance(filt, Filter)
+    adaptive = tuple(n for n in FILTER_NAMES if isinstance(make_filter(n, model), AdaptiveGaussianSumFilter))
+    assert ADAPTIVE_FILTERS == adaptive
     assert make_filter("AGSF-galerkin", model).weight_update.name == "galerkin"
     assert make_filter("AGSF", model, reg=3.0).weight_update.reg == 3.0
     assert [n for n in FILTER_NAMES if FILTERS[n].mixture] == ["GSF", "AGSF", "AGSF-galerkin"]
@@ -42,7 +48,9 @@ def test_diagnostics_are_the_declared_keys(name, gate):
     filt = make_filter(name, model, gate_probability=gate)
     N = 3 if FILTERS[name].mixture else 1
     g = torch.Generator().manual_seed(0)
-    mix = GaussianMixture.from_gaussian(0.01 * torch.randn(2, 3, generator=g, dtype=F64), 1e-4 * torch.eye(3, dtype=F64).expand(2, 3, 3), N)
+    mix = GaussianMixture.from_gaussian(
+        0.01 * torch.randn(2, 3, generator=g, dtype=F64), 1e-4 * torch.eye(3, dtype=F64).expand(2, 3, 3), N
+    )
     mix = filt.predict(mix, torch.full((2, 3), 1e-3, dtype=F64), 0.1)
     assert set(filt.diagnostics) == set(filt.diagnostic_keys("predict"))
     r = torch.nn.functional.normalize(torch.randn(2, 4, 3, generator=g, dtype=F64), dim=-1)

@@ -41,7 +41,15 @@ def test_one_line_per_key_and_nothing_printed_whole():
     assert str(d) == text
     assert len(text.splitlines()) == 4
     assert _line(d, "fpke_error_before") == [
-        "fpke_error_before", "[256]", "float64", "min", "0.0012", "mean", "0.00555", "max", "0.0099",
+        "fpke_error_before",
+        "[256]",
+        "float64",
+        "min",
+        "0.0012",
+        "mean",
+        "0.00555",
+        "max",
+        "0.0099",
     ]
     assert _line(d, "dof") == ["dof", "[3]", "int64", "min", "12", "mean", "14", "max", "15"]
     assert _line(d, "weights_adapted") == ["weights_adapted", "bool", "True"]

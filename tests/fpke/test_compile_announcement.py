@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 
+import pytest
 import torch
 
 from agsf_torch.fpke import matrices
@@ -65,11 +66,10 @@ def test_a_failed_first_call_announces_again_on_the_next(monkeypatch, caplog):
     monkeypatch.setattr(matrices, "_product_chunk", chunk)
     caplog.set_level(logging.INFO, logger="agsf_torch")
     kernel = matrices._kernel("product", compile=True)
-    try:
+    with pytest.raises(RuntimeError, match="boom"):
         kernel()
-    except RuntimeError:
-        pass
+    assert [r.getMessage().split(" the ")[0] for r in caplog.records] == ["compiling"]  # no "compiled" after a failure
     state["fail"] = False
     caplog.clear()
-    kernel()
+    assert kernel() == 0
     assert [r.getMessage().split(" the ")[0] for r in caplog.records] == ["compiling", "compiled"]

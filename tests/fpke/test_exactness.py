@@ -18,8 +18,7 @@ from agsf_torch.fpke import ComponentRates, fpke_matrix, galerkin_matrices, resi
 from agsf_torch.models import AttitudeModel
 from agsf_torch.propagation import moment_derivatives
 from agsf_torch.quadrature import ProductRule, gauss_hermite
-
-F64 = torch.float64
+from tests.helpers import F64
 
 
 def _random_rates(model: AttitudeModel, B: int, N: int, gen: torch.Generator, log_eig: tuple[float, float]):
@@ -51,7 +50,9 @@ def _fast_and_dense(model, rates, u):
     L2 = fpke_matrix(model, u, rates, *gauss_hermite((11, 11, 11, 5, 5, 5) if eb else (11, 11, 11)))
     torch.testing.assert_close(L.log_scale, L1.log_scale, rtol=0, atol=0)
     G = galerkin_matrices(model, u, rates)  # closed form
-    G1 = galerkin_matrices(model, u, rates, *gauss_hermite((6, 6, 6, 3, 3, 3) if eb else (6, 6, 6)))  # degree 11 / 5 ≥ 6 / 2
+    G1 = galerkin_matrices(
+        model, u, rates, *gauss_hermite((6, 6, 6, 3, 3, 3) if eb else (6, 6, 6))
+    )  # degree 11 / 5 ≥ 6 / 2
     G2 = galerkin_matrices(model, u, rates, *gauss_hermite((8, 8, 8, 4, 4, 4) if eb else (8, 8, 8)))
     torch.testing.assert_close(G.mass, G1.mass, rtol=0, atol=0)
     return L.scaled, L1.scaled, L2.scaled, G.drift, G1.drift, G2.drift

@@ -10,8 +10,7 @@ from agsf_torch.fpke.moments import component_moments, residual_mean
 from agsf_torch.models import AttitudeModel, LorenzModel
 from agsf_torch.propagation import moment_derivatives
 from agsf_torch.quadrature import gauss_hermite
-
-F64 = torch.float64
+from tests.helpers import F64
 
 
 def _rates(model, gen, B=4, N=3):
@@ -40,7 +39,12 @@ def test_residual_mean_equals_quadrature_under_any_gaussian(gen, estimate_bias):
         torch.testing.assert_close(closed, quad, rtol=1e-12, atol=1e-12 * float(quad.abs().max()))
     # the pair's own form of the same moments (side_moments) gives the same numbers
     both = residual_mean(moments, prod.cov, prod.sides, *prod.side_moments())
-    direct = torch.stack([residual_mean(moments, prod.cov, s, *component_moments(prod.mean, prod.cov, s)) for s in (prod.first, prod.second)])
+    direct = torch.stack(
+        [
+            residual_mean(moments, prod.cov, s, *component_moments(prod.mean, prod.cov, s))
+            for s in (prod.first, prod.second)
+        ]
+    )
     torch.testing.assert_close(both, direct, rtol=1e-10, atol=1e-10 * float(direct.abs().max()))
 
 

@@ -9,7 +9,7 @@ import torch
 
 from agsf_torch import rotations as rot
 from agsf_torch.models import AttitudeModel, ContinuousModel
-from tests.conftest import random_mrps
+from tests.helpers import random_mrps
 
 
 def _states(gen, num, estimate_bias, max_norm=1.3):
@@ -36,7 +36,9 @@ def test_process_noise_closed_form_matches_generic(gen, estimate_bias):
     x = _states(gen, 500, estimate_bias)
     G = model.process_noise(x)
     # off-diagonal entries are exact zeros in the closed form, rounding (~1e-16 relative) in the generic one
-    torch.testing.assert_close(G, ContinuousModel.process_noise(model, x), rtol=1e-12, atol=1e-12 * float(G.abs().max()))
+    torch.testing.assert_close(
+        G, ContinuousModel.process_noise(model, x), rtol=1e-12, atol=1e-12 * float(G.abs().max())
+    )
     torch.testing.assert_close(model.diffusion(x), 0.5 * model.process_noise(x))
 
 
@@ -134,7 +136,9 @@ def test_gyro_input_must_have_three_axes(gen, estimate_bias, shape):
     ):
         with pytest.raises(ValueError, match=match):
             call()
-    with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\] \(the gyro reading ω̃, rad/s\), got None"):
+    with pytest.raises(
+        ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\] \(the gyro reading ω̃, rad/s\), got None"
+    ):
         model.drift(x, None)
 
 
@@ -145,11 +149,18 @@ def test_filters_refuse_a_one_axis_gyro_before_any_change(gen, estimate_bias):
 
     model = AttitudeModel(estimate_bias=estimate_bias)
     n = model.state_dim
-    mix = GaussianMixture.from_gaussian(_states(gen, 2, estimate_bias), 1e-4 * torch.eye(n, dtype=torch.float64).expand(2, n, n), 3)
+    mix = GaussianMixture.from_gaussian(
+        _states(gen, 2, estimate_bias), 1e-4 * torch.eye(n, dtype=torch.float64).expand(2, n, n), 3
+    )
     agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=1))
     for filt in (GaussianSumFilter(model), agsf):
-        with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 3\] \(AttitudeModel's input: the gyro reading ω̃, rad/s\), got \(2, 1\)"):
+        with pytest.raises(
+            ValueError,
+            match=r"u must have shape \[\.\.\., 3\] \(AttitudeModel's input: the gyro reading ω̃, rad/s\), got \(2, 1\)",
+        ):
             filt.predict(mix, torch.full((2, 1), 0.01, dtype=torch.float64), 0.1)
-        with pytest.raises(ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\] \(the gyro reading ω̃, rad/s\), got None"):
+        with pytest.raises(
+            ValueError, match=r"AttitudeModel needs an input u \[\.\.\., 3\] \(the gyro reading ω̃, rad/s\), got None"
+        ):
             filt.predict(mix, None, 0.1)
     assert agsf.weight_update.state_dict()["step"] == 0

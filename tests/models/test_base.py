@@ -106,14 +106,21 @@ def test_function_measurement_of_the_wrong_size_is_refused_before_the_update():
     from agsf_torch.filters import GaussianSumFilter
 
     model = LinearModel(torch.zeros(3, 3), torch.eye(3), torch.eye(3))
-    mix = GaussianMixture.from_gaussian(torch.zeros(2, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64).expand(2, 3, 3), 2)
+    mix = GaussianMixture.from_gaussian(
+        torch.zeros(2, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64).expand(2, 3, 3), 2
+    )
     filt = GaussianSumFilter(model)
     small_R = FunctionMeasurement(lambda x: x, torch.eye(1, dtype=torch.float64))
-    with pytest.raises(ValueError, match=r"y has shape \(2, 3\): 3 entries but the measurement model predicts 1 \(d = noise_cov's size\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"y has shape \(2, 3\): 3 entries but the measurement model predicts 1 \(d = noise_cov's size\)",
+    ):
         filt.update(mix, torch.zeros(2, 3, dtype=torch.float64), small_R)
     with pytest.raises(ValueError, match=r"fn must return \[\.\.\., 1\] \(d = 1, noise_cov's size\), got \(2, 3\)"):
         small_R.predict(torch.zeros(2, 3, dtype=torch.float64))
-    closed = FunctionMeasurement(lambda x: x, torch.eye(3, dtype=torch.float64), jacobian=lambda x: torch.ones(*x.shape[:-1], 3, 2))
+    closed = FunctionMeasurement(
+        lambda x: x, torch.eye(3, dtype=torch.float64), jacobian=lambda x: torch.ones(*x.shape[:-1], 3, 2)
+    )
     with pytest.raises(ValueError, match=r"jacobian must return \[\.\.\., 3, 3\]"):
         closed.jacobian(torch.zeros(2, 3, dtype=torch.float64))
 

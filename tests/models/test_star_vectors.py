@@ -9,17 +9,12 @@ import torch
 
 from agsf_torch import rotations as rot
 from agsf_torch.models import MeasurementModel, StarVectorMeasurement
-from tests.conftest import random_mrps
-
-
-def _unit(gen, *shape):
-    r = torch.randn(*shape, 3, generator=gen, dtype=torch.float64)
-    return r / r.norm(dim=-1, keepdim=True)
+from tests.helpers import random_mrps, random_unit_vectors
 
 
 def test_predict_is_C_r(gen):
     p = random_mrps(50, gen)
-    r = _unit(gen, 50, 5)
+    r = random_unit_vectors(gen, 50, 5)
     meas = StarVectorMeasurement(r, sigma=1e-5)
     y = meas.predict(p).reshape(50, 5, 3)
     ref = torch.einsum("bij,bmj->bmi", rot.mrp_to_dcm(p), r)
@@ -31,7 +26,7 @@ def test_jacobian_matches_autograd(gen, n):
     x = random_mrps(1000, gen, max_norm=1.5)
     if n == 6:
         x = torch.cat((x, torch.randn(1000, 3, generator=gen, dtype=torch.float64)), -1)
-    r = _unit(gen, 1000, 4)
+    r = random_unit_vectors(gen, 1000, 4)
     meas = StarVectorMeasurement(r, sigma=1e-5)
     H = meas.jacobian(x)
     H_ad = MeasurementModel.jacobian(meas, x)
@@ -42,7 +37,7 @@ def test_jacobian_matches_autograd(gen, n):
 def test_component_first_broadcast(gen):
     """States [N, B, n] broadcast against stars [B, M, 3] (the filters' layout)."""
     x = random_mrps(12, gen).reshape(4, 3, 3)
-    r = _unit(gen, 3, 5)
+    r = random_unit_vectors(gen, 3, 5)
     meas = StarVectorMeasurement(r, sigma=1e-5)
     assert meas.predict(x).shape == (4, 3, 15)
     assert meas.jacobian(x).shape == (4, 3, 15, 3)
@@ -50,7 +45,7 @@ def test_component_first_broadcast(gen):
 
 
 def test_mask_and_noise(gen):
-    r = _unit(gen, 2, 3)
+    r = random_unit_vectors(gen, 2, 3)
     mask = torch.tensor([[True, False, True], [False, False, False]])
     meas = StarVectorMeasurement(r, mask, sigma=2e-5)
     assert meas.mask().tolist() == [[True] * 3 + [False] * 3 + [True] * 3, [False] * 9]
@@ -58,7 +53,7 @@ def test_mask_and_noise(gen):
 
 
 def test_from_observation(gen):
-    r = _unit(gen, 2, 3)
+    r = random_unit_vectors(gen, 2, 3)
     obs = {"star_body": r.flip(-1), "star_inertial": r, "star_mask": torch.ones(2, 3, dtype=torch.bool)}
     y, meas = StarVectorMeasurement.from_observation(obs, sigma=1e-5)
     assert y.shape == (2, 9)
@@ -81,8 +76,8 @@ def test_bad_input_raises(args, match):
 
 
 def test_tangent_noise_model(gen):
-    r = _unit(gen, 2, 3)
-    body = _unit(gen, 2, 3)
+    r = random_unit_vectors(gen, 2, 3)
+    body = random_unit_vectors(gen, 2, 3)
     meas = StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent", body=body, radial_sigma=1e-3)
     R = meas.noise_cov()
     assert R.shape == (2, 9, 9)
@@ -101,17 +96,23 @@ def test_tangent_noise_model(gen):
 
 @pytest.mark.parametrize("scale, norm", [(2.0, "2"), (0.0, "0"), (1.0 + 2e-3, "1.002")])
 def test_non_unit_star_vectors_are_refused_naming_vector_star_and_norm(gen, scale, norm):
-    r = _unit(gen, 2, 3)
+    r = random_unit_vectors(gen, 2, 3)
     bad = r.clone()
     bad[1, 2] *= scale
-    with pytest.raises(ValueError, match=rf"r_inertial: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"):
+    with pytest.raises(
+        ValueError, match=rf"r_inertial: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"
+    ):
         StarVectorMeasurement(bad, sigma=1e-5)
     with pytest.raises(ValueError, match=rf"body: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"):
         StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent", body=bad)
     obs = {"star_body": bad, "star_inertial": r, "star_mask": torch.ones(2, 3, dtype=torch.bool)}
-    with pytest.raises(ValueError, match=rf"star_body: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"):
+    with pytest.raises(
+        ValueError, match=rf"star_body: star 2 at batch index \(1,\) is not a unit vector \(norm {norm}\)"
+    ):
         StarVectorMeasurement.from_observation(obs, sigma=1e-5)
-    with pytest.raises(ValueError, match=rf"y \(measured star vectors\): star 2 at batch index \(1,\) .*\(norm {norm}\)"):
+    with pytest.raises(
+        ValueError, match=rf"y \(measured star vectors\): star 2 at batch index \(1,\) .*\(norm {norm}\)"
+    ):
         StarVectorMeasurement(r, sigma=1e-5).check_measurement(bad.flatten(-2))
     # a masked-out star is ignored, whatever its vector (zeros by convention)
     mask = torch.tensor([[True] * 3, [True, True, False]])
@@ -120,22 +121,26 @@ def test_non_unit_star_vectors_are_refused_naming_vector_star_and_norm(gen, scal
 
 
 def test_star_vectors_within_tolerance_are_normalised_with_a_warning(gen):
-    r = _unit(gen, 2, 3)
+    r = random_unit_vectors(gen, 2, 3)
     off = r.clone()
     off[0, 1] *= 1.0 + 1e-5
     with pytest.warns(UserWarning, match=r"r_inertial: star vectors off unit norm by up to 1\.00e-05"):
         meas = StarVectorMeasurement(off, sigma=1e-5)
     torch.testing.assert_close(meas.r_inertial, r, rtol=0, atol=1e-15)
     with pytest.warns(UserWarning, match="star_body"):
-        y, _ = StarVectorMeasurement.from_observation({"star_body": off, "star_inertial": r, "star_mask": torch.ones(2, 3, dtype=torch.bool)}, 1e-5)
+        y, _ = StarVectorMeasurement.from_observation(
+            {"star_body": off, "star_inertial": r, "star_mask": torch.ones(2, 3, dtype=torch.bool)}, 1e-5
+        )
     torch.testing.assert_close(y, r.flatten(-2), rtol=0, atol=1e-15)
     # unit to rounding: taken bit for bit, no warning (float32 vectors too, to float32's rounding)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         exact = StarVectorMeasurement(r, sigma=1e-5)
         r32 = r.to(torch.float32)
-        assert torch.equal(StarVectorMeasurement(r32 / r32.norm(dim=-1, keepdim=True), sigma=1e-5).r_inertial.norm(dim=-1) > 0,
-                           torch.ones(r.shape[:-1], dtype=torch.bool))
+        assert torch.equal(
+            StarVectorMeasurement(r32 / r32.norm(dim=-1, keepdim=True), sigma=1e-5).r_inertial.norm(dim=-1) > 0,
+            torch.ones(r.shape[:-1], dtype=torch.bool),
+        )
     assert torch.equal(exact.r_inertial, r) and exact.check_measurement(r.flatten(-2)) is not None
 
 
@@ -145,7 +150,7 @@ def test_filter_update_refuses_non_unit_measured_vectors_before_any_change(gen):
     from agsf_torch.models import AttitudeModel
 
     p = random_mrps(2, gen, max_norm=0.5)
-    r = _unit(gen, 2, 3)
+    r = random_unit_vectors(gen, 2, 3)
     meas = StarVectorMeasurement(r, sigma=1e-5)
     y = meas.predict(p)
     y_bad = y.clone()
@@ -163,13 +168,15 @@ def test_filter_update_refuses_non_unit_measured_vectors_before_any_change(gen):
 
 def test_measured_vectors_are_unit_up_to_the_noise(gen):
     """y = C r + v is unit only up to the noise: used as it is within max(1e-3, 10σ), refused beyond."""
-    r = _unit(gen, 2, 3)
+    r = random_unit_vectors(gen, 2, 3)
     y = r.clone()
     y[0, 1] *= 1.0 + 5e-3  # a 5σ radial draw for σ_s = 1e-3
     y = y.flatten(-2)
     out = StarVectorMeasurement(r, sigma=1e-3).check_measurement(y)
     assert out is y
-    with pytest.raises(ValueError, match=r"star 1 at batch index \(0,\) is not a unit vector \(norm 1\.005\); .* within 0\.001"):
+    with pytest.raises(
+        ValueError, match=r"star 1 at batch index \(0,\) is not a unit vector \(norm 1\.005\); .* within 0\.001"
+    ):
         StarVectorMeasurement(r, sigma=1e-5).check_measurement(y)
     tangent = StarVectorMeasurement(r, sigma=1e-5, noise_model="tangent", body=r, radial_sigma=1e-3)
     assert tangent.check_measurement(y) is y

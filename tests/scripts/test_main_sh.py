@@ -19,7 +19,7 @@ def _checkout(tmp_path: Path) -> Path:
     agsf = root / ".venv" / "bin" / "agsf"
     agsf.parent.mkdir(parents=True)
     agsf.write_text(
-        '#!/usr/bin/env bash\n'
+        "#!/usr/bin/env bash\n"
         'echo "$@" > "$(dirname "$0")/args"\n'
         'while [ $# -gt 0 ]; do if [ "$1" = --out ]; then mkdir -p "$2"; fi; shift; done\n'
         'echo "TensorBoard: tensorboard-command"\n'
@@ -38,7 +38,9 @@ def test_main_shows_progress_and_ends_with_the_output_folder(tmp_path):
     assert "reproducing the paper's three cases into runs/reproduce" in done.stderr
     lines = done.stdout.splitlines()
     assert lines[0] == "TensorBoard: tensorboard-command"  # the command's own report comes through
-    assert lines[-1].startswith("main job done in ") and lines[-1].endswith(f"outputs in {root / 'runs' / 'reproduce'}/")
+    assert lines[-1].startswith("main job done in ") and lines[-1].endswith(
+        f"outputs in {root / 'runs' / 'reproduce'}/"
+    )
 
 
 def test_main_never_overwrites_an_earlier_result(tmp_path):

@@ -7,17 +7,19 @@ import torch
 
 import envs
 from agsf_torch import GaussianMixture
-from agsf_torch.storage.checkpoint import load_checkpoint, save_checkpoint
 from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
-
-F64 = torch.float64
+from agsf_torch.storage.checkpoint import load_checkpoint, save_checkpoint
+from tests.helpers import F64
 
 
 def _setup():
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=3, max_steps=50, star_period=0.5)
     model = AttitudeModel(estimate_bias=True)
-    filters = {"gsf": GaussianSumFilter(model), "agsf": AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=2))}
+    filters = {
+        "gsf": GaussianSumFilter(model),
+        "agsf": AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=2)),
+    }
     return env, filters
 
 
@@ -103,7 +105,10 @@ def test_malformed_or_mismatched_checkpoints_are_named_and_change_nothing(tmp_pa
     with pytest.raises(ValueError, match=r"bad\.pt: malformed checkpoint"):
         load_checkpoint(tmp_path / "bad.pt", filters)
     # a Galerkin filter under the name of the penalty one: refused, and the GSF put back as it was
-    galerkin = {"gsf": GaussianSumFilter(filters["gsf"].model), "agsf": AdaptiveGaussianSumFilter(filters["agsf"].model, weight_update="galerkin")}
+    galerkin = {
+        "gsf": GaussianSumFilter(filters["gsf"].model),
+        "agsf": AdaptiveGaussianSumFilter(filters["agsf"].model, weight_update="galerkin"),
+    }
     before = {k: f.state_dict() for k, f in galerkin.items()}
     with pytest.raises(ValueError, match="filter 'agsf'.*penalty"):
         load_checkpoint(path, galerkin)
@@ -128,23 +133,52 @@ def _set(*keys, value):
 @pytest.mark.parametrize(
     "mutate, match",
     [
-        (_set("filters", "gsf", "mixture", "means", value=torch.zeros(3, 3, 6, dtype=torch.int64)),
-         r"filter 'gsf': mixture 'means' must be a floating-point tensor, got a torch.int64 tensor"),
-        (_set("filters", "gsf", "mixture", "covs", value=torch.eye(6, dtype=torch.int64).expand(3, 3, 6, 6).clone()),
-         r"filter 'gsf': mixture 'covs' must be a floating-point tensor"),
-        (_set("filters", "agsf", "mixture", "covs", value=torch.eye(6, dtype=torch.float32).expand(3, 3, 6, 6).clone()),
-         r"filter 'agsf': mixture 'covs' is torch.float32 but 'means' is torch.float64"),
-        (_set("filters", "gsf", "mixture", "means", value="abc"), r"filter 'gsf': mixture 'means' must be a floating-point tensor, got str"),
-        (_set("filters", "gsf", "mixture", "means", value=[[[0.0] * 6] * 3] * 3), r"mixture 'means' must be a floating-point tensor, got list"),
+        (
+            _set("filters", "gsf", "mixture", "means", value=torch.zeros(3, 3, 6, dtype=torch.int64)),
+            r"filter 'gsf': mixture 'means' must be a floating-point tensor, got a torch.int64 tensor",
+        ),
+        (
+            _set("filters", "gsf", "mixture", "covs", value=torch.eye(6, dtype=torch.int64).expand(3, 3, 6, 6).clone()),
+            r"filter 'gsf': mixture 'covs' must be a floating-point tensor",
+        ),
+        (
+            _set(
+                "filters", "agsf", "mixture", "covs", value=torch.eye(6, dtype=torch.float32).expand(3, 3, 6, 6).clone()
+            ),
+            r"filter 'agsf': mixture 'covs' is torch.float32 but 'means' is torch.float64",
+        ),
+        (
+            _set("filters", "gsf", "mixture", "means", value="abc"),
+            r"filter 'gsf': mixture 'means' must be a floating-point tensor, got str",
+        ),
+        (
+            _set("filters", "gsf", "mixture", "means", value=[[[0.0] * 6] * 3] * 3),
+            r"mixture 'means' must be a floating-point tensor, got list",
+        ),
         (_set("filters", "gsf", "mixture", value="m"), r"filter 'gsf': mixture must be a dict"),
-        (_set("filters", "agsf", "mixture", "covs", value=torch.full((3, 3, 6, 6), float("nan"), dtype=F64)),
-         r"filter 'agsf': covs has non-finite entries"),
-        (_set("filters", "agsf", "mixture", "covs", value=-torch.eye(6, dtype=F64).expand(3, 3, 6, 6).clone()),
-         r"filter 'agsf': covs is not positive definite at batch index \(0, 0\)"),
-        (_set("filters", "agsf", "filter", "weight_update", "ref_log_weights", value=torch.zeros(3, 3, dtype=torch.int64)),
-         r"filter 'agsf': weight-update state 'ref_log_weights' must be None or a floating-point tensor"),
-        (_set("filters", "agsf", "filter", "weight_update", "ref_log_weights", value=torch.zeros(7, dtype=F64)),
-         r"filter 'agsf': weight-update state 'ref_log_weights' has shape \(7,\), the mixture's weights \(3, 3\)"),
+        (
+            _set("filters", "agsf", "mixture", "covs", value=torch.full((3, 3, 6, 6), float("nan"), dtype=F64)),
+            r"filter 'agsf': covs has non-finite entries",
+        ),
+        (
+            _set("filters", "agsf", "mixture", "covs", value=-torch.eye(6, dtype=F64).expand(3, 3, 6, 6).clone()),
+            r"filter 'agsf': covs is not positive definite at batch index \(0, 0\)",
+        ),
+        (
+            _set(
+                "filters",
+                "agsf",
+                "filter",
+                "weight_update",
+                "ref_log_weights",
+                value=torch.zeros(3, 3, dtype=torch.int64),
+            ),
+            r"filter 'agsf': weight-update state 'ref_log_weights' must be None or a floating-point tensor",
+        ),
+        (
+            _set("filters", "agsf", "filter", "weight_update", "ref_log_weights", value=torch.zeros(7, dtype=F64)),
+            r"filter 'agsf': weight-update state 'ref_log_weights' has shape \(7,\), the mixture's weights \(3, 3\)",
+        ),
         (_set("filters", value=None), r"checkpoint holds filters NoneType"),
     ],
 )
@@ -155,7 +189,9 @@ def test_malformed_content_is_refused_naming_file_and_filter_and_changes_nothing
     state = torch.load(path, weights_only=True)
     mutate(state)
     torch.save(state, tmp_path / "broken.pt")
-    filters["agsf"].weight_update.load_state_dict({"kind": "penalty", "step": 5, "elapsed": 0.25, "ref_log_weights": None})
+    filters["agsf"].weight_update.load_state_dict(
+        {"kind": "penalty", "step": 5, "elapsed": 0.25, "ref_log_weights": None}
+    )
     before = {k: f.state_dict() for k, f in filters.items()}
     with pytest.raises(ValueError, match=r"broken\.pt: .*" + match):
         load_checkpoint(tmp_path / "broken.pt", filters)
@@ -172,7 +208,9 @@ def test_a_filter_refusing_its_state_with_any_error_puts_every_filter_back(tmp_p
     env, filters = _setup()
     mix = _start(env)
     model = filters["agsf"].model
-    path = save_checkpoint(tmp_path / "run.pt", {"agsf": mix, "odd": mix}, {"agsf": filters["agsf"], "odd": GaussianSumFilter(model)})
+    path = save_checkpoint(
+        tmp_path / "run.pt", {"agsf": mix, "odd": mix}, {"agsf": filters["agsf"], "odd": GaussianSumFilter(model)}
+    )
     agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=2))
     agsf.weight_update.load_state_dict({"kind": "penalty", "step": 5, "elapsed": 0.25, "ref_log_weights": None})
     with pytest.raises(ValueError, match=r"run\.pt: filter 'odd': cannot restore"):

@@ -6,7 +6,15 @@ import json
 
 import pytest
 
-from agsf_torch.storage.files import append_line, atomic_open, read_json, read_json_lines, repair_json_lines, write_json, write_text
+from agsf_torch.storage.files import (
+    append_line,
+    atomic_open,
+    read_json,
+    read_json_lines,
+    repair_json_lines,
+    write_json,
+    write_text,
+)
 
 
 def test_an_interrupted_atomic_write_leaves_the_old_file_and_no_temporary(tmp_path):

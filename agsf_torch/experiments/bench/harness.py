@@ -55,5 +55,3 @@ def attitude_mixture(B: int, N: int, estimate_bias: bool, gen: torch.Generator) 
     mean = torch.cat((p, torch.zeros(B, 3, dtype=F64)), -1)[:, :n]
     P0 = torch.diag(torch.tensor([1e-3] * 3 + [1e-12] * 3, dtype=F64)[:n])
     return GaussianMixture.from_gaussian(mean, P0.expand(B, n, n), N)
-
-

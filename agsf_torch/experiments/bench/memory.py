@@ -39,8 +39,14 @@ def main(argv: list[str] | None = None) -> None:
         row = {"what": what, "batch": args.batch, "chunk": args.chunk}
     else:
         filt = make_filter(WEIGHT_UPDATE_FILTERS[args.update], model)
-        filt.predict(attitude_mixture(args.batch, 5, True, gen), torch.full((args.batch, 3), 0.06, dtype=torch.float64), 0.1)
-        row = {"what": f"{args.update} adaptive predict B={args.batch} N=5 6-state", "batch": args.batch, "update": args.update}
+        filt.predict(
+            attitude_mixture(args.batch, 5, True, gen), torch.full((args.batch, 3), 0.06, dtype=torch.float64), 0.1
+        )
+        row = {
+            "what": f"{args.update} adaptive predict B={args.batch} N=5 6-state",
+            "batch": args.batch,
+            "update": args.update,
+        }
     print(json.dumps({**row, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
 

@@ -30,7 +30,12 @@ __all__ = ["filterpy_loop", "numpy_batch", "attitude_rk4_step"]
 def _cross(v: np.ndarray) -> np.ndarray:
     z = np.zeros(v.shape[:-1])
     return np.stack(
-        (np.stack((z, -v[..., 2], v[..., 1]), -1), np.stack((v[..., 2], z, -v[..., 0]), -1), np.stack((-v[..., 1], v[..., 0], z), -1)), -2
+        (
+            np.stack((z, -v[..., 2], v[..., 1]), -1),
+            np.stack((v[..., 2], z, -v[..., 0]), -1),
+            np.stack((-v[..., 1], v[..., 0], z), -1),
+        ),
+        -2,
     )
 
 
@@ -53,7 +58,9 @@ def _terms(x: np.ndarray, w_meas: np.ndarray, sv2: float, su2: float) -> tuple[n
     return f, A, G
 
 
-def attitude_rk4_step(x: np.ndarray, P: np.ndarray, w_meas: np.ndarray, dt: float, sv2: float, su2: float) -> tuple[np.ndarray, np.ndarray]:
+def attitude_rk4_step(
+    x: np.ndarray, P: np.ndarray, w_meas: np.ndarray, dt: float, sv2: float, su2: float
+) -> tuple[np.ndarray, np.ndarray]:
     """One RK4 step of ``(μ, Φ, S)`` and ``P ← ΦPΦᵀ + S`` (module docstring); ``x [..., 6]``, ``P [..., 6, 6]``."""
     Phi = np.broadcast_to(np.eye(6), P.shape).copy()
     S = np.zeros_like(P)
@@ -101,11 +108,16 @@ def filterpy_loop(samples: int, dt: float = 0.1, sv2: float = 1e-13, su2: float 
     for ekf in filters:
         ekf.predict(w)
     sec = time.perf_counter() - t
-    return {"what": "filterpy ExtendedKalmanFilter per component, RK4 (μ, Φ, S) in NumPy, Python loop",
-            "samples": samples, "component_steps_per_s": samples / sec}
+    return {
+        "what": "filterpy ExtendedKalmanFilter per component, RK4 (μ, Φ, S) in NumPy, Python loop",
+        "samples": samples,
+        "component_steps_per_s": samples / sec,
+    }
 
 
-def numpy_batch(count: int, repeats: int = 3, dt: float = 0.1, sv2: float = 1e-13, su2: float = 1e-19) -> dict[str, Any]:
+def numpy_batch(
+    count: int, repeats: int = 3, dt: float = 0.1, sv2: float = 1e-13, su2: float = 1e-19
+) -> dict[str, Any]:
     """Component-steps/s of the NumPy-vectorised step over ``count`` components at once."""
     x, P, w = _problem(count)
     attitude_rk4_step(x, P, w, dt, sv2, su2)  # warm-up
@@ -114,5 +126,8 @@ def numpy_batch(count: int, repeats: int = 3, dt: float = 0.1, sv2: float = 1e-1
         t = time.perf_counter()
         attitude_rk4_step(x, P, w, dt, sv2, su2)
         times.append(time.perf_counter() - t)
-    return {"what": "NumPy, all components vectorised ([B·N, 6, 6] arrays, np.matmul)", "components": count,
-            "component_steps_per_s": count / min(times)}
+    return {
+        "what": "NumPy, all components vectorised ([B·N, 6, 6] arrays, np.matmul)",
+        "components": count,
+        "component_steps_per_s": count / min(times),
+    }

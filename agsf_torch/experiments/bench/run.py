@@ -58,8 +58,15 @@ def bench_adaptive(estimate_bias: bool, B: int, N: int = 5, repeats: int = 5, co
         filters["AGSF-penalty-compiled"] = make_filter("AGSF", model, compile=True)
     sec = side_by_side({k: (lambda f=f: f.predict(mix, u, 0.1)) for k, f in filters.items()}, repeats)
     penalty = min(v for k, v in sec.items() if k.startswith("AGSF-penalty"))
-    return {"state_dim": model.state_dim, "N": N, "B": B, "seconds": sec,
-            "galerkin_ratio": sec["AGSF-galerkin"] / sec["GSF"], "penalty_ratio": penalty / sec["GSF"], "penalty_seconds": penalty}
+    return {
+        "state_dim": model.state_dim,
+        "N": N,
+        "B": B,
+        "seconds": sec,
+        "galerkin_ratio": sec["AGSF-galerkin"] / sec["GSF"],
+        "penalty_ratio": penalty / sec["GSF"],
+        "penalty_seconds": penalty,
+    }
 
 
 _FIRST_STEP_SCRIPT = """
@@ -108,8 +115,12 @@ def bench_qp(B: int = 8192, N: int = 5, clarabel_samples: int = 300) -> dict[str
     t_clar = (time.perf_counter() - t) / clarabel_samples
     kkt_clar = kkt_residual(H[:clarabel_samples], c[:clarabel_samples], torch.as_tensor(w_ref))
     return {
-        "B": B, "N": N, "torch_seconds_per_problem": t_torch / B, "clarabel_seconds_per_problem": t_clar,
-        "speedup": t_clar / (t_torch / B), "torch_max_kkt_residual": float(res.kkt_residual.max()),
+        "B": B,
+        "N": N,
+        "torch_seconds_per_problem": t_torch / B,
+        "clarabel_seconds_per_problem": t_clar,
+        "speedup": t_clar / (t_torch / B),
+        "torch_max_kkt_residual": float(res.kkt_residual.max()),
         "clarabel_max_kkt_residual": float(kkt_clar.max()),
         "max_abs_difference": float((res.w[:clarabel_samples] - torch.as_tensor(w_ref)).abs().max()),
     }
@@ -127,8 +138,15 @@ def bench_peers(B: int = 8192, N: int = 5, filterpy_samples: int = 2000) -> dict
     ours = B * N / median_time(lambda: filt.predict(mix, u, 0.1), repeats=5)
     fp = filterpy_loop(filterpy_samples)
     nb = numpy_batch(B * N)
-    return {"B": B, "N": N, "gsf_component_steps_per_s": ours, "filterpy": fp, "numpy": nb,
-            "vs_filterpy": ours / fp["component_steps_per_s"], "vs_numpy": ours / nb["component_steps_per_s"]}
+    return {
+        "B": B,
+        "N": N,
+        "gsf_component_steps_per_s": ours,
+        "filterpy": fp,
+        "numpy": nb,
+        "vs_filterpy": ours / fp["component_steps_per_s"],
+        "vs_numpy": ours / nb["component_steps_per_s"],
+    }
 
 
 def bench_matmul_peak(size: int = 2048) -> float:
@@ -151,8 +169,13 @@ def _peak_rss(module_args: list[str]) -> dict[str, Any]:
     root = str(Path(__file__).resolve().parents[2])
     t = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-m", "agsf_torch.experiments.bench.memory", *module_args],
-                         capture_output=True, text=True, check=True, env=env)
+    out = subprocess.run(
+        [sys.executable, "-m", "agsf_torch.experiments.bench.memory", *module_args],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    )
     return {**json.loads(out.stdout.strip().splitlines()[-1]), "seconds": time.perf_counter() - t}
 
 
@@ -161,20 +184,28 @@ def run_bench(out: Path | None = None, *, compile: bool = True, quick: bool = Fa
     t0 = time.perf_counter()
     report: dict[str, Any] = {
         "machine": {
-            "torch": torch.__version__, "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
-            "python": sys.version.split()[0], "load_average_at_start": os.getloadavg()[0],
+            "torch": torch.__version__,
+            "threads": torch.get_num_threads(),
+            "cpu_count": os.cpu_count(),
+            "python": sys.version.split()[0],
+            "load_average_at_start": os.getloadavg()[0],
         }
     }
     report["matmul_peak_gflops"] = bench_matmul_peak(512 if quick else 2048) / 1e9
-    report["adaptive"] = [bench_adaptive(True, 16 if quick else 256, repeats=2 if quick else 5, compile=compile),
-                          bench_adaptive(False, 32 if quick else 1024, repeats=2 if quick else 5, compile=compile)]
+    report["adaptive"] = [
+        bench_adaptive(True, 16 if quick else 256, repeats=2 if quick else 5, compile=compile),
+        bench_adaptive(False, 32 if quick else 1024, repeats=2 if quick else 5, compile=compile),
+    ]
     cases = (("galerkin", False), ("penalty", False)) + ((("penalty", True),) if compile else ())
     report["first_step"] = bench_first_step(cases[:1] if quick else cases)
     report["qp"] = [bench_qp(B=256 if quick else 8192, N=N, clarabel_samples=20 if quick else 300) for N in (5, 32)]
     report["peers"] = bench_peers(B=256 if quick else 8192, filterpy_samples=100 if quick else 2000)
-    report["memory_sweep"] = _peak_rss(["gsf", "--batch", str(4096 if quick else 65536), "--chunk", "4096" if quick else "16384"])
-    report["memory_adaptive"] = [_peak_rss(["adaptive", "--update", up, "--batch", str(64 if quick else 8192)])
-                                 for up in ("galerkin", "penalty")]
+    report["memory_sweep"] = _peak_rss(
+        ["gsf", "--batch", str(4096 if quick else 65536), "--chunk", "4096" if quick else "16384"]
+    )
+    report["memory_adaptive"] = [
+        _peak_rss(["adaptive", "--update", up, "--batch", str(64 if quick else 8192)]) for up in ("galerkin", "penalty")
+    ]
     report["total_seconds"] = time.perf_counter() - t0
     report["targets"] = targets(report)
     if out is not None:
@@ -182,5 +213,3 @@ def run_bench(out: Path | None = None, *, compile: bool = True, quick: bool = Fa
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "bench.json", report, indent=2)
     return report
-
-

@@ -29,7 +29,9 @@ class SweepFailed(RuntimeError):
 
     def __init__(self, failures: list[tuple[str, dict[str, Any], str]], total: int):
         self.failures = failures
-        lines = [f"{len(failures)} of {total} sweep configurations failed (the others are recorded; a rerun runs only these):"]
+        lines = [
+            f"{len(failures)} of {total} sweep configurations failed (the others are recorded; a rerun runs only these):"
+        ]
         for digest, params, message in failures:
             first = message.strip().splitlines()[-1] if message.strip() else "(no message)"
             lines.append(f"  {digest} {json.dumps(params, sort_keys=True)}: {first}")

@@ -57,12 +57,18 @@ def results_table(rows: list[dict[str, Any]]) -> str:
     if not rows:
         return "no finished configurations"
     for i, row in enumerate(rows):
-        if not isinstance(row, dict) or not isinstance(row.get("params"), dict) or not isinstance(row.get("metrics"), dict):
+        if (
+            not isinstance(row, dict)
+            or not isinstance(row.get("params"), dict)
+            or not isinstance(row.get("metrics"), dict)
+        ):
             raise ValueError(f"sweep row {i} must be a mapping with 'params' and 'metrics' mappings, got {row!r}")
     params = list(dict.fromkeys(k for row in rows for k in row["params"]))
-    filters = list(dict.fromkeys(
-        k.split("/", 1)[0] for row in rows for k in row["metrics"] if k.endswith((_RMS_SUFFIX, _NEES_SUFFIX))
-    ))
+    filters = list(
+        dict.fromkeys(
+            k.split("/", 1)[0] for row in rows for k in row["metrics"] if k.endswith((_RMS_SUFFIX, _NEES_SUFFIX))
+        )
+    )
     difference = any(_DIFFERENCE_KEY in row["metrics"] for row in rows)
     header = ["config", *params]
     for name in filters:

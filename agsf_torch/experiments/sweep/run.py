@@ -141,7 +141,9 @@ def _sweep_lock(out: Path):
     try:
         lock.acquire(timeout=0)
     except Timeout:
-        raise SweepBusy(f"another agsf sweep is writing {out}; wait for it to finish (or rerun it later to resume)") from None
+        raise SweepBusy(
+            f"another agsf sweep is writing {out}; wait for it to finish (or rerun it later to resume)"
+        ) from None
     try:
         yield
     finally:
@@ -173,5 +175,3 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
     elif pending:
         run_on_ray(pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs))
     return rows
-
-

@@ -29,8 +29,13 @@ from .galerkin import GalerkinWeightUpdate
 from .penalty import PenaltyWeightUpdate
 
 __all__ = [
-    "WeightUpdate", "WeightUpdateRun", "QuadratureUpdate", "PenaltyWeightUpdate", "GalerkinWeightUpdate",
-    "WEIGHT_UPDATES", "make_weight_update",
+    "WeightUpdate",
+    "WeightUpdateRun",
+    "QuadratureUpdate",
+    "PenaltyWeightUpdate",
+    "GalerkinWeightUpdate",
+    "WEIGHT_UPDATES",
+    "make_weight_update",
 ]
 
 

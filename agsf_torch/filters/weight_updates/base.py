@@ -21,7 +21,14 @@ from ...propagation import moment_derivatives
 from ...qp import MAX_COMPONENTS
 from ..options import option, positive_int
 
-__all__ = ["WeightUpdate", "WeightUpdateRun", "QuadratureUpdate", "component_rates", "has_gaussian_moments", "check_finite_matrix"]
+__all__ = [
+    "WeightUpdate",
+    "WeightUpdateRun",
+    "QuadratureUpdate",
+    "component_rates",
+    "has_gaussian_moments",
+    "check_finite_matrix",
+]
 
 
 def component_rates(model: ContinuousModel, mixture: GaussianMixture, u: Tensor | None) -> ComponentRates:
@@ -75,7 +82,10 @@ class WeightUpdate:
         cadence: adapt every ``cadence``-th ``predict`` call (1: every interval).
     """
 
-    cadence: int = field(default=1, metadata=option("adaptive filters adapt their weights every cadence-th propagation step", config="int"))
+    cadence: int = field(
+        default=1,
+        metadata=option("adaptive filters adapt their weights every cadence-th propagation step", config="int"),
+    )
     run: WeightUpdateRun = field(default_factory=WeightUpdateRun, init=False, repr=False)
 
     #: Short name used in configurations and reports.
@@ -97,8 +107,14 @@ class WeightUpdate:
         """Called once by the filter with its model (build quadrature rules here)."""
 
     def __call__(
-        self, model: ContinuousModel, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, dt: float,
-        *, enabled: bool = True,
+        self,
+        model: ContinuousModel,
+        prior: GaussianMixture,
+        propagated: GaussianMixture,
+        u: Tensor | None,
+        dt: float,
+        *,
+        enabled: bool = True,
     ) -> tuple[Tensor | None, dict[str, Any]]:
         """Count the interval and, on the cadence, return new log-weights ``[..., N]``.
 
@@ -125,7 +141,12 @@ class WeightUpdate:
         enabled interval before it is counted, and by the adaptive filter before it propagates."""
 
     def compute(
-        self, model: ContinuousModel, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, elapsed: float
+        self,
+        model: ContinuousModel,
+        prior: GaussianMixture,
+        propagated: GaussianMixture,
+        u: Tensor | None,
+        elapsed: float,
     ) -> tuple[Tensor, dict[str, Any]]:
         """New log-weights ``[..., N]`` and diagnostics; ``u [..., m]`` or ``None``; ``elapsed`` is the time
         since the last adaptation (s).  Must not change the run state before it can no longer fail."""
@@ -160,7 +181,11 @@ class WeightUpdate:
         step, elapsed = state["step"], state["elapsed"]
         if isinstance(step, bool) or not isinstance(step, int) or step < 0:
             raise ValueError(f"weight-update state 'step' must be an integer ≥ 0, got {step!r}")
-        if isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)) or not 0.0 <= float(elapsed) < float("inf"):
+        if (
+            isinstance(elapsed, bool)
+            or not isinstance(elapsed, (int, float))
+            or not 0.0 <= float(elapsed) < float("inf")
+        ):
             raise ValueError(f"weight-update state 'elapsed' must be a finite number ≥ 0, got {elapsed!r}")
         return step, float(elapsed)
 
@@ -191,8 +216,12 @@ class QuadratureUpdate(WeightUpdate):
     """
 
     quadrature: Any = field(default=None, metadata=option("the residual integrals' rule (None: the model's exact one)"))
-    chunk_size: int | None = field(default=None, metadata=option("quadrature nodes or pairs per batched evaluation (None: automatic)"))
-    compile: bool = field(default=False, metadata=option("torch.compile the FPKE node kernels of the adaptive filters", config="bool"))
+    chunk_size: int | None = field(
+        default=None, metadata=option("quadrature nodes or pairs per batched evaluation (None: automatic)")
+    )
+    compile: bool = field(
+        default=False, metadata=option("torch.compile the FPKE node kernels of the adaptive filters", config="bool")
+    )
     rule: dict = field(default_factory=dict, init=False, repr=False)
 
     #: Residual factors in the integrand: 2 for ``ℓᵢℓⱼ``, 1 for ``ℓⱼ``.

@@ -64,10 +64,17 @@ class GalerkinWeightUpdate(QuadratureUpdate):
     """
 
     tikhonov: float = field(
-        default=1e-9, metadata=option("relative proximal weight ε of the Galerkin weight update (AGSF-galerkin), > 0", config="float")
+        default=1e-9,
+        metadata=option(
+            "relative proximal weight ε of the Galerkin weight update (AGSF-galerkin), > 0", config="float"
+        ),
     )
     residual_diagnostics: bool = field(
-        default=False, metadata=option("the Galerkin update also reports the FPKE residual ∫e² (costs as much as the paper's update)", config="bool")
+        default=False,
+        metadata=option(
+            "the Galerkin update also reports the FPKE residual ∫e² (costs as much as the paper's update)",
+            config="bool",
+        ),
     )
 
     name: ClassVar[str] = "galerkin"
@@ -97,10 +104,17 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         self.rule["residual"] = residual_rule(model, None, 2) if self.residual_diagnostics else None
 
     def compute(
-        self, model: ContinuousModel, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, elapsed: float
+        self,
+        model: ContinuousModel,
+        prior: GaussianMixture,
+        propagated: GaussianMixture,
+        u: Tensor | None,
+        elapsed: float,
     ) -> tuple[Tensor, dict[str, Any]]:
         comp = component_rates(model, propagated, u)
-        G = galerkin_matrices(model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile)
+        G = galerkin_matrices(
+            model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
+        )
         check_finite_matrix("Galerkin matrix K", G.drift)
         check_finite_matrix("Galerkin matrix M", G.mass)
         w0 = propagated.weights

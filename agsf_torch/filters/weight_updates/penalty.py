@@ -49,25 +49,41 @@ class PenaltyWeightUpdate(QuadratureUpdate):
     ``qp_iterations`` (int).
     """
 
-    reg: float | Tensor = field(default=1.0, metadata=option("λ of the paper's weight QP (AGSF), ≥ 0; the paper: 1", config="float"))
+    reg: float | Tensor = field(
+        default=1.0, metadata=option("λ of the paper's weight QP (AGSF), ≥ 0; the paper: 1", config="float")
+    )
     scaling: str = field(
-        default="trace", metadata=option("scaling of the FPKE matrix in the weight QP (AGSF): 'trace' or 'none' (the paper's L + λI)", config="str")
+        default="trace",
+        metadata=option(
+            "scaling of the FPKE matrix in the weight QP (AGSF): 'trace' or 'none' (the paper's L + λI)", config="str"
+        ),
     )
     weight_ref: str = field(
-        default="update", metadata=option("reference weights of the weight QP (AGSF): 'update' (the paper's w_k|k) or 'previous'", config="str")
+        default="update",
+        metadata=option(
+            "reference weights of the weight QP (AGSF): 'update' (the paper's w_k|k) or 'previous'", config="str"
+        ),
     )
 
     name: ClassVar[str] = "penalty"
     factors: ClassVar[int] = 2
-    DIAGNOSTICS: ClassVar[tuple[str, ...]] = ("fpke_error_before", "fpke_error_after", "qp_kkt_residual", "qp_iterations")
+    DIAGNOSTICS: ClassVar[tuple[str, ...]] = (
+        "fpke_error_before",
+        "fpke_error_after",
+        "qp_kkt_residual",
+        "qp_iterations",
+    )
     extra_state_keys: ClassVar[tuple[str, ...]] = ("ref_log_weights",)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         reg = self.reg
         value = (
-            float(reg) if isinstance(reg, (int, float)) and not isinstance(reg, bool)
-            else float(reg.detach()) if torch.is_tensor(reg) and reg.numel() == 1 and reg.is_floating_point() else None
+            float(reg)
+            if isinstance(reg, (int, float)) and not isinstance(reg, bool)
+            else float(reg.detach())
+            if torch.is_tensor(reg) and reg.numel() == 1 and reg.is_floating_point()
+            else None
         )
         if value is None or not (value >= 0 and value != float("inf")):
             raise ValueError(f"reg must be a finite number ≥ 0, got {reg!r}")
@@ -91,12 +107,19 @@ class PenaltyWeightUpdate(QuadratureUpdate):
         floating = torch.is_tensor(ref) and ref.is_floating_point() and ref.dim() >= 1
         if ref is not None and (not floating or bool((torch.isnan(ref) | torch.isposinf(ref)).any())):
             got = f"a {ref.dtype} tensor" if torch.is_tensor(ref) else type(ref).__name__
-            raise ValueError(f"weight-update state 'ref_log_weights' must be None or a floating-point tensor [..., N] "
-                             f"without NaN or +inf, got {got}")
+            raise ValueError(
+                f"weight-update state 'ref_log_weights' must be None or a floating-point tensor [..., N] "
+                f"without NaN or +inf, got {got}"
+            )
         self.run.step, self.run.elapsed, self.run.reference = step, elapsed, ref
 
     def compute(
-        self, model: ContinuousModel, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, elapsed: float
+        self,
+        model: ContinuousModel,
+        prior: GaussianMixture,
+        propagated: GaussianMixture,
+        u: Tensor | None,
+        elapsed: float,
     ) -> tuple[Tensor, dict[str, Any]]:
         means = propagated.means
         ref = self.run.reference
@@ -106,7 +129,9 @@ class PenaltyWeightUpdate(QuadratureUpdate):
                 f"mixture's {tuple(propagated.log_weights.shape)}; call reset() before a new run"
             )
         comp = component_rates(model, propagated, u)
-        Lmat = fpke_matrix(model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile)
+        Lmat = fpke_matrix(
+            model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
+        )
         bad = ~torch.isfinite(Lmat.scaled).flatten(-2).all(-1) | ~torch.isfinite(Lmat.log_scale)
         if bool(bad.any()):
             idx = bad.nonzero()[0].tolist()
@@ -128,7 +153,9 @@ class PenaltyWeightUpdate(QuadratureUpdate):
             Ls = Lmat.full()
             if not bool(torch.isfinite(Ls).all()):
                 idx = (~torch.isfinite(Ls)).flatten(-2).any(-1).nonzero()[0].tolist()
-                raise ValueError(f"unscaled FPKE matrix overflows at trajectory index {tuple(idx)}; use scaling='trace'")
+                raise ValueError(
+                    f"unscaled FPKE matrix overflows at trajectory index {tuple(idx)}; use scaling='trace'"
+                )
         res = solve_simplex_qp(Ls + self.reg * eye, -self.reg * w_ref)
         w_new = res.w.clamp_min(0.0)
         w_new = w_new / w_new.sum(-1, keepdim=True)

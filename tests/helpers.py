@@ -1,0 +1,37 @@
+"""Random test data shared by the test modules (the float64 dtype, unit vectors, SPD matrices, attitudes).
+
+Every draw goes through an explicit ``torch.Generator`` (the ``gen`` fixture of ``conftest.py``,
+seeded by ``pytest --seed``).
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["F64", "random_unit_vectors", "random_spd", "random_mrps"]
+
+#: The package's default dtype.
+F64 = torch.float64
+
+
+def random_unit_vectors(gen: torch.Generator, *shape: int) -> torch.Tensor:
+    """Uniformly random unit vectors ``[*shape, 3]``."""
+    r = torch.randn(*shape, 3, generator=gen, dtype=F64)
+    return r / r.norm(dim=-1, keepdim=True)
+
+
+def random_spd(gen: torch.Generator, *shape: int, n: int = 3, scale: float = 1.0, floor: float = 0.1) -> torch.Tensor:
+    """Random symmetric positive definite matrices ``[*shape, n, n]``: ``scale·(AAᵀ/n + floor·I)`` with
+    ``A`` standard normal, symmetrised exactly (a rounded ``AAᵀ`` is not; a covariance must be).
+    Eigenvalues lie in ``scale·[floor, floor + O(1)]``."""
+    A = torch.randn(*shape, n, n, generator=gen, dtype=F64)
+    S = scale * (A @ A.transpose(-1, -2) / n + floor * torch.eye(n, dtype=F64))
+    return 0.5 * (S + S.transpose(-1, -2))
+
+
+def random_mrps(num: int, gen: torch.Generator, max_norm: float = 1.0) -> torch.Tensor:
+    """Uniformly random attitudes as MRPs ``[num, 3]`` with ``|p| ≤ 1``, scaled to ``max_norm``."""
+    q = torch.randn(num, 4, generator=gen, dtype=F64)
+    q = q / q.norm(dim=-1, keepdim=True)
+    q = q * torch.where(q[:, 3:] < 0, -1.0, 1.0)
+    return max_norm * q[:, :3] / (1.0 + q[:, 3:])
