@@ -273,6 +273,16 @@ def _print_summary(name: str, summary: dict) -> None:
         print(f"  AGSF − GSF {d['mean_deg']:.3g} deg, 95% CI [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}]")
 
 
+def keys_epilog() -> str:
+    """The configuration keys ``--set`` (and a TOML file) accepts, one per line with its help."""
+    from .config import config_key_help
+
+    keys = config_key_help()
+    width = max(map(len, keys))
+    lines = [f"  {key:<{width}}  {' '.join(text.replace('``', '').split())}" for key, text in keys.items()]
+    return "configuration keys (--set KEY=VALUE, or in a TOML file):\n" + "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="agsf", description="Gaussian sum filters for spacecraft attitude")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -287,7 +297,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_simulate)
 
     def common(p):
-        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+        p.add_argument(
+            "--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (the keys: below)"
+        )
+        p.formatter_class = argparse.RawDescriptionHelpFormatter
+        p.epilog = keys_epilog()
         p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
         p.add_argument("--quiet", action="store_true", help="no progress bars or progress messages on stderr")
         p.add_argument("--force", action="store_true", help=FORCE_HELP)

@@ -15,6 +15,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -34,6 +35,7 @@ __all__ = [
     "FILTER_NAMES",
     "DEFAULT_FILTERS",
     "MAX_SEED",
+    "config_key_help",
 ]
 
 #: The filters of a configuration that names none (the paper's three).
@@ -263,6 +265,25 @@ ExperimentConfig.__doc__ = (
     + _option_lines()
     + "\n"
 )
+
+
+def config_key_help() -> dict[str, str]:
+    """Every configuration key with its help line, in field order (from :class:`ExperimentConfig`'s
+    docstring, whose filter options come from the classes that declare them): the list the
+    command line shows under ``--set``."""
+    doc = ExperimentConfig.__doc__ or ""
+    entries: dict[str, str] = {}
+    key = None
+    for line in doc.splitlines():
+        match = re.match(r"^        (\w+): (.*)$", line)
+        if match:
+            key = match.group(1)
+            entries[key] = match.group(2).strip()
+        elif key is not None and line.startswith("            "):
+            entries[key] += " " + line.strip()
+        else:
+            key = None
+    return {f.name: entries.get(f.name, "") for f in dataclasses.fields(ExperimentConfig)}
 
 
 def _from_mapping(data: dict[str, Any]) -> ExperimentConfig:

@@ -94,3 +94,22 @@ def test_faults_preset_and_fault_validation():
             match=r"config key 'gate_probability': gate probability must lie in \(0, 1\), got .* \(or 0.0: off\)",
         ):
             ExperimentConfig(gate_probability=p)
+
+
+def test_every_filter_option_is_a_config_key_with_its_declared_default_help_and_validation():
+    """Options are declared once (the filters' and weight updates' dataclass fields): each appears in the
+    configuration with the declared default, in the command line's key list and in the docs, and a bad
+    value is refused by the declaring class, naming the key."""
+    from agsf_torch.experiments.cli import build_parser
+    from agsf_torch.experiments.config import config_key_help
+    from agsf_torch.filters.registry import CONFIG_OPTIONS
+
+    cfg = ExperimentConfig()
+    run_help = build_parser()._subparsers._group_actions[0].choices["run"].format_help()
+    for name, opt in CONFIG_OPTIONS.items():
+        assert getattr(cfg, name) == opt.default, name
+        assert opt.help in config_key_help()[name] and opt.help in " ".join(run_help.split()), name
+        assert f"{name}: {opt.help}" in " ".join(ExperimentConfig.__doc__.split()), name
+    with pytest.raises(ValueError, match="config key 'tikhonov': tikhonov must be a finite number > 0"):
+        ExperimentConfig(tikhonov=-1.0)
+    assert ExperimentConfig(cadence=3).filter_options()["cadence"] == 3
