@@ -139,8 +139,10 @@ class BaseFilter:
 
     Args:
         model: the continuous-time model (:attr:`model_type`).
-        update_iterations, gate_probability: the options of every filter
-            (:class:`~agsf_torch.filters.options.FilterOptions`).  ``update_iterations``: linearisations
+        update_iterations, gate_probability, fused, compile: the options of every filter
+            (:class:`~agsf_torch.filters.options.FilterOptions`); ``fused`` (default) takes the
+            fused path of a model or measurement that has one (:mod:`agsf_torch.fused`) at the
+            propagate and Kalman steps, ``compile`` runs it through ``torch.compile``.  ``update_iterations``: linearisations
             per measurement update; 1 (default) is the EKF update of the method, more give the
             iterated EKF update (:func:`agsf_torch.update.kalman_update`).  ``gate_probability``:
             ``None`` (default, the method: every measurement is used) or ``p``
@@ -169,17 +171,23 @@ class BaseFilter:
         *,
         update_iterations: int = 1,
         gate_probability: float | None = None,
+        fused: bool = True,
+        compile: bool = False,
         repair_covariance: bool = False,
         min_eigenvalue: float = 1e-12,
     ) -> None:
         if not isinstance(model, self.model_type):
             raise TypeError(f"{type(self).__name__} needs a {self.model_type.__name__}, got {type(model).__name__}")
-        options = FilterOptions(update_iterations=update_iterations, gate_probability=gate_probability)
+        options = FilterOptions(
+            update_iterations=update_iterations, gate_probability=gate_probability, fused=fused, compile=compile
+        )
         if not 0.0 < min_eigenvalue < 1.0:
             raise ValueError(f"min_eigenvalue must lie in (0, 1), got {min_eigenvalue}")
         self.model = model
         self.update_iterations = int(options.update_iterations)
         self.gate_probability = None if options.gate_probability is None else float(options.gate_probability)
+        self.fused = options.fused
+        self.compile = options.compile
         self.repair_covariance = bool(repair_covariance)
         self.min_eigenvalue = float(min_eigenvalue)
         self.diagnostics: StepDiagnostics = StepDiagnostics()
@@ -323,8 +331,22 @@ class BaseFilter:
         }
 
     def _kalman_step(self, frame: UpdateFrame, y: Tensor, mask: Tensor | None) -> ComponentUpdate:
-        """Joseph-form update of every component and Bayes' rule on the weights
-        (:func:`agsf_torch.update.kalman_update`)."""
+        """The update of every component and Bayes' rule on the weights: the measurement's fused path
+        if it has one (``MeasurementModel.fused_update``) and ``fused`` is on, else the generic
+        Joseph-form update (:func:`agsf_torch.update.kalman_update`)."""
+        if self.fused:
+            result = frame.measurement.fused_update(
+                frame.log_weights,
+                frame.means,
+                frame.covs,
+                y,
+                self.update_iterations,
+                mask=mask,
+                mixture_nis=self.mixture_nis,
+                compile=self.compile,
+            )
+            if result is not None:
+                return result
         return kalman_update(
             frame.log_weights,
             frame.means,
@@ -341,9 +363,23 @@ class BaseFilter:
     ) -> tuple[GaussianMixture, int]:
         """The posterior belief from the Kalman step's result, and the number of covariance repairs;
         by default the components re-expressed in the model's canonical chart."""
-        means, covs = self.model.canonicalize(result.means, result.covs)
-        covs, repairs = self._ensure_positive_definite(covs, "in the measurement update")
+        means, covs, repairs = self._settle(
+            result.means, result.covs, getattr(result, "positive_definite", None), "in the measurement update"
+        )
         return prior.replace(log_weights=result.log_weights, means=means, covs=covs, validate=False), repairs
+
+    def _settle(
+        self, means: Tensor, covs: Tensor, positive_definite: Tensor | None, where: str
+    ) -> tuple[Tensor, Tensor, int]:
+        """Components re-expressed in the model's canonical chart and checked (or repaired) for positive
+        definiteness; ``positive_definite`` (``[..., N]`` bool, from a fused kernel's own pivots) spares the
+        factorisation when it holds everywhere and no component changed chart."""
+        before = covs
+        means, covs = self.model.canonicalize(means, covs)
+        if positive_definite is not None and covs is before and bool(positive_definite.all()):
+            return means, covs, 0
+        covs, repairs = self._ensure_positive_definite(covs, where)
+        return means, covs, repairs
 
     def _after_update(self, posterior: GaussianMixture) -> None:
         """Hook after a measurement update (the adaptive filter records its reference weights)."""

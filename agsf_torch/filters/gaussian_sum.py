@@ -53,10 +53,21 @@ class GaussianSumFilter(BaseFilter):
         self.substeps = int(substeps)
 
     def _propagate(self, mixture: GaussianMixture, u: Tensor | None, dt: float) -> tuple[GaussianMixture, int]:
+        """The model's fused propagation if it has one and ``fused`` is on
+        (``ContinuousModel.fused_propagation``), else :func:`~agsf_torch.propagation.propagate_moments`;
+        then the canonical chart and the definiteness check."""
         u_c = None if u is None else u.unsqueeze(-2)  # broadcast over components
-        means, covs = propagate_moments(self.model, mixture.means, mixture.covs, u_c, dt, self.substeps)
-        means, covs = self.model.canonicalize(means, covs)
-        covs, repairs = self._ensure_positive_definite(covs, "during propagation")
+        fused = None
+        if self.fused:
+            fused = self.model.fused_propagation(
+                mixture.means, mixture.covs, u_c, dt, self.substeps, compile=self.compile
+            )
+        if fused is not None:
+            means, covs, positive_definite = fused
+        else:
+            means, covs = propagate_moments(self.model, mixture.means, mixture.covs, u_c, dt, self.substeps)
+            positive_definite = None
+        means, covs, repairs = self._settle(means, covs, positive_definite, "during propagation")
         return mixture.replace(means=means, covs=covs, validate=False), repairs  # checked just above
 
 

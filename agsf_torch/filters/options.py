@@ -95,6 +95,11 @@ class FilterOptions:
     Attributes:
         update_iterations: linearisations per measurement update (1: the EKF update).
         gate_probability: the innovation gate's ``p`` in (0, 1), or ``None`` (off).
+        fused: use the fused (matrix-major) path of a model or measurement that declares one
+            (:mod:`agsf_torch.fused`: the attitude model's propagation, the star-vector update);
+            ``False``: the generic path (any model, ``torch.func``), the reference.
+        compile: run the fused kernels (and the adaptive filters' FPKE kernels) through
+            ``torch.compile`` in fixed-size chunks; ``False`` runs the same code eagerly.
     """
 
     update_iterations: int = field(
@@ -110,8 +115,22 @@ class FilterOptions:
         ),
     )
 
+    fused: bool = field(
+        default=True,
+        metadata=option(
+            "use the fused (matrix-major) path of a model that has one; false: the generic path", config="bool"
+        ),
+    )
+    compile: bool = field(
+        default=False,
+        metadata=option("torch.compile the fused kernels and the adaptive filters' FPKE kernels", config="bool"),
+    )
+
     def __post_init__(self) -> None:
         positive_int("update_iterations", self.update_iterations)
+        for name in ("fused", "compile"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.gate_probability is not None:
             chi2_threshold(self.gate_probability, 1)  # validates p
 

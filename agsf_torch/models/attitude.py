@@ -13,6 +13,8 @@ so ``f = [¼B(p)(ω̃ − b); 0]``, ``g = [[−¼B(p), 0], [0, I₃]]`` and
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -280,6 +282,44 @@ class AttitudeModel(ContinuousModel):
         instead of the 9261 (343) of the tensor Gauss–Hermite rule for ``ℓᵢℓⱼ``."""
         p = ((0, 1, 2), 6)
         return (p, ((3, 4, 5), 2)) if self.estimate_bias else (p,)
+
+    def fused_propagation(
+        self, mean: Tensor, cov: Tensor, u: Tensor, dt: float, substeps: int = 1, *, compile: bool = False
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """RK4 of ``(μ, Φ, S)`` and the congruence on lanes, unrolled with the model's structural zeros
+        (:mod:`agsf_torch.fused.propagation`): the arithmetic of :func:`~agsf_torch.propagation.propagate_moments`
+        in one pass over memory.  Returns ``(mean, cov, positive_definite [...] bool)``, or ``None`` (the
+        generic path) for an eager call on fewer lanes than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
+        from ..fused.lanes import run_in_chunks, worth_fusing
+        from ..fused.propagation import propagation_kernel
+
+        self.check_input(u)
+        n = self.state_dim
+        lead = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], u.shape[:-1])
+        count = math.prod(lead)
+        if not worth_fusing(count, compile):
+            return None
+        rate = u if self.estimate_bias else u - self.bias.to(u)
+        inputs = (
+            mean.expand(*lead, n).reshape(count, n),
+            cov.expand(*lead, n, n).reshape(count, n, n),
+            rate.expand(*lead, 3).reshape(count, 3),
+        )
+        like = inputs[0]
+        shared = (
+            torch.as_tensor(dt, dtype=like.dtype, device=like.device),
+            (self.sigma_v**2).to(like),
+            (self.sigma_u**2).to(like),
+        )
+        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (*inputs, *shared))
+        m, P, ok = run_in_chunks(
+            propagation_kernel(substeps),
+            inputs,
+            shared=shared,
+            compile=compile and not differentiable,
+            key=("attitude", n, substeps),
+        )
+        return m.reshape(*lead, n), P.reshape(*lead, n, n), ok.reshape(lead)
 
     # ------------------------------------------------------- MRP manifold
     def _switch(self, mean: Tensor, cov: Tensor, switch: Tensor) -> tuple[Tensor, Tensor]:

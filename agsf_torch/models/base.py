@@ -244,6 +244,16 @@ class ContinuousModel(nn.Module):
         """
         return None
 
+    def fused_propagation(
+        self, mean: Tensor, cov: Tensor, u: Tensor | None, dt: float, substeps: int = 1, *, compile: bool = False
+    ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The moment propagation of :func:`agsf_torch.propagation.propagate_moments` by a fused kernel
+        (:mod:`agsf_torch.fused`), if the model has one: ``(mean [..., n], cov [..., n, n],
+        positive_definite [...] bool)`` (the kernel's own Cholesky pivots); ``None`` (default): the
+        filters take the generic path.  Arguments as :func:`~agsf_torch.propagation.propagate_moments`;
+        ``compile`` runs the kernel through ``torch.compile``."""
+        return None
+
     # --------------------------------------------------------- state manifold
     def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
         """Re-express Gaussian components in a canonical chart (identity by default).
@@ -295,6 +305,23 @@ class MeasurementModel(nn.Module):
 
     def mask(self) -> Tensor | None:
         """Validity of each measurement entry, ``[..., d]`` bool, or ``None`` (all valid)."""
+        return None
+
+    def fused_update(
+        self,
+        log_weights: Tensor,
+        means: Tensor,
+        covs: Tensor,
+        y: Tensor,
+        iterations: int = 1,
+        *,
+        mask: Tensor | None = None,
+        mixture_nis: bool = True,
+        compile: bool = False,
+    ):
+        """The update of :func:`agsf_torch.update.kalman_update` (same arguments and result) by a fused
+        kernel (:mod:`agsf_torch.fused`), if the measurement has one for this state; ``None`` (default):
+        the filters take the generic path.  ``compile`` runs the kernel through ``torch.compile``."""
         return None
 
     def check_measurement(self, y: Tensor) -> Tensor:

@@ -15,6 +15,7 @@ Vectors of masked-out stars are ignored (they must only be finite).
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Mapping
 
@@ -228,6 +229,32 @@ class StarVectorMeasurement(MeasurementModel):
         if n == 3:
             return Hp
         return torch.cat((Hp, Hp.new_zeros(*Hp.shape[:-1], n - 3)), -1)
+
+    def fused_update(
+        self,
+        log_weights: Tensor,
+        means: Tensor,
+        covs: Tensor,
+        y: Tensor,
+        iterations: int = 1,
+        *,
+        mask: Tensor | None = None,
+        mixture_nis: bool = True,
+        compile: bool = False,
+    ):
+        """The star update in information form on lanes (:func:`agsf_torch.fused.star_update.fused_star_update`)
+        for the isotropic noise model on a state whose first three entries are the MRP; ``None`` (the
+        generic path) for the tangent model and for an eager call on fewer lanes than it pays for
+        (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
+        from ..fused.lanes import worth_fusing
+        from ..fused.star_update import fused_star_update
+
+        lanes = math.prod(torch.broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,)))
+        if self.noise_model != "isotropic" or means.shape[-1] < 3 or not worth_fusing(lanes, compile):
+            return None
+        return fused_star_update(
+            log_weights, means, covs, y, self, iterations, mask=mask, mixture_nis=mixture_nis, compile=compile
+        )
 
     def noise_cov(self) -> Tensor:
         """``R``: ``σ_s² I_{3M}`` (isotropic) or block-diagonal ``[..., 3M, 3M]`` (tangent)."""

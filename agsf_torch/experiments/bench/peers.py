@@ -11,7 +11,11 @@ for the 6-state attitude model (method.md §1) — one RK4 step of ``μ̇ = f(μ
   with the RK4 step on small NumPy arrays, called in a Python loop (filterpy
   has no continuous-time propagation of its own; this is how its users add one);
 * :func:`numpy_batch` — the same step vectorised over all components at once
-  (``[B·N, 6, 6]`` arrays and ``np.matmul``), as a NumPy user writes a batch.
+  (``[B·N, 6, 6]`` arrays and ``np.matmul``), as a NumPy user writes a batch;
+* :func:`jax_batch` — the step written for one component in ``jax.numpy`` and batched
+  the way JAX users batch, ``jax.jit(jax.vmap(step))``, in float64 (``jax_enable_x64``);
+  JAX is an optional bench dependency (``pip install -c constraints.txt -e '.[bench]'``):
+  without it the row is skipped with a message.
 
 Our GSF's ``predict`` does this work and more (the MRP shadow switch and a
 positive-definiteness check of every covariance).
@@ -24,7 +28,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["filterpy_loop", "numpy_batch", "attitude_rk4_step"]
+__all__ = ["filterpy_loop", "numpy_batch", "jax_batch", "attitude_rk4_step", "JAX_MISSING"]
+
+#: The message of a skipped JAX row.
+JAX_MISSING = "JAX is not installed (an optional bench dependency: pip install -c constraints.txt -e '.[bench]')"
 
 
 def _cross(v: np.ndarray) -> np.ndarray:
@@ -130,4 +137,72 @@ def numpy_batch(
         "what": "NumPy, all components vectorised ([B·N, 6, 6] arrays, np.matmul)",
         "components": count,
         "component_steps_per_s": count / min(times),
+    }
+
+
+def _jax_step():
+    """The RK4 (μ, Φ, S) step of one 6-state component in ``jax.numpy``, as a JAX user writes it."""
+    import jax.numpy as jnp
+
+    def cross(v):
+        return jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+    def terms(x, w_meas, sv2, su2):
+        p, b = x[:3], x[3:]
+        w = w_meas - b
+        s = p @ p
+        eye = jnp.eye(3)
+        B = (1.0 - s) * eye + 2.0 * cross(p) + 2.0 * jnp.outer(p, p)
+        f = jnp.concatenate((0.25 * B @ w, jnp.zeros(3)))
+        F = 0.5 * (jnp.outer(p, w) - jnp.outer(w, p) - cross(w) + (w @ p) * eye)
+        A = jnp.block([[F, -0.25 * B], [jnp.zeros((3, 3)), jnp.zeros((3, 3))]])
+        G = jnp.block([[(sv2 / 16.0) * (1.0 + s) ** 2 * eye, jnp.zeros((3, 3))], [jnp.zeros((3, 3)), su2 * eye]])
+        return f, A, G
+
+    def step(x, P, w_meas, dt, sv2, su2):
+        def rates(m, Ph, S):
+            f, A, G = terms(m, w_meas, sv2, su2)
+            AS = A @ S
+            return f, A @ Ph, AS + AS.T + G
+
+        Phi, S = jnp.eye(6), jnp.zeros((6, 6))
+        k1 = rates(x, Phi, S)
+        k2 = rates(x + 0.5 * dt * k1[0], Phi + 0.5 * dt * k1[1], S + 0.5 * dt * k1[2])
+        k3 = rates(x + 0.5 * dt * k2[0], Phi + 0.5 * dt * k2[1], S + 0.5 * dt * k2[2])
+        k4 = rates(x + dt * k3[0], Phi + dt * k3[1], S + dt * k3[2])
+        x = x + dt / 6.0 * (k1[0] + 2.0 * (k2[0] + k3[0]) + k4[0])
+        Phi = Phi + dt / 6.0 * (k1[1] + 2.0 * (k2[1] + k3[1]) + k4[1])
+        S = S + dt / 6.0 * (k1[2] + 2.0 * (k2[2] + k3[2]) + k4[2])
+        P = Phi @ P @ Phi.T + 0.5 * (S + S.T)
+        return x, 0.5 * (P + P.T)
+
+    return step
+
+
+def jax_batch(count: int, repeats: int = 3, dt: float = 0.1, sv2: float = 1e-13, su2: float = 1e-19) -> dict[str, Any]:
+    """Component-steps/s of ``jax.jit(jax.vmap(step))`` over ``count`` components (float64, CPU), the first
+    (compiling) call excluded; ``{"skipped": reason}`` without JAX."""
+    try:
+        import jax
+    except ImportError:
+        return {"skipped": JAX_MISSING}
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    x, P, w = _problem(count)
+    batched = jax.jit(jax.vmap(_jax_step(), in_axes=(0, 0, None, None, None, None)))
+    args = (jnp.asarray(x), jnp.asarray(P), jnp.asarray(w), dt, sv2, su2)
+    t = time.perf_counter()
+    jax.block_until_ready(batched(*args))
+    compile_s = time.perf_counter() - t
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(batched(*args))
+        times.append(time.perf_counter() - t)
+    return {
+        "what": f"JAX {jax.__version__} jit(vmap(step)), float64, one component's step in jax.numpy",
+        "components": count,
+        "component_steps_per_s": count / min(times),
+        "first_call_s": compile_s,
     }

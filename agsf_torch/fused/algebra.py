@@ -1,0 +1,150 @@
+"""Small-matrix algebra on entries, unrolled at trace time with structural zeros and ones removed.
+
+A matrix is a list of rows; an entry is a lane tensor ``[C]`` (one value per component), a
+Python number known when the kernel is traced, or ``None`` for a structural zero.  The
+operations here fold what is known: ``None`` terms are skipped, ``1.0`` factors are not
+multiplied, so a product with the attitude model's zero bias rows, Φ's identity bias block or
+a block-diagonal noise matrix emits no arithmetic for those entries (as Matriplex's generated
+code does).  Every function is plain Python over entries: it runs eagerly, or is traced by
+``torch.compile`` into one loop (:mod:`agsf_torch.fused.lanes`).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "Entry",
+    "add",
+    "sub",
+    "neg",
+    "mul",
+    "dot",
+    "scale",
+    "matmul",
+    "matmul_t",
+    "transpose",
+    "identity",
+    "zeros",
+    "axpy",
+    "count",
+]
+
+Entry = Tensor | float | None
+
+#: Arithmetic operations emitted since the last :func:`count` reset (for FLOP counts of a traced kernel).
+_OPS = [0]
+
+
+def _tick() -> None:
+    if not torch.compiler.is_compiling():  # counted when run eagerly; a traced kernel has no side effects
+        _OPS[0] += 1
+
+
+def count(reset: bool = False) -> int:
+    """Floating-point operations emitted by this module's functions (lane operations, each ``C`` FLOPs);
+    ``reset`` starts a new count."""
+    value = _OPS[0]
+    if reset:
+        _OPS[0] = 0
+    return value
+
+
+def add(a: Entry, b: Entry) -> Entry:
+    """``a + b`` (``None`` is zero)."""
+    if a is None:
+        return b
+    if b is None:
+        return a
+    if isinstance(a, float) and isinstance(b, float):
+        return a + b
+    _tick()
+    return a + b
+
+
+def sub(a: Entry, b: Entry) -> Entry:
+    """``a − b`` (``None`` is zero)."""
+    if b is None:
+        return a
+    if a is None:
+        return neg(b)
+    if isinstance(a, float) and isinstance(b, float):
+        return a - b
+    _tick()
+    return a - b
+
+
+def neg(a: Entry) -> Entry:
+    """``−a``."""
+    if a is None:
+        return None
+    if isinstance(a, float):
+        return -a
+    _tick()
+    return -a
+
+
+def mul(a: Entry, b: Entry) -> Entry:
+    """``a · b`` (``None`` is zero; a known 1 emits nothing)."""
+    if a is None or b is None:
+        return None
+    if isinstance(a, float):
+        if a == 0.0:
+            return None
+        if a == 1.0:
+            return b
+        if isinstance(b, float):
+            return a * b
+    if isinstance(b, float):
+        if b == 0.0:
+            return None
+        if b == 1.0:
+            return a
+    _tick()
+    return a * b
+
+
+def scale(c: Entry, A: list[list[Entry]]) -> list[list[Entry]]:
+    """``c · A``."""
+    return [[mul(c, v) for v in row] for row in A]
+
+
+def axpy(c: Entry, X: list[list[Entry]], Y: list[list[Entry]]) -> list[list[Entry]]:
+    """``Y + c · X`` entry by entry."""
+    return [[add(y, mul(c, x)) for x, y in zip(rx, ry)] for rx, ry in zip(X, Y)]
+
+
+def dot(terms) -> Entry:
+    """``Σ aₖ bₖ`` over pairs ``(aₖ, bₖ)``, skipping structural zeros."""
+    out: Entry = None
+    for a, b in terms:
+        out = add(out, mul(a, b))
+    return out
+
+
+def matmul(A: list[list[Entry]], B: list[list[Entry]]) -> list[list[Entry]]:
+    """``A B``."""
+    k = len(B)
+    return [[dot((A[i][t], B[t][j]) for t in range(k)) for j in range(len(B[0]))] for i in range(len(A))]
+
+
+def matmul_t(A: list[list[Entry]], B: list[list[Entry]]) -> list[list[Entry]]:
+    """``A Bᵀ``."""
+    k = len(A[0])
+    return [[dot((A[i][t], B[j][t]) for t in range(k)) for j in range(len(B))] for i in range(len(A))]
+
+
+def transpose(A: list[list[Entry]]) -> list[list[Entry]]:
+    """``Aᵀ``."""
+    return [list(col) for col in zip(*A)]
+
+
+def identity(n: int) -> list[list[Entry]]:
+    """``I_n`` with known ones and structural zeros."""
+    return [[1.0 if i == j else None for j in range(n)] for i in range(n)]
+
+
+def zeros(n: int, m: int | None = None) -> list[list[Entry]]:
+    """A structural zero ``n×m`` matrix."""
+    return [[None] * (n if m is None else m) for _ in range(n)]

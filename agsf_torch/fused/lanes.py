@@ -1,0 +1,168 @@
+"""Lanes: the matrix-major view of a batch of small matrices, and running a kernel over it in chunks.
+
+A batch of ``C`` identically shaped small arrays ``[C, *shape]`` (batch-first, the package's
+layout) is seen *matrix-major*: one contiguous ``[C]`` tensor per entry, the *lanes* (the layout
+of CMS's Matriplex).  A kernel written on entries (lists of lanes, its small-matrix algebra
+unrolled in Python at trace time) then does each entry's arithmetic for every component in one
+elementwise operation, and ``torch.compile`` fuses the whole kernel into one pass over memory.
+
+:func:`run_in_chunks` runs such a kernel over ``C`` lanes in fixed-size chunks (the tail padded
+by repeating the last lane), eagerly or compiled: one compilation per kernel and chunk size,
+reused by every batch size.  A compilation or compiled-run failure falls back to the eager
+kernel with one warning; the numbers are the eager ones.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "entries",
+    "stack_entries",
+    "run_in_chunks",
+    "worth_fusing",
+    "CHUNK_SIZES",
+    "DEFAULT_CHUNK",
+    "EAGER_MIN_LANES",
+]
+
+
+def worth_fusing(lanes: int, compile: bool) -> bool:
+    """Whether a fused kernel beats the generic path for ``lanes`` lanes: always when compiled, eagerly
+    from :data:`EAGER_MIN_LANES` on."""
+    return compile or lanes >= EAGER_MIN_LANES
+
+
+logger = logging.getLogger("agsf_torch")
+
+#: Lanes per compiled call, a ladder of fixed sizes: full chunks of the largest, the rest in one call
+#: of the smallest size that holds it (padded).  One compilation per size actually used, reused by
+#: every batch size; a single spacecraft (N lanes) pays for 64 lanes, not 4096.
+CHUNK_SIZES = (64, 512, 4096)
+#: Lanes per eager call (bounds the kernel's temporaries).
+DEFAULT_CHUNK = CHUNK_SIZES[-1]
+#: Below this many lanes an *eager* fused kernel is slower than the generic batched path (thousands of
+#: tiny operations instead of tens of batched ones; measured crossover 500–2000 lanes on 2 cores):
+#: models then decline their fused path unless it is compiled.
+EAGER_MIN_LANES = 1024
+
+
+def entries(t: Tensor, shape: Sequence[int]) -> list:
+    """``t [C, *shape]`` as nested lists (``shape`` deep) of contiguous ``[C]`` lanes."""
+    C = t.shape[0]
+    k = math.prod(shape)
+    flat = t.reshape(C, k).t().contiguous()  # [k, C]: entry-major
+    rows = list(flat.unbind(0))
+
+    def nest(items: list, dims: Sequence[int]) -> list:
+        if len(dims) == 1:
+            return items
+        step = math.prod(dims[1:])
+        return [nest(items[i * step : (i + 1) * step], dims[1:]) for i in range(dims[0])]
+
+    return nest(rows, list(shape)) if shape else rows
+
+
+def stack_entries(nested, lanes: int) -> Tensor:
+    """Nested lists of lanes (or numbers) back to batch-first ``[lanes, *shape]``."""
+
+    def flatten(x) -> list:
+        if isinstance(x, (list, tuple)):
+            return [v for item in x for v in flatten(item)]
+        return [x]
+
+    def shape_of(x) -> list[int]:
+        return [len(x), *shape_of(x[0])] if isinstance(x, (list, tuple)) else []
+
+    flat = flatten(nested)
+    ref = next(v for v in flat if torch.is_tensor(v))
+    cols = [
+        v.expand(lanes) if torch.is_tensor(v) else torch.full((lanes,), float(v), dtype=ref.dtype, device=ref.device)
+        for v in flat
+    ]
+    return torch.stack(cols, -1).reshape(lanes, *shape_of(nested))
+
+
+class _Declined(Exception):
+    """A kernel whose compilation failed before: run it eagerly."""
+
+
+_COMPILED: dict[tuple, Callable] = {}
+_FAILED: set[tuple] = set()
+
+
+def _compiled(kernel: Callable, key: tuple) -> Callable | None:
+    if key in _FAILED:
+        return None
+    if key not in _COMPILED:
+        # one graph per kernel, chunk size and static configuration: more than dynamo's default 8 per function
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
+        _COMPILED[key] = torch.compile(kernel, fullgraph=True, dynamic=False)
+    return _COMPILED[key]
+
+
+def run_in_chunks(
+    kernel: Callable[..., tuple[Tensor, ...]],
+    inputs: Sequence[Tensor],
+    *,
+    shared: Sequence[Tensor] = (),
+    compile: bool = False,
+    chunk: int = DEFAULT_CHUNK,
+    key: tuple = (),
+) -> tuple[Tensor, ...]:
+    """``kernel(*inputs)`` over the leading (lane) dim of ``inputs`` in chunks of ``chunk`` lanes.
+
+    Args:
+        kernel: maps batch-first tensors ``[c, …]`` to a tuple of batch-first tensors ``[c, …]``,
+            lane by lane (no lane reads another).
+        inputs: tensors ``[C, …]`` with the same ``C``.
+        shared: tensors passed whole to every call after ``inputs`` (0-d parameters such as
+            ``dt`` or a noise density: inputs of the compiled kernel, not constants of it).
+        compile: run ``torch.compile(kernel)`` in chunks of the fixed sizes :data:`CHUNK_SIZES` (the
+            last padded by repeating the last lane); ``False`` runs the same code eagerly.
+        chunk: lanes per eager call.
+        key: identifies the kernel's static configuration in the compile cache (with ``chunk``).
+
+    Returns:
+        The outputs ``[C, …]``.
+    """
+    C = inputs[0].shape[0]
+    shared = tuple(shared)
+    if not compile or C == 0:
+        if C <= chunk:
+            return kernel(*inputs, *shared)
+        parts = [kernel(*(t[a : a + chunk] for t in inputs), *shared) for a in range(0, C, chunk)]
+        return tuple(torch.cat(p) for p in zip(*parts))
+    outs = []
+    a = 0
+    try:
+        while a < C:
+            size = CHUNK_SIZES[-1] if C - a >= CHUNK_SIZES[-1] else next(s for s in CHUNK_SIZES if s >= C - a)
+            cache_key = (kernel, size, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
+            fn = _compiled(kernel, cache_key)
+            if fn is None:
+                raise _Declined
+            part = [t[a : a + size] for t in inputs]
+            c = part[0].shape[0]
+            if c < size:  # pad to the compiled shape with copies of the last lane (harmless, valid data)
+                part = [torch.cat((t, t[-1:].expand(size - c, *t.shape[1:]))) for t in part]
+            outs.append(tuple(o[:c] for o in fn(*part, *shared)))
+            a += c
+    except _Declined:
+        return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
+    except Exception as exc:  # noqa: BLE001 - any compiler or runtime failure: the eager path, never a wrong number
+        _FAILED.add(cache_key)
+        warnings.warn(
+            f"compiled kernel {getattr(kernel, '__name__', kernel)} failed ({type(exc).__name__}: {exc}); "
+            "running it eagerly",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
+    return tuple(torch.cat(p) for p in zip(*outs))

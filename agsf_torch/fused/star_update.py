@@ -1,0 +1,425 @@
+"""The star-vector measurement update in information form, one component per lane.
+
+For a unit-vector camera the noise covariance is block diagonal per star, ``R = σ²I``, and each
+star's Jacobian acts on the attitude only, ``Hⱼ = [bⱼ×] E`` with ``bⱼ = C rⱼ`` the predicted body
+vector and ``E`` the chart's ``3×3`` map (the MRP chart: ``E = 4Bᵀ(p)/(1+s)²``).  With the
+Cholesky factor of the prior split by blocks,
+
+.. math::
+
+    P = L Lᵀ,\\quad L = \\begin{bmatrix} L_{pp} & 0 \\\\ L_{bp} & L_{bb} \\end{bmatrix},\\quad
+    W = \\begin{bmatrix} L_{pp} \\\\ L_{bp} \\end{bmatrix},
+
+the information-form gain of :mod:`agsf_torch.update` (``G = R^{-1/2} H L``, ``M = I + GᵀG``) has
+``G`` zero outside its first three columns, so ``M = blockdiag(I + A, I)`` and every solve is
+``3×3``, whatever the number of stars:
+
+.. math::
+
+    A = L_{pp}^T E^T T E L_{pp} / σ^2,\\quad T = \\sum_j m_j (|b_j|^2 I - b_j b_j^T),\\qquad
+    g = L_{pp}^T E^T \\sum_j m_j (ν_j × b_j) / σ^2,
+
+    I + A = U U^T,\\quad z = (I + A)^{-1} g,\\quad δx = W z,\\quad
+    P^+ = Y Y^T + \\operatorname{blockdiag}(0, L_{bb} L_{bb}^T),\\; Y = W U^{-T},
+
+    \\log\\det S = d \\log σ^2 + 2 \\sum_k \\log U_{kk},\\qquad
+    ν^T S^{-1} ν = \\sum_j m_j |ν_j - [b_j×] E\\,δp|^2 / σ^2 + |z|^2,
+
+with ``mⱼ ∈ {0, 1}`` the star mask and ``d = 3 Σ mⱼ``.  This is the same gain as the covariance
+form ``K = PHᵀS⁻¹`` (push-through identity), but ``I + A ⪰ I`` is never ill-conditioned however
+precise the sensor or wide the prior, ``P⁺`` is a sum of outer products (symmetric positive
+definite by construction, as the Joseph form), and the cost is ``O(M + n²)`` per component
+instead of the ``O(M³)`` factorisation of the ``3M×3M`` innovation covariance.
+
+Every function here works on *entries*: a matrix is a list of rows of tensors that all
+broadcast to the lanes ``[C]`` (components), so the ``3×3`` algebra is unrolled at trace time
+and runs eagerly or compiled as one loop (:mod:`agsf_torch.fused.lanes`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..models.base import MeasurementModel
+from ..models.star_vectors import StarVectorMeasurement
+from ..update import ComponentUpdate, check_innovation
+from .lanes import entries, run_in_chunks, stack_entries
+from .propagation import positive_pivots
+
+__all__ = [
+    "FusedUpdate",
+    "cholesky_lower",
+    "information_star_update",
+    "mrp_chart",
+    "star_kernel",
+    "fused_star_update",
+    "mixture_information_nis",
+]
+
+Mat = list[list[Tensor]]
+
+
+@dataclass(frozen=True)
+class FusedUpdate(ComponentUpdate):
+    """:class:`~agsf_torch.update.ComponentUpdate` with the kernel's own definiteness check.
+
+    Attributes:
+        positive_definite: every pivot of the Cholesky factorisation of ``P⁺`` is positive, ``[..., N]``.
+    """
+
+    positive_definite: Tensor | None = None
+
+
+def cholesky_lower(P: Mat) -> Mat:
+    """Lower Cholesky factor of a symmetric positive definite ``n×n`` matrix (only ``P[i][j]``, ``j ≤ i``,
+    are read), unrolled: ``L[i][j]`` for ``j ≤ i`` (the upper entries are ``None``)."""
+    n = len(P)
+    L: Mat = [[None] * n for _ in range(n)]  # type: ignore[list-item]
+    for j in range(n):
+        d = P[j][j]
+        for k in range(j):
+            d = d - L[j][k] * L[j][k]
+        L[j][j] = torch.sqrt(d)
+        inv = 1.0 / L[j][j]
+        for i in range(j + 1, n):
+            v = P[i][j]
+            for k in range(j):
+                v = v - L[i][k] * L[j][k]
+            L[i][j] = v * inv
+    return L
+
+
+def mrp_chart(p: list[Tensor]) -> tuple[Mat, Mat]:
+    """``C(p)`` (inertial → body) and ``E = 4B(p)ᵀ/(1+s)²``, the map from an MRP perturbation to the
+    body-frame rotation (``δ(C r) = [(C r)×] E δp``), each ``3×3``, from ``p`` as 3 entries.
+
+    .. math:: C = I + \\frac{8[p×]^2 - 4(1-s)[p×]}{(1+s)^2},\\qquad B = (1-s)I + 2[p×] + 2pp^T
+    """
+    x, y, z = p
+    s = x * x + y * y + z * z
+    inv = 1.0 / ((1.0 + s) * (1.0 + s))
+    a, c8 = 4.0 * (1.0 - s), 8.0
+    # [p×]² = ppᵀ − sI; C = I + (8(ppᵀ − sI) − 4(1 − s)[p×]) / (1 + s)²
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    C = [
+        [1.0 + c8 * (xx - s) * inv, (c8 * xy + a * z) * inv, (c8 * xz - a * y) * inv],
+        [(c8 * xy - a * z) * inv, 1.0 + c8 * (yy - s) * inv, (c8 * yz + a * x) * inv],
+        [(c8 * xz + a * y) * inv, (c8 * yz - a * x) * inv, 1.0 + c8 * (zz - s) * inv],
+    ]
+    one_s = 1.0 - s
+    B = [
+        [one_s + 2.0 * xx, 2.0 * (xy - z), 2.0 * (xz + y)],
+        [2.0 * (xy + z), one_s + 2.0 * yy, 2.0 * (yz - x)],
+        [2.0 * (xz - y), 2.0 * (yz + x), one_s + 2.0 * zz],
+    ]
+    c4 = 4.0 * inv
+    E = [[c4 * B[j][i] for j in range(3)] for i in range(3)]  # 4Bᵀ/(1+s)²
+    return C, E
+
+
+def _matvec(A: Mat, v: list[Tensor]) -> list[Tensor]:
+    return [A[i][0] * v[0] + A[i][1] * v[1] + A[i][2] * v[2] for i in range(3)]
+
+
+def _cross(a: list[Tensor], b: list[Tensor]) -> list[Tensor]:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def information_star_update(
+    mean: list[Tensor],
+    P: Mat,
+    body: list[list[Tensor]],
+    nu: list[list[Tensor]],
+    E: Mat,
+    mask: list[Tensor],
+    sigma2: Tensor | float,
+) -> tuple[list[Tensor], Mat, Tensor, Tensor, Tensor, Mat]:
+    """One star-vector update of every lane in information form (module docstring).
+
+    Args:
+        mean: the prior mean, ``n`` entries (MRP first, then any other states).
+        P: the prior covariance, ``n×n`` entries (the lower triangle is read).
+        body: the predicted body vectors ``bⱼ = C rⱼ`` at the linearisation point, ``M`` lists of 3.
+        nu: the innovations ``νⱼ`` (``ỹⱼ − h(x)`` with the relinearisation term of an iterated
+            update), ``M`` lists of 3.
+        E: the chart's ``3×3`` map (``Hⱼ = [bⱼ×] E``).
+        mask: ``M`` entries, 1.0 for a valid star, 0.0 for a masked one.
+        sigma2: ``σ²`` (rad²), a number or an entry.
+
+    Returns:
+        ``(mean⁺ (n entries), P⁺ (n×n, symmetric), log N(ỹ; h, S), NIS νᵀS⁻¹ν, d, F = E L_pp (3×3))``
+        per lane (``Hⱼ L = [bⱼ×] F`` on the attitude columns); lanes without a valid star are *not*
+        special-cased here (the caller keeps them).
+    """
+    n = len(mean)
+    L = cholesky_lower(P)
+    Lpp = [[L[i][j] if j <= i else None for j in range(3)] for i in range(3)]
+    inv_s2 = 1.0 / sigma2
+    # T = Σ mⱼ (|bⱼ|² I − bⱼbⱼᵀ) (symmetric) and u = Σ mⱼ νⱼ × bⱼ
+    T = [[None] * 3 for _ in range(3)]
+    u = [None, None, None]
+    count = None
+    for b, v, m in zip(body, nu, mask):
+        bb = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
+        for i in range(3):
+            for j in range(i + 1):
+                t = m * ((bb if i == j else 0.0) - b[i] * b[j])
+                T[i][j] = t if T[i][j] is None else T[i][j] + t
+        w = _cross(v, b)
+        u = [m * w[k] if u[k] is None else u[k] + m * w[k] for k in range(3)]
+        count = m if count is None else count + m
+    for i in range(3):
+        for j in range(i + 1, 3):
+            T[i][j] = T[j][i]
+    # F = E Lpp (3×3): the chart map applied to the attitude columns of L
+    F = [[sum(E[i][k] * Lpp[k][j] for k in range(j, 3)) for j in range(3)] for i in range(3)]
+    TF = [[T[i][0] * F[0][j] + T[i][1] * F[1][j] + T[i][2] * F[2][j] for j in range(3)] for i in range(3)]
+    A = [[None] * 3 for _ in range(3)]
+    for i in range(3):
+        for j in range(i + 1):
+            A[i][j] = (F[0][i] * TF[0][j] + F[1][i] * TF[1][j] + F[2][i] * TF[2][j]) * inv_s2
+    g = [(F[0][i] * u[0] + F[1][i] * u[1] + F[2][i] * u[2]) * inv_s2 for i in range(3)]
+    IA = [[(1.0 + A[i][j]) if i == j else (A[i][j] if j < i else None) for j in range(3)] for i in range(3)]
+    U = cholesky_lower(IA)
+    # z = (U Uᵀ)⁻¹ g: forward then backward substitution
+    t0 = g[0] / U[0][0]
+    t1 = (g[1] - U[1][0] * t0) / U[1][1]
+    t2 = (g[2] - U[2][0] * t0 - U[2][1] * t1) / U[2][2]
+    z2 = t2 / U[2][2]
+    z1 = (t1 - U[2][1] * z2) / U[1][1]
+    z0 = (t0 - U[1][0] * z1 - U[2][0] * z2) / U[0][0]
+    z = [z0, z1, z2]
+    # W = the first three columns of L (n×3); δx = W z; Y = W U⁻ᵀ (rows solve U yᵢ = wᵢ)
+    W = [[L[i][j] if j <= i else None for j in range(3)] for i in range(n)]
+
+    def row_dot(r: list[Tensor | None], v: list[Tensor]) -> Tensor:
+        out = None
+        for a, c in zip(r, v):
+            if a is not None:
+                out = a * c if out is None else out + a * c
+        return out
+
+    delta = [row_dot(W[i], z) for i in range(n)]
+    Y = []
+    for i in range(n):
+        w = [W[i][k] if W[i][k] is not None else None for k in range(3)]
+        y0 = w[0] / U[0][0] if w[0] is not None else None
+        y1 = None
+        if w[1] is not None or y0 is not None:
+            y1 = ((w[1] if w[1] is not None else 0.0) - (U[1][0] * y0 if y0 is not None else 0.0)) / U[1][1]
+        y2 = (
+            (w[2] if w[2] is not None else 0.0)
+            - (U[2][0] * y0 if y0 is not None else 0.0)
+            - (U[2][1] * y1 if y1 is not None else 0.0)
+        ) / U[2][2]
+        Y.append([y0, y1, y2])
+    post: Mat = [[None] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1):
+            v = row_dot([Y[i][k] for k in range(3)], [Y[j][k] if Y[j][k] is not None else 0.0 for k in range(3)])
+            for k in range(3, j + 1):  # the bias block's own factor, L_bb L_bbᵀ
+                v = v + L[i][k] * L[j][k]
+            post[i][j] = v
+            post[j][i] = v
+    new_mean = [mean[i] + delta[i] for i in range(n)]
+    # NIS = Σ mⱼ |νⱼ − [bⱼ×] E δp|² / σ² + |z|²
+    Edp = _matvec(E, delta[:3])
+    nis = z0 * z0 + z1 * z1 + z2 * z2
+    resid = None
+    for b, v, m in zip(body, nu, mask):
+        hb = _cross(b, Edp)
+        e = [v[k] - hb[k] for k in range(3)]
+        term = m * (e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+        resid = term if resid is None else resid + term
+    nis = nis + resid * inv_s2
+    dof = 3.0 * count
+    log_det = dof * torch.log(torch.as_tensor(sigma2)) + 2.0 * (
+        torch.log(U[0][0]) + torch.log(U[1][1]) + torch.log(U[2][2])
+    )
+    log_beta = -0.5 * (nis + log_det + dof * math.log(2.0 * math.pi))
+    return new_mean, post, log_beta, nis, dof, F
+
+
+def _star_step(mean, P, x_lin, r, y, mask, sigma2):
+    """One linearisation at ``x_lin`` (``None``: the prior mean), batch-first lanes in and out.
+
+    Args:
+        mean, x_lin: ``[c, n]``; P: ``[c, n, n]``; r, y: ``[c, M, 3]`` catalogue and measured unit
+        vectors; mask: ``[c, M]`` (1.0 valid); sigma2: ``[c]``.
+
+    Returns:
+        ``(mean⁺ [c, n], P⁺ [c, n, n], log β [c], NIS [c], d [c], ν [c, M, 3], H L [c, M, 3, 3],
+        P⁺ positive definite [c] bool)``.
+    """
+    c, n = mean.shape
+    M = r.shape[1]
+    mu = entries(mean, (n,))
+    x = mu if x_lin is None else entries(x_lin, (n,))
+    Pe = entries(P, (n, n))
+    re, ye, me = entries(r, (M, 3)), entries(y, (M, 3)), entries(mask, (M,))
+    Cm, E = mrp_chart(x[:3])
+    Edp = None if x_lin is None else _matvec(E, [mu[k] - x[k] for k in range(3)])
+    body, nu = [], []
+    for j in range(M):
+        b = _matvec(Cm, re[j])
+        v = [ye[j][k] - b[k] for k in range(3)]
+        if Edp is not None:  # ν = ỹ − h(x) − H (μ − x)
+            hb = _cross(b, Edp)
+            v = [v[k] - hb[k] for k in range(3)]
+        body.append(b)
+        nu.append([me[j] * v[k] for k in range(3)])
+    new_mean, post, log_beta, nis, dof, F = information_star_update(mu, Pe, body, nu, E, me, sigma2)
+    # Hⱼ L = [bⱼ×] F on the attitude columns (masked): the square root of each star's H P Hᵀ
+    HL = [[[me[j] * v for v in row] for row in _cross_rows(body[j], F)] for j in range(M)]
+    return (
+        stack_entries(new_mean, c),
+        stack_entries(post, c),
+        log_beta,
+        nis,
+        dof,
+        stack_entries(nu, c),
+        stack_entries(HL, c),
+        positive_pivots(post),
+    )
+
+
+def _cross_rows(b: list[Tensor], F: Mat) -> Mat:
+    """``[b×] F`` (3×3)."""
+    cols = [_cross(b, [F[0][k], F[1][k], F[2][k]]) for k in range(3)]
+    return [[cols[k][i] for k in range(3)] for i in range(3)]
+
+
+def star_kernel(mean, P, r, y, mask, sigma2):
+    """The update linearised at the prior mean (a kernel for :func:`~agsf_torch.fused.lanes.run_in_chunks`)."""
+    return _star_step(mean, P, None, r, y, mask, sigma2)
+
+
+def star_kernel_relinearised(mean, P, x_lin, r, y, mask, sigma2):
+    """The update relinearised at ``x_lin`` (an iterated update's later iterations)."""
+    return _star_step(mean, P, x_lin, r, y, mask, sigma2)
+
+
+def fused_star_update(
+    log_weights: Tensor,
+    means: Tensor,
+    covs: Tensor,
+    y: Tensor,
+    measurement: StarVectorMeasurement,
+    iterations: int = 1,
+    mask: Tensor | None = None,
+    mixture_nis: bool = True,
+    compile: bool = False,
+) -> ComponentUpdate:
+    """:func:`agsf_torch.update.kalman_update` for a :class:`~agsf_torch.models.StarVectorMeasurement`
+    with isotropic noise on an attitude state (MRP first), in information form (module docstring).
+
+    Same arguments and result as :func:`~agsf_torch.update.kalman_update` (``mask``: entry validity
+    ``[..., 3M]``, e.g. the gate's; else the measurement's star mask) and the same checks before
+    anything changes (:func:`~agsf_torch.update.check_innovation`); ``innovation_cov`` is not formed
+    (``None``).  ``compile`` runs the kernel through ``torch.compile`` in fixed chunks
+    (:func:`~agsf_torch.fused.lanes.run_in_chunks`).
+    """
+    n, N, M = means.shape[-1], means.shape[-2], measurement.num_stars
+    lead = torch.broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,))
+    C = math.prod(lead)
+    if mask is not None:
+        star_valid = mask.reshape(*mask.shape[:-1], M, 3)[..., 0]
+    elif measurement.star_mask is not None:
+        star_valid = measurement.star_mask
+    else:
+        star_valid = torch.ones(M, dtype=torch.bool, device=means.device)
+    m = star_valid.to(means.dtype).unsqueeze(-2).expand(*lead, M).reshape(C, M)
+    r = measurement.r_inertial.to(means).unsqueeze(-3).expand(*lead, M, 3).reshape(C, M, 3)
+    y3 = y.reshape(*y.shape[:-1], 1, M, 3).expand(*lead, M, 3).reshape(C, M, 3)
+    mu = means.expand(*lead, n).reshape(C, n)
+    P = covs.expand(*lead, n, n).reshape(C, n, n)
+    sigma2 = (measurement.sigma.to(means) ** 2).expand(C).contiguous()
+    _check_innovation(y, means, covs, measurement, star_valid)
+    out = run_in_chunks(star_kernel, (mu, P, r, y3, m, sigma2), compile=compile, key=("star", n, M))
+    x_last = mu  # the linearisation point of the last iteration (H, ν and S are taken there)
+    for _ in range(int(iterations) - 1):
+        x_last = out[0]
+        out = run_in_chunks(
+            star_kernel_relinearised, (mu, P, x_last, r, y3, m, sigma2), compile=compile, key=("star-relin", n, M)
+        )
+    new_means, new_covs = out[0].reshape(*lead, n), out[1].reshape(*lead, n, n)
+    log_beta, nis, dof = (t.reshape(lead) for t in out[2:5])
+    nu = out[5].reshape(*lead, 3 * M)
+    HL = out[6].reshape(*lead, 3 * M, 3)
+    positive_definite = out[7].reshape(lead)
+    joint = log_weights + log_beta
+    log_lik = torch.logsumexp(joint, -1)
+    new_log_weights = joint - log_lik.unsqueeze(-1)
+    nis_mixture = None
+    if mixture_nis:
+        nis_mixture = (
+            nis[..., 0] if N == 1 else mixture_information_nis(log_weights, nu, HL, measurement.sigma.to(means) ** 2)
+        )
+    any_valid = dof[..., 0] > 0
+    new_means = torch.where(any_valid[..., None, None], new_means, means)
+    new_covs = torch.where(any_valid[..., None, None, None], new_covs, covs)
+    new_log_weights = torch.where(any_valid[..., None], new_log_weights, log_weights)
+    log_lik = torch.where(any_valid, log_lik, torch.zeros_like(log_lik))
+    positive_definite = positive_definite | ~any_valid[..., None]
+    return FusedUpdate(
+        new_means, new_covs, new_log_weights, log_lik, nis, dof[..., 0], nu, None, nis_mixture, positive_definite
+    )
+
+
+def _check_innovation(
+    y: Tensor, means: Tensor, covs: Tensor, measurement: MeasurementModel, star_valid: Tensor
+) -> None:
+    """:func:`~agsf_torch.update.check_innovation`, its exact innovation variances formed only when the
+    sufficient test ``ε|νⱼ| ≤ σ ≤ √Sⱼⱼ`` fails somewhere (it names the cause)."""
+    x = means.movedim(-2, 0)
+    h = measurement.predict(x).movedim(0, -2)  # [..., N, d]
+    nu = y.unsqueeze(-2) - h
+    valid = star_valid.repeat_interleave(3, dim=-1).unsqueeze(-2).expand(nu.shape)
+    sigma = measurement.sigma.to(means)
+    eps = torch.finfo(nu.dtype).eps
+    if bool((torch.isfinite(nu) & (~valid | (eps * nu.abs() <= sigma))).all()):
+        return
+    H = measurement.jacobian(x).movedim(0, -3)
+    S_diag = (H @ covs @ H.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1) + sigma**2
+    check_innovation(y.unsqueeze(-2), means, h, S_diag, valid)
+
+
+def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2: Tensor) -> Tensor:
+    r"""The moment-matched mixture NIS ``ν̄ᵀS̄⁻¹ν̄`` (:func:`~agsf_torch.update.moment_matched_innovation`) in
+    information form.  With ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ Hᵢ Lᵢ, √wᵢ (νᵢ − ν̄)]ᵢ`` (``[..., d, (k+1)N]``):
+
+    .. math:: \bar ν^T \bar S^{-1} \bar ν = |\bar ν - A z|^2/σ^2 + |z|^2,\quad
+              z = (I + A^T A/σ^2)^{-1} A^T \bar ν / σ^2,
+
+    a factorisation of a matrix ``⪰ I`` (by Cholesky, or where rounding defeats it, by a QR of
+    ``[A/σ; I]``), accurate whatever the conditioning of ``S̄``.
+
+    Args:
+        log_weights: ``[..., N]``; nu: ``[..., N, d]`` (zero at masked entries); HL: ``Hᵢ Lᵢ``
+        ``[..., N, d, k]`` (zero rows at masked entries); sigma2: ``σ²``.
+
+    Returns:
+        ``[...]``.
+    """
+    w = log_weights.exp()
+    sw = w.sqrt()
+    nu_bar = (w[..., None] * nu).sum(-2)
+    dn = sw[..., None] * (nu - nu_bar.unsqueeze(-2))  # [..., N, d]
+    spread = (sw[..., None, None] * HL).movedim(-3, -2).flatten(-2)  # [..., d, N k]
+    A = torch.cat((spread, dn.transpose(-1, -2)), -1)
+    k = A.shape[-1]
+    eye = torch.eye(k, dtype=A.dtype, device=A.device)
+    L, info = torch.linalg.cholesky_ex(A.transpose(-1, -2) @ A / sigma2 + eye)
+    failed = info != 0
+    if bool(failed.any()):  # I + AᵀA/σ² singular to rounding (σ far below A): its factor from a QR of [A/σ; I]
+        R = torch.linalg.qr(torch.cat((A[failed] / sigma2.sqrt(), eye.expand(int(failed.sum()), k, k)), -2)).R
+        sign = torch.where(R.diagonal(dim1=-2, dim2=-1) < 0, -1.0, 1.0).to(R)
+        L = L.index_put((failed.nonzero(as_tuple=True)), (sign[..., :, None] * R).transpose(-1, -2))
+    rhs = (A.transpose(-1, -2) @ nu_bar.unsqueeze(-1)) / sigma2
+    z = torch.cholesky_solve(rhs, L)
+    e = nu_bar - (A @ z).squeeze(-1)
+    return (e * e).sum(-1) / sigma2 + (z * z).sum((-2, -1))
