@@ -54,7 +54,7 @@ EAGER_MIN_LANES = 1024
 
 
 def entries(t: Tensor, shape: Sequence[int]) -> list:
-    """``t [C, *shape]`` as nested lists (``shape`` deep) of contiguous ``[C]`` lanes."""
+    """``t [C, *shape]`` as nested lists (``shape`` deep) of contiguous ``[C]`` lanes (one lane for ``shape = ()``)."""
     C = t.shape[0]
     k = math.prod(shape)
     flat = t.reshape(C, k).t().contiguous()  # [k, C]: entry-major
@@ -66,7 +66,7 @@ def entries(t: Tensor, shape: Sequence[int]) -> list:
         step = math.prod(dims[1:])
         return [nest(items[i * step : (i + 1) * step], dims[1:]) for i in range(dims[0])]
 
-    return nest(rows, list(shape)) if shape else rows
+    return nest(rows, list(shape)) if shape else rows[0]
 
 
 def stack_entries(nested, lanes: int) -> Tensor:
