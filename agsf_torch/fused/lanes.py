@@ -165,4 +165,4 @@ def run_in_chunks(
             stacklevel=2,
         )
         return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
-    return tuple(torch.cat(p) for p in zip(*outs))
+    return outs[0] if len(outs) == 1 else tuple(torch.cat(p) for p in zip(*outs))

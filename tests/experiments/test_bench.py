@@ -35,27 +35,39 @@ def test_peers_do_the_gsf_propagation_work():
 
 def test_adaptive_side_by_side_reports_ratios():
     r = bench.bench_adaptive(False, B=4, repeats=1)
-    assert set(r["seconds"]) == {"GSF", "AGSF-galerkin", "AGSF-penalty"}
+    assert set(r["seconds"]) == {"GSF (generic)", "GSF", "AGSF-galerkin", "AGSF-penalty"}
     assert r["galerkin_ratio"] == r["seconds"]["AGSF-galerkin"] / r["seconds"]["GSF"]
 
 
-def test_flop_counts_follow_the_algorithm():
-    # one RK4 stage of a 3-state component: 4n³ + 2n² + 60 + 4n + 8n² = 108 + 18 + 60 + 12 + 72 = 270,
-    # then ΦPΦᵀ + S: 4n³ + 3n² = 108 + 27
-    assert bench.propagation_flops(3) == 4 * 270 + 135
+def test_the_fused_kernel_counts_fewer_flops_than_the_dense_algorithm():
+    """The unrolled graph skips structural zeros and ones: the dense RK4 (μ, Φ, S) step (per stage the
+    products AΦ and AS, n²(2n − 1) each, and the Φ, S increments, then ΦPΦᵀ) grows 7× from 3 to 6 states,
+    the fused kernel's count (its model evaluation included) less than half as fast: the 6-state model's
+    zero bias rows of A and Φ's identity bias block emit nothing."""
+    from agsf_torch.experiments.bench.fused import propagation_kernel_flops
+
+    def dense(n):
+        return 4 * (2 * n * n * (2 * n - 1) + 6 * n * n) + 2 * n * n * (2 * n - 1)
+
+    f3, f6 = propagation_kernel_flops(3), propagation_kernel_flops(6)
+    assert 0 < f3 < f6 < dense(6)
+    assert f6 / f3 < 0.5 * dense(6) / dense(3)
 
 
 def test_table_marks_targets():
-    seconds = {"GSF": 0.01, "AGSF-galerkin": 0.04, "AGSF-penalty": 0.5}
     adaptive = {
         "state_dim": 6,
         "N": 5,
         "B": 256,
-        "seconds": seconds,
+        "compiled": True,
+        "seconds": {"GSF (generic)": 0.02, "GSF": 0.01, "AGSF-galerkin": 0.04, "AGSF-penalty": 0.5},
         "galerkin_ratio": 4.0,
+        "galerkin_ratio_to_generic_gsf": 2.0,
         "penalty_ratio": 50.0,
         "penalty_seconds": 0.5,
     }
+    big = {**adaptive, "B": 4096, "galerkin_ratio": 6.0}
+    del big["penalty_ratio"]
     qp = {
         "N": 5,
         "B": 64,
@@ -75,17 +87,38 @@ def test_table_marks_targets():
             "load_average_at_start": 0.1,
         },
         "matmul_peak_gflops": 10.0,
-        "adaptive": [adaptive, {**adaptive, "state_dim": 3, "B": 1024}],
+        "propagation": {
+            "B": 64,
+            "N": 5,
+            "component_steps_per_s": {"landed (generic)": 1e5, "fused eager": 2e5, "fused compiled": 1e6},
+            "peers": {
+                "filterpy": {"what": "loop", "component_steps_per_s": 1e3},
+                "numpy": {"what": "batch", "component_steps_per_s": 5e5},
+                "jax": {"skipped": "no JAX"},
+            },
+            "vs": {"filterpy": 1000.0, "numpy": 2.0},
+            "vs_landed": 10.0,
+            "kernel_flops_per_component_step": 1900,
+            "fraction_of_peak": 0.2,
+        },
+        "update": {
+            "B": 64,
+            "N": 5,
+            "stars": 5,
+            "seconds": {"landed (generic)": 1.0, "fused compiled": 0.05},
+            "speedup": 20.0,
+        },
+        "spacecraft": {
+            "N": 5,
+            "seconds": {"landed (generic)": 3e-3, "fused compiled": 8e-4},
+            "best_seconds": 8e-4,
+            "filterpy": {"what": "filterpy", "seconds": 2e-3},
+            "vs_filterpy": 2.5,
+        },
+        "compile": {"cold_s": 90.0, "warm_s": 3.0},
+        "adaptive": [adaptive, big, {**adaptive, "state_dim": 3, "B": 1024}],
         "first_step": [{"update": "galerkin", "compile": False, "first_process_s": 3.0, "second_process_s": 2.5}],
         "qp": [qp],
-        "peers": {
-            "B": 64,
-            "gsf_component_steps_per_s": 1e5,
-            "filterpy": {"what": "loop", "component_steps_per_s": 1e3},
-            "numpy": {"what": "batch", "component_steps_per_s": 5e4},
-            "vs_filterpy": 100.0,
-            "vs_numpy": 2.0,
-        },
         "memory_sweep": {"what": "sweep", "batch": 65536, "peak_rss_mib": 1000.0, "seconds": 1.0},
         "memory_adaptive": [
             {"what": "adaptive", "update": "galerkin", "batch": 8192, "peak_rss_mib": 9000.0, "seconds": 1.0}
@@ -94,15 +127,25 @@ def test_table_marks_targets():
     }
     report["targets"] = bench.targets(report)
     table = bench.format_table(report)
-    met = {
-        line.split("|")[1].strip(): line.split("|")[4].strip()
+    rows = {
+        line.split("|")[1].strip(): (line.split("|")[4].strip(), line.split("|")[5].strip())
         for line in table.splitlines()
-        if line.startswith("| ") and line.count("|") == 5
+        if line.startswith("| ") and line.count("|") == 6
     }
-    assert met["Galerkin AGSF predict ÷ GSF, 6-state N=5 B=256"] == "yes"
-    assert met["penalty AGSF predict ÷ GSF, 6-state N=5 B=256"] == "no"
+    met = {k: v[0] for k, v in rows.items()}
+    assert met["GSF predict 6-state N=5 B=64: fused ÷ filterpy (component-steps/s)"] == "yes"
+    assert met["GSF predict 6-state N=5 B=64: fused ÷ numpy (component-steps/s)"] == "no"
+    assert not any("÷ jax" in k for k in met)  # a skipped peer has no target row
+    assert "| jax | skipped: no JAX | — |" in table
+    assert met["star update (5 stars) 6-state N=5 B=64: speed-up over the landed update"] == "yes"
+    assert met["one spacecraft (B=1, N=5, 6-state): predict + update (ms)"] == "yes"
+    assert met["Galerkin AGSF predict ÷ fused GSF, 6-state N=5 B=256"] == "yes"
+    assert met["Galerkin AGSF predict ÷ fused GSF, 6-state N=5 B=4096"] == "no"
+    assert rows["Galerkin AGSF predict ÷ fused GSF, 6-state N=5 B=4096"][1].startswith("the Galerkin matrices")
+    assert met["penalty AGSF predict ÷ fused GSF, 6-state N=5 B=256"] == "no"
+    assert met["first compiled fused step in a new process, cache cold (s)"] == "no"
     assert met["weight QP N=5 B=64: speed-up per problem over Clarabel"] == "yes"
-    assert met["GSF 6-state N=5 B=64 ÷ filterpy loop (component-steps/s)"] == "no"
     assert met["peak RSS, B=65536 × N=5 GSF sweep (GB)"] == "yes"
     assert met["peak RSS, galerkin adaptive step at B=8192 (GB)"] == "no"
     assert met["first galerkin step in a new process (s)"] == "yes"
+    assert "20.0 % of the float64 matmul peak" in table

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["filterpy_loop", "numpy_batch", "jax_batch", "attitude_rk4_step", "JAX_MISSING"]
+__all__ = ["filterpy_loop", "filterpy_spacecraft", "numpy_batch", "jax_batch", "attitude_rk4_step", "JAX_MISSING"]
 
 #: The message of a skipped JAX row.
 JAX_MISSING = "JAX is not installed (an optional bench dependency: pip install -c constraints.txt -e '.[bench]')"
@@ -205,4 +205,69 @@ def jax_batch(count: int, repeats: int = 3, dt: float = 0.1, sv2: float = 1e-13,
         "components": count,
         "component_steps_per_s": count / min(times),
         "first_call_s": compile_s,
+    }
+
+
+def _star_model(x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``h(x) = vec(C(p) rⱼ)`` and ``H = [4/(1+s)² [bⱼ×] B(p)ᵀ, 0]`` for one 6-state component (NumPy)."""
+    p = x[:3]
+    s = p @ p
+    px = _cross(p)
+    C = np.eye(3) + (8.0 * px @ px - 4.0 * (1.0 - s) * px) / (1.0 + s) ** 2
+    B = (1.0 - s) * np.eye(3) + 2.0 * px + 2.0 * np.outer(p, p)
+    b = r @ C.T  # [M, 3]
+    H = np.zeros((3 * len(r), 6))
+    H[:, :3] = (4.0 / (1.0 + s) ** 2 * (_cross(b) @ B.T)).reshape(-1, 3)
+    return b.reshape(-1), H
+
+
+def filterpy_spacecraft(
+    N: int = 5,
+    M: int = 5,
+    repeats: int = 20,
+    dt: float = 0.1,
+    sv2: float = 1e-13,
+    su2: float = 1e-19,
+    sigma: float = 1e-5,
+) -> dict[str, Any]:
+    """Seconds per predict + star update of one spacecraft's ``N`` components as a filterpy user writes it:
+    one ``ExtendedKalmanFilter`` per component, ``predict`` overridden with the RK4 step, filterpy's own
+    ``update(z, HJacobian, Hx, R)`` (Joseph form) with ``M`` star vectors, in a Python loop."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    class AttitudeEKF(ExtendedKalmanFilter):
+        def predict(self, u=None):
+            x, P = attitude_rk4_step(self.x.ravel(), self.P, u, dt, sv2, su2)
+            self.x, self.P = x.reshape(-1, 1), P
+
+    x, P, w = _problem(N)
+    rng = np.random.default_rng(1)
+    r = rng.standard_normal((M, 3))
+    r /= np.linalg.norm(r, axis=-1, keepdims=True)
+    z = (_star_model(x[0], r)[0]).reshape(-1, 1)
+    R = sigma**2 * np.eye(3 * M)
+    filters = []
+    for k in range(N):
+        ekf = AttitudeEKF(dim_x=6, dim_z=3 * M)
+        ekf.x, ekf.P = x[k].reshape(-1, 1), P[k].copy()
+        filters.append(ekf)
+
+    def step():
+        for ekf in filters:
+            ekf.predict(w)
+            ekf.update(
+                z, lambda s: _star_model(s.ravel(), r)[1], lambda s: _star_model(s.ravel(), r)[0].reshape(-1, 1), R=R
+            )
+
+    step()
+    times = []
+    for _ in range(repeats):
+        for k, ekf in enumerate(filters):  # the same problem each repeat
+            ekf.x, ekf.P = x[k].reshape(-1, 1), P[k].copy()
+        t = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t)
+    return {
+        "what": f"filterpy ExtendedKalmanFilter per component: RK4 predict and its update (Joseph form), {N} components, {M} stars",
+        "seconds": float(np.median(times)),
     }

@@ -3,18 +3,20 @@
 Every ratio comes from one run on one machine, the two sides timed alternately
 (median of repeats after a warm-up), so a load change affects both.  Compilation
 is measured on its own, in fresh processes.  The report ends with each target,
-the measured value and whether it is met (:mod:`.bench_report`).
+the measured value and whether it is met (:mod:`.report`).
 
 Measured:
 
-* one predict step (one gyro interval) of the classic GSF, the adaptive GSF with
-  the Galerkin update and with the paper's (penalty) update, 6-state N = 5 B = 256
-  and 3-state N = 5 B = 1024;
+* the fused paths beside the landed (generic) ones and the peers (:mod:`.fused`): the GSF's
+  predict against a filterpy loop, a NumPy batch and JAX ``jit(vmap(step))``, the star update,
+  one spacecraft's predict + update, the first compiled step cold and warm, the fraction of the
+  float64 peak;
+* one predict step (one gyro interval) of the classic GSF (generic and fused), the adaptive GSF
+  with the Galerkin update and with the paper's (penalty) update, 6-state N = 5 B = 256 and 4096
+  (Galerkin) and 3-state N = 5 B = 1024;
 * the first adaptive step in a new process (import, construction, first predict),
   twice, so the second run shows what the on-disk caches reuse;
 * the weight QP against Clarabel called per problem (as its users call it), N = 5 and 32;
-* the GSF's propagation against its peers (:mod:`.bench_peers`: a filterpy loop and a
-  vectorised NumPy batch, the same RK4 (μ, Φ, S) work), 6-state N = 5 B = 8192;
 * peak resident memory of a B = 65,536 × N = 5 GSF sweep and of an adaptive step at B = 8192,
   each in a fresh process.
 """
@@ -32,6 +34,7 @@ from typing import Any
 import torch
 
 from ...storage.files import write_json
+from .fused import bench_compile, bench_propagation, bench_spacecraft, bench_update
 from .harness import WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
 from .report import format_table, targets
 
@@ -40,9 +43,12 @@ __all__ = ["run_bench", "format_table", "targets"]
 F64 = torch.float64
 
 
-def bench_adaptive(estimate_bias: bool, B: int, N: int = 5, repeats: int = 5, compile: bool = False) -> dict[str, Any]:
-    """One predict step of GSF, AGSF (Galerkin) and AGSF (penalty; also with its compiled node kernel if
-    ``compile``), timed side by side; the penalty ratio is the faster of the two."""
+def bench_adaptive(
+    estimate_bias: bool, B: int, N: int = 5, repeats: int = 5, compile: bool = False, penalty: bool = True
+) -> dict[str, Any]:
+    """One predict step of the GSF (generic, and fused: compiled if ``compile``), AGSF (Galerkin) and AGSF
+    (penalty, if ``penalty``), the adaptive ones with the same fused propagation, timed side by side; the
+    ratios are to the fused GSF."""
     from ...filters.registry import make_filter
     from ...models import AttitudeModel
 
@@ -50,23 +56,26 @@ def bench_adaptive(estimate_bias: bool, B: int, N: int = 5, repeats: int = 5, co
     mix = attitude_mixture(B, N, estimate_bias, torch.Generator().manual_seed(0))
     u = torch.full((B, 3), 0.06, dtype=F64)
     filters = {
-        "GSF": make_filter("GSF", model),
-        "AGSF-galerkin": make_filter("AGSF-galerkin", model),
-        "AGSF-penalty": make_filter("AGSF", model),
+        "GSF (generic)": make_filter("GSF", model, fused=False),
+        "GSF": make_filter("GSF", model, compile=compile),
+        "AGSF-galerkin": make_filter("AGSF-galerkin", model, compile=compile),
     }
-    if compile:
-        filters["AGSF-penalty-compiled"] = make_filter("AGSF", model, compile=True)
+    if penalty:
+        filters["AGSF-penalty"] = make_filter("AGSF", model, compile=compile)
     sec = side_by_side({k: (lambda f=f: f.predict(mix, u, 0.1)) for k, f in filters.items()}, repeats)
-    penalty = min(v for k, v in sec.items() if k.startswith("AGSF-penalty"))
-    return {
+    out = {
         "state_dim": model.state_dim,
         "N": N,
         "B": B,
+        "compiled": compile,
         "seconds": sec,
         "galerkin_ratio": sec["AGSF-galerkin"] / sec["GSF"],
-        "penalty_ratio": penalty / sec["GSF"],
-        "penalty_seconds": penalty,
+        "galerkin_ratio_to_generic_gsf": sec["AGSF-galerkin"] / sec["GSF (generic)"],
     }
+    if penalty:
+        out["penalty_ratio"] = sec["AGSF-penalty"] / sec["GSF"]
+        out["penalty_seconds"] = sec["AGSF-penalty"]
+    return out
 
 
 _FIRST_STEP_SCRIPT = """
@@ -126,42 +135,11 @@ def bench_qp(B: int = 8192, N: int = 5, clarabel_samples: int = 300) -> dict[str
     }
 
 
-def bench_peers(B: int = 8192, N: int = 5, filterpy_samples: int = 2000) -> dict[str, Any]:
-    """The GSF's predict (6-state) against the filterpy loop and the NumPy batch (:mod:`.bench_peers`)."""
-    from ...filters.registry import make_filter
-    from ...models import AttitudeModel
-    from .peers import filterpy_loop, numpy_batch
-
-    filt = make_filter("GSF", AttitudeModel(estimate_bias=True))
-    mix = attitude_mixture(B, N, True, torch.Generator().manual_seed(1))
-    u = torch.full((B, 3), 0.06, dtype=F64)
-    ours = B * N / median_time(lambda: filt.predict(mix, u, 0.1), repeats=5)
-    fp = filterpy_loop(filterpy_samples)
-    nb = numpy_batch(B * N)
-    return {
-        "B": B,
-        "N": N,
-        "gsf_component_steps_per_s": ours,
-        "filterpy": fp,
-        "numpy": nb,
-        "vs_filterpy": ours / fp["component_steps_per_s"],
-        "vs_numpy": ours / nb["component_steps_per_s"],
-    }
-
-
 def bench_matmul_peak(size: int = 2048) -> float:
     a = torch.randn(size, size, dtype=F64)
     b = torch.randn(size, size, dtype=F64)
     sec = median_time(lambda: a @ b, repeats=5, budget=20.0)
     return 2.0 * size**3 / sec
-
-
-def propagation_flops(n: int) -> float:
-    """FLOPs of one component's RK4 step as written (transition-matrix form): per stage the
-    products ``AΦ`` and ``AS`` (4n³), ``AS + (AS)ᵀ + gQgᵀ`` (2n²), the closed-form Jacobian and
-    drift (~60) and the increments of μ, Φ, S (4n + 8n²); then ``ΦPΦᵀ + S`` (4n³ + 3n²)."""
-    stage = 4 * n**3 + 2 * n**2 + 60 + 4 * n + 8 * n**2
-    return 4 * stage + 4 * n**3 + 3 * n**2
 
 
 def _peak_rss(module_args: list[str]) -> dict[str, Any]:
@@ -192,14 +170,26 @@ def run_bench(out: Path | None = None, *, compile: bool = True, quick: bool = Fa
         }
     }
     report["matmul_peak_gflops"] = bench_matmul_peak(512 if quick else 2048) / 1e9
+    reps = 2 if quick else 5
+    report["propagation"] = bench_propagation(
+        B=256 if quick else 8192,
+        repeats=reps,
+        compile=compile,
+        filterpy_samples=100 if quick else 2000,
+        peak_flops=report["matmul_peak_gflops"] * 1e9,
+    )
+    report["update"] = bench_update(B=64 if quick else 4096, repeats=reps, compile=compile)
+    report["spacecraft"] = bench_spacecraft(repeats=5 if quick else 50, compile=compile)
     report["adaptive"] = [
-        bench_adaptive(True, 16 if quick else 256, repeats=2 if quick else 5, compile=compile),
-        bench_adaptive(False, 32 if quick else 1024, repeats=2 if quick else 5, compile=compile),
+        bench_adaptive(True, 16 if quick else 256, repeats=reps, compile=compile),
+        bench_adaptive(True, 64 if quick else 4096, repeats=reps, compile=compile, penalty=False),
+        bench_adaptive(False, 32 if quick else 1024, repeats=reps, compile=compile),
     ]
     cases = (("galerkin", False), ("penalty", False)) + ((("penalty", True),) if compile else ())
     report["first_step"] = bench_first_step(cases[:1] if quick else cases)
     report["qp"] = [bench_qp(B=256 if quick else 8192, N=N, clarabel_samples=20 if quick else 300) for N in (5, 32)]
-    report["peers"] = bench_peers(B=256 if quick else 8192, filterpy_samples=100 if quick else 2000)
+    if compile and not quick:
+        report["compile"] = bench_compile()
     report["memory_sweep"] = _peak_rss(
         ["gsf", "--batch", str(4096 if quick else 65536), "--chunk", "4096" if quick else "16384"]
     )
