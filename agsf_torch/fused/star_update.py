@@ -46,7 +46,7 @@ from torch import Tensor
 
 from ..models.base import MeasurementModel
 from ..models.star_vectors import StarVectorMeasurement
-from ..update import ComponentUpdate, check_innovation
+from ..update import ComponentUpdate, check_innovation, covariance_form_usable
 from .lanes import entries, run_in_chunks, stack_entries
 from .propagation import positive_pivots
 
@@ -360,8 +360,11 @@ def fused_star_update(
     new_log_weights = joint - log_lik.unsqueeze(-1)
     nis_mixture = None
     if mixture_nis:
+        entry_valid = star_valid.to(means.dtype).repeat_interleave(3, dim=-1).expand(*lead[:-1], 3 * M)
         nis_mixture = (
-            nis[..., 0] if N == 1 else mixture_information_nis(log_weights, nu, HL, measurement.sigma.to(means) ** 2)
+            nis[..., 0]
+            if N == 1
+            else mixture_information_nis(log_weights, nu, HL, measurement.sigma.to(means) ** 2, entry_valid)
         )
     any_valid = dof[..., 0] > 0
     new_means = torch.where(any_valid[..., None, None], new_means, means)
@@ -392,19 +395,22 @@ def _check_innovation(
     check_innovation(y.unsqueeze(-2), means, h, S_diag, valid)
 
 
-def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2: Tensor) -> Tensor:
-    r"""The moment-matched mixture NIS ``ν̄ᵀS̄⁻¹ν̄`` (:func:`~agsf_torch.update.moment_matched_innovation`) in
-    information form.  With ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ Hᵢ Lᵢ, √wᵢ (νᵢ − ν̄)]ᵢ`` (``[..., d, (k+1)N]``):
+def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2: Tensor, valid: Tensor) -> Tensor:
+    r"""The moment-matched mixture NIS ``ν̄ᵀS̄⁻¹ν̄`` (:func:`~agsf_torch.update.moment_matched_innovation`) from
+    square roots: ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ Hᵢ Lᵢ, √wᵢ (νᵢ − ν̄)]ᵢ`` (``[..., d, (k+1)N]``).
+
+    Where the Cholesky factor of ``S̄`` is fit for solves (:func:`~agsf_torch.update.covariance_form_usable`,
+    the generic update's rule), with it; elsewhere (a precise sensor after a wide prior) in information form,
 
     .. math:: \bar ν^T \bar S^{-1} \bar ν = |\bar ν - A z|^2/σ^2 + |z|^2,\quad
               z = (I + A^T A/σ^2)^{-1} A^T \bar ν / σ^2,
 
-    a factorisation of a matrix ``⪰ I`` (by Cholesky, or where rounding defeats it, by a QR of
-    ``[A/σ; I]``), accurate whatever the conditioning of ``S̄``.
+    with the factor of ``I + AᵀA/σ² ⪰ I`` from a QR of ``[A/σ; I]``: accurate whatever the
+    conditioning of ``S̄``.
 
     Args:
         log_weights: ``[..., N]``; nu: ``[..., N, d]`` (zero at masked entries); HL: ``Hᵢ Lᵢ``
-        ``[..., N, d, k]`` (zero rows at masked entries); sigma2: ``σ²``.
+        ``[..., N, d, k]`` (zero rows at masked entries); sigma2: ``σ²``; valid: ``[..., d]`` entry validity.
 
     Returns:
         ``[...]``.
@@ -415,15 +421,24 @@ def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2:
     dn = sw[..., None] * (nu - nu_bar.unsqueeze(-2))  # [..., N, d]
     spread = (sw[..., None, None] * HL).movedim(-3, -2).flatten(-2)  # [..., d, N k]
     A = torch.cat((spread, dn.transpose(-1, -2)), -1)
+    d = A.shape[-2]
+    valid = valid.to(A.dtype).expand(A.shape[:-1])
+    S = A @ A.transpose(-1, -2) + torch.diag_embed(valid * sigma2 + (1.0 - valid))
+    L, info = torch.linalg.cholesky_ex(S)
+    usable = covariance_form_usable(L, info, valid, S)
+    z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False)
+    nis = (z * z).sum((-2, -1))
+    if bool(usable.all()):
+        return nis
+    # information form where the covariance form is not accurate
+    Af, nf = A[~usable], nu_bar[~usable]
     k = A.shape[-1]
-    eye = torch.eye(k, dtype=A.dtype, device=A.device)
-    L, info = torch.linalg.cholesky_ex(A.transpose(-1, -2) @ A / sigma2 + eye)
-    failed = info != 0
-    if bool(failed.any()):  # I + AᵀA/σ² singular to rounding (σ far below A): its factor from a QR of [A/σ; I]
-        R = torch.linalg.qr(torch.cat((A[failed] / sigma2.sqrt(), eye.expand(int(failed.sum()), k, k)), -2)).R
-        sign = torch.where(R.diagonal(dim1=-2, dim2=-1) < 0, -1.0, 1.0).to(R)
-        L = L.index_put((failed.nonzero(as_tuple=True)), (sign[..., :, None] * R).transpose(-1, -2))
-    rhs = (A.transpose(-1, -2) @ nu_bar.unsqueeze(-1)) / sigma2
-    z = torch.cholesky_solve(rhs, L)
-    e = nu_bar - (A @ z).squeeze(-1)
-    return (e * e).sum(-1) / sigma2 + (z * z).sum((-2, -1))
+    eye = torch.eye(k, dtype=A.dtype, device=A.device).expand(Af.shape[0], k, k)
+    R = torch.linalg.qr(torch.cat((Af / sigma2.sqrt(), eye), -2)).R  # RᵀR = I + AᵀA/σ²
+    rhs = Af.transpose(-1, -2) @ nf.unsqueeze(-1) / sigma2
+    zf = torch.linalg.solve_triangular(
+        R, torch.linalg.solve_triangular(R.transpose(-1, -2), rhs, upper=False), upper=True
+    )
+    e = nf - (Af @ zf).squeeze(-1)
+    del d
+    return nis.index_put((~usable).nonzero(as_tuple=True), (e * e).sum(-1) / sigma2 + (zf * zf).sum((-2, -1)))
