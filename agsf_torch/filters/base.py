@@ -376,10 +376,18 @@ class BaseFilter:
         factorisation when it holds everywhere and no component changed chart."""
         before = covs
         means, covs = self.model.canonicalize(means, covs)
-        if positive_definite is not None and covs is before and bool(positive_definite.all()):
+        if positive_definite is None:
+            covs, repairs = self._ensure_positive_definite(covs, where)
+            return means, covs, repairs
+        if covs is not before:  # components that changed chart are checked again
+            positive_definite = positive_definite & ~(covs != before).flatten(-2).any(-1)
+        if bool(positive_definite.all()):
             return means, covs, 0
-        covs, repairs = self._ensure_positive_definite(covs, where)
-        return means, covs, repairs
+        at = (~positive_definite).nonzero(as_tuple=True)
+        checked, repairs = self._ensure_positive_definite(covs[at], where)
+        if repairs == 0:
+            return means, covs, 0
+        return means, covs.index_put(at, checked), repairs
 
     def _after_update(self, posterior: GaussianMixture) -> None:
         """Hook after a measurement update (the adaptive filter records its reference weights)."""

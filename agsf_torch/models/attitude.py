@@ -326,10 +326,15 @@ class AttitudeModel(ContinuousModel):
         """Map the components flagged in ``switch [...]`` to the other MRP set.
 
         ``p ← −p/s`` and ``P ← T P Tᵀ`` with ``T = blockdiag(J, I)``,
-        ``J = (2ppᵀ − sI₃)/s²``; bias rows and columns are unchanged.
+        ``J = (2ppᵀ − sI₃)/s²``; bias rows and columns are unchanged.  Only the flagged
+        components are transformed (the others are returned as they are).
         """
         if not bool(switch.any()):
             return mean, cov
+        if mean.shape[:-1] == cov.shape[:-2] == switch.shape and not bool(switch.all()):
+            at = switch.nonzero(as_tuple=True)
+            m, P = self._switch(mean[at], cov[at], torch.ones(len(at[0]), dtype=torch.bool, device=switch.device))
+            return mean.index_put(at, m), cov.index_put(at, P)
         p = mean[..., :3]
         safe_p = torch.where(switch[..., None], p, torch.ones_like(p))
         J = mrp_shadow_jacobian(safe_p)
