@@ -16,13 +16,10 @@ from torch import Tensor
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel
 from .gaussian_sum import GaussianSumFilter
-from .options import FilterOptions
 from .weight_updates import WEIGHT_UPDATES, WeightUpdate, make_weight_update
 
 __all__ = ["AdaptiveGaussianSumFilter"]
 
-#: The options of every filter (``compile`` is also the weight updates': one switch for every kernel).
-_FILTER_OPTIONS = {f.name for f in dataclasses.fields(FilterOptions)}
 #: Each weight-update option → the first registered update class that declares it (for error messages).
 _WEIGHT_UPDATE_OPTIONS: dict[str, type[WeightUpdate]] = {}
 for _cls in WEIGHT_UPDATES.values():
@@ -73,7 +70,7 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
         adapt: bool = True,
         **options: Any,
     ) -> None:
-        misplaced = sorted(set(options) & _WEIGHT_UPDATE_OPTIONS.keys() - _FILTER_OPTIONS)
+        misplaced = sorted(set(options) & _WEIGHT_UPDATE_OPTIONS.keys())
         if misplaced:
             name = misplaced[0]
             owner = weight_update if isinstance(weight_update, WeightUpdate) else _WEIGHT_UPDATE_OPTIONS[name]
@@ -83,11 +80,6 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
                 f"pass weight_update={owner_name}({name}=...)"
             )
         super().__init__(model, **options)
-        if isinstance(weight_update, str) and options.get("compile"):  # one switch compiles every kernel
-            weight_update = make_weight_update(weight_update)
-            weight_update = (
-                dataclasses.replace(weight_update, compile=True) if hasattr(weight_update, "compile") else weight_update
-            )
         update = make_weight_update(weight_update)
         update.bind(model)
         self.weight_update = update

@@ -139,10 +139,10 @@ class BaseFilter:
 
     Args:
         model: the continuous-time model (:attr:`model_type`).
-        update_iterations, gate_probability, fused, compile: the options of every filter
+        update_iterations, gate_probability, fused, compile_fused: the options of every filter
             (:class:`~agsf_torch.filters.options.FilterOptions`); ``fused`` (default) takes the
             fused path of a model or measurement that has one (:mod:`agsf_torch.fused`) at the
-            propagate and Kalman steps, ``compile`` runs it through ``torch.compile``.  ``update_iterations``: linearisations
+            propagate and Kalman steps, ``compile_fused`` runs it through ``torch.compile``.  ``update_iterations``: linearisations
             per measurement update; 1 (default) is the EKF update of the method, more give the
             iterated EKF update (:func:`agsf_torch.update.kalman_update`).  ``gate_probability``:
             ``None`` (default, the method: every measurement is used) or ``p``
@@ -172,14 +172,17 @@ class BaseFilter:
         update_iterations: int = 1,
         gate_probability: float | None = None,
         fused: bool = True,
-        compile: bool = False,
+        compile_fused: bool = False,
         repair_covariance: bool = False,
         min_eigenvalue: float = 1e-12,
     ) -> None:
         if not isinstance(model, self.model_type):
             raise TypeError(f"{type(self).__name__} needs a {self.model_type.__name__}, got {type(model).__name__}")
         options = FilterOptions(
-            update_iterations=update_iterations, gate_probability=gate_probability, fused=fused, compile=compile
+            update_iterations=update_iterations,
+            gate_probability=gate_probability,
+            fused=fused,
+            compile_fused=compile_fused,
         )
         if not 0.0 < min_eigenvalue < 1.0:
             raise ValueError(f"min_eigenvalue must lie in (0, 1), got {min_eigenvalue}")
@@ -187,7 +190,7 @@ class BaseFilter:
         self.update_iterations = int(options.update_iterations)
         self.gate_probability = None if options.gate_probability is None else float(options.gate_probability)
         self.fused = options.fused
-        self.compile = options.compile
+        self.compile_fused = options.compile_fused
         self.repair_covariance = bool(repair_covariance)
         self.min_eigenvalue = float(min_eigenvalue)
         self.diagnostics: StepDiagnostics = StepDiagnostics()
@@ -343,7 +346,7 @@ class BaseFilter:
                 self.update_iterations,
                 mask=mask,
                 mixture_nis=self.mixture_nis,
-                compile=self.compile,
+                compile=self.compile_fused,
             )
             if result is not None:
                 return result

@@ -60,7 +60,7 @@ class GaussianSumFilter(BaseFilter):
         fused = None
         if self.fused:
             fused = self.model.fused_propagation(
-                mixture.means, mixture.covs, u_c, dt, self.substeps, compile=self.compile
+                mixture.means, mixture.covs, u_c, dt, self.substeps, compile=self.compile_fused
             )
         if fused is not None:
             means, covs, positive_definite = fused

@@ -98,8 +98,12 @@ class FilterOptions:
         fused: use the fused (matrix-major) path of a model or measurement that declares one
             (:mod:`agsf_torch.fused`: the attitude model's propagation, the star-vector update);
             ``False``: the generic path (any model, ``torch.func``), the reference.
-        compile: run the fused kernels (and the adaptive filters' FPKE kernels) through
-            ``torch.compile`` in fixed-size chunks; ``False`` runs the same code eagerly.
+        compile_fused: run the fused kernels through ``torch.compile`` in fixed-size chunks
+            (one compilation per kernel and chunk size: 30–60 s the first time on a machine,
+            seconds once torch's on-disk cache holds it); ``False`` runs the same code eagerly
+            (from :data:`~agsf_torch.fused.lanes.EAGER_MIN_LANES` components on; fewer take the
+            generic path, which is faster there).  The adaptive filters' FPKE kernels are
+            compiled by their weight update's own ``compile``.
     """
 
     update_iterations: int = field(
@@ -121,14 +125,17 @@ class FilterOptions:
             "use the fused (matrix-major) path of a model that has one; false: the generic path", config="bool"
         ),
     )
-    compile: bool = field(
+    compile_fused: bool = field(
         default=False,
-        metadata=option("torch.compile the fused kernels and the adaptive filters' FPKE kernels", config="bool"),
+        metadata=option(
+            "torch.compile the fused kernels (30–60 s once per machine; pays for long runs of thousands of components)",
+            config="bool",
+        ),
     )
 
     def __post_init__(self) -> None:
         positive_int("update_iterations", self.update_iterations)
-        for name in ("fused", "compile"):
+        for name in ("fused", "compile_fused"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.gate_probability is not None:

@@ -36,7 +36,7 @@ def _filters(compile: bool):
     model = AttitudeModel(estimate_bias=True)
     rows = {"landed (generic)": make_filter("GSF", model, fused=False), "fused eager": make_filter("GSF", model)}
     if compile:
-        rows["fused compiled"] = make_filter("GSF", model, compile=True)
+        rows["fused compiled"] = make_filter("GSF", model, compile_fused=True)
     return rows
 
 
@@ -130,7 +130,7 @@ from agsf_torch.experiments.bench.fused import _star_problem
 from agsf_torch.experiments.bench.harness import attitude_mixture
 from agsf_torch.filters.registry import make_filter
 from agsf_torch.models import AttitudeModel
-filt = make_filter("GSF", AttitudeModel(estimate_bias=True), compile=True)
+filt = make_filter("GSF", AttitudeModel(estimate_bias=True), compile_fused=True)
 mix = attitude_mixture(256, 5, True, torch.Generator().manual_seed(0))
 y, meas = _star_problem(256)
 filt.update(filt.predict(mix, torch.full((256, 3), 0.06, dtype=torch.float64), 0.1), y, meas)

@@ -57,11 +57,11 @@ def bench_adaptive(
     u = torch.full((B, 3), 0.06, dtype=F64)
     filters = {
         "GSF (generic)": make_filter("GSF", model, fused=False),
-        "GSF": make_filter("GSF", model, compile=compile),
-        "AGSF-galerkin": make_filter("AGSF-galerkin", model, compile=compile),
+        "GSF": make_filter("GSF", model, compile_fused=compile),
+        "AGSF-galerkin": make_filter("AGSF-galerkin", model, compile_fused=compile),
     }
     if penalty:
-        filters["AGSF-penalty"] = make_filter("AGSF", model, compile=compile)
+        filters["AGSF-penalty"] = make_filter("AGSF", model, compile=compile, compile_fused=compile)
     sec = side_by_side({k: (lambda f=f: f.predict(mix, u, 0.1)) for k, f in filters.items()}, repeats)
     out = {
         "state_dim": model.state_dim,
