@@ -8,14 +8,16 @@ elementwise operation, and ``torch.compile`` fuses the whole kernel into one pas
 
 :func:`run_in_chunks` runs such a kernel over ``C`` lanes in fixed-size chunks (the tail padded
 by repeating the last lane), eagerly or compiled: one compilation per kernel and chunk size,
-reused by every batch size.  A compilation or compiled-run failure falls back to the eager
-kernel with one warning; the numbers are the eager ones.
+reused by every batch size; each compilation is announced on the ``agsf_torch`` logger (INFO)
+when it starts and ends.  A compilation or compiled-run failure falls back to the eager kernel
+with one warning; the numbers are the eager ones.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import time
 import warnings
 from collections.abc import Callable, Sequence
 
@@ -39,7 +41,7 @@ def worth_fusing(lanes: int, compile: bool) -> bool:
     return compile or lanes >= EAGER_MIN_LANES
 
 
-logger = logging.getLogger("agsf_torch")
+logger = logging.getLogger(__name__)
 
 #: Lanes per compiled call, a ladder of fixed sizes: full chunks of the largest, the rest in one call
 #: of the smallest size that holds it (padded).  One compilation per size actually used, reused by
@@ -95,6 +97,7 @@ class _Declined(Exception):
 
 _COMPILED: dict[tuple, Callable] = {}
 _FAILED: set[tuple] = set()
+_RAN: set[tuple] = set()  # compiled kernels that have run once (their compilation announced)
 
 
 def _compiled(kernel: Callable, key: tuple) -> Callable | None:
@@ -152,7 +155,20 @@ def run_in_chunks(
             c = part[0].shape[0]
             if c < size:  # pad to the compiled shape with copies of the last lane (harmless, valid data)
                 part = [torch.cat((t, t[-1:].expand(size - c, *t.shape[1:]))) for t in part]
+            first = cache_key not in _RAN
+            if first:
+                name = getattr(kernel, "__name__", None) or getattr(getattr(kernel, "func", None), "__name__", "kernel")
+                logger.info(
+                    "compiling the fused kernel %r for %d lanes with torch.compile (first call only: 30–60 s the "
+                    "first time on a machine, seconds once torch's on-disk cache holds it)",
+                    name,
+                    size,
+                )
+                t0 = time.perf_counter()
             outs.append(tuple(o[:c] for o in fn(*part, *shared)))
+            if first:
+                _RAN.add(cache_key)
+                logger.info("compiled the fused kernel %r for %d lanes in %.1f s", name, size, time.perf_counter() - t0)
             a += c
     except _Declined:
         return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)

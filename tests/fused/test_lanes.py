@@ -89,3 +89,17 @@ def test_structural_zeros_and_ones_emit_no_arithmetic(gen):
     assert algebra.matmul(algebra.zeros(6), X) == algebra.zeros(6) and algebra.count() == 0
     algebra.matmul(X, X)
     assert algebra.count() == 6 * 6 * (6 + 5)  # 6 products and 5 sums per entry of a dense product
+
+
+def test_the_first_compiled_call_is_announced(monkeypatch, caplog, gen):
+    import logging
+
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    monkeypatch.setattr(lanes, "_RAN", set())
+    caplog.set_level(logging.INFO, logger="agsf_torch")
+    x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
+    run_in_chunks(_kernel, (x, y), compile=True)
+    run_in_chunks(_kernel, (x, y), compile=True)
+    assert [r.getMessage().split(" the fused kernel ")[0] for r in caplog.records] == ["compiling", "compiled"]
+    assert "'_kernel' for 64 lanes" in caplog.records[0].getMessage()
