@@ -7,6 +7,7 @@ and ``K_ij = z_ij E[ℓⱼ]``, each evaluated over the ``N(N+1)/2`` unordered pa
 from __future__ import annotations
 
 import logging
+import math
 import numbers
 import time
 from dataclasses import dataclass
@@ -262,6 +263,7 @@ def fpke_matrix(
     """
     chunk_size = check_chunk_size(chunk_size)
     N = rates.means.shape[-2]
+    rates = rates.with_precision()  # ℓᵢ at the nodes reads Πᵢ: formed per component, not per pair
     if isinstance(nodes, ProductRule):
         prod, log_scale = _pairs(rates)
         acc = _product_rule_pairs(_kernel("product", compile), model, u, prod, nodes, chunk_size, max_chunk_elements)
@@ -297,6 +299,7 @@ def galerkin_matrices(
     chunk_size: int | None = None,
     max_chunk_elements: int = 2**24,
     compile: bool = False,
+    fused: bool = True,
 ) -> GalerkinMatrices:
     """``M_ij = ∫ pᵢpⱼ dx`` and ``K_ij = ∫ pᵢ Lⱼ dx`` for every pair of components (method.md §3b).
 
@@ -309,6 +312,11 @@ def galerkin_matrices(
       :func:`agsf_torch.fpke.moments.residual_mean`) — exact, ``O(n³)`` per pair;
     * a rule ``(nodes, node_weights)``: by quadrature, as :func:`fpke_matrix`.
 
+    With ``nodes = None`` and ``fused`` (default), a model with a fused kernel for the pairs
+    (:meth:`~agsf_torch.models.base.ContinuousModel.fused_galerkin_pairs`: the attitude models) computes
+    ``log z_ij`` and both ``E[ℓ]`` in one pass over memory, ``torch.compile``-d if ``compile``; the
+    numbers are those of the generic route to rounding.
+
     Returns:
         :class:`GalerkinMatrices` (``[..., N, N]``).
 
@@ -317,6 +325,12 @@ def galerkin_matrices(
     """
     chunk_size = check_chunk_size(chunk_size)
     N = rates.means.shape[-2]
+    if nodes is None and fused:
+        pairs = _fused_pairs(model, u, rates, compile)
+        if pairs is not None:
+            index, log_z, acc = pairs
+            log_scale = log_z.amax(-1)
+            return _galerkin_from_pairs(index, log_z, log_scale, acc, N)
     if nodes is None:
         prod, log_scale = _pairs(rates)
         moments = model.fokker_planck_moments(prod.mean, prod.cov, None if u is None else u.unsqueeze(-2))
@@ -326,13 +340,50 @@ def galerkin_matrices(
             )
         acc = residual_mean(moments, prod.cov, prod.sides, *prod.side_moments())  # [2, ..., P]: E[ℓᵢ], E[ℓⱼ]
     else:
+        rates = rates.with_precision()
         prod, log_scale, acc = _integrate_pairs(
             _kernel("galerkin", compile), model, u, rates, nodes, node_weights, chunk_size, max_chunk_elements, (2,)
         )
-    z = torch.exp(prod.log_z - log_scale[..., None])
-    mass = _symmetric_from_pairs(z, prod.index, N)
+    return _galerkin_from_pairs(prod.index, prod.log_z, log_scale, acc, N)
+
+
+def _galerkin_from_pairs(index: Tensor, log_z: Tensor, log_scale: Tensor, acc: Tensor, N: int) -> GalerkinMatrices:
+    """``M̃`` and ``K̃`` from the pairs' ``log z_ij`` ``[..., P]`` and ``E[ℓᵢ], E[ℓⱼ]`` ``[2, ..., P]``."""
+    z = torch.exp(log_z - log_scale[..., None])
+    mass = _symmetric_from_pairs(z, index, N)
     drift = torch.zeros_like(mass)
-    i, j = prod.index
+    i, j = index
     drift[..., j, i] = z * acc[0]  # K_ji = z_ij E[ℓᵢ]
     drift[..., i, j] = z * acc[1]  # K_ij = z_ij E[ℓⱼ] (on the diagonal both are E[ℓᵢ])
     return GalerkinMatrices(mass, drift, log_scale)
+
+
+def _fused_pairs(
+    model: ContinuousModel, u: Tensor | None, rates: ComponentRates, compile: bool
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """The pairs ``i ≤ j`` ``[2, P]``, ``log z_ij`` ``[..., P]`` and ``E[ℓᵢ], E[ℓⱼ]`` ``[2, ..., P]`` by the
+    model's fused kernel, or ``None`` if it has none (or declines this many pairs)."""
+    mu = rates.means
+    N, n = mu.shape[-2:]
+    lead = torch.broadcast_shapes(mu.shape[:-2], rates.covs.shape[:-3], () if u is None else u.shape[:-1])
+    index = torch.triu_indices(N, N, device=mu.device)
+    P = index.shape[1]
+    lanes = math.prod(lead) * P
+
+    def side(k: int) -> tuple[Tensor, ...]:
+        # gathered entry-major ([entries, pairs]: the kernel's lanes, one copy) and handed over as a
+        # batch-first view [pairs, *event], whose transpose the kernel reads without copying
+        out = []
+        for t, event in ((mu, 1), (rates.covs, 2), (rates.mean_rates, 1), (rates.cov_rates, 2)):
+            shape = t.shape[-event:]
+            t = t.expand(*lead, N, *shape).reshape(-1, N, math.prod(shape)).permute(2, 0, 1)  # [k, B, N] view
+            out.append(t.index_select(-1, index[k]).reshape(-1, lanes).t().reshape(lanes, *shape))
+        return tuple(out)
+
+    first, second = side(0), side(1)
+    uf = None if u is None else u.unsqueeze(-2).expand(*lead, P, u.shape[-1]).reshape(lanes, u.shape[-1])
+    out = model.fused_galerkin_pairs(first, second, uf, compile=compile)
+    if out is None:
+        return None
+    log_z, e_i, e_j = (t.reshape(*lead, P) for t in out)
+    return index, log_z, torch.stack((e_i, e_j))

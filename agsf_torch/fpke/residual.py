@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 from torch import Tensor
@@ -34,8 +35,8 @@ class ComponentRates:
     Attributes:
         means: ``μᵢ`` ``[..., N, n]``; chol: Cholesky factors of ``Pᵢ`` ``[..., N, n, n]``;
         mean_rates: ``μ̇ᵢ`` ``[..., N, n]``; cov_rates: ``Ṗᵢ`` ``[..., N, n, n]``;
-        precision: ``Πᵢ = Pᵢ⁻¹`` formed once per component from its Cholesky factor
-            (``cholesky_inverse``) unless given; it appears in ``ℓᵢ`` itself.
+        precision: ``Πᵢ = Pᵢ⁻¹`` (it appears in ``ℓᵢ`` itself), formed from the Cholesky factor
+            (``cholesky_inverse``) when first read, unless given as ``_precision``;
         covs: ``Pᵢ`` ``[..., N, n, n]``, formed as ``LLᵀ`` unless given.
     """
 
@@ -43,21 +44,38 @@ class ComponentRates:
     chol: Tensor
     mean_rates: Tensor
     cov_rates: Tensor
-    precision: Tensor | None = None
+    _precision: Tensor | None = None
     covs: Tensor | None = None
 
     def __post_init__(self) -> None:
-        if self.precision is None:
-            Pi = torch.cholesky_inverse(self.chol)
-            object.__setattr__(self, "precision", 0.5 * (Pi + Pi.transpose(-1, -2)))
         if self.covs is None:
             object.__setattr__(self, "covs", self.chol @ self.chol.transpose(-1, -2))
 
-    _EVENT_DIMS = (("means", 1), ("chol", 2), ("mean_rates", 1), ("cov_rates", 2), ("precision", 2), ("covs", 2))
+    @cached_property
+    def precision(self) -> Tensor:
+        """``Πᵢ`` ``[..., N, n, n]``, symmetrised."""
+        if self._precision is not None:
+            return self._precision
+        Pi = torch.cholesky_inverse(self.chol)
+        return 0.5 * (Pi + Pi.transpose(-1, -2))
+
+    def with_precision(self) -> ComponentRates:
+        """These components with ``Πᵢ`` formed now (once per component, before pairs are selected from them)."""
+        if self._precision is not None:
+            return self
+        return ComponentRates(self.means, self.chol, self.mean_rates, self.cov_rates, self.precision, self.covs)
+
+    _EVENT_DIMS = (("means", 1), ("chol", 2), ("mean_rates", 1), ("cov_rates", 2), ("_precision", 2), ("covs", 2))
 
     def map(self, fn) -> ComponentRates:
-        """Apply ``fn(tensor, component_dim)`` to every field (``component_dim`` counted from the end)."""
-        return ComponentRates(*(fn(getattr(self, name), -event - 1) for name, event in self._EVENT_DIMS))
+        """Apply ``fn(tensor, component_dim)`` to every field (``component_dim`` counted from the end); a
+        precision not yet formed stays so."""
+        return ComponentRates(
+            *(
+                None if getattr(self, name) is None else fn(getattr(self, name), -event - 1)
+                for name, event in self._EVENT_DIMS
+            )
+        )
 
     def select(self, index: Tensor) -> ComponentRates:
         """The components ``index`` (along the component dim)."""
@@ -65,7 +83,10 @@ class ComponentRates:
 
     def split(self, sizes: list[int]) -> list[ComponentRates]:
         """Split along the component dim into consecutive groups of ``sizes``."""
-        parts = [getattr(self, name).split(sizes, dim=-event - 1) for name, event in self._EVENT_DIMS]
+        parts = [
+            [None] * len(sizes) if getattr(self, name) is None else getattr(self, name).split(sizes, dim=-event - 1)
+            for name, event in self._EVENT_DIMS
+        ]
         return [ComponentRates(*fields) for fields in zip(*parts)]
 
 

@@ -28,6 +28,8 @@ __all__ = [
     "identity",
     "zeros",
     "axpy",
+    "cholesky",
+    "cholesky_solve",
     "count",
 ]
 
@@ -148,3 +150,49 @@ def identity(n: int) -> list[list[Entry]]:
 def zeros(n: int, m: int | None = None) -> list[list[Entry]]:
     """A structural zero ``n×m`` matrix."""
     return [[None] * (n if m is None else m) for _ in range(n)]
+
+
+def cholesky(P: list[list[Entry]]) -> tuple[list[list[Entry]], list[Entry], Tensor]:
+    """The lower Cholesky factor ``L`` of ``P = LLᵀ`` (lower triangle read), the reciprocals of its
+    diagonal and whether every pivot is positive and finite (``[C]`` bool).
+
+    A non-positive pivot is clamped to ``1e-300`` so the arithmetic stays finite; the flag says where.
+    Every diagonal entry of ``P`` must be a lane (a positive definite matrix has no structural zero there).
+    """
+    n = len(P)
+    L: list[list[Entry]] = zeros(n)
+    inv: list[Entry] = [None] * n
+    ok = None
+    for j in range(n):
+        d = P[j][j]
+        for k in range(j):
+            d = sub(d, mul(L[j][k], L[j][k]))
+        good = d > 0.0
+        ok = good if ok is None else ok & good
+        L[j][j] = d.clamp_min(1e-300).sqrt()
+        inv[j] = 1.0 / L[j][j]
+        for i in range(j + 1, n):
+            v = P[i][j]
+            for k in range(j):
+                v = sub(v, mul(L[i][k], L[j][k]))
+            L[i][j] = mul(v, inv[j])
+    return L, inv, ok
+
+
+def cholesky_solve(L: list[list[Entry]], inv: list[Entry], b: list[Entry]) -> list[Entry]:
+    """``x = (LLᵀ)⁻¹ b`` for one right-hand side ``b`` (forward then back substitution; known zeros
+    of ``b`` emit no arithmetic until they fill in)."""
+    n = len(L)
+    z: list[Entry] = [None] * n
+    for k in range(n):
+        v = b[k]
+        for t in range(k):
+            v = sub(v, mul(L[k][t], z[t]))
+        z[k] = mul(v, inv[k])
+    x: list[Entry] = [None] * n
+    for k in reversed(range(n)):
+        v = z[k]
+        for t in range(k + 1, n):
+            v = sub(v, mul(L[t][k], x[t]))
+        x[k] = mul(v, inv[k])
+    return x

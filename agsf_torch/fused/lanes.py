@@ -47,8 +47,11 @@ logger = logging.getLogger(__name__)
 #: of the smallest size that holds it (padded).  One compilation per size actually used, reused by
 #: every batch size; a single spacecraft (N lanes) pays for 64 lanes, not 4096.
 CHUNK_SIZES = (64, 512, 4096)
-#: Lanes per eager call (bounds the kernel's temporaries).
-DEFAULT_CHUNK = CHUNK_SIZES[-1]
+#: Lanes per eager call: each of a kernel's thousands of lane operations is one torch call, whose
+#: overhead (~3 µs) is paid once per chunk, so eager chunks are large (measured on 2 cores: the Galerkin
+#: pairs of 4096 six-state mixtures 228 ms in chunks of 4096, 125 ms of 16384, ~100 ms of 65536); the
+#: kernel's temporaries are bounded by it (a few hundred live lanes of 512 KiB).
+DEFAULT_CHUNK = 65536
 #: Below this many lanes an *eager* fused kernel is slower than the generic batched path (thousands of
 #: tiny operations instead of tens of batched ones; measured crossover 500–2000 lanes on 2 cores):
 #: models then decline their fused path unless it is compiled.
@@ -59,7 +62,9 @@ def entries(t: Tensor, shape: Sequence[int]) -> list:
     """``t [C, *shape]`` as nested lists (``shape`` deep) of contiguous ``[C]`` lanes (one lane for ``shape = ()``)."""
     C = t.shape[0]
     k = math.prod(shape)
-    flat = t.reshape(C, k).t().contiguous()  # [k, C]: entry-major
+    flat = t.reshape(C, k).t()  # [k, C]: entry-major
+    if flat.stride(-1) != 1:  # a batch-first input is transposed once; an entry-major view is read as it is
+        flat = flat.contiguous()
     rows = list(flat.unbind(0))
 
     def nest(items: list, dims: Sequence[int]) -> list:
@@ -151,7 +156,7 @@ def run_in_chunks(
             fn = _compiled(kernel, cache_key)
             if fn is None:
                 raise _Declined
-            part = [t[a : a + size] for t in inputs]
+            part = [t[a : a + size].contiguous() for t in inputs]  # one memory layout per compiled graph
             c = part[0].shape[0]
             if c < size:  # pad to the compiled shape with copies of the last lane (harmless, valid data)
                 part = [torch.cat((t, t[-1:].expand(size - c, *t.shape[1:]))) for t in part]

@@ -22,7 +22,7 @@ import functools
 
 from torch import Tensor
 
-from .algebra import Entry, add, dot, identity, matmul, matmul_t, mul, sub, zeros
+from .algebra import Entry, add, cholesky, dot, identity, matmul, matmul_t, mul, sub, zeros
 from .lanes import entries, stack_entries
 
 __all__ = ["attitude_propagation_kernel", "attitude_rates", "positive_pivots", "propagation_kernel"]
@@ -78,23 +78,7 @@ def _combine(x, k1, k2, k3, k4, h):
 def positive_pivots(P: Mat) -> Tensor:
     """Whether every pivot of the Cholesky factorisation of ``P`` (lower triangle read) is positive
     and finite: ``P`` is numerically positive definite (``[C]`` bool)."""
-    n = len(P)
-    L: Mat = zeros(n)
-    ok = None
-    for j in range(n):
-        d = P[j][j]
-        for k in range(j):
-            d = sub(d, mul(L[j][k], L[j][k]))
-        good = d > 0.0
-        ok = good if ok is None else ok & good
-        L[j][j] = d.clamp_min(1e-300).sqrt()
-        inv = 1.0 / L[j][j]
-        for i in range(j + 1, n):
-            v = P[i][j]
-            for k in range(j):
-                v = sub(v, mul(L[i][k], L[j][k]))
-            L[i][j] = mul(v, inv)
-    return ok
+    return cholesky(P)[2]
 
 
 def attitude_propagation_kernel(

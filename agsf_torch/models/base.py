@@ -254,6 +254,20 @@ class ContinuousModel(nn.Module):
         ``compile`` runs the kernel through ``torch.compile``."""
         return None
 
+    def fused_galerkin_pairs(
+        self,
+        first: tuple[Tensor, Tensor, Tensor, Tensor],
+        second: tuple[Tensor, Tensor, Tensor, Tensor],
+        u: Tensor | None,
+        *,
+        compile: bool = False,
+    ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The Galerkin pair integrals of :func:`agsf_torch.fpke.galerkin_matrices` (closed-form route) by a
+        fused kernel (:mod:`agsf_torch.fused`), if the model has one: ``(log z_ij, E[ℓᵢ], E[ℓⱼ])``, each
+        ``[L]``, for ``L`` pairs given as ``first = (μᵢ [L, n], Pᵢ [L, n, n], μ̇ᵢ [L, n], Ṗᵢ [L, n, n])``,
+        ``second`` likewise and ``u [L, m]``; ``None`` (default): the generic path."""
+        return None
+
     # --------------------------------------------------------- state manifold
     def canonicalize(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
         """Re-express Gaussian components in a canonical chart (identity by default).

@@ -103,8 +103,10 @@ class WeightUpdate:
         """The keys :meth:`compute` returns (besides ``weights_adapted``)."""
         return self.DIAGNOSTICS
 
-    def bind(self, model: ContinuousModel) -> None:
-        """Called once by the filter with its model (build quadrature rules here)."""
+    def bind(self, model: ContinuousModel, *, fused: bool = True, compile_fused: bool = False) -> None:
+        """Called once by the filter with its model (build quadrature rules here) and its ``fused`` and
+        ``compile_fused`` options (:class:`~agsf_torch.filters.options.FilterOptions`), for a weight update
+        whose integrals have a fused kernel."""
 
     def __call__(
         self,
@@ -212,7 +214,8 @@ class QuadratureUpdate(WeightUpdate):
             bound memory).
         compile: evaluate the node kernels with ``torch.compile`` (fused elementwise
             work; a one-off compilation of 10–20 s per shape, kept in the on-disk
-            inductor cache); unused by the closed-form Galerkin path.
+            inductor cache); unused by the closed-form Galerkin path, whose fused pair kernel follows
+            the filter's ``compile_fused``.
     """
 
     quadrature: Any = field(default=None, metadata=option("the residual integrals' rule (None: the model's exact one)"))
@@ -233,8 +236,9 @@ class QuadratureUpdate(WeightUpdate):
         if not isinstance(self.compile, bool):
             raise ValueError(f"compile must be True or False, got {self.compile!r}")
 
-    def bind(self, model: ContinuousModel) -> None:
+    def bind(self, model: ContinuousModel, *, fused: bool = True, compile_fused: bool = False) -> None:
         self.rule["nodes"], self.rule["weights"] = residual_rule(model, self.quadrature, self.factors)
+        self.rule["fused"], self.rule["compile_fused"] = bool(fused), bool(compile_fused)
 
     def check(self, mixture: GaussianMixture) -> None:
         """The weight QP (:func:`~agsf_torch.qp.solve_simplex_qp`) takes ``N ≤ MAX_COMPONENTS`` components."""

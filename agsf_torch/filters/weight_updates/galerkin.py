@@ -28,7 +28,8 @@ class GalerkinWeightUpdate(QuadratureUpdate):
     ``M_ij = ∫pᵢpⱼ = N(μᵢ; μⱼ, Pᵢ + Pⱼ)`` (closed form), ``K_ij = ∫pᵢLⱼ =
     z_ij E_{N(m_ij, S_ij)}[ℓⱼ]`` (:func:`agsf_torch.fpke.galerkin_matrices`, integrand
     ``ℓⱼ``: degree 6 for attitude, exact with 4 Gauss–Hermite points per MRP axis
-    and 2 per bias axis).  ``w⁻`` are the weights before this adaptation (after the
+    and 2 per bias axis; on lanes by the model's fused kernel when it has one and the filter's
+    ``fused`` option is on, :mod:`agsf_torch.fused.galerkin`).  ``w⁻`` are the weights before this adaptation (after the
     last measurement update, if there was one); ``Δt`` is the time since the last
     adaptation (the interval itself at ``cadence = 1``).  Both matrices are
     divided by ``max z_ij``, which leaves the minimiser unchanged.  No λ and no
@@ -95,11 +96,10 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         extra = ("fpke_error_before", "fpke_error_with_rate") if self.residual_diagnostics else ()
         return self.DIAGNOSTICS + extra
 
-    def bind(self, model: ContinuousModel) -> None:
+    def bind(self, model: ContinuousModel, *, fused: bool = True, compile_fused: bool = False) -> None:
+        super().bind(model, fused=fused, compile_fused=compile_fused)
         if self.quadrature is None and has_gaussian_moments(model):
             self.rule["nodes"] = self.rule["weights"] = None  # K in closed form (fpke.moments)
-        else:
-            super().bind(model)
         # the model's rule for ℓᵢℓⱼ, for the residual diagnostics
         self.rule["residual"] = residual_rule(model, None, 2) if self.residual_diagnostics else None
 
@@ -112,8 +112,16 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         elapsed: float,
     ) -> tuple[Tensor, dict[str, Any]]:
         comp = component_rates(model, propagated, u)
+        closed_form = self.rule["nodes"] is None
         G = galerkin_matrices(
-            model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
+            model,
+            u,
+            comp,
+            self.rule["nodes"],
+            self.rule["weights"],
+            self.chunk_size,
+            compile=self.rule["compile_fused"] if closed_form else self.compile,
+            fused=self.rule["fused"],
         )
         check_finite_matrix("Galerkin matrix K", G.drift)
         check_finite_matrix("Galerkin matrix M", G.mass)

@@ -1,0 +1,210 @@
+"""The attitude model's Galerkin pair integrals on lanes: ``log z_ij``, ``E[ℓᵢ]`` and ``E[ℓⱼ]`` per pair.
+
+The same mathematics as :func:`agsf_torch.fpke.galerkin_matrices` on its closed-form route
+(method.md §3b) for :class:`~agsf_torch.models.AttitudeModel`, one lane per pair ``(i, j)`` of
+components: with ``Σ = Pᵢ + Pⱼ`` (Cholesky factor ``L_Σ``), ``d = μᵢ − μⱼ`` and
+``[Kᵀ | y | Σ⁻¹] = Σ⁻¹[Pᵢ | d | I]`` (:func:`~agsf_torch.fpke.pairs.product_gaussians`),
+
+.. math:: m = μ_i − P_i y,\\quad S = P_i − P_i K^T,\\quad
+          \\log z = −½\\big(d^Ty + \\log\\det Σ + n\\log 2π\\big),
+
+the model's Gaussian moments under ``N(m, S)``
+(:meth:`~agsf_torch.models.AttitudeModel.fokker_planck_moments`) and ``E[ℓ]`` of each side
+(:func:`~agsf_torch.fpke.moments.residual_mean`) from ``Πδ = ∓y``, ``ΠS = I − Kᵀ`` or ``Kᵀ`` and
+``ΠSΠ − Π = −Σ⁻¹``.  Written on entries (:mod:`agsf_torch.fused.algebra`): every solve is a
+6×6 (3×3) triangular sweep on lanes, the bias rows of the moments' Jacobian and the MRP-only
+diffusion pattern are structural zeros, and one pass over memory replaces the generic path's
+hundreds of batched kernels.
+"""
+
+from __future__ import annotations
+
+import math
+
+from torch import Tensor
+
+from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub
+from .lanes import entries
+
+__all__ = ["attitude_pair_kernel", "attitude_moments", "residual_mean"]
+
+Mat = list[list[Entry]]
+
+
+def _sym(A: Mat) -> Mat:
+    """``½(A + Aᵀ)``."""
+    n = len(A)
+    return [[A[i][j] if i == j else mul(0.5, add(A[i][j], A[j][i])) for j in range(n)] for i in range(n)]
+
+
+def attitude_moments(m: list[Entry], S: Mat, u: list[Entry], c: Tensor, n: int) -> dict:
+    """The attitude model's Fokker–Planck moments under ``N(m, S)`` on entries (the equations of
+    :meth:`~agsf_torch.models.AttitudeModel.fokker_planck_moments`): ``scalar``, ``transport`` ``v``,
+    ``transport_jacobian`` ``J`` (bias rows structural zeros), ``field`` ``E[φ]``, ``field_gradient``
+    and ``field_hessian`` (zero on the bias axes).  ``u`` is the gyro rate (the 3-state model's known
+    bias already removed); ``c = σ_v²/32``."""
+    p = m[:3]
+    M = [row[:3] for row in S[:3]]
+    if n == 6:
+        w = [sub(u[k], m[3 + k]) for k in range(3)]
+        C = [[neg(S[i][3 + j]) for j in range(3)] for i in range(3)]
+    else:
+        w = list(u)
+        C = [[None] * 3 for _ in range(3)]
+    Mm = [dot((M[i][k], p[k]) for k in range(3)) for i in range(3)]
+    Es = add(dot((p[k], p[k]) for k in range(3)), add(add(M[0][0], M[1][1]), M[2][2]))
+    Epp = [[add(mul(p[i], p[j]), M[i][j]) for j in range(3)] for i in range(3)]
+    Esp = [add(mul(Es, p[i]), mul(2.0, Mm[i])) for i in range(3)]
+    Es2 = add(
+        add(mul(Es, Es), mul(2.0, dot((M[i][j], M[i][j]) for i in range(3) for j in range(3)))),
+        mul(4.0, dot((p[k], Mm[k]) for k in range(3))),
+    )
+    trC = add(add(C[0][0], C[1][1]), C[2][2])
+    Cm = [dot((C[i][k], p[k]) for k in range(3)) for i in range(3)]
+    CTm = [dot((C[k][i], p[k]) for k in range(3)) for i in range(3)]
+    eps_C = [sub(C[1][2], C[2][1]), sub(C[2][0], C[0][2]), sub(C[0][1], C[1][0])]
+    E_sw = [add(mul(Es, w[i]), mul(2.0, CTm[i])) for i in range(3)]
+    cross = [
+        sub(mul(p[1], w[2]), mul(p[2], w[1])),
+        sub(mul(p[2], w[0]), mul(p[0], w[2])),
+        sub(mul(p[0], w[1]), mul(p[1], w[0])),
+    ]
+    E_cross = [add(cross[i], eps_C[i]) for i in range(3)]
+    E_pw = add(dot((p[k], w[k]) for k in range(3)), trC)
+    Mw = [dot((M[i][k], w[k]) for k in range(3)) for i in range(3)]
+    E_pwp = [add(add(mul(p[i], E_pw), Cm[i]), Mw[i]) for i in range(3)]
+    v_p = [
+        sub(
+            mul(0.25, add(sub(w[i], E_sw[i]), mul(2.0, add(E_cross[i], E_pwp[i])))),
+            mul(mul(8.0, c), add(p[i], Esp[i])),
+        )
+        for i in range(3)
+    ]
+    E_pwT = [[add(mul(p[i], w[j]), C[i][j]) for j in range(3)] for i in range(3)]
+    wx = [[None, neg(w[2]), w[1]], [w[2], None, neg(w[0])], [neg(w[1]), w[0], None]]
+    one_Es = add(1.0, Es)
+    J_pp = [
+        [
+            sub(
+                mul(0.5, add(sub(sub(E_pwT[i][j], E_pwT[j][i]), wx[i][j]), E_pw if i == j else None)),
+                mul(mul(8.0, c), add(one_Es if i == j else None, mul(2.0, Epp[i][j]))),
+            )
+            for j in range(3)
+        ]
+        for i in range(3)
+    ]
+    grad = [mul(4.0, add(p[i], Esp[i])) for i in range(3)]
+    hess = [[add(mul(4.0, one_Es) if i == j else None, mul(8.0, Epp[i][j])) for j in range(3)] for i in range(3)]
+    scalar = sub(mul(1.5, E_pw), mul(mul(4.0, c), add(3.0, mul(5.0, Es))))
+    field = add(add(1.0, mul(2.0, Es)), Es2)
+    if n == 6:
+        one_minus = sub(1.0, Es)
+        px = [[None, neg(p[2]), p[1]], [p[2], None, neg(p[0])], [neg(p[1]), p[0], None]]
+        E_B = [
+            [add(add(one_minus if i == j else None, mul(2.0, px[i][j])), mul(2.0, Epp[i][j])) for j in range(3)]
+            for i in range(3)
+        ]
+        J = [J_pp[i] + [mul(-0.25, E_B[i][j]) for j in range(3)] for i in range(3)] + [[None] * 6 for _ in range(3)]
+        v = v_p + [None] * 3
+        grad = grad + [None] * 3
+        hess = [row + [None] * 3 for row in hess] + [[None] * 6 for _ in range(3)]
+    else:
+        J, v = J_pp, v_p
+    return {
+        "scalar": scalar,
+        "transport": v,
+        "transport_jacobian": J,
+        "field": field,
+        "gradient": grad,
+        "hessian": hess,
+    }
+
+
+def residual_mean(
+    mom: dict,
+    D1: list[Entry],
+    D0: list[Entry],
+    mean_rate: list[Entry],
+    cov_rate: Mat,
+    wbar: list[Entry],
+    PiS: Mat,
+    Q: Mat,
+) -> Entry:
+    """``E[ℓ]`` of one side of a pair (:func:`agsf_torch.fpke.moments.residual_mean` for a diagonal
+    ``D = φD₁ + D₀``, on entries): ``wbar = Πδ``, ``PiS = ΠS``, ``Q = ΠSΠ − Π``."""
+    n = len(wbar)
+    rate_terms = add(
+        dot((wbar[k], mean_rate[k]) for k in range(n)),
+        mul(
+            0.5,
+            add(
+                dot((cov_rate[a][b], mul(wbar[a], wbar[b])) for a in range(n) for b in range(n)),
+                dot((cov_rate[a][b], Q[a][b]) for a in range(n) for b in range(n)),
+            ),
+        ),
+    )
+    J = mom["transport_jacobian"]
+    transport = add(
+        dot((mom["transport"][k], wbar[k]) for k in range(n)),
+        dot((J[a][b], PiS[a][b]) for a in range(n) for b in range(n)),
+    )
+    grad, hess = mom["gradient"], mom["hessian"]
+    g = [dot((PiS[a][b], grad[b]) for b in range(n)) for a in range(n)]
+    Y = [[dot((PiS[a][t], hess[t][b]) for t in range(n)) for b in range(n)] for a in range(n)]
+    base = [add(mul(wbar[k], wbar[k]), Q[k][k]) for k in range(n)]
+    field_part = dot((D1[k], base[k]) for k in range(n))
+    field_extra = add(
+        mul(2.0, dot((D1[k], mul(wbar[k], g[k])) for k in range(n))),
+        dot((D1[a], mul(Y[a][b], PiS[a][b])) for a in range(n) for b in range(n)),
+    )
+    constant_part = dot((D0[k], base[k]) for k in range(n))
+    diffusion = add(add(mul(mom["field"], field_part), field_extra), constant_part)
+    return sub(add(rate_terms, mom["scalar"]), add(transport, diffusion))
+
+
+def attitude_pair_kernel(
+    mean_i: Tensor,
+    cov_i: Tensor,
+    rate_i: Tensor,
+    cov_rate_i: Tensor,
+    mean_j: Tensor,
+    cov_j: Tensor,
+    rate_j: Tensor,
+    cov_rate_j: Tensor,
+    u: Tensor,
+    c: Tensor,
+    su2: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` for every lane (module docstring), batch-first in, ``[c]`` out.
+
+    Args:
+        mean_i, mean_j: ``μ`` ``[c, n]``; cov_i, cov_j: ``P`` ``[c, n, n]``; rate_i, rate_j: ``μ̇`` ``[c, n]``;
+        cov_rate_i, cov_rate_j: ``Ṗ`` ``[c, n, n]``; u: the gyro rate ``[c, 3]`` (rad/s; the 3-state
+        model's known bias removed); c: ``σ_v²/32``; su2: ``σ_u²`` (0-d tensors).
+    """
+    n = mean_i.shape[1]
+    mi, mj = entries(mean_i, (n,)), entries(mean_j, (n,))
+    Pi, Pj = entries(cov_i, (n, n)), entries(cov_j, (n, n))
+    ue = entries(u, (3,))
+    Sigma = [[add(Pi[a][b], Pj[a][b]) for b in range(n)] for a in range(n)]
+    L, inv, _ = cholesky(Sigma)
+    d = [sub(mi[k], mj[k]) for k in range(n)]
+    Kt_cols = [cholesky_solve(L, inv, [Pi[a][b] for a in range(n)]) for b in range(n)]  # column b of Σ⁻¹Pᵢ
+    Kt = [[Kt_cols[b][a] for b in range(n)] for a in range(n)]
+    y = cholesky_solve(L, inv, d)
+    inv_cols = [cholesky_solve(L, inv, [1.0 if a == b else None for a in range(n)]) for b in range(n)]
+    Sinv = _sym([[inv_cols[b][a] for b in range(n)] for a in range(n)])
+    mean = [sub(mi[a], dot((Pi[a][k], y[k]) for k in range(n))) for a in range(n)]
+    S = _sym([[sub(Pi[a][b], dot((Pi[a][k], Kt[k][b]) for k in range(n))) for b in range(n)] for a in range(n)])
+    log_det = 2.0 * sum(L[k][k].log() for k in range(n))
+    log_z = mul(-0.5, add(add(dot((d[k], y[k]) for k in range(n)), log_det), n * math.log(2.0 * math.pi)))
+    mom = attitude_moments(mean, S, ue, c, n)
+    D1 = [c] * 3 + [None] * (n - 3)
+    D0 = [None] * 3 + [mul(0.5, su2)] * (n - 3)
+    Q = [[neg(v) for v in row] for row in Sinv]
+    I_minus_Kt = [[sub(1.0 if a == b else None, Kt[a][b]) for b in range(n)] for a in range(n)]
+    e_i = residual_mean(
+        mom, D1, D0, entries(rate_i, (n,)), entries(cov_rate_i, (n, n)), [neg(v) for v in y], I_minus_Kt, Q
+    )
+    e_j = residual_mean(mom, D1, D0, entries(rate_j, (n,)), entries(cov_rate_j, (n, n)), y, Kt, Q)
+    return log_z, e_i, e_j
