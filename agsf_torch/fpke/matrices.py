@@ -366,24 +366,17 @@ def _fused_pairs(
     mu = rates.means
     N, n = mu.shape[-2:]
     lead = torch.broadcast_shapes(mu.shape[:-2], rates.covs.shape[:-3], () if u is None else u.shape[:-1])
-    index = torch.triu_indices(N, N, device=mu.device)
-    P = index.shape[1]
-    lanes = math.prod(lead) * P
+    T = math.prod(lead)
 
-    def side(k: int) -> tuple[Tensor, ...]:
-        # gathered entry-major ([entries, pairs]: the kernel's lanes, one copy) and handed over as a
-        # batch-first view [pairs, *event], whose transpose the kernel reads without copying
-        out = []
-        for t, event in ((mu, 1), (rates.covs, 2), (rates.mean_rates, 1), (rates.cov_rates, 2)):
-            shape = t.shape[-event:]
-            t = t.expand(*lead, N, *shape).reshape(-1, N, math.prod(shape)).permute(2, 0, 1)  # [k, B, N] view
-            out.append(t.index_select(-1, index[k]).reshape(-1, lanes).t().reshape(lanes, *shape))
-        return tuple(out)
+    def flat(t: Tensor, event: int) -> Tensor:
+        return t.expand(*lead, N, *t.shape[t.dim() - event :]).reshape(T, N, *t.shape[t.dim() - event :])
 
-    first, second = side(0), side(1)
-    uf = None if u is None else u.unsqueeze(-2).expand(*lead, P, u.shape[-1]).reshape(lanes, u.shape[-1])
-    out = model.fused_galerkin_pairs(first, second, uf, compile=compile)
+    uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(T, u.shape[-1])
+    out = model.fused_galerkin_pairs(
+        flat(mu, 1), flat(rates.covs, 2), flat(rates.mean_rates, 1), flat(rates.cov_rates, 2), uf, compile=compile
+    )
     if out is None:
         return None
-    log_z, e_i, e_j = (t.reshape(*lead, P) for t in out)
+    log_z, e_i, e_j = (t.reshape(*lead, -1) for t in out)
+    index = torch.triu_indices(N, N, device=mu.device)
     return index, log_z, torch.stack((e_i, e_j))

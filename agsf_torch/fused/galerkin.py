@@ -24,9 +24,8 @@ import math
 from torch import Tensor
 
 from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub
-from .lanes import entries
 
-__all__ = ["attitude_pair_kernel", "attitude_moments", "residual_mean"]
+__all__ = ["attitude_pair_kernel", "attitude_moments", "residual_mean", "pair_index"]
 
 Mat = list[list[Entry]]
 
@@ -162,30 +161,42 @@ def residual_mean(
     return sub(add(rate_terms, mom["scalar"]), add(transport, diffusion))
 
 
+def pair_index(N: int) -> tuple[list[int], list[int]]:
+    """The pairs ``i ≤ j`` of ``N`` components in the order of ``torch.triu_indices(N, N)``."""
+    pairs = [(i, j) for i in range(N) for j in range(i, N)]
+    return [i for i, _ in pairs], [j for _, j in pairs]
+
+
+def _pair_entries(t: Tensor, shape: tuple[int, ...], index: list[int]) -> list:
+    """The components ``index`` of every trajectory of ``t [c, N, *shape]`` as entries over ``c·P`` lanes
+    (lane ``b·P + p`` is trajectory ``b``'s pair ``p``): gathered entry-major in one pass (compiled, the
+    gather is part of the kernel's loads)."""
+    c, N = t.shape[:2]
+    k = math.prod(shape)
+    gathered = t.reshape(c, N, k).permute(2, 0, 1)[:, :, index]  # [k, c, P]
+    rows = list(gathered.reshape(k, c * len(index)).unbind(0))
+    if len(shape) == 1:
+        return rows
+    return [rows[a * shape[1] : (a + 1) * shape[1]] for a in range(shape[0])]
+
+
 def attitude_pair_kernel(
-    mean_i: Tensor,
-    cov_i: Tensor,
-    rate_i: Tensor,
-    cov_rate_i: Tensor,
-    mean_j: Tensor,
-    cov_j: Tensor,
-    rate_j: Tensor,
-    cov_rate_j: Tensor,
-    u: Tensor,
-    c: Tensor,
-    su2: Tensor,
+    means: Tensor, covs: Tensor, mean_rates: Tensor, cov_rates: Tensor, u: Tensor, c: Tensor, su2: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` for every lane (module docstring), batch-first in, ``[c]`` out.
+    """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` ``[c, P]`` for the ``P = N(N+1)/2`` pairs ``i ≤ j`` of every
+    trajectory (module docstring; pairs in the order of ``torch.triu_indices``).
 
     Args:
-        mean_i, mean_j: ``μ`` ``[c, n]``; cov_i, cov_j: ``P`` ``[c, n, n]``; rate_i, rate_j: ``μ̇`` ``[c, n]``;
-        cov_rate_i, cov_rate_j: ``Ṗ`` ``[c, n, n]``; u: the gyro rate ``[c, 3]`` (rad/s; the 3-state
-        model's known bias removed); c: ``σ_v²/32``; su2: ``σ_u²`` (0-d tensors).
+        means: ``μ`` ``[c, N, n]``; covs: ``P`` ``[c, N, n, n]``; mean_rates: ``μ̇`` ``[c, N, n]``;
+        cov_rates: ``Ṗ`` ``[c, N, n, n]``; u: the gyro rate ``[c, 3]`` (rad/s; the 3-state model's known
+        bias removed); c: ``σ_v²/32``; su2: ``σ_u²`` (0-d tensors).
     """
-    n = mean_i.shape[1]
-    mi, mj = entries(mean_i, (n,)), entries(mean_j, (n,))
-    Pi, Pj = entries(cov_i, (n, n)), entries(cov_j, (n, n))
-    ue = entries(u, (3,))
+    T, N, n = means.shape
+    first, second = pair_index(N)
+    P = len(first)
+    mi, mj = _pair_entries(means, (n,), first), _pair_entries(means, (n,), second)
+    Pi, Pj = _pair_entries(covs, (n, n), first), _pair_entries(covs, (n, n), second)
+    ue = list(u.t().repeat_interleave(P, dim=1).unbind(0))  # [3] lanes of c·P
     Sigma = [[add(Pi[a][b], Pj[a][b]) for b in range(n)] for a in range(n)]
     L, inv, _ = cholesky(Sigma)
     d = [sub(mi[k], mj[k]) for k in range(n)]
@@ -203,8 +214,8 @@ def attitude_pair_kernel(
     D0 = [None] * 3 + [mul(0.5, su2)] * (n - 3)
     Q = [[neg(v) for v in row] for row in Sinv]
     I_minus_Kt = [[sub(1.0 if a == b else None, Kt[a][b]) for b in range(n)] for a in range(n)]
-    e_i = residual_mean(
-        mom, D1, D0, entries(rate_i, (n,)), entries(cov_rate_i, (n, n)), [neg(v) for v in y], I_minus_Kt, Q
-    )
-    e_j = residual_mean(mom, D1, D0, entries(rate_j, (n,)), entries(cov_rate_j, (n, n)), y, Kt, Q)
-    return log_z, e_i, e_j
+    rate_i, rate_j = _pair_entries(mean_rates, (n,), first), _pair_entries(mean_rates, (n,), second)
+    cov_rate_i, cov_rate_j = _pair_entries(cov_rates, (n, n), first), _pair_entries(cov_rates, (n, n), second)
+    e_i = residual_mean(mom, D1, D0, rate_i, cov_rate_i, [neg(v) for v in y], I_minus_Kt, Q)
+    e_j = residual_mean(mom, D1, D0, rate_j, cov_rate_j, y, Kt, Q)
+    return tuple(v.reshape(T, P) for v in (log_z, e_i, e_j))

@@ -323,34 +323,38 @@ class AttitudeModel(ContinuousModel):
 
     def fused_galerkin_pairs(
         self,
-        first: tuple[Tensor, Tensor, Tensor, Tensor],
-        second: tuple[Tensor, Tensor, Tensor, Tensor],
+        means: Tensor,
+        covs: Tensor,
+        mean_rates: Tensor,
+        cov_rates: Tensor,
         u: Tensor,
         *,
         compile: bool = False,
     ) -> tuple[Tensor, Tensor, Tensor] | None:
-        """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` ``[L]`` of the Galerkin update's pairs on lanes
+        """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` ``[T, P]`` of the Galerkin update's pairs on lanes
         (:mod:`agsf_torch.fused.galerkin`): the arithmetic of the closed-form
         :func:`~agsf_torch.fpke.galerkin_matrices` route (product Gaussians, :meth:`fokker_planck_moments`,
         ``E[ℓ]`` of both sides) in one pass over memory; ``None`` (the generic path) for an eager call on
         fewer pairs than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
         from ..fused.galerkin import attitude_pair_kernel
-        from ..fused.lanes import run_in_chunks, worth_fusing
+        from ..fused.lanes import DEFAULT_CHUNK, run_in_chunks, worth_fusing
 
         self.check_input(u)
-        lanes = first[0].shape[0]
-        if not worth_fusing(lanes, compile):
+        T, N = means.shape[:2]
+        pairs = N * (N + 1) // 2
+        if not worth_fusing(T * pairs, compile):
             return None
-        rate = (u if self.estimate_bias else u - self.bias.to(u)).expand(lanes, 3)
-        like = first[0]
+        rate = (u if self.estimate_bias else u - self.bias.to(u)).expand(T, 3)
+        like = means
         shared = ((self.sigma_v**2 / 32.0).to(like), (self.sigma_u**2).to(like))
-        tensors = (*first, *second, rate)
+        tensors = (means, covs, mean_rates, cov_rates, rate)
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (*tensors, *shared))
         return run_in_chunks(
             attitude_pair_kernel,
             tensors,
             shared=shared,
             compile=compile and not differentiable,
+            chunk=max(1, DEFAULT_CHUNK // pairs),
             key=("attitude-galerkin", self.state_dim),
         )
 

@@ -256,16 +256,19 @@ class ContinuousModel(nn.Module):
 
     def fused_galerkin_pairs(
         self,
-        first: tuple[Tensor, Tensor, Tensor, Tensor],
-        second: tuple[Tensor, Tensor, Tensor, Tensor],
+        means: Tensor,
+        covs: Tensor,
+        mean_rates: Tensor,
+        cov_rates: Tensor,
         u: Tensor | None,
         *,
         compile: bool = False,
     ) -> tuple[Tensor, Tensor, Tensor] | None:
         """The Galerkin pair integrals of :func:`agsf_torch.fpke.galerkin_matrices` (closed-form route) by a
         fused kernel (:mod:`agsf_torch.fused`), if the model has one: ``(log z_ij, E[ℓᵢ], E[ℓⱼ])``, each
-        ``[L]``, for ``L`` pairs given as ``first = (μᵢ [L, n], Pᵢ [L, n, n], μ̇ᵢ [L, n], Ṗᵢ [L, n, n])``,
-        ``second`` likewise and ``u [L, m]``; ``None`` (default): the generic path."""
+        ``[T, P]`` for the ``P = N(N+1)/2`` pairs ``i ≤ j`` (``torch.triu_indices`` order) of ``T``
+        mixtures given as ``means [T, N, n]``, ``covs [T, N, n, n]``, their rates ``mean_rates [T, N, n]``,
+        ``cov_rates [T, N, n, n]`` and ``u [T, m]``; ``None`` (default): the generic path."""
         return None
 
     # --------------------------------------------------------- state manifold
