@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -119,7 +118,7 @@ def learn(
         out / "learn.json",
         res.__dict__,
         indent=2,
-        default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o),
+        default=str,  # strict JSON (write_json): undefined numbers are null
     )
     write_text(out / "learn.md", report + "\n")
     return report

@@ -22,7 +22,6 @@ warm-up to the last below ``max_rss_growth_mb``.
 
 from __future__ import annotations
 
-import json
 import math
 import resource
 import time
@@ -35,7 +34,7 @@ import torch
 from ..consistency import nees
 from ..constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
 from ..filters.registry import ADAPTIVE_FILTERS
-from ..storage.files import append_line, write_text
+from ..storage.files import append_line, json_text, write_text
 from .config import ExperimentConfig, load_preset
 from .experiment import make_env, make_filters, prepare_output, prior_covariance
 from .resources import check_memory
@@ -171,7 +170,7 @@ def run_soak(
                 s.reset()
             rows.append(row)
             if log is not None:
-                append_line(log, json.dumps(row))
+                append_line(log, json_text(row))
             if progress:
                 f = "  ".join(
                     f"{k}: {v['rms_arcsec']:.3f}″ NEES {v['mean_nees']:.2f} in3σ {min(v['inside_3sigma']):.4f}"

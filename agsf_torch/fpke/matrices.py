@@ -195,6 +195,8 @@ def _product_rule_pairs(
         )
         c = rule.coefficients(torch.stack((vi, vj)))
         out.append((c[0] * c[1]).sum(-1))
+    if not out:  # no pairs: an empty batch
+        return m.new_zeros(lead)
     return torch.cat(out).reshape(lead)
 
 

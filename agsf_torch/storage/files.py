@@ -14,11 +14,14 @@ Every file the package writes goes through here, so that an interruption
   the file, and :func:`repair_json_lines` removes it before the next append.  A bad
   line anywhere else is corruption and raises ``ValueError`` naming file and line.
 * :func:`read_json` raises ``ValueError`` naming the file for unreadable JSON.
+* :func:`json_text` is the one serialiser: strict JSON (RFC 8259), an undefined number
+  (NaN, ±inf) written as ``null``, never as the bare ``NaN`` other parsers refuse.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import secrets
 import warnings
@@ -33,6 +36,7 @@ __all__ = [
     "write_json",
     "save_figure",
     "append_line",
+    "json_text",
     "read_json",
     "read_json_lines",
     "repair_json_lines",
@@ -69,9 +73,26 @@ def write_text(path: str | Path, text: str) -> Path:
     return Path(path)
 
 
+def _strict(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_strict(v) for v in obj]
+    return obj
+
+
+def json_text(obj: Any, **dumps_kwargs: Any) -> str:
+    """``json.dumps(obj, **dumps_kwargs)`` as strict JSON: every non-finite float (NaN, ±inf; also inside
+    dicts, lists and tuples) becomes ``null``, and ``allow_nan=False`` refuses any left (e.g. from a
+    ``default=`` hook)."""
+    return json.dumps(_strict(obj), allow_nan=False, **dumps_kwargs)
+
+
 def write_json(path: str | Path, obj: Any, **dumps_kwargs: Any) -> Path:
-    """Write ``json.dumps(obj, **dumps_kwargs)`` to ``path`` atomically; returns ``path``."""
-    return write_text(path, json.dumps(obj, **dumps_kwargs))
+    """Write :func:`json_text` of ``obj`` to ``path`` atomically; returns ``path``."""
+    return write_text(path, json_text(obj, **dumps_kwargs))
 
 
 def save_figure(fig: Any, path: str | Path, **savefig_kwargs: Any) -> Path:
@@ -164,5 +185,5 @@ def repair_json_lines(path: str | Path) -> list[Any]:
     if torn:
         warnings.warn(f"{path}: removed a torn last line (an interrupted write)", RuntimeWarning, stacklevel=2)
     if torn or (raw and not raw.endswith(b"\n")):
-        write_text(path, "".join(json.dumps(r) + "\n" for r in records))
+        write_text(path, "".join(json_text(r) + "\n" for r in records))
     return records

@@ -234,3 +234,15 @@ def test_counter_does_not_move_when_the_fpke_matrix_is_not_finite(gen):
         with pytest.raises(ValueError, match=r"FPKE matrix L is not finite at trajectory index \(1,\)"):
             filt.predict(mix, u, 0.1)
         assert filt.state_dict()["weight_update"] == before["weight_update"]
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+@pytest.mark.parametrize("kind", ["penalty", "galerkin"])
+def test_an_empty_batch_gives_an_empty_mixture(estimate_bias, kind):
+    """B = 0 trajectories: both adaptive filters return an empty mixture, as the GSF does (the paper's update
+    failed in torch.cat on no pairs)."""
+    n = 6 if estimate_bias else 3
+    model = AttitudeModel(estimate_bias=estimate_bias)
+    mix = GaussianMixture.from_gaussian(torch.zeros(0, n, dtype=F64), 1e-4 * torch.eye(n, dtype=F64).expand(0, n, n), 3)
+    out = AdaptiveGaussianSumFilter(model, weight_update=kind).predict(mix, torch.zeros(0, 3, dtype=F64), 0.1)
+    assert out.means.shape == (0, 3, n) and out.log_weights.shape == (0, 3)

@@ -9,6 +9,7 @@ import pytest
 from agsf_torch.storage.files import (
     append_line,
     atomic_open,
+    json_text,
     read_json,
     read_json_lines,
     repair_json_lines,
@@ -79,3 +80,19 @@ def test_append_line_refuses_a_newline(tmp_path):
     with pytest.raises(ValueError, match="must not contain a newline"):
         append_line(tmp_path / "x.jsonl", "a\nb")
     assert not (tmp_path / "x.jsonl").exists()
+
+
+def test_every_json_file_is_strict_json_with_null_for_undefined_numbers(tmp_path):
+    """NaN and ±inf (also nested, and as NumPy floats) are written as null, which any JSON parser reads;
+    Python's default would write the bare NaN that strict parsers refuse."""
+    import numpy as np
+
+    obj = {"a": float("nan"), "b": [1.0, float("inf"), (-float("inf"), 2)], "c": np.float64("nan"), "d": "NaN"}
+    path = write_json(tmp_path / "x.json", obj)
+
+    def refuse(token):
+        raise ValueError(f"non-standard JSON constant {token}")
+
+    back = json.loads(path.read_text(), parse_constant=refuse)
+    assert back == {"a": None, "b": [1.0, None, [None, 2]], "c": None, "d": "NaN"}
+    assert json.loads(json_text({"x": [float("nan")]}), parse_constant=refuse) == {"x": [None]}

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from ...storage.files import append_line, repair_json_lines
+from ...storage.files import append_line, json_text, repair_json_lines
 from ..config import ExperimentConfig, parse_override
 from ..experiment import prepare_output, run_experiment
 from ..resources import check_memory
@@ -165,7 +165,7 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
         move_events(out / "configs" / cfg.digest() / "tensorboard", run_dir)
         write_hparams_session(run_dir, params, summary_metrics, domains)
         row = {"digest": cfg.digest(), "params": params, "metrics": summary_metrics}
-        append_line(results, json.dumps(row))
+        append_line(results, json_text(row))
         rows.append(row)
 
     if backend == "local":
