@@ -6,7 +6,7 @@
 * :mod:`.rules` — which quadrature rule.
 """
 
-from .matrices import FPKEMatrix, GalerkinMatrices, fpke_matrix, galerkin_matrices
+from .matrices import FPKEMatrix, GalerkinMatrices, fpke_matrix, fused_galerkin_matrices, galerkin_matrices
 from .pairs import ProductGaussians, product_gaussians
 from .residual import ComponentRates, fpke_residual, log_normal, residual_factor
 from .rules import residual_rule
@@ -21,6 +21,7 @@ __all__ = [
     "fpke_matrix",
     "FPKEMatrix",
     "galerkin_matrices",
+    "fused_galerkin_matrices",
     "GalerkinMatrices",
     "residual_rule",
 ]

@@ -21,7 +21,14 @@ from .moments import residual_mean
 from .pairs import ProductGaussians, product_gaussians
 from .residual import ComponentRates, residual_factor
 
-__all__ = ["FPKEMatrix", "fpke_matrix", "GalerkinMatrices", "galerkin_matrices", "check_chunk_size"]
+__all__ = [
+    "FPKEMatrix",
+    "fpke_matrix",
+    "GalerkinMatrices",
+    "galerkin_matrices",
+    "fused_galerkin_matrices",
+    "check_chunk_size",
+]
 
 
 def _product_chunk(
@@ -316,8 +323,9 @@ def galerkin_matrices(
 
     With ``nodes = None`` and ``fused`` (default), a model with a fused kernel for the pairs
     (:meth:`~agsf_torch.models.base.ContinuousModel.fused_galerkin_pairs`: the attitude models) computes
-    ``log z_ij`` and both ``E[ℓ]`` in one pass over memory, ``torch.compile``-d if ``compile``; the
-    numbers are those of the generic route to rounding.
+    ``log z_ij`` and both ``E[ℓ]`` in one pass over memory (:func:`fused_galerkin_matrices`; it forms the
+    components' moment rates itself, from ``rates.means`` and ``rates.covs``: the model's own rates),
+    ``torch.compile``-d if ``compile``; the numbers are those of the generic route to rounding.
 
     Returns:
         :class:`GalerkinMatrices` (``[..., N, N]``).
@@ -328,11 +336,9 @@ def galerkin_matrices(
     chunk_size = check_chunk_size(chunk_size)
     N = rates.means.shape[-2]
     if nodes is None and fused:
-        pairs = _fused_pairs(model, u, rates, compile)
-        if pairs is not None:
-            index, log_z, acc = pairs
-            log_scale = log_z.amax(-1)
-            return _galerkin_from_pairs(index, log_z, log_scale, acc, N)
+        G = fused_galerkin_matrices(model, u, rates.means, rates.covs, compile)
+        if G is not None:
+            return G
     if nodes is None:
         prod, log_scale = _pairs(rates)
         moments = model.fokker_planck_moments(prod.mean, prod.cov, None if u is None else u.unsqueeze(-2))
@@ -360,25 +366,23 @@ def _galerkin_from_pairs(index: Tensor, log_z: Tensor, log_scale: Tensor, acc: T
     return GalerkinMatrices(mass, drift, log_scale)
 
 
-def _fused_pairs(
-    model: ContinuousModel, u: Tensor | None, rates: ComponentRates, compile: bool
-) -> tuple[Tensor, Tensor, Tensor] | None:
-    """The pairs ``i ≤ j`` ``[2, P]``, ``log z_ij`` ``[..., P]`` and ``E[ℓᵢ], E[ℓⱼ]`` ``[2, ..., P]`` by the
-    model's fused kernel, or ``None`` if it has none (or declines this many pairs)."""
-    mu = rates.means
-    N, n = mu.shape[-2:]
-    lead = torch.broadcast_shapes(mu.shape[:-2], rates.covs.shape[:-3], () if u is None else u.shape[:-1])
+def fused_galerkin_matrices(
+    model: ContinuousModel, u: Tensor | None, means: Tensor, covs: Tensor, compile: bool = False
+) -> GalerkinMatrices | None:
+    """:func:`galerkin_matrices` of the components ``means [..., N, n]``, ``covs [..., N, n, n]`` with their
+    moment rates (:func:`~agsf_torch.propagation.moment_derivatives` at ``u [..., m]``) by the model's fused
+    kernel (:meth:`~agsf_torch.models.base.ContinuousModel.fused_galerkin_pairs`: rates, product Gaussians and
+    ``E[ℓ]`` in one pass), ``torch.compile``-d if ``compile``; ``None`` if the model has no such kernel or
+    declines this many pairs (then the generic route applies)."""
+    N, n = means.shape[-2:]
+    lead = torch.broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])
     T = math.prod(lead)
-
-    def flat(t: Tensor, event: int) -> Tensor:
-        return t.expand(*lead, N, *t.shape[t.dim() - event :]).reshape(T, N, *t.shape[t.dim() - event :])
-
     uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(T, u.shape[-1])
     out = model.fused_galerkin_pairs(
-        flat(mu, 1), flat(rates.covs, 2), flat(rates.mean_rates, 1), flat(rates.cov_rates, 2), uf, compile=compile
+        means.expand(*lead, N, n).reshape(T, N, n), covs.expand(*lead, N, n, n).reshape(T, N, n, n), uf, compile=compile
     )
     if out is None:
         return None
     log_z, e_i, e_j = (t.reshape(*lead, -1) for t in out)
-    index = torch.triu_indices(N, N, device=mu.device)
-    return index, log_z, torch.stack((e_i, e_j))
+    index = torch.triu_indices(N, N, device=means.device)
+    return _galerkin_from_pairs(index, log_z, log_z.amax(-1), torch.stack((e_i, e_j)), N)

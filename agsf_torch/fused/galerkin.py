@@ -11,7 +11,8 @@ components: with ``Σ = Pᵢ + Pⱼ`` (Cholesky factor ``L_Σ``), ``d = μᵢ �
 the model's Gaussian moments under ``N(m, S)``
 (:meth:`~agsf_torch.models.AttitudeModel.fokker_planck_moments`) and ``E[ℓ]`` of each side
 (:func:`~agsf_torch.fpke.moments.residual_mean`) from ``Πδ = ∓y``, ``ΠS = I − Kᵀ`` or ``Kᵀ`` and
-``ΠSΠ − Π = −Σ⁻¹``.  Written on entries (:mod:`agsf_torch.fused.algebra`): every solve is a
+``ΠSΠ − Π = −Σ⁻¹``; the components' moment rates ``μ̇ᵢ, Ṗᵢ`` are formed in the kernel, once per
+component.  Written on entries (:mod:`agsf_torch.fused.algebra`): every solve is a
 6×6 (3×3) triangular sweep on lanes, the bias rows of the moments' Jacobian and the MRP-only
 diffusion pattern are structural zeros, and one pass over memory replaces the generic path's
 hundreds of batched kernels.
@@ -23,7 +24,9 @@ import math
 
 from torch import Tensor
 
-from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub
+from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub, zeros
+from .lanes import entries
+from .propagation import attitude_rates
 
 __all__ = ["attitude_pair_kernel", "attitude_moments", "residual_mean", "pair_index"]
 
@@ -167,36 +170,51 @@ def pair_index(N: int) -> tuple[list[int], list[int]]:
     return [i for i, _ in pairs], [j for _, j in pairs]
 
 
-def _pair_entries(t: Tensor, shape: tuple[int, ...], index: list[int]) -> list:
-    """The components ``index`` of every trajectory of ``t [c, N, *shape]`` as entries over ``c·P`` lanes
-    (lane ``b·P + p`` is trajectory ``b``'s pair ``p``): gathered entry-major in one pass (compiled, the
-    gather is part of the kernel's loads)."""
-    c, N = t.shape[:2]
-    k = math.prod(shape)
-    gathered = t.reshape(c, N, k).permute(2, 0, 1)[:, :, index]  # [k, c, P]
-    rows = list(gathered.reshape(k, c * len(index)).unbind(0))
-    if len(shape) == 1:
-        return rows
-    return [rows[a * shape[1] : (a + 1) * shape[1]] for a in range(shape[0])]
+def _gather(v: Entry, T: int, N: int, index: list[int]) -> Entry:
+    """One entry over ``T·N`` component lanes (trajectory-major) → over ``T·P`` pair lanes, taking
+    component ``index[p]`` for pair ``p`` (structural zeros, numbers and 0-d parameters such as ``σ_u²``
+    pass through: they are the same on every lane)."""
+    if not isinstance(v, Tensor) or v.dim() == 0:
+        return v
+    return v.reshape(T, N)[:, index].reshape(-1)
+
+
+def _gather_symmetric(A: Mat, T: int, N: int, index: list[int]) -> Mat:
+    """A symmetric matrix's entries gathered to the pairs (the lower triangle, mirrored)."""
+    n = len(A)
+    low = [[_gather(A[i][j], T, N, index) for j in range(i + 1)] for i in range(n)]
+    return [[low[i][j] if j <= i else low[j][i] for j in range(n)] for i in range(n)]
 
 
 def attitude_pair_kernel(
-    means: Tensor, covs: Tensor, mean_rates: Tensor, cov_rates: Tensor, u: Tensor, c: Tensor, su2: Tensor
+    means: Tensor, covs: Tensor, u: Tensor, c: Tensor, sv2: Tensor, su2: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` ``[c, P]`` for the ``P = N(N+1)/2`` pairs ``i ≤ j`` of every
-    trajectory (module docstring; pairs in the order of ``torch.triu_indices``).
+    """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` ``[T, P]`` for the ``P = N(N+1)/2`` pairs ``i ≤ j`` of every
+    trajectory (module docstring; pairs in the order of ``torch.triu_indices``).  The components' moment
+    rates ``μ̇ = f(μ)``, ``Ṗ = AP + PAᵀ + gQgᵀ`` are formed here, once per component
+    (:func:`~agsf_torch.fused.propagation.attitude_rates`), and gathered to the pairs with ``μ`` and ``P``.
 
     Args:
-        means: ``μ`` ``[c, N, n]``; covs: ``P`` ``[c, N, n, n]``; mean_rates: ``μ̇`` ``[c, N, n]``;
-        cov_rates: ``Ṗ`` ``[c, N, n, n]``; u: the gyro rate ``[c, 3]`` (rad/s; the 3-state model's known
-        bias removed); c: ``σ_v²/32``; su2: ``σ_u²`` (0-d tensors).
+        means: ``μ`` ``[T, N, n]``; covs: ``P`` ``[T, N, n, n]``; u: the gyro rate ``[T, 3]`` (rad/s; the
+        3-state model's known bias removed); c: ``σ_v²/32``; sv2, su2: ``σ_v²``, ``σ_u²`` (0-d tensors).
     """
     T, N, n = means.shape
+    m_c = entries(means.reshape(T * N, n), (n,))
+    P_c = entries(covs.reshape(T * N, n, n), (n, n))
+    u_c = list(u.t().repeat_interleave(N, dim=1).unbind(0))  # the gyro rate on every component lane
+    f_c, _, Pdot_c = attitude_rates(m_c, zeros(n), P_c, u_c, sv2, su2, n)
     first, second = pair_index(N)
     P = len(first)
-    mi, mj = _pair_entries(means, (n,), first), _pair_entries(means, (n,), second)
-    Pi, Pj = _pair_entries(covs, (n, n), first), _pair_entries(covs, (n, n), second)
-    ue = list(u.t().repeat_interleave(P, dim=1).unbind(0))  # [3] lanes of c·P
+    (mi, Pi, rate_i, cov_rate_i), (mj, Pj, rate_j, cov_rate_j) = (
+        (
+            [_gather(v, T, N, index) for v in m_c],
+            _gather_symmetric(P_c, T, N, index),
+            [_gather(v, T, N, index) for v in f_c],
+            _gather_symmetric(Pdot_c, T, N, index),
+        )
+        for index in (first, second)
+    )
+    ue = [_gather(v, T, N, first) for v in u_c]
     Sigma = [[add(Pi[a][b], Pj[a][b]) for b in range(n)] for a in range(n)]
     L, inv, _ = cholesky(Sigma)
     d = [sub(mi[k], mj[k]) for k in range(n)]
@@ -214,8 +232,6 @@ def attitude_pair_kernel(
     D0 = [None] * 3 + [mul(0.5, su2)] * (n - 3)
     Q = [[neg(v) for v in row] for row in Sinv]
     I_minus_Kt = [[sub(1.0 if a == b else None, Kt[a][b]) for b in range(n)] for a in range(n)]
-    rate_i, rate_j = _pair_entries(mean_rates, (n,), first), _pair_entries(mean_rates, (n,), second)
-    cov_rate_i, cov_rate_j = _pair_entries(cov_rates, (n, n), first), _pair_entries(cov_rates, (n, n), second)
     e_i = residual_mean(mom, D1, D0, rate_i, cov_rate_i, [neg(v) for v in y], I_minus_Kt, Q)
     e_j = residual_mean(mom, D1, D0, rate_j, cov_rate_j, y, Kt, Q)
     return tuple(v.reshape(T, P) for v in (log_z, e_i, e_j))

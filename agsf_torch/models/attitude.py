@@ -322,20 +322,13 @@ class AttitudeModel(ContinuousModel):
         return m.reshape(*lead, n), P.reshape(*lead, n, n), ok.reshape(lead)
 
     def fused_galerkin_pairs(
-        self,
-        means: Tensor,
-        covs: Tensor,
-        mean_rates: Tensor,
-        cov_rates: Tensor,
-        u: Tensor,
-        *,
-        compile: bool = False,
+        self, means: Tensor, covs: Tensor, u: Tensor, *, compile: bool = False
     ) -> tuple[Tensor, Tensor, Tensor] | None:
         """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` ``[T, P]`` of the Galerkin update's pairs on lanes
-        (:mod:`agsf_torch.fused.galerkin`): the arithmetic of the closed-form
-        :func:`~agsf_torch.fpke.galerkin_matrices` route (product Gaussians, :meth:`fokker_planck_moments`,
-        ``E[ℓ]`` of both sides) in one pass over memory; ``None`` (the generic path) for an eager call on
-        fewer pairs than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
+        (:mod:`agsf_torch.fused.galerkin`): the arithmetic of :func:`~agsf_torch.propagation.moment_derivatives`
+        and of the closed-form :func:`~agsf_torch.fpke.galerkin_matrices` route (product Gaussians,
+        :meth:`fokker_planck_moments`, ``E[ℓ]`` of both sides) in one pass over memory; ``None`` (the generic
+        path) for an eager call on fewer pairs than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
         from ..fused.galerkin import attitude_pair_kernel
         from ..fused.lanes import DEFAULT_CHUNK, run_in_chunks, worth_fusing
 
@@ -346,8 +339,8 @@ class AttitudeModel(ContinuousModel):
             return None
         rate = (u if self.estimate_bias else u - self.bias.to(u)).expand(T, 3)
         like = means
-        shared = ((self.sigma_v**2 / 32.0).to(like), (self.sigma_u**2).to(like))
-        tensors = (means, covs, mean_rates, cov_rates, rate)
+        shared = ((self.sigma_v**2 / 32.0).to(like), (self.sigma_v**2).to(like), (self.sigma_u**2).to(like))
+        tensors = (means, covs, rate)
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (*tensors, *shared))
         return run_in_chunks(
             attitude_pair_kernel,

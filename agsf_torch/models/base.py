@@ -255,20 +255,13 @@ class ContinuousModel(nn.Module):
         return None
 
     def fused_galerkin_pairs(
-        self,
-        means: Tensor,
-        covs: Tensor,
-        mean_rates: Tensor,
-        cov_rates: Tensor,
-        u: Tensor | None,
-        *,
-        compile: bool = False,
+        self, means: Tensor, covs: Tensor, u: Tensor | None, *, compile: bool = False
     ) -> tuple[Tensor, Tensor, Tensor] | None:
-        """The Galerkin pair integrals of :func:`agsf_torch.fpke.galerkin_matrices` (closed-form route) by a
-        fused kernel (:mod:`agsf_torch.fused`), if the model has one: ``(log z_ij, E[ℓᵢ], E[ℓⱼ])``, each
-        ``[T, P]`` for the ``P = N(N+1)/2`` pairs ``i ≤ j`` (``torch.triu_indices`` order) of ``T``
-        mixtures given as ``means [T, N, n]``, ``covs [T, N, n, n]``, their rates ``mean_rates [T, N, n]``,
-        ``cov_rates [T, N, n, n]`` and ``u [T, m]``; ``None`` (default): the generic path."""
+        """The Galerkin pair integrals of :func:`agsf_torch.fpke.galerkin_matrices` (closed-form route, the
+        components' moment rates included) by a fused kernel (:mod:`agsf_torch.fused`), if the model has one:
+        ``(log z_ij, E[ℓᵢ], E[ℓⱼ])``, each ``[T, P]`` for the ``P = N(N+1)/2`` pairs ``i ≤ j``
+        (``torch.triu_indices`` order) of ``T`` mixtures given as ``means [T, N, n]``, ``covs [T, N, n, n]``
+        and ``u [T, m]``; ``None`` (default): the generic path."""
         return None
 
     # --------------------------------------------------------- state manifold

@@ -133,7 +133,7 @@ def test_the_weight_update_takes_the_fused_path_with_the_same_weights(gen, monke
 
 def test_the_model_declines_small_eager_batches_and_takes_the_generic_route(gen):
     model, u, comp = _components(gen, 2, 5, 6, 10.0)  # 30 pairs, eager: not worth fusing
-    assert model.fused_galerkin_pairs(comp.means, comp.covs, comp.mean_rates, comp.cov_rates, u) is None
+    assert model.fused_galerkin_pairs(comp.means, comp.covs, u) is None
     G, want = galerkin_matrices(model, u, comp), galerkin_matrices(model, u, comp, fused=False)
     assert torch.equal(G.drift, want.drift) and torch.equal(G.mass, want.mass)  # the same code ran
 

@@ -8,7 +8,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from ...fpke import fpke_matrix, galerkin_matrices, residual_rule
+from ...fpke import fpke_matrix, fused_galerkin_matrices, galerkin_matrices, residual_rule
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...qp import kkt_residual, solve_simplex_qp
@@ -111,18 +111,23 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         u: Tensor | None,
         elapsed: float,
     ) -> tuple[Tensor, dict[str, Any]]:
-        comp = component_rates(model, propagated, u)
         closed_form = self.rule["nodes"] is None
-        G = galerkin_matrices(
-            model,
-            u,
-            comp,
-            self.rule["nodes"],
-            self.rule["weights"],
-            self.chunk_size,
-            compile=self.rule["compile_fused"] if closed_form else self.compile,
-            fused=self.rule["fused"],
-        )
+        comp = None
+        G = None
+        if closed_form and self.rule["fused"]:  # rates and pairs on lanes, if the model has the kernel
+            G = fused_galerkin_matrices(model, u, propagated.means, propagated.covs, self.rule["compile_fused"])
+        if G is None:
+            comp = component_rates(model, propagated, u)
+            G = galerkin_matrices(
+                model,
+                u,
+                comp,
+                self.rule["nodes"],
+                self.rule["weights"],
+                self.chunk_size,
+                compile=self.compile,
+                fused=False,
+            )
         check_finite_matrix("Galerkin matrix K", G.drift)
         check_finite_matrix("Galerkin matrix M", G.mass)
         w0 = propagated.weights
@@ -144,6 +149,7 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         }
         residual = self.rule.get("residual")
         if residual is not None:
+            comp = component_rates(model, propagated, u) if comp is None else comp
             Lmat = fpke_matrix(model, u, comp, *residual, self.chunk_size, compile=self.compile)
             before = Lmat.error(w0)
             extra["fpke_error_before"] = before
