@@ -367,11 +367,12 @@ def fused_star_update(
             else mixture_information_nis(log_weights, nu, HL, measurement.sigma.to(means) ** 2, entry_valid)
         )
     any_valid = dof[..., 0] > 0
-    new_means = torch.where(any_valid[..., None, None], new_means, means)
-    new_covs = torch.where(any_valid[..., None, None, None], new_covs, covs)
-    new_log_weights = torch.where(any_valid[..., None], new_log_weights, log_weights)
-    log_lik = torch.where(any_valid, log_lik, torch.zeros_like(log_lik))
-    positive_definite = positive_definite | ~any_valid[..., None]
+    if not bool(any_valid.all()):  # trajectories without a valid star keep their prior
+        new_means = torch.where(any_valid[..., None, None], new_means, means)
+        new_covs = torch.where(any_valid[..., None, None, None], new_covs, covs)
+        new_log_weights = torch.where(any_valid[..., None], new_log_weights, log_weights)
+        log_lik = torch.where(any_valid, log_lik, torch.zeros_like(log_lik))
+        positive_definite = positive_definite | ~any_valid[..., None]
     return FusedUpdate(
         new_means, new_covs, new_log_weights, log_lik, nis, dof[..., 0], nu, None, nis_mixture, positive_definite
     )
