@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from torch import Tensor
 
 from ..mixture import GaussianMixture
@@ -51,6 +53,12 @@ class GaussianSumFilter(BaseFilter):
         if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
         self.substeps = int(substeps)
+
+    def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
+        """As the base class's, and the model's check of the interval (``ContinuousModel.check_step``)."""
+        u, dt = super()._validate_predict(mixture, u, dt)
+        self.model.check_step(mixture.means, u, dt)
+        return u, dt
 
     def _propagate(self, mixture: GaussianMixture, u: Tensor | None, dt: float) -> tuple[GaussianMixture, int]:
         """The model's fused propagation if it has one and ``fused`` is on

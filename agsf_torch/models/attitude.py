@@ -283,6 +283,34 @@ class AttitudeModel(ContinuousModel):
         p = ((0, 1, 2), 6)
         return (p, ((3, 4, 5), 2)) if self.estimate_bias else (p,)
 
+    #: The largest rotation (rad) the moment equations are asked to follow over one interval: the MRP chart
+    #: is switched between intervals only (``canonicalize``), and within one the MRP runs to ``tan(θ/4)``,
+    #: singular at θ = 2π; a radian keeps ``|p| ≤ tan((π + 1)/4) ≈ 1.7`` and RK4's error small.
+    MAX_ROTATION_PER_INTERVAL = 1.0
+
+    def check_step(self, mean: Tensor, u: Tensor | None, step: float) -> None:
+        """Refuse an interval ``h`` in which the body turns more than :attr:`MAX_ROTATION_PER_INTERVAL` rad,
+        ``|ω̃ − b| h`` (``b`` each component's bias, or the known one), naming the angle, the rate and how many
+        intervals would do (substeps do not help: the chart is switched between intervals)."""
+        if u is None:
+            return
+        bias = mean[..., 3:] if self.estimate_bias else self.bias.to(u)
+        omega = u.detach().unsqueeze(-2) - bias.detach()
+        rate = float(torch.linalg.vector_norm(omega, dim=-1).max()) if omega.numel() else 0.0
+        turn = rate * step
+        limit = self.MAX_ROTATION_PER_INTERVAL
+        if not math.isfinite(turn) or turn > limit:
+            hint = (
+                f"split it into at least {math.ceil(turn / limit)} intervals"
+                if math.isfinite(turn)
+                else "check dt and the gyro rates"
+            )
+            raise ValueError(
+                f"an interval of {step:g} s at a body rate of {rate:g} rad/s turns {turn:g} rad, more than the "
+                f"{limit:g} rad the MRP moment equations follow in one interval (the chart is switched between "
+                f"intervals): {hint}"
+            )
+
     def fused_propagation(
         self, mean: Tensor, cov: Tensor, u: Tensor, dt: float, substeps: int = 1, *, compile: bool = False
     ) -> tuple[Tensor, Tensor, Tensor]:

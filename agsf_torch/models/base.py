@@ -244,6 +244,11 @@ class ContinuousModel(nn.Module):
         """
         return None
 
+    def check_step(self, mean: Tensor, u: Tensor | None, step: float) -> None:
+        """Refuse (``ValueError`` naming the cause) a propagation interval of ``step`` seconds that the moment
+        equations cannot follow at ``mean [..., N, n]`` and ``u [..., m]``; by default every interval is
+        accepted.  Called by the filters before anything changes."""
+
     def fused_propagation(
         self, mean: Tensor, cov: Tensor, u: Tensor | None, dt: float, substeps: int = 1, *, compile: bool = False
     ) -> tuple[Tensor, Tensor, Tensor] | None:

@@ -12,7 +12,7 @@ and continuing gives the same numbers, bit for bit, as never stopping.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import torch
@@ -41,10 +41,13 @@ def save_checkpoint(
 
     Args:
         mixtures / filters: name → the current belief / the filter that owns it.
-        extra: further state (tensors, numbers, strings, lists, dicts), e.g. ``env.state_dict()``.
+        extra: further state (tensors, Python numbers, strings, ``None``, lists, tuples and dicts with string
+            keys), e.g. ``env.state_dict()``; anything else (a NumPy array or scalar, a path) is refused,
+            naming its key, before any file changes.
     """
     if set(mixtures) != set(filters):
         raise ValueError(f"mixtures {sorted(mixtures)} and filters {sorted(filters)} must name the same filters")
+    _check_storable(dict(extra or {}), "extra")
     state = {
         "format": FORMAT,
         "filters": {
@@ -56,6 +59,39 @@ def save_checkpoint(
     with atomic_open(path) as fh:
         torch.save(state, fh)
     return path
+
+
+#: Python types a checkpoint stores as they are (and reads back with ``torch.load(weights_only=True)``).
+_PLAIN = (bool, int, float, str, type(None))
+
+
+def _check_storable(value: Any, where: str) -> None:
+    """Refuse, naming the key, a value that :func:`load_checkpoint` could not read back (NumPy arrays and
+    scalars, paths, arbitrary objects): tensors, Python numbers, strings, ``None`` and lists, tuples and
+    dicts (string keys) of them are stored."""
+    if torch.is_tensor(value) or type(value) in _PLAIN:
+        return
+    if type(value) in (list, tuple):
+        for i, v in enumerate(value):
+            _check_storable(v, f"{where}[{i}]")
+        return
+    if type(value) is dict:
+        for k, v in value.items():
+            if type(k) is not str:
+                raise ValueError(f"{where}: checkpoint keys must be strings, got {type(k).__name__} {k!r}")
+            _check_storable(v, f"{where}[{k!r}]")
+        return
+    kind = f"{type(value).__module__}.{type(value).__qualname__}"
+    hint = (
+        " (convert it with torch.as_tensor or .item())"
+        if type(value).__module__ == "numpy"
+        else " (store str(path))"
+        if isinstance(value, PurePath)
+        else ""
+    )
+    raise ValueError(
+        f"{where} is a {kind}, which a checkpoint cannot store{hint}: use tensors, numbers, strings, lists and dicts"
+    )
 
 
 def _mixture(m: Any) -> GaussianMixture:

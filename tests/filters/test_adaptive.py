@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -246,3 +248,32 @@ def test_an_empty_batch_gives_an_empty_mixture(estimate_bias, kind):
     mix = GaussianMixture.from_gaussian(torch.zeros(0, n, dtype=F64), 1e-4 * torch.eye(n, dtype=F64).expand(0, n, n), 3)
     out = AdaptiveGaussianSumFilter(model, weight_update=kind).predict(mix, torch.zeros(0, 3, dtype=F64), 0.1)
     assert out.means.shape == (0, 3, n) and out.log_weights.shape == (0, 3)
+
+
+@pytest.mark.parametrize("kind", ["gsf", "galerkin", "penalty"])
+@pytest.mark.parametrize(("dt", "rate"), [(1e5, 0.02), (1e7, 0.02), (0.1, 1e3)])
+def test_an_interval_the_propagation_cannot_follow_is_refused_naming_the_rotation(kind, dt, rate):
+    """An interval that turns the body by more than a radian (dt = 1e7 s, or 1e3 rad/s) is refused before
+    anything changes (the Galerkin update returned NaN weights); split as the message says, it runs."""
+    model = AttitudeModel(estimate_bias=True)
+    mean = torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=F64).expand(2, 6)
+    cov = torch.diag(torch.tensor([1e-4] * 3 + [1e-10] * 3, dtype=F64)).expand(2, 6, 6)
+    mix = GaussianMixture.from_gaussian(mean, cov, 3)
+    u = torch.tensor([rate, 0.0, 0.0], dtype=F64).expand(2, 3)
+    filt = {
+        "gsf": lambda: GaussianSumFilter(model),
+        "galerkin": lambda: AdaptiveGaussianSumFilter(model, weight_update="galerkin"),
+        "penalty": lambda: AdaptiveGaussianSumFilter(model),
+    }[kind]()
+    before = filt.state_dict() if kind != "gsf" else None
+    with pytest.raises(
+        ValueError, match=r"turns [0-9.e+]+ rad, more than the 1 rad .* at least (\d+) intervals"
+    ) as exc:
+        filt.predict(mix, u, dt)
+    if before is not None:
+        assert filt.state_dict() == before  # the cadence counter did not move
+    if rate * dt <= 100:  # split into the intervals the message names, the same span runs: finite weights
+        intervals = int(re.search(r"at least (\d+) intervals", str(exc.value)).group(1))
+        for _ in range(intervals):
+            mix = filt.predict(mix, u, dt / intervals)
+        assert bool(torch.isfinite(mix.log_weights).all())

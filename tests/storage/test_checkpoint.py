@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 
@@ -73,6 +76,31 @@ def test_bad_checkpoints(tmp_path):
     path = save_checkpoint(tmp_path / "z.pt", {"gsf": mix, "agsf": mix}, filters)
     with pytest.raises(ValueError, match="holds filters"):
         load_checkpoint(path, {"gsf": filters["gsf"]})
+
+
+@pytest.mark.parametrize(
+    ("value", "named"),
+    [
+        (np.zeros(3), r"extra\['rng'\] is a numpy.ndarray"),
+        (np.float64(1.5), r"extra\['rng'\] is a numpy.float64"),
+        ({"inner": [1, np.int64(7)]}, r"extra\['rng'\]\['inner'\]\[1\] is a numpy.int64"),
+        (Path("/tmp/x"), r"extra\['rng'\] is a pathlib.*Path.*str\(path\)"),
+        ({3: 1.0}, r"extra\['rng'\]: checkpoint keys must be strings"),
+    ],
+)
+def test_extra_state_that_could_not_be_read_back_is_refused_at_save(tmp_path, value, named):
+    """A value torch.load(weights_only=True) cannot read back is refused, naming its key, and the last good
+    checkpoint stays as it was; plain values, tensors and nested lists/dicts of them round-trip."""
+    env, filters = _setup()
+    mix = _start(env)
+    mixtures = {"gsf": mix, "agsf": mix}
+    path = save_checkpoint(tmp_path / "c.pt", mixtures, filters, extra={"rng": [1, 2.5, "a", None, torch.ones(2)]})
+    good = path.read_bytes()
+    with pytest.raises(ValueError, match=named):
+        save_checkpoint(path, mixtures, filters, extra={"rng": value})
+    assert path.read_bytes() == good and sorted(p.name for p in tmp_path.iterdir()) == ["c.pt"]
+    _, extra = load_checkpoint(path, filters)
+    assert extra["rng"][:4] == [1, 2.5, "a", None] and torch.equal(extra["rng"][4], torch.ones(2))
 
 
 @pytest.mark.parametrize("build", ["other_state_dim", "mixture_into_ekf"])
