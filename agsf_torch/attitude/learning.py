@@ -49,7 +49,9 @@ class FitResult:
         learned / configured: name → value (float, or list of 3 for ``bias``).
         interval: name → (low, high) (per axis for ``bias``); NaN where the curvature
             is not positive definite.
-        inside: name → the configured value lies in the interval (all axes for ``bias``).
+        inside: name → the configured value lies in the interval (all axes for ``bias``); ``None`` (no
+            verdict) when the fit did not converge or the interval is undefined.
+        converged: L-BFGS stopped on its tolerances, not on its iteration budget, and did not diverge.
         nll: final −ℓ; history: −ℓ per iteration; message: how the fit ended.
     """
 
@@ -196,6 +198,10 @@ def fit_attitude_parameters(
         opt.step(closure)
     except (_Diverged, RuntimeError, ValueError):  # non-finite likelihood, or a failed factorisation at a wild step
         state["diverged"] = True
+    # L-BFGS stops on its own tolerances (gradient, change of −ℓ or of the step) or when its iteration
+    # budget is spent; only the former is a converged fit
+    iterations = int(opt.state[opt.param_groups[0]["params"][0]].get("n_iter", 0))
+    exhausted = iterations >= max_iter
     x_hat = last_finite if state["diverged"] or not torch.isfinite(x).all() else x.detach()
     values = unpack(x_hat)
     hess = torch.autograd.functional.hessian(nll, x_hat)
@@ -215,12 +221,19 @@ def fit_attitude_parameters(
         learned[k] = _plain(values[k])
         configured_out[k] = _plain(base[k])
         interval[k] = (_plain(lo), _plain(hi))
-        inside[k] = bool(((c >= lo) & (c <= hi)).all())
+        defined = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all())
+        inside[k] = bool(((c >= lo) & (c <= hi)).all()) if defined else None
         i += s
-    message = "converged" if not state["diverged"] else "diverged: stopped with the last finite parameters"
-    return FitResult(
-        learned, configured_out, interval, inside, float(nll(x_hat).detach()), history, not state["diverged"], message
-    )
+    if state["diverged"]:
+        message = "diverged: stopped with the last finite parameters"
+    elif exhausted:
+        message = f"not converged: L-BFGS used all {max_iter} iterations (raise --max-iter)"
+    else:
+        message = f"converged after {iterations} L-BFGS iterations"
+    converged = not state["diverged"] and not exhausted
+    if not converged:  # no verdict on parameters the fit did not settle
+        inside = {k: None for k in learn}
+    return FitResult(learned, configured_out, interval, inside, float(nll(x_hat).detach()), history, converged, message)
 
 
 def _plain(t: Tensor):

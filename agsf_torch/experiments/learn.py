@@ -17,7 +17,7 @@ from .experiment import make_env, prepare_output, prior_covariance
 from .recorded import record_environment
 from .resources import check_memory
 
-__all__ = ["learn", "learning_problem"]
+__all__ = ["learn", "learning_problem", "check_learnable", "MIN_STAR_FRAMES"]
 
 
 def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]:
@@ -63,6 +63,24 @@ def learning_problem(cfg: ExperimentConfig, rec: Recording) -> tuple[dict, dict]
     return configured, kwargs
 
 
+#: Star frames (samples with a valid star) a recording needs for the likelihood to constrain the noise
+#: parameters: the gyro noise shows only in how the attitude drifts between two frames.
+MIN_STAR_FRAMES = 2
+
+
+def check_learnable(rec: Recording) -> None:
+    """Refuse (``ValueError`` saying why) a recording whose likelihood cannot constrain the noise parameters:
+    fewer than :data:`MIN_STAR_FRAMES` star frames in some trajectory (none: the likelihood does not depend
+    on the star noise, and the gyro noise shows only between frames)."""
+    frames = np.asarray(rec.star_mask).any(-1).sum(-1)  # [B]
+    if int(frames.min()) < MIN_STAR_FRAMES:
+        b = int(frames.argmin())
+        raise ValueError(
+            f"the recording has {int(frames[b])} star frame(s) in trajectory {b} of {rec.gyro.shape[1]} samples; "
+            f"learning needs at least {MIN_STAR_FRAMES} (the noise shows in the drift between frames)"
+        )
+
+
 def learn(
     cfg: ExperimentConfig,
     names: list[str],
@@ -85,6 +103,7 @@ def learn(
         raise ValueError(f"--learn must name distinct parameters from {', '.join(PARAMETERS)}, got {','.join(names)!r}")
     if recording is not None:
         rec = Recording.load(recording)
+        check_learnable(rec)
         source = f"recording={rec.content_digest()}"
     else:
         check_memory(cfg, force=force)
@@ -109,7 +128,12 @@ def learn(
         writer.close()
     lines = [f"learn ({res.message}; −log-likelihood {res.nll:.6g} after {len(res.history)} evaluations):"]
     for k in names:
-        flag = "consistent with the data" if res.inside[k] else "OUTSIDE the 95 % interval: mis-modelled"
+        if res.inside[k] is None:
+            flag = "no verdict: " + ("the fit did not converge" if not res.converged else "the interval is undefined")
+        elif res.inside[k]:
+            flag = "consistent with the data"
+        else:
+            flag = "OUTSIDE the 95 % interval: mis-modelled"
         lines.append(
             f"  {k}: learned {res.learned[k]}, 95 % interval {res.interval[k]}, configured {res.configured[k]} — {flag}"
         )

@@ -43,28 +43,46 @@ def _fit(learn, configured, B=24, steps=150, noise_model="isotropic", **env_kwar
 def test_learns_gyro_noise_from_twice_the_configured_value():
     r = _fit(["sigma_v"], {"sigma_v": 1e-5}, sigma_v=2e-5, star_period=5.0)
     assert r.converged and abs(r.learned["sigma_v"] / 2e-5 - 1) < 0.10
-    assert not r.inside["sigma_v"]  # the configured 1e-5 is flagged
+    assert r.inside["sigma_v"] is False  # the configured 1e-5 is flagged
 
 
 def test_learns_a_constant_gyro_bias():
     b = 2e-5
     r = _fit(["bias"], {"bias": [0.0, 0.0, 0.0]}, initial_bias=b, star_period=2.0)
-    assert all(abs(v / b - 1) < 0.10 for v in r.learned["bias"])
-    assert not r.inside["bias"]
+    assert r.converged and all(abs(v / b - 1) < 0.10 for v in r.learned["bias"])
+    assert r.inside["bias"] is False
 
 
 def test_star_noise_under_the_isotropic_unit_vector_model():
     """The camera's noise lies in the 2 directions across the star vector; the filter's model
     σ_s²I₃ spreads it over 3, so its maximum-likelihood σ_s is √(2/3) of the simulated one."""
     r = _fit(["sigma_s"], {"sigma_s": 5e-6}, sigma_s=1e-5)
-    assert abs(r.learned["sigma_s"] / (math.sqrt(2 / 3) * 1e-5) - 1) < 0.05
-    assert not r.inside["sigma_s"]
+    assert r.converged and abs(r.learned["sigma_s"] / (math.sqrt(2 / 3) * 1e-5) - 1) < 0.05
+    assert r.inside["sigma_s"] is False
 
 
 def test_learns_star_noise_from_twice_the_configured_value_with_the_tangent_model():
     r = _fit(["sigma_s"], {"sigma_s": 5e-6}, sigma_s=1e-5, noise_model="tangent")
     assert r.converged and abs(r.learned["sigma_s"] / 1e-5 - 1) < 0.10
-    assert not r.inside["sigma_s"]
+    assert r.inside["sigma_s"] is False
+
+
+def test_a_fit_that_runs_out_of_iterations_is_not_converged_and_gives_no_verdict():
+    """max_iter = 1: L-BFGS stops on its budget, not its tolerances — reported as such, and no parameter is
+    judged (the learned value is near the starting one; "consistent with the data" would be a wrong verdict)."""
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=4, max_steps=40, sigma_v=2e-5, star_period=2.0)
+    rec = record_environment(env, 40, seed=11)
+    mean0 = torch.as_tensor(rec.truth_mrp[:, 0])
+    r = fit_attitude_parameters(
+        rec,
+        {**BASE, "sigma_v": 1e-5},
+        ["sigma_v"],
+        prior_mean=mean0,
+        prior_cov=1e-8 * torch.eye(3, dtype=F64),
+        max_iter=1,
+    )
+    assert not r.converged and r.message.startswith("not converged: L-BFGS used all 1 iterations")
+    assert r.inside == {"sigma_v": None}
 
 
 def test_bad_requests():

@@ -59,7 +59,7 @@ def _assert_refused(argv: list[str], root: Path, names: str) -> None:
 def recording(tmp_path_factory) -> Path:
     """A valid recording for the TINY configuration (2 runs, 0.3 s, truth included)."""
     out = tmp_path_factory.mktemp("rec") / "sim"
-    assert _agsf(["simulate", "--runs", "2", "--steps", "3", "--out", str(out)])[0] == 0
+    assert _agsf(["simulate", "--runs", "2", "--steps", "3", "--star-period", "0.1", "--out", str(out)])[0] == 0
     return out / "recording.npz"
 
 
@@ -241,3 +241,23 @@ def test_a_refused_command_exits_2_in_one_line_creates_nothing_and_the_corrected
     code, err = _agsf(corrected)
     assert code == 0, err
     assert (Path(out) / "experiment.json").exists()
+
+
+@pytest.mark.parametrize("frames", [0, 1])
+def test_learn_refuses_a_recording_with_too_few_star_frames(tmp_path, recording, frames):
+    """No star frame (or one) leaves the noise parameters unconstrained: refused before --out exists,
+    saying why (it exited 0 with NaN intervals and a "mis-modelled" verdict)."""
+    rec = Recording.load(recording)
+    arrays = {
+        k: getattr(rec, k)
+        for k in ("time", "gyro", "star_body", "star_inertial", "star_mask", "truth_mrp", "truth_bias")
+    }
+    assert bool(arrays["star_mask"].any(-1)[:, 1:].all())  # the fixture has a star frame at every sample after t = 0
+    arrays["star_mask"] = arrays["star_mask"].copy()
+    arrays["star_mask"][:, 1 + frames :] = False
+    path = tmp_path / "no_stars.npz"
+    np.savez(path, **arrays)
+    out = tmp_path / "out"
+    argv = ["learn", "case1", *TINY, "--learn", "sigma_v", "--recording", str(path), "--out", str(out)]
+    _assert_refused(argv, tmp_path, f"{frames} star frame(s)")
+    assert not out.exists()

@@ -51,13 +51,13 @@ def test_new_recording_contents_at_the_same_path_never_replace_earlier_results(t
 
 
 def test_learn_identifies_its_recording_by_content(tmp_path):
-    cfg = _tiny()
+    cfg = _tiny("star_period=0.1")  # star frames in 0.3 s: learning needs two
     path = tmp_path / "rec.npz"
     record_environment(make_env(cfg), cfg.num_steps, seed=1).save(path)
     args = [
         "learn",
         "case1",
-        *sum([["--set", s] for s in TINY], []),
+        *sum([["--set", s] for s in [*TINY, "star_period=0.1"]], []),
         "--learn",
         "sigma_v",
         "--max-iter",
