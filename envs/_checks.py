@@ -12,6 +12,7 @@ Physical limits shared by several components (each documented where it is define
 * :data:`MRP_LIMIT` — the largest MRP component accepted (actions, initial attitude).
 * :data:`MAX_STARS` — the most stars a frame can report.
 * :func:`check_camera_bounds` — focal length, star noise and principal point ranges.
+* :data:`MAX_SEED` / :func:`check_seeds` — episode seeds, one check for the single and the vector env.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "MAX_SEED",
+    "check_seeds",
     "FOCAL_LENGTH_RANGE",
     "MAX_STARS",
     "MAX_STAR_SIGMA",
@@ -229,3 +232,44 @@ def check_camera_bounds(
                 f"{owner}: principal_point {axis}₀ = {x0!r} m lies outside the imaged field "
                 f"(|{axis}₀| ≤ focal_length·tan(fov_{axis}/2) = {half:.6g} m)"
             )
+
+
+#: The largest episode seed: every trajectory's seed is an integer in ``[0, 2⁶³ − 1]`` (an int64 without
+#: wrapping, so that two trajectories never share one; gymnasium's own seeding needs it non-negative).
+MAX_SEED = (1 << 63) - 1
+
+
+def _seed_int(owner: str, value: Any, where: str) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)):
+        raise ValueError(f"{owner}: {where} must be an integer, got {type(value).__name__} {value!r}")
+    v = int(value)
+    if not 0 <= v <= MAX_SEED:
+        raise ValueError(f"{owner}: {where} must lie in [0, 2**63 - 1], got {v}")
+    return v
+
+
+def check_seeds(owner: str, seed: Any, num_envs: int) -> list[int]:
+    """The episode seeds of ``num_envs`` trajectories from ``seed``: an integer ``s`` (Python or NumPy;
+    trajectory ``i`` gets ``s + i``) or a sequence of ``num_envs`` integers (list, tuple, array or integer
+    tensor).  ``bool``, floats, strings and out-of-range values (including ``s + num_envs − 1 > 2⁶³ − 1``)
+    are refused with a ``ValueError`` naming the value."""
+    if isinstance(seed, (numbers.Integral, np.integer)) and not isinstance(seed, (bool, np.bool_)):
+        base = _seed_int(owner, seed, "seed")
+        if base + num_envs - 1 > MAX_SEED:
+            raise ValueError(f"{owner}: seed {base} + {num_envs - 1} (one per trajectory) exceeds 2**63 - 1")
+        return [base + i for i in range(num_envs)]
+    if isinstance(seed, Tensor):
+        if seed.dtype.is_floating_point or seed.dtype.is_complex or seed.dtype == torch.bool:
+            raise ValueError(f"{owner}: seed must hold integers, got a {seed.dtype} tensor")
+        values = seed.reshape(-1).tolist() if seed.dim() == 1 else None
+    elif isinstance(seed, np.ndarray):
+        if seed.dtype.kind not in "iu":
+            raise ValueError(f"{owner}: seed must hold integers, got an array of dtype {seed.dtype}")
+        values = seed.tolist() if seed.ndim == 1 else None
+    elif isinstance(seed, (list, tuple)):
+        values = list(seed)
+    else:
+        raise ValueError(f"{owner}: seed must be an integer or {num_envs} integers, got {type(seed).__name__} {seed!r}")
+    if values is None or len(values) != num_envs:
+        raise ValueError(f"{owner}: seed must be an integer or {num_envs} integers, got {seed!r}")
+    return [_seed_int(owner, v, f"seed[{i}]") for i, v in enumerate(values)]

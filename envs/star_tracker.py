@@ -56,9 +56,9 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from torch import Tensor
 
-from ._checks import check_mrp
+from ._checks import check_mrp, check_seeds
 from .config import StarTrackerConfig
-from .random import SEED_MASK, as_int64
+from .random import SEED_MASK
 from .simulator import StarTrackerSimulator
 
 __all__ = ["StarTrackerAttitudeEnv", "StarTrackerAttitudeVectorEnv"]
@@ -83,14 +83,10 @@ def _single_spaces(config: StarTrackerConfig) -> tuple[spaces.Dict, spaces.Box]:
     return obs, act
 
 
-def _seed_tensor(seed: Any, num_envs: int) -> Tensor:
-    """Episode seeds ``[B]``: ``seed + i`` for an int, or one per env from a sequence."""
-    if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-        return torch.tensor(as_int64(int(seed)), dtype=torch.int64) + torch.arange(num_envs, dtype=torch.int64)
-    vals = [int(s) for s in (seed.tolist() if isinstance(seed, (Tensor, np.ndarray)) else seed)]
-    if len(vals) != num_envs:
-        raise ValueError(f"seed must be an int or {num_envs} ints, got {len(vals)} values")
-    return torch.tensor([as_int64(v) for v in vals], dtype=torch.int64)
+def _seed_tensor(owner: str, seed: Any, num_envs: int) -> Tensor:
+    """Episode seeds ``[B]``: ``seed + i`` for an integer, or one per env from a sequence
+    (:func:`envs._checks.check_seeds`: the one check of both envs)."""
+    return torch.tensor(check_seeds(owner, seed, num_envs), dtype=torch.int64)
 
 
 def _action_tensor(owner: str, name: str, value: Any, shape: tuple[int, ...], device: torch.device) -> Tensor:
@@ -152,12 +148,13 @@ class StarTrackerAttitudeEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Start an episode; ``seed`` gives the episode seed (see the module docstring)."""
+        if seed is not None:  # checked before anything changes
+            seeds = _seed_tensor(type(self).__name__, seed, 1)
+            seed = int(seeds[0])
         super().reset(seed=seed)
-        if seed is not None:
-            seeds = _seed_tensor(int(seed), 1)
-        elif self._episode_seed is not None:
+        if seed is None and self._episode_seed is not None:
             seeds = self.sim.next_seeds()
-        else:
+        elif seed is None:
             seeds = torch.tensor([int(self.np_random.integers(0, SEED_MASK + 1))], dtype=torch.int64)
         obs, info = self.sim.reset(seeds)  # may refuse (e.g. a rate profile): the bookkeeping is set after
         self._episode_seed = seeds
@@ -230,15 +227,15 @@ class StarTrackerAttitudeVectorEnv(VectorEnv):
         Returns:
             ``(obs, info)``: dicts of ``[B, ...]`` torch tensors at t = 0.
         """
-        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            super().reset(seed=int(seed))
-        if seed is not None:
-            seeds = _seed_tensor(seed, self.num_envs)
+        if seed is not None:  # checked before anything changes
+            seeds = _seed_tensor(type(self).__name__, seed, self.num_envs)
+            if isinstance(seed, (int, np.integer)):
+                super().reset(seed=int(seed))
         elif self._seeded:
             seeds = self.sim.next_seeds()
         else:
             base = int(self.np_random.integers(0, SEED_MASK + 1))
-            seeds = _seed_tensor(base, self.num_envs)
+            seeds = _seed_tensor(type(self).__name__, base, self.num_envs)
         out = self.sim.reset(seeds)  # may refuse (e.g. a rate profile): the bookkeeping is set after
         self._seeded = True
         self._needs_reset = False

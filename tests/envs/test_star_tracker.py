@@ -412,3 +412,42 @@ def test_envs_imports_only_the_rotations_module_of_agsf_torch():
             for name in names:
                 if name.startswith("agsf_torch"):
                     assert name == "agsf_torch.rotations", (path.name, name)
+
+
+@pytest.mark.parametrize(
+    ("seed", "named"),
+    [
+        ([3, -7], r"seed\[1\] must lie in \[0, 2\*\*63 - 1\], got -7"),
+        ([3, 2**64 + 3], r"seed\[1\] must lie in \[0, 2\*\*63 - 1\]"),  # wrapped: two trajectories alike
+        (2**63 - 1, r"seed 9223372036854775807 \+ 1 .* exceeds 2\*\*63 - 1"),
+        ("37", r"seed must be an integer or 2 integers, got str"),
+        ([3.0, 4.0], r"seed\[0\] must be an integer, got float"),
+        (2.5, r"seed must be an integer or 2 integers, got float"),
+        (True, r"seed must be an integer or 2 integers, got bool"),
+        (torch.tensor([1.0, 2.0]), r"seed must hold integers, got a torch.float32 tensor"),
+    ],
+)
+def test_the_vector_env_checks_every_seed_before_anything_changes(seed, named):
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=2, max_steps=5)
+    env.reset(seed=11)
+    with pytest.raises(ValueError, match=named):
+        env.reset(seed=seed)
+    fresh = envs.StarTrackerAttitudeVectorEnv(num_envs=2, max_steps=5)
+    fresh.reset(seed=11)
+    action = torch.zeros(2, 3, dtype=torch.float64)
+    assert torch.equal(env.step(action)[0]["gyro"], fresh.step(action)[0]["gyro"])  # the episode went on untouched
+
+
+@pytest.mark.parametrize("seed", [7, np.int64(7), np.uint32(7), [7, 8], np.array([7, 8]), torch.tensor([7, 8])])
+def test_every_integer_type_gives_the_same_episodes(seed):
+    """Python and NumPy integers, sequences, arrays and integer tensors: the same seeds, the same episodes;
+    the single env takes NumPy integers too and refuses bool as the vector env does."""
+    ref, _ = envs.StarTrackerAttitudeVectorEnv(num_envs=2, max_steps=5).reset(seed=7)
+    got, _ = envs.StarTrackerAttitudeVectorEnv(num_envs=2, max_steps=5).reset(seed=seed)
+    assert torch.equal(got["gyro"], ref["gyro"]) and torch.equal(got["star_body"], ref["star_body"])
+    single = envs.StarTrackerAttitudeEnv(max_steps=5)
+    if not isinstance(seed, (list, np.ndarray, torch.Tensor)):
+        one, _ = single.reset(seed=seed)
+        assert np.array_equal(one["gyro"], ref["gyro"][0].numpy())
+    with pytest.raises(ValueError, match="seed must be an integer"):
+        single.reset(seed=True)
