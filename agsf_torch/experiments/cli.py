@@ -84,9 +84,10 @@ def _simulate(args: argparse.Namespace) -> int:
         force=args.force,
     )
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, config=config)
+    _threads(args)
     out = prepare_output(Path(args.out), "simulate", json.dumps(params, sort_keys=True), params)
     t0 = time.perf_counter()
-    rec = record_environment(env, args.steps, args.seed)
+    rec = record_environment(env, args.steps, args.seed, progress=not args.quiet)
     path = rec.save(out / "recording.npz")
     elapsed = time.perf_counter() - t0
     counts = np.bincount(rec.star_mask[:, rec.star_frames()].sum(-1).ravel(), minlength=env.config.max_stars + 1)
@@ -293,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--star-period", type=positive_float, default=1.0, help="s between star frames")
     p.add_argument("--seed", type=seed, default=0, help="trajectory i is seeded seed + i")
     p.add_argument("--out", default="runs/simulation", help="output folder (default: runs/simulation)")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
+    p.add_argument("--quiet", action="store_true", help="no progress bar on stderr")
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=_simulate)
 

@@ -6,16 +6,18 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from ..attitude.recordings import Recording
 
 __all__ = ["record_environment", "RecordingEnv"]
 
 
-def record_environment(env, num_steps: int, seed: int) -> Recording:
+def record_environment(env, num_steps: int, seed: int, progress: bool = False) -> Recording:
     """Step a batched environment ``num_steps`` times (no actions needed) and keep everything.
 
-    Sample 0 is the reset (t = 0); sample k the observation after step k.
+    Sample 0 is the reset (t = 0); sample k the observation after step k.  ``progress`` shows a
+    progress bar on stderr.
     """
     obs, info = env.reset(seed=seed)
     keys = ("gyro", "gyro_valid", "star_body", "star_inertial", "star_mask")
@@ -23,7 +25,7 @@ def record_environment(env, num_steps: int, seed: int) -> Recording:
     truth = {"truth_mrp": [torch.as_tensor(info["truth_mrp"])], "truth_bias": [torch.as_tensor(info["truth_bias"])]}
     times = [float(torch.as_tensor(obs["time"]).reshape(-1)[0])]
     zeros = torch.zeros(env.num_envs, 3, dtype=torch.float64)
-    for _ in range(num_steps):
+    for _ in tqdm(range(num_steps), desc="simulating", unit="step", disable=not progress, leave=False):
         obs, _, _, _, info = env.step(zeros)
         for k in keys:
             rows[k].append(torch.as_tensor(obs[k]))

@@ -167,3 +167,22 @@ def test_reproduce_names_its_outputs(tmp_path, monkeypatch):
     assert stdout.splitlines()[0] == "TABLE"
     assert f"{out}/results.md" in stdout and "rms.png" in stdout and "runs.npz" in stdout
     assert stdout.splitlines()[-1] == f"TensorBoard: {cli.tensorboard_command(out)}"
+
+
+def test_every_command_that_computes_takes_quiet_and_threads():
+    """--quiet and --threads mean the same in every command that simulates or filters (simulate lacked both)."""
+    subcommands = _subparsers(cli.build_parser())
+    for name in ("simulate", "run", "reproduce", "sweep", "soak", "learn", "diagnose", "adaptation"):
+        options = {s for action in subcommands[name]._actions for s in action.option_strings}
+        assert {"--quiet", "--threads"} <= options, name
+
+
+def test_simulate_shows_progress_unless_quiet_and_sets_the_threads(tmp_path, monkeypatch):
+    import torch
+
+    calls: list[int] = []
+    monkeypatch.setattr(torch, "set_num_threads", calls.append)  # recorded, not applied to the test process
+    code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--threads", "1", "--out", str(tmp_path / "a")])
+    assert code == 0 and "simulating" in err and calls == [1]
+    code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "b")])
+    assert code == 0 and err == ""

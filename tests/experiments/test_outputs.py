@@ -120,6 +120,16 @@ def test_grid_values_are_normalised_and_duplicates_refused():
         parse_grid(["reg=-1"], base)
 
 
+def test_list_valued_keys_sweep_whole_values():
+    """Commas inside brackets and quotes belong to the value: a list-valued key can be swept (it was split
+    into "[1" and "0" and refused as "must be a list, got '[1'")."""
+    base = _tiny()
+    grid = parse_grid(["rate_axes=[1,0,0], [0,1,0]", 'star_noise_model="tangent","isotropic"'], base)
+    assert grid == {"rate_axes": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], "star_noise_model": ["tangent", "isotropic"]}
+    with pytest.raises(ValueError, match=r"grid key 'rate_axes' lists the value \[1.0, 0, 0\] twice"):
+        parse_grid(["rate_axes=[1,0,0],[1.0,0,0]"], base)
+
+
 def test_the_same_grid_written_with_ints_or_floats_is_one_experiment(tmp_path):
     base = _tiny()
     out = tmp_path / "sweep"

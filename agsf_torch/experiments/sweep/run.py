@@ -26,8 +26,29 @@ __all__ = ["parse_grid", "run_sweep", "SweepBusy", "BACKENDS"]
 BACKENDS = ("local", "ray")
 
 
+def _split_values(text: str) -> list[str]:
+    """``"v1,v2,…"`` split at the commas outside brackets, braces and quotes, so that a list- or
+    table-valued key sweeps whole values (``rate_axes=[1,0,0],[0,1,0]`` → two axes)."""
+    parts, depth, quote, start = [], 0, "", 0
+    for i, ch in enumerate(text):
+        if quote:
+            quote = "" if ch == quote else quote
+        elif ch in "\"'":
+            quote = ch
+        elif ch in "[{":
+            depth += 1
+        elif ch in "]}":
+            depth -= 1
+        elif ch == "," and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    parts.append(text[start:])
+    return [p.strip() for p in parts]
+
+
 def parse_grid(items: list[str], base: ExperimentConfig | None = None) -> dict[str, list[Any]]:
-    """``["key=v1,v2", …]`` → ``{key: [v1, v2]}`` (values parsed as TOML; keys validated).
+    """``["key=v1,v2", …]`` → ``{key: [v1, v2]}`` (values parsed as TOML, split at the commas outside
+    brackets and quotes, so list values sweep whole: ``rate_axes=[1,0,0],[0,1,0]``; keys validated).
 
     With ``base``, each value is normalised as the configuration stores it (``1`` and
     ``1.0`` of a float key are the same value), so a grid names each experiment once.
@@ -45,7 +66,7 @@ def parse_grid(items: list[str], base: ExperimentConfig | None = None) -> dict[s
             raise ValueError(f"config key '{key}' cannot be swept")
         if key in grid:
             raise ValueError(f"grid key '{key}' is given twice; list all its values in one --grid {key}=v1,v2,...")
-        parsed = [parse_override(f"{key}={v}")[1] for v in values.split(",")]
+        parsed = [parse_override(f"{key}={v}")[1] for v in _split_values(values)]
         if base is not None:
             parsed = [getattr(base.replace(**{key: v}), key) for v in parsed]
         seen: list[Any] = []
