@@ -38,6 +38,7 @@ bars and the package's INFO messages (the FPKE kernel's compilation) go to stder
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import sys
 import time
@@ -422,17 +423,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Exit code of a command the machine could not complete (a full disk, a read-only or failing device),
+#: apart from 2, refused input.
+EXIT_IO_FAILURE = 3
+_IO_FAILURES = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the ``agsf`` command; refused input (a bad configuration, file or output folder)
-    prints one line ``agsf: error: …`` and returns 2, having created nothing.  Long steps
+    prints one line ``agsf: error: …`` and returns 2, having created nothing; an I/O failure of the
+    machine (a full disk, a failing or read-only device) prints ``agsf: I/O failure (file): …`` and returns
+    :data:`EXIT_IO_FAILURE`; Ctrl-C prints one line and returns 130.  Long steps
     (the FPKE kernel's compilation) are announced on stderr unless ``--quiet``."""
     args = build_parser().parse_args(argv)
     with messages(quiet=getattr(args, "quiet", False)):
         try:
             return args.func(args)
-        except (ValueError, OSError) as exc:
+        except OSError as exc:
+            if exc.errno in _IO_FAILURES:  # the machine failed a write or read: not the user's input
+                where = f" ({exc.filename})" if exc.filename else ""
+                print(f"agsf: I/O failure{where}: {exc.strerror or one_line(exc)}", file=sys.stderr)
+                return EXIT_IO_FAILURE
             print(f"agsf: error: {one_line(exc)}", file=sys.stderr)
             return 2
+        except ValueError as exc:
+            print(f"agsf: error: {one_line(exc)}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            out = getattr(args, "out", None)
+            kept = f"; what was written is in {out}" if out else ""
+            print(f"\nagsf: interrupted{kept} (files are written whole or not at all)", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

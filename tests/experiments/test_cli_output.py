@@ -186,3 +186,30 @@ def test_simulate_shows_progress_unless_quiet_and_sets_the_threads(tmp_path, mon
     assert code == 0 and "simulating" in err and calls == [1]
     code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "b")])
     assert code == 0 and err == ""
+
+
+def test_a_full_disk_is_an_io_failure_naming_the_file_with_its_own_exit_code(tmp_path, monkeypatch):
+    """ENOSPC is the machine's failure, not refused input: exit 3 (not 2), one line naming the file."""
+    import errno
+
+    from agsf_torch.attitude import recordings
+
+    def full(self, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(recordings.Recording, "save", full)
+    code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "s")])
+    assert code == cli.EXIT_IO_FAILURE == 3
+    assert err.count("\n") == 1 and err.startswith("agsf: I/O failure (") and "recording.npz" in err
+    assert "No space left on device" in err
+
+
+def test_ctrl_c_prints_one_line_and_exits_130(tmp_path, monkeypatch):
+    from agsf_torch.experiments import recorded
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(recorded, "record_environment", interrupted)
+    code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "s")])
+    assert code == 130 and err.strip().count("\n") == 0 and err.strip().startswith("agsf: interrupted")
