@@ -56,19 +56,11 @@ def run_experiment(
     """
     if recording is not None:
         from ..attitude.recordings import Recording
-        from .recorded import RecordingEnv
+        from .recorded import RecordingEnv, check_recording
 
         rec = Recording.load(recording)
         env = RecordingEnv(rec)
-        if (
-            env.num_envs != cfg.runs
-            or env.config.max_steps < cfg.num_steps
-            or abs(env.config.dt - cfg.dt) > 1e-9 * cfg.dt
-        ):
-            raise ValueError(
-                f"recording {recording} has {env.num_envs} trajectories × {env.config.max_steps} steps of {env.config.dt} s; "
-                f"the configuration needs runs={cfg.runs}, ≥ {cfg.num_steps} steps of dt={cfg.dt}"
-            )
+        check_recording(rec, cfg, str(recording))
         digest = f"{cfg.digest()}:recording={rec.content_digest()}"
         check_memory(cfg, force=force)
     else:

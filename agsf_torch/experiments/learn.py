@@ -14,7 +14,7 @@ from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
 from ..storage.files import write_json, write_text
 from .config import ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
-from .recorded import record_environment
+from .recorded import check_recording, record_environment
 from .resources import check_memory
 
 __all__ = ["learn", "learning_problem", "check_learnable", "MIN_STAR_FRAMES"]
@@ -103,6 +103,7 @@ def learn(
         raise ValueError(f"--learn must name distinct parameters from {', '.join(PARAMETERS)}, got {','.join(names)!r}")
     if recording is not None:
         rec = Recording.load(recording)
+        check_recording(rec, cfg, str(recording), whole_run=False)
         check_learnable(rec)
         source = f"recording={rec.content_digest()}"
     else:

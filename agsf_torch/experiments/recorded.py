@@ -37,6 +37,55 @@ def record_environment(env, num_steps: int, seed: int, progress: bool = False) -
     return Recording(time=np.array(times), **arrays)
 
 
+def sample_spacing(recording: Recording) -> tuple[float, float]:
+    """``(Δt, tolerance)``: the recording's uniform sample spacing (s), judged at the precision of its
+    timestamps, or ``ValueError`` if the samples are not uniformly spaced.
+
+    A timestamp ``t`` stored with machine epsilon ``ε`` (float32's if every time is a float32 number,
+    else float64's) is known to ``ε|t|/2``, so two spacings may differ by ``2ε max|t|`` from rounding
+    alone (Unix-epoch seconds in float64: ~4e-7 s); the tolerance is twice that plus ``1e-9 Δt``.
+    """
+    t = np.asarray(recording.time, dtype=np.float64)
+    if t.size < 2:
+        return 0.0, 0.0
+    single = np.array_equal(t.astype(np.float32).astype(np.float64), t)
+    eps = float(np.finfo(np.float32 if single else np.float64).eps)
+    dt = float((t[-1] - t[0]) / (t.size - 1))
+    tol = 4.0 * eps * float(np.abs(t).max()) + 1e-9 * dt
+    worst = float(np.abs(np.diff(t) - dt).max())
+    if worst > tol:
+        raise ValueError(
+            f"the samples are not uniformly spaced (column 'time'): a spacing differs from the mean {dt:g} s by "
+            f"{worst:.3g} s, more than the timestamps' precision allows ({tol:.3g} s)"
+        )
+    return dt, tol
+
+
+def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = True) -> float:
+    """The one check of a recording against a configuration, for ``agsf run --recording`` and ``agsf learn``:
+    uniformly spaced samples (:func:`sample_spacing`) at the configuration's ``dt`` (to the timestamps'
+    precision), gyro rates that turn less than half a turn per sample (``|ω̃|·Δt < π``: beyond, a sampled
+    rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, ``cfg.runs`` trajectories
+    of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
+    dt, tol = sample_spacing(recording)
+    if recording.num_samples > 1 and abs(dt - cfg.dt) > tol + 1e-9 * cfg.dt:
+        raise ValueError(f"recording {name} is sampled every {dt:g} s; the configuration's dt is {cfg.dt:g} s")
+    gyro = np.asarray(recording.gyro, dtype=np.float64)
+    if gyro.size:
+        rate = float(np.nanmax(np.linalg.norm(gyro, axis=-1)))
+        if dt > 0 and not rate * dt < np.pi:
+            raise ValueError(
+                f"recording {name}: a gyro rate of {rate:g} rad/s turns {rate * dt:g} rad per sample of {dt:g} s, "
+                "half a turn or more: not a sampled rotation (are the rates in rad/s?)"
+            )
+    if whole_run and (recording.num_trajectories != cfg.runs or recording.num_samples - 1 < cfg.num_steps):
+        raise ValueError(
+            f"recording {name} has {recording.num_trajectories} trajectories × {recording.num_samples - 1} steps of "
+            f"{dt:g} s; the configuration needs runs={cfg.runs}, ≥ {cfg.num_steps} steps of dt={cfg.dt:g}"
+        )
+    return dt
+
+
 class RecordingEnv:
     """Replays a :class:`Recording` with the reset/step interface the Monte Carlo runner uses.
 
@@ -47,12 +96,10 @@ class RecordingEnv:
     def __init__(self, recording: Recording) -> None:
         if recording.truth_mrp is None or recording.truth_bias is None:
             raise ValueError("replaying through the Monte Carlo runner needs truth_mrp and truth_bias in the recording")
-        steps = np.diff(recording.time)
-        if steps.size and not np.allclose(steps, steps[0], rtol=1e-9, atol=0):
-            raise ValueError("the runner needs uniformly spaced samples (column 'time')")
+        dt, _ = sample_spacing(recording)
         self.rec = recording
         self.num_envs = recording.num_trajectories
-        self.config = SimpleNamespace(dt=float(steps[0]) if steps.size else 0.0, max_steps=recording.num_samples - 1)
+        self.config = SimpleNamespace(dt=dt, max_steps=recording.num_samples - 1)
         self._k = 0
 
     def _sample(self, k: int):

@@ -261,3 +261,41 @@ def test_learn_refuses_a_recording_with_too_few_star_frames(tmp_path, recording,
     argv = ["learn", "case1", *TINY, "--learn", "sigma_v", "--recording", str(path), "--out", str(out)]
     _assert_refused(argv, tmp_path, f"{frames} star frame(s)")
     assert not out.exists()
+
+
+def _rewrite(recording: Path, path: Path, **changes) -> Path:
+    rec = Recording.load(recording)
+    keys = ("time", "gyro", "star_body", "star_inertial", "star_mask", "truth_mrp", "truth_bias")
+    np.savez(path, **{k: changes.get(k, getattr(rec, k)) for k in keys})
+    return path
+
+
+@pytest.mark.parametrize("stamps", ["epoch_float64", "float32"])
+def test_evenly_sampled_recordings_are_judged_at_the_precision_of_their_timestamps(tmp_path, recording, stamps):
+    """Unix-epoch seconds (float64: spacings jitter by ~1e-7 s from rounding alone) and float32 timestamps are
+    evenly sampled; they were refused as "needs uniformly spaced samples"."""
+    t = Recording.load(recording).time
+    time = (1.7e9 + t) if stamps == "epoch_float64" else (1000.0 + t).astype(np.float32)
+    path = _rewrite(recording, tmp_path / "stamped.npz", time=time)
+    code, err = _agsf(["run", "case1", *TINY, "--recording", str(path), "--out", str(tmp_path / "out")])
+    assert code == 0, err
+
+
+@pytest.mark.parametrize("command", ["run", "learn"])
+@pytest.mark.parametrize("defect", ["uneven", "gyro_x1e6", "other_dt"])
+def test_run_and_learn_check_a_recording_alike(tmp_path, recording, command, defect):
+    """One set of checks for both commands: samples evenly spaced, at the configuration's dt, gyro rates that
+    are rotations (×1e6 ran to completion with NEES 3e112); learn accepted a dt that run refused."""
+    rec = Recording.load(recording)
+    if defect == "uneven":
+        time = rec.time.copy()
+        time[2] += 0.01
+        path, names = _rewrite(recording, tmp_path / "r.npz", time=time), "not uniformly spaced"
+    elif defect == "gyro_x1e6":
+        path, names = _rewrite(recording, tmp_path / "r.npz", gyro=rec.gyro * 1e6), "rad per sample"
+    else:
+        path, names = _rewrite(recording, tmp_path / "r.npz", time=rec.time * 2), "sampled every 0.2 s"
+    argv = [command, "case1", *TINY, "--recording", str(path), "--out", str(tmp_path / "out")]
+    if command == "learn":
+        argv += ["--learn", "sigma_v", "--max-iter", "1"]
+    _assert_refused(argv, tmp_path, names)
