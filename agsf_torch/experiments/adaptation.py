@@ -49,6 +49,7 @@ from .experiment import make_env, make_filters, mean_ci95, prepare_output, prior
 from .factories import filter_model
 from .resources import check_memory
 from .runner import monte_carlo_steps
+from .tensorboard_log import clear_events
 
 __all__ = ["SCENARIOS", "STUDY_FILTERS", "run_scenario", "run_adaptation_study", "study_table"]
 
@@ -305,6 +306,7 @@ def _scores_figure(path: Path, summaries: dict[str, dict[str, Any]]) -> None:
 def _tensorboard(folder: Path, summary: dict[str, Any], res: dict[str, Any]) -> None:
     from torch.utils.tensorboard import SummaryWriter
 
+    clear_events(folder)  # a rerun replaces this run's events, never appends to them
     writer = SummaryWriter(str(folder))
     t = np.array(summary["time_s"])
     for fname, f in summary["filters"].items():

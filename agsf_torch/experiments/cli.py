@@ -454,6 +454,10 @@ def main(argv: list[str] | None = None) -> int:
             kept = f"; what was written is in {out}" if out else ""
             print(f"\nagsf: interrupted{kept} (files are written whole or not at all)", file=sys.stderr)
             return 130
+        finally:
+            from .outputs import release_outputs
+
+            release_outputs()
 
 
 if __name__ == "__main__":

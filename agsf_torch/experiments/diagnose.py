@@ -11,6 +11,7 @@ from ..storage.files import write_json, write_text
 from .config import ExperimentConfig
 from .experiment import run_experiment
 from .factories import filter_model
+from .tensorboard_log import clear_events
 
 __all__ = ["diagnose"]
 
@@ -40,6 +41,7 @@ def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True, force: 
     write_text(Path(out) / "diagnose.md", report + "\n")
     from torch.utils.tensorboard import SummaryWriter
 
+    clear_events(Path(out) / "tensorboard")  # a rerun replaces its events
     with SummaryWriter(str(Path(out) / "tensorboard")) as writer:
         writer.add_text("diagnose", report.replace("\n", "  \n"))
     return report, passed

@@ -16,6 +16,7 @@ from .config import ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
 from .recorded import check_recording, record_environment
 from .resources import check_memory
+from .tensorboard_log import clear_events
 
 __all__ = ["learn", "learning_problem", "check_learnable", "MIN_STAR_FRAMES"]
 
@@ -115,6 +116,7 @@ def learn(
     )
     from torch.utils.tensorboard import SummaryWriter
 
+    clear_events(out / "tensorboard")  # a rerun replaces its events (the curve's steps would repeat)
     writer = SummaryWriter(str(out / "tensorboard"))
 
     def log(i, nll, values):

@@ -20,7 +20,19 @@ import numpy as np
 from ..storage.files import atomic_open, read_json, write_json
 from .runner import MonteCarloResult
 
-__all__ = ["OutputConflict", "check_output", "prepare_output", "save_runs", "save_npz"]
+__all__ = [
+    "OutputConflict",
+    "OutputBusy",
+    "check_output",
+    "prepare_output",
+    "release_outputs",
+    "save_runs",
+    "save_npz",
+]
+
+
+#: The lock file of an output folder (one writer per folder).
+LOCK_NAME = ".agsf.lock"
 
 
 class OutputConflict(ValueError):
@@ -51,17 +63,52 @@ def check_output(out: Path, kind: str, digest: str) -> None:
                 f"{out} already holds a different experiment ({prev.get('kind')} {prev.get('digest')}); "
                 "choose another --out or remove it"
             )
-    elif out.exists() and any(out.iterdir()):
+    elif out.exists() and any(p.name != LOCK_NAME for p in out.iterdir()):
         raise OutputConflict(f"{out} exists and is not an agsf experiment folder; choose another --out")
 
 
+class OutputBusy(ValueError):
+    """Another command (process) is writing the output folder."""
+
+
+#: Output folders this process writes, with their locks (held until :func:`release_outputs`).
+_HELD: dict[Path, Any] = {}
+
+
+def _claim(out: Path) -> None:
+    """Hold ``out/.agsf.lock`` (:mod:`filelock`) for this process; refuse if another process holds it."""
+    from filelock import FileLock, Timeout
+
+    key = out.resolve()
+    if key in _HELD:
+        return
+    lock = FileLock(str(out / LOCK_NAME))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        raise OutputBusy(
+            f"another agsf command is writing {out}; wait for it to finish or choose another --out"
+        ) from None
+    _HELD[key] = lock
+
+
+def release_outputs() -> None:
+    """Release every output folder this process claimed (:func:`prepare_output`); the CLI calls it when
+    a command ends."""
+    while _HELD:
+        _, lock = _HELD.popitem()
+        lock.release()
+
+
 def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any]) -> Path:
-    """Create ``out`` for an experiment (after :func:`check_output`) and write its
-    ``experiment.json`` atomically.  Callers validate every input first: a refused command
+    """Create ``out`` for an experiment (after :func:`check_output`), claim it for this process (one writer
+    per folder: a second command on it is refused with :class:`OutputBusy` until :func:`release_outputs`)
+    and write its ``experiment.json`` atomically.  Callers validate every input first: a refused command
     creates nothing."""
     out = Path(out)
     check_output(out, kind, digest)
     out.mkdir(parents=True, exist_ok=True)
+    _claim(out)
     write_json(out / "experiment.json", {"kind": kind, "digest": digest, "config": config}, indent=2)
     return out
 

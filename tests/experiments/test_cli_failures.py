@@ -299,3 +299,36 @@ def test_run_and_learn_check_a_recording_alike(tmp_path, recording, command, def
     if command == "learn":
         argv += ["--learn", "sigma_v", "--max-iter", "1"]
     _assert_refused(argv, tmp_path, names)
+
+
+def test_one_writer_per_output_folder(tmp_path):
+    """While another process writes --out (its lock held), a second command on it is refused, one line, exit
+    2, nothing changed; once released, the same command runs (two runs both succeeded and could leave two
+    event files)."""
+    from filelock import FileLock
+
+    out = tmp_path / "out"
+    assert _agsf(["run", "case1", *TINY, "--out", str(out)])[0] == 0
+    other = FileLock(str(out / ".agsf.lock"))  # another process's claim (a separate open file)
+    other.acquire(timeout=0)
+    try:
+        _assert_refused(["run", "case1", *TINY, "--out", str(out)], tmp_path, "another agsf command is writing")
+    finally:
+        other.release()
+    assert _agsf(["run", "case1", *TINY, "--out", str(out)])[0] == 0
+
+
+def test_a_rerun_of_learn_replaces_its_events(tmp_path, recording):
+    """learn's loss curve after a rerun reads 1, 2, … once (it read 1, 2, 1, 2, 3: appended event files)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out = tmp_path / "learn"
+    argv = ["learn", "case1", *TINY, "--learn", "sigma_v", "--max-iter", "2", "--recording", str(recording)]
+    for _ in range(2):
+        assert _agsf([*argv, "--out", str(out)])[0] == 0
+    events = sorted((out / "tensorboard").glob("events.out.tfevents.*"))
+    assert len(events) == 1
+    acc = EventAccumulator(str(out / "tensorboard"))
+    acc.Reload()
+    steps = [e.step for e in acc.Scalars("learn/nll")]
+    assert steps == sorted(set(steps)) and steps[0] == 1

@@ -58,10 +58,15 @@ def _config_on_worker(runner: Callable[..., dict[str, Any]], cfg: ExperimentConf
     """
     import torch
 
+    from ..outputs import release_outputs
+
     torch.set_num_threads(threads)  # the task's CPUs: no oversubscription by parallel tasks
     with tempfile.TemporaryDirectory(prefix="agsf-sweep-") as tmp:
         folder = Path(tmp) / cfg.digest()
-        summary = runner(cfg, folder, progress=False, kind="sweep-config")
+        try:
+            summary = runner(cfg, folder, progress=False, kind="sweep-config")
+        finally:
+            release_outputs()  # the worker process outlives the task: let go of the folder
         files = {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
     return {"metrics": config_metrics(summary), "files": files}
 
