@@ -205,7 +205,7 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int | No
     return QPResult(w, kkt_residual(H.expand(*batch, N, N), c.expand(*batch, N), w), iterations)
 
 
-_KKT_TOL = 1e-9
+_KKT_TOL = 1e-12
 
 
 def _support_solve(H: Tensor, c: Tensor, m: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -38,6 +38,7 @@ and runs eagerly or compiled as one loop (:mod:`agsf_torch.fused.lanes`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -321,7 +322,9 @@ def fused_star_update(
     ``[..., 3M]``, e.g. the gate's; else the measurement's star mask) and the same checks before
     anything changes (:func:`~agsf_torch.update.check_innovation`); ``innovation_cov`` is not formed
     (``None``).  ``compile`` runs the kernel through ``torch.compile`` in fixed chunks
-    (:func:`~agsf_torch.fused.lanes.run_in_chunks`).
+    (:func:`~agsf_torch.fused.lanes.run_in_chunks`).  Where the kernel's result is not finite (a problem
+    beyond its range, e.g. a pivot of ``I + A`` clamped), the whole call takes the generic update: never a
+    wrong number.
     """
     n, N, M = means.shape[-1], means.shape[-2], measurement.num_stars
     lead = torch.broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,))
@@ -352,6 +355,13 @@ def fused_star_update(
         )
     new_means, new_covs = out[0].reshape(*lead, n), out[1].reshape(*lead, n, n)
     log_beta, nis, dof = (t.reshape(lead) for t in out[2:5])
+    finite = torch.isfinite(new_covs).flatten(-2).all(-1) & torch.isfinite(new_means).all(-1)
+    finite = finite & torch.isfinite(log_beta) & torch.isfinite(nis)
+    if not bool(finite.all()):  # beyond the kernel's range (a pivot clamped to overflow): the generic update
+        from ..update import kalman_update
+
+        generic = kalman_update(log_weights, means, covs, y, measurement, iterations, mask, mixture_nis)
+        return FusedUpdate(**{f.name: getattr(generic, f.name) for f in dataclasses.fields(generic)})
     nu = out[5].reshape(*lead, 3 * M)
     HL = out[6].reshape(*lead, 3 * M, 3)
     positive_definite = out[7].reshape(lead)

@@ -173,3 +173,24 @@ def test_the_compiled_update_equals_the_eager_one(gen, n):
     for name in ("means", "covs", "log_weights", "nis", "log_likelihood", "nis_mixture"):
         a, b = getattr(compiled, name), getattr(eager, name)
         assert float(((a - b).abs() / (b.abs().max() + 1.0)).max()) <= tol, name
+
+
+def test_a_kernel_result_that_is_not_finite_falls_back_to_the_generic_update(gen, monkeypatch):
+    """Never a wrong number: where the kernel's arithmetic leaves its range (a NaN covariance was returned for
+    σ = 1 nrad after a 1e-3 prior of condition 1e12), the call returns the generic update."""
+    import agsf_torch.fused.star_update as fused
+
+    log_w, means, covs, y, meas = _problem(gen, 5, 3, 6, 1e-5, 1e-3)
+    real = fused.star_kernel
+
+    def broken(*args):
+        out = list(real(*args))
+        out[1] = out[1].clone()
+        out[1][7, 0, 0] = float("nan")
+        return tuple(out)
+
+    monkeypatch.setattr(fused, "star_kernel", broken)
+    got = fused_star_update(log_w, means, covs, y, meas)
+    want = generic.kalman_update(log_w, means, covs, y, meas)
+    for field in ("means", "covs", "log_weights", "nis", "log_likelihood", "nis_mixture"):
+        assert torch.equal(getattr(got, field), getattr(want, field)), field
