@@ -59,3 +59,21 @@ def test_diagnostics_are_the_declared_keys(name, gate):
     assert set(filt.diagnostics) == set(filt.diagnostic_keys("update"))
     with pytest.raises(ValueError, match="step must be 'predict' or 'update'"):
         filt.diagnostic_keys("estimate")
+
+
+@pytest.mark.parametrize("name", sorted(FILTERS))
+def test_one_dt_check_for_every_filter(name):
+    """dt = True is refused by every filter alike (the MEKF alone refused it), and 1e39 is a finite positive
+    number (a float32 conversion used to overflow it), checked before anything changes."""
+    from agsf_torch.filters.base import check_interval
+
+    assert check_interval(1e39) == 1e39 and check_interval(torch.tensor(0.1, dtype=torch.float32)) == pytest.approx(0.1)
+    model = AttitudeModel(estimate_bias=False)
+    filt = make_filter(name, model)
+    N = 1 if name in ("EKF", "MEKF") else 3
+    mix = GaussianMixture.from_gaussian(
+        torch.zeros(2, 3, dtype=torch.float64), 1e-4 * torch.eye(3, dtype=torch.float64).expand(2, 3, 3), N
+    )
+    for bad in (True, 0.0, -1.0, float("inf"), float("nan"), "0.1"):
+        with pytest.raises(ValueError, match="dt must be"):
+            filt.predict(mix, torch.zeros(2, 3, dtype=torch.float64), bad)
