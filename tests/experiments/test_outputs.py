@@ -204,3 +204,29 @@ def test_the_memory_estimate_bounds_a_measured_peak(tmp_path):
     )
     estimate = estimated_memory(cfg).total
     assert peak_kb * 1024 < estimate < 2 * peak_kb * 1024, (peak_kb / 2**20, estimate / 2**30)
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the swallowed Ctrl-C itself
+def test_a_ctrl_c_swallowed_inside_a_finaliser_still_stops_the_sweep(tmp_path):
+    """Python drops an exception raised while a finaliser runs ("Exception ignored in: …"): a Ctrl-C landing
+    there let the sweep run to its end.  The latch stops it after the row in progress."""
+    import os
+    import signal
+
+    from agsf_torch.experiments.experiment import run_experiment
+    from agsf_torch.storage.files import read_json_lines
+
+    class Finaliser:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)  # delivered while __del__ runs: the KeyboardInterrupt is dropped
+
+    def runner(cfg, folder, **kwargs):
+        summary = run_experiment(cfg, folder, **kwargs)
+        obj = Finaliser()
+        del obj
+        return summary
+
+    base = _tiny()
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(base, parse_grid(["reg=0.5,1,2"], base), tmp_path / "sweep", progress=False, runner=runner)
+    assert len(read_json_lines(tmp_path / "sweep" / "results.jsonl")) == 1

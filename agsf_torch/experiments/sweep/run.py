@@ -8,6 +8,8 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import signal
+import threading
 from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
@@ -171,6 +173,27 @@ def _sweep_lock(out: Path):
         lock.release()
 
 
+@contextmanager
+def _interrupt_latch():
+    """Remember every Ctrl-C (SIGINT) while the sweep runs, besides raising ``KeyboardInterrupt`` as usual:
+    Python drops an exception raised while a finaliser or weak-reference callback runs ("Exception
+    ignored in: …"), and the sweep would then run to its end; the latch stops it after the current row."""
+    latch = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield latch
+        return
+
+    def on_sigint(signum, frame):
+        latch.set()
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield latch
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task, max_retries) -> list[dict[str, Any]]:
     """Run the configurations without a row in ``results.jsonl`` (the lock held); returns all rows."""
     results = out / "results.jsonl"
@@ -190,9 +213,12 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
         rows.append(row)
 
     if backend == "local":
-        for params, cfg in pending:
-            summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
-            record(params, cfg, config_metrics(summary))
+        with _interrupt_latch() as interrupted:
+            for params, cfg in pending:
+                summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
+                record(params, cfg, config_metrics(summary))
+                if interrupted.is_set():  # a Ctrl-C that Python swallowed (e.g. raised inside a finaliser)
+                    raise KeyboardInterrupt
     elif pending:
         run_on_ray(pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs))
     return rows
