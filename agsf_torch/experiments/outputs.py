@@ -12,6 +12,7 @@ Folder layout (``out``)::
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -107,9 +108,18 @@ def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any]) ->
     creates nothing."""
     out = Path(out)
     check_output(out, kind, digest)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    _claim(out)
-    write_json(out / "experiment.json", {"kind": kind, "digest": digest, "config": config}, indent=2)
+    try:
+        _claim(out)
+        write_json(out / "experiment.json", {"kind": kind, "digest": digest, "config": config}, indent=2)
+    except BaseException:
+        if created:  # a folder this call made and could not claim (a full disk, say) is not left behind
+            lock = _HELD.pop(out.resolve(), None)
+            if lock is not None:
+                lock.release()
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     return out
 
 

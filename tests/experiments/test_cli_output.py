@@ -213,3 +213,18 @@ def test_ctrl_c_prints_one_line_and_exits_130(tmp_path, monkeypatch):
     monkeypatch.setattr(recorded, "record_environment", interrupted)
     code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "s")])
     assert code == 130 and err.strip().count("\n") == 0 and err.strip().startswith("agsf: interrupted")
+
+
+def test_a_full_disk_while_claiming_the_output_folder_leaves_no_folder(tmp_path, monkeypatch):
+    import errno
+
+    from agsf_torch.experiments import outputs
+
+    def full(path, obj, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(outputs, "write_json", full)
+    out = tmp_path / "deep" / "s"
+    code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(out)])
+    assert code == 3 and "experiment.json" in err
+    assert not out.exists()
