@@ -1,6 +1,6 @@
 """The Ray sweep backend against the local one: the same rows (bit for bit) and per-configuration
 files for the same seeds; a failed task keeps every other configuration and a rerun runs only the
-failed one; a worker that dies is retried; an interrupted driver keeps what finished; CLI checks.
+failed one; a worker that dies is retried; an interrupted driver keeps what finished, also when Python swallowed the Ctrl-C; CLI checks.
 
 Every Ray check runs inside one test function on one local Ray instance (``num_cpus=2``): under
 pytest-xdist the tests of a module may land on different workers, and each would start its own
@@ -60,6 +60,7 @@ def metrics(rows):
     return {r["digest"]: r["metrics"] for r in rows}
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # a swallowed Ctrl-C (checked)
 def test_ray_backend(tmp_path, monkeypatch):
     """One local Ray instance for every check below (see the module docstring)."""
     # Ray on Linux puts even a local instance on the machine's network address; this keeps it on loopback
@@ -74,6 +75,7 @@ def test_ray_backend(tmp_path, monkeypatch):
         check_rows_and_files_equal_local(local_out, local_rows, tmp_path / "equal")
         check_failed_task_keeps_the_others_and_the_rerun_runs_only_it(local_rows, tmp_path / "failed")
         check_interrupted_driver_keeps_what_finished(ray, local_rows, tmp_path / "interrupted")
+        check_a_ctrl_c_swallowed_in_the_driver_still_stops_it(local_rows, tmp_path / "swallowed")
     finally:
         ray.shutdown()
 
@@ -178,3 +180,34 @@ def test_missing_ray_names_the_extra(tmp_path, monkeypatch, capsys):
     assert cli.main(["sweep", "case1", "--grid", "reg=0.1", "--backend", "ray", "--out", str(out)]) == 1
     assert "agsf-torch[ray]" in capsys.readouterr().err
     assert not out.exists()
+
+
+def check_a_ctrl_c_swallowed_in_the_driver_still_stops_it(local_rows, tmp_path):
+    """A Ctrl-C delivered while a finaliser runs in the driver is dropped by Python ("Exception ignored
+    in: …"); the sweep's latch stops the driver after the row it was recording, as the local backend does."""
+    import signal
+
+    from agsf_torch.experiments.sweep import ray_backend
+
+    class Finaliser:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)  # delivered while __del__ runs: the KeyboardInterrupt is dropped
+
+    real_write = ray_backend._write_config_folder
+
+    def write_then_swallow(*args, **kwargs):
+        real_write(*args, **kwargs)
+        obj = Finaliser()
+        del obj
+
+    base, grid = load_config("case1", BASE), parse_grid(["scaling=trace,none"])
+    out = tmp_path / "sweep"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ray_backend, "_write_config_folder", write_then_swallow)
+        with pytest.raises(KeyboardInterrupt):
+            run_sweep(base, grid, out, progress=False, backend="ray")
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert len(rows) == 1 and rows[0]["metrics"] == local_rows[rows[0]["digest"]]["metrics"]
+    rerun = run_sweep(base, grid, out, progress=False, backend="ray")  # the latch is gone: the rest runs
+    digests = [base.replace(scaling=s).digest() for s in ("trace", "none")]
+    assert metrics(rerun) == {d: local_rows[d]["metrics"] for d in digests}

@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -99,7 +100,18 @@ def run_on_ray(
     max_retries: int,
     progress: bool,
     total: int,
+    interrupted: threading.Event | None = None,
 ) -> None:
+    """Run ``pending`` as one Ray task per distinct configuration, ``record`` each result as it arrives.
+
+    ``interrupted``: a latch of Ctrl-C (set by the caller's SIGINT handler); checked after every
+    recorded row, so that a ``KeyboardInterrupt`` Python swallowed (raised inside a finaliser) still
+    stops the driver — the tasks still running are cancelled, what finished is kept.
+
+    Raises:
+        SweepFailed: some configurations failed (every other one is recorded).
+        KeyboardInterrupt: Ctrl-C in the driver.
+    """
     ray = import_ray()
     from tqdm.auto import tqdm
 
@@ -135,6 +147,8 @@ def run_on_ray(
                         _write_config_folder(out / "configs", cfg.digest(), result["files"])
                         record(params, cfg, result["metrics"])
                     bar.update(1)
+                if interrupted is not None and interrupted.is_set():
+                    raise KeyboardInterrupt
         finally:
             bar.close()
             for ref in waiting:  # interrupted driver: stop what is still running (a rerun redoes it)

@@ -212,13 +212,15 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
         append_line(results, json_text(row))
         rows.append(row)
 
-    if backend == "local":
-        with _interrupt_latch() as interrupted:
+    with _interrupt_latch() as interrupted:
+        if backend == "local":
             for params, cfg in pending:
                 summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
                 record(params, cfg, config_metrics(summary))
                 if interrupted.is_set():  # a Ctrl-C that Python swallowed (e.g. raised inside a finaliser)
                     raise KeyboardInterrupt
-    elif pending:
-        run_on_ray(pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs))
+        elif pending:
+            run_on_ray(
+                pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs), interrupted
+            )
     return rows
