@@ -57,6 +57,30 @@ def test_interior_point_alone_matches_clarabel(gen, N):
     assert iterations < 60
 
 
+@pytest.mark.parametrize("multiplier", [1e-5, 1e-7, 1e-9])
+def test_interior_point_settles_bounds_whose_multipliers_are_nearly_zero(gen, multiplier):
+    """A weight at its bound with a multiplier near zero leaves the interior-point iterations only slowly
+    (~1e-6 when they stop); the polish must still find the exact support.  Problems are built around a
+    known minimiser: ``w*`` zero on half the components, bound multipliers ``multiplier`` there, so
+    ``c = ν1 + s − Hw*``.  The polished solution is the KKT solution on the support: error ≤ 64 κ(H) ε."""
+    from agsf_torch.qp import _KKT_TOL, _interior_point
+
+    B, N = 50, 8
+    A = torch.randn(B, N, N, generator=gen, dtype=F64)
+    H = A @ A.transpose(-1, -2) / N + 1e-3 * torch.eye(N, dtype=F64)
+    w_star = torch.rand(B, N, generator=gen, dtype=F64)
+    w_star[:, N // 2 :] = 0.0
+    w_star = w_star / w_star.sum(-1, keepdim=True)
+    s = torch.zeros(B, N, dtype=F64)
+    s[:, N // 2 :] = multiplier
+    nu = torch.randn(B, 1, generator=gen, dtype=F64)
+    c = nu + s - (H @ w_star.unsqueeze(-1)).squeeze(-1)
+    w, _ = _interior_point(H, c)
+    bound = 64 * torch.linalg.cond(H) * torch.finfo(F64).eps
+    assert bool(((w - w_star).abs().amax(-1) <= bound).all()), float((w - w_star).abs().max())
+    assert float(kkt_residual(H, c, w).max()) <= _KKT_TOL
+
+
 def test_matches_cvxpy(gen):
     H, c = _random_problems(gen, 10, 5)
     np.testing.assert_allclose(solve_simplex_qp(H, c).w.numpy(), solve_simplex_qp_cvxpy(H, c), rtol=0, atol=1e-8)
