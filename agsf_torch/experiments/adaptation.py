@@ -49,6 +49,7 @@ from .experiment import make_env, make_filters, mean_ci95, prepare_output, prior
 from .factories import filter_model
 from .resources import check_memory
 from .runner import monte_carlo_steps
+from .statistics import WINDOW_TEXT, error_windows
 from .tensorboard_log import clear_events
 
 __all__ = ["SCENARIOS", "STUDY_FILTERS", "run_scenario", "run_adaptation_study", "study_table"]
@@ -81,16 +82,6 @@ def scenario_config(name: str, runs: int, overrides: list[str] | None = None) ->
     if list(cfg.filters) != list(STUDY_FILTERS):
         raise ValueError(f"the study compares {', '.join(STUDY_FILTERS)}; config key 'filters' cannot be overridden")
     return cfg
-
-
-def _windows(frames: np.ndarray) -> dict[str, np.ndarray]:
-    first = int(np.argmax(frames)) if frames.any() else len(frames)
-    idx = np.arange(len(frames))
-    return {
-        "before_first_frame": idx < first,
-        "between_frames": (~frames) & (idx >= first),
-        "all": np.ones_like(frames),
-    }
 
 
 def run_scenario(
@@ -178,7 +169,7 @@ def run_scenario(
 def summarize_scenario(res: dict[str, Any], cfg: ExperimentConfig) -> dict[str, Any]:
     """Window means over time, then mean and 95 % interval over runs; paired differences against the GSF."""
     frames = res["frame"]
-    windows = _windows(frames)
+    windows = error_windows(frames)
     n = filter_model(cfg).state_dim
     out: dict[str, Any] = {
         "config": cfg.to_dict(),
@@ -392,4 +383,4 @@ def study_table(summaries: dict[str, Any], window: str = "all") -> str:
                 f"| {sname} | {fname} | {_fmt(w['rms_deg'], *w['rms_deg_ci95'])} | {_fmt(w['nees'], *w['nees_ci95'])} | "
                 f"{_fmt(w['density_score'], *w['density_score_ci95'], digits=5)} | {diff} |"
             )
-    return "\n".join(lines)
+    return "\n".join(lines) + f"\n\nWindow — {WINDOW_TEXT[window]}."

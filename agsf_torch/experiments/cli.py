@@ -266,13 +266,22 @@ def _threads(args: argparse.Namespace) -> None:
 
 
 def _print_summary(name: str, summary: dict) -> None:
+    """The run's per-filter numbers and every adaptive filter's paired difference against the GSF, aligned."""
+    from .statistics import WINDOW_TEXT, minus_gsf_key
+
     print(f"{name}: mean RMS between star frames (deg) and time-averaged NEES")
-    for fname, f in summary["filters"].items():
-        bu = f.get("between_updates", {}).get("mean_rms_deg", float("nan"))
-        print(f"  {fname:5s} {bu:.6g}   NEES {f['time_averaged_nees']:.4g}")
-    if "agsf_minus_gsf" in summary and "between_updates" in summary["agsf_minus_gsf"]:
-        d = summary["agsf_minus_gsf"]["between_updates"]
-        print(f"  AGSF − GSF {d['mean_deg']:.3g} deg, 95% CI [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}]")
+    filters = summary["filters"]
+    width = max((len(f"{f} − GSF") for f in filters), default=0)
+    for fname, f in filters.items():
+        bu = f.get("between_frames", {}).get("mean_rms_deg", float("nan"))
+        print(f"  {fname:<{width}}  {bu:>11.6g}       NEES {f['time_averaged_nees']:.4g}")
+    for fname in filters:
+        d = (summary.get(minus_gsf_key(fname)) or {}).get("between_frames")
+        if d:
+            label = f"{fname} − GSF"
+            lo, hi = d["ci95_deg"]
+            print(f"  {label:<{width}}  {d['mean_deg']:>11.3g} deg,  95% CI [{lo:.3g}, {hi:.3g}]")
+    print(f"  (window — {WINDOW_TEXT['between_frames']})")
 
 
 def keys_epilog() -> str:

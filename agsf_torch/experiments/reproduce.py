@@ -18,7 +18,7 @@ from ..storage.files import write_json, write_text
 from .config import load_config
 from .experiment import prepare_output, run_experiment
 from .resources import check_memory
-from .statistics import minus_gsf_key
+from .statistics import WINDOW_TEXT, minus_gsf_key
 from .tensorboard_log import hparam_domains, write_hparams_session
 
 __all__ = ["reproduce", "results_table"]
@@ -47,8 +47,8 @@ def reproduce(
             "runs": cfg.runs,
             "filters": {
                 f: {
-                    "between_updates_mean_rms_deg": s.get("between_updates", {}).get("mean_rms_deg"),
-                    "before_first_update_mean_rms_deg": s.get("before_first_update", {}).get("mean_rms_deg"),
+                    "between_frames_mean_rms_deg": s.get("between_frames", {}).get("mean_rms_deg"),
+                    "before_first_frame_mean_rms_deg": s.get("before_first_frame", {}).get("mean_rms_deg"),
                     "final_rms_deg": s["rms_deg"][-1],
                     "time_averaged_nees": s["time_averaged_nees"],
                 }
@@ -74,8 +74,8 @@ def case_metrics(case: dict) -> dict[str, float]:
     metrics: dict[str, float] = {}
     for f, s in case["filters"].items():
         for key, metric in (
-            ("between_updates_mean_rms_deg", "mean_rms_between_updates_deg"),
-            ("before_first_update_mean_rms_deg", "mean_rms_before_first_update_deg"),
+            ("between_frames_mean_rms_deg", "mean_rms_between_frames_deg"),
+            ("before_first_frame_mean_rms_deg", "mean_rms_before_first_frame_deg"),
             ("final_rms_deg", "final_rms_deg"),
             ("time_averaged_nees", "time_averaged_nees"),
         ):
@@ -98,9 +98,10 @@ def results_table(combined: dict) -> str:
     for case, c in combined.items():
         for f, s in c["filters"].items():
             lines.append(
-                f"| {case} | {1 / c['star_period_s']:g} Hz | {f} | {s['between_updates_mean_rms_deg']:.5g} | "
-                f"{s['before_first_update_mean_rms_deg']:.5g} | {s['final_rms_deg']:.3g} | {s['time_averaged_nees']:.4g} |"
+                f"| {case} | {1 / c['star_period_s']:g} Hz | {f} | {_cell(s['between_frames_mean_rms_deg'], '.5g')} | "
+                f"{_cell(s['before_first_frame_mean_rms_deg'], '.5g')} | {s['final_rms_deg']:.3g} | {s['time_averaged_nees']:.4g} |"
             )
+    lines += ["", _WINDOWS_NOTE]
     for label in ADAPTIVE_FILTERS:
         key = minus_gsf_key(label)
         rows = [(case, w, d) for case, c in combined.items() for w, d in (c.get(key) or {}).items()]
@@ -115,4 +116,18 @@ def results_table(combined: dict) -> str:
             lines.append(
                 f"| {case} | {window.replace('_', ' ')} | {d['mean_deg']:.3g} | [{d['ci95_deg'][0]:.3g}, {d['ci95_deg'][1]:.3g}] | {100 * d['relative']:.2f} % |"
             )
+        lines += ["", _DIFFERENCES_NOTE]
     return "\n".join(lines)
+
+
+_WINDOWS = f"{WINDOW_TEXT['between_frames']}; {WINDOW_TEXT['before_first_frame']}"
+#: The sentences under the tables of :func:`results_table`: what their windows are.
+_WINDOWS_NOTE = f"Windows — {_WINDOWS}; final: the last step; NEES: averaged over every step and run."
+_DIFFERENCES_NOTE = (
+    f"Paired per-run differences of the mean RMS, Student-t 95 % interval over runs; windows — {_WINDOWS}."
+)
+
+
+def _cell(value: float | None, fmt: str) -> str:
+    """A table number, or ``—`` where the window is empty (a run without star frames has no between-frames window)."""
+    return "—" if value is None else format(value, fmt)

@@ -12,7 +12,28 @@ from ..consistency import chi2_band, rms
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 from .config import ExperimentConfig
 
-__all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key"]
+__all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key", "error_windows", "WINDOW_TEXT"]
+
+#: What each time window of the error statistics covers, in one sentence (printed under every table).
+WINDOW_TEXT = {
+    "before_first_frame": "before the first star frame: the prior's stretch, every step from t = 0 up to that frame",
+    "between_frames": "between frames: every step after the first star frame that is not itself a frame",
+    "all": "all: every step of the run, t = 0 to the end",
+}
+
+
+def error_windows(frames: np.ndarray) -> dict[str, np.ndarray]:
+    """The time windows of the error statistics as boolean masks ``[T]`` over the steps, from the star-frame
+    flags ``frames [T]``: ``before_first_frame`` (the prior's stretch), ``between_frames`` (after the first
+    frame, off frames) and ``all`` (:data:`WINDOW_TEXT`).  Without any frame, every step is before the first."""
+    frames = np.asarray(frames, dtype=bool)
+    first = int(np.argmax(frames)) if frames.any() else len(frames)
+    idx = np.arange(len(frames))
+    return {
+        "before_first_frame": idx < first,
+        "between_frames": (~frames) & (idx > first),
+        "all": np.ones(len(frames), dtype=bool),
+    }
 
 
 def minus_gsf_key(adaptive: str) -> str:
@@ -25,9 +46,9 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     """Summary statistics from the per-run data alone (``runs.npz``).
 
     * ``rms_deg [T]``: ``sqrt(mean_b θ_b(t)²)`` in degrees;
-    * ``between_updates``: per run ``r_b = sqrt(mean_{t ∉ frames} θ_b(t)²)`` over the
-      steps that are not star frames; ``mean_rms_deg`` is ``mean_b r_b``;
-    * ``before_first_update``: the same over the steps before the first frame;
+    * ``between_frames``: per run ``r_b = sqrt(mean_t θ_b(t)²)`` over the steps after the first
+      star frame that are not frames (:func:`error_windows`); ``mean_rms_deg`` is ``mean_b r_b``;
+    * ``before_first_frame``: the same over the prior's stretch, the steps before the first frame;
     * ``agsf_minus_gsf`` (``agsf_galerkin_minus_gsf``): paired differences
       ``r_b(AGSF) − r_b(GSF)`` (the Galerkin filter's), mean and a Student-t 95 %
       confidence interval; every per-run mean above carries its own interval
@@ -35,8 +56,7 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     """
     time = data["time"]
     frames = data["star_frame"].astype(bool)
-    first = int(np.argmax(frames)) if frames.any() else len(frames)
-    windows = {"between_updates": ~frames, "before_first_update": np.arange(len(frames)) < first}
+    windows = {k: v for k, v in error_windows(frames).items() if k != "all"}
     names = [n for n in FILTER_NAMES if f"{n}/error_angle" in data]
     n_state = data[f"{names[0]}/error"].shape[-1]
     runs = data[f"{names[0]}/error_angle"].shape[0]

@@ -111,10 +111,25 @@ def test_sweep_prints_its_results_table_and_writes_results_md(tmp_path):
     assert (out / "results.md").read_text() == table + "\n"
     assert table in stdout
     assert f"TensorBoard (hparams): {cli.tensorboard_command(out)}" in stdout.splitlines()
-    lines = table.splitlines()
+    lines = table.split("\n\n")[0].splitlines()
     assert len(lines) == 2 + 2  # header, rule, one line per configuration
     assert "seed" in lines[0] and "GSF RMS (deg)" in lines[0] and "EKF NEES" in lines[0]
     assert sorted(line.split("|")[2].strip() for line in lines[2:]) == ["3", "5"]
+
+
+def test_run_prints_every_filter_aligned_and_every_adaptive_difference_with_its_window(tmp_path):
+    out = tmp_path / "run"
+    filters = 'filters=["EKF", "GSF", "AGSF", "AGSF-galerkin"]'
+    code, stdout, _ = _agsf(["run", "case1", *TINY, "--set", filters, "--set", "duration=1.2", "--out", str(out)])
+    assert code == 0
+    lines = stdout.splitlines()
+    rows = [line for line in lines if "NEES" in line and line.startswith("  ")]
+    assert [r.split()[0] for r in rows] == ["EKF", "GSF", "AGSF", "AGSF-galerkin"]
+    assert len({r.index("NEES") for r in rows}) == 1  # the numbers in one column
+    differences = [line for line in lines if "− GSF" in line]
+    assert [d.split()[0] for d in differences] == ["AGSF", "AGSF-galerkin"]
+    assert len({line.index(" deg,") for line in differences} | {r.index("NEES") - 7 for r in rows}) == 1
+    assert "  (window — between frames: every step after the first star frame that is not itself a frame)" in lines
 
 
 def test_an_unknown_set_key_lists_the_known_keys(tmp_path):

@@ -74,18 +74,23 @@ def test_summary_matches_independent_recomputation(experiment):
         for k in (0, len(frames) // 2, len(frames) - 1):
             expect = np.degrees(np.sqrt(sum(theta[b, k] ** 2 for b in range(B)) / B))
             assert summary["filters"][name]["rms_deg"][k] == pytest.approx(expect, rel=1e-12)
-        r = []
+        # between frames: after the first star frame, off frames; before the first frame: the prior's stretch
+        first = next(k for k in range(len(frames)) if frames[k])
+        r, r_prior = [], []
         for b in range(B):
-            vals = [theta[b, k] ** 2 for k in range(len(frames)) if not frames[k]]
+            vals = [theta[b, k] ** 2 for k in range(first + 1, len(frames)) if not frames[k]]
             r.append(np.degrees(np.sqrt(np.mean(vals))))
+            r_prior.append(np.degrees(np.sqrt(np.mean([theta[b, k] ** 2 for k in range(first)]))))
         per_run[name] = np.array(r)
-        assert summary["filters"][name]["between_updates"]["mean_rms_deg"] == pytest.approx(np.mean(r), rel=1e-12)
+        assert summary["filters"][name]["between_frames"]["mean_rms_deg"] == pytest.approx(np.mean(r), rel=1e-12)
+        got_prior = summary["filters"][name]["before_first_frame"]["mean_rms_deg"]
+        assert got_prior == pytest.approx(np.mean(r_prior), rel=1e-12)
         assert summary["filters"][name]["time_averaged_nees"] == pytest.approx(
             float(np.mean(data[f"{name}/nees"])), rel=1e-12
         )
     d = per_run["AGSF"] - per_run["GSF"]
     half = student_t.ppf(0.975, B - 1) * np.std(d, ddof=1) / np.sqrt(B)
-    got = summary["agsf_minus_gsf"]["between_updates"]
+    got = summary["agsf_minus_gsf"]["between_frames"]
     assert got["mean_deg"] == pytest.approx(d.mean(), rel=1e-9, abs=1e-15)
     assert got["ci95_deg"][0] == pytest.approx(d.mean() - half, rel=1e-9, abs=1e-15)
     assert got["ci95_deg"][1] == pytest.approx(d.mean() + half, rel=1e-9, abs=1e-15)

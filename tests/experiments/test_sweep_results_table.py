@@ -16,9 +16,9 @@ ROWS = [
         "digest": "aaaa",
         "params": {"reg": 0.1, "filters": ["GSF", "AGSF"]},
         "metrics": {
-            "GSF/mean_rms_between_updates_deg": 0.0123456,
+            "GSF/mean_rms_between_frames_deg": 0.0123456,
             "GSF/time_averaged_nees": 3.14159,
-            "AGSF/mean_rms_between_updates_deg": 0.0111,
+            "AGSF/mean_rms_between_frames_deg": 0.0111,
             "AGSF/time_averaged_nees": 2.9,
             "agsf_minus_gsf_deg": -1.23456e-4,
         },
@@ -27,8 +27,18 @@ ROWS = [
 ]
 
 
+def _table_lines(rows) -> list[str]:
+    """The table's lines, without the sentence under it."""
+    text = results_table(rows)
+    table, note = text.split("\n\n")
+    assert note.startswith(
+        "RMS: the mean over runs of each run's RMS in the window between frames: every step after the first star frame"
+    )
+    return table.splitlines()
+
+
 def test_one_line_per_row_with_params_and_main_metrics():
-    lines = results_table(ROWS).splitlines()
+    lines = _table_lines(ROWS)
     assert len(lines) == 2 + len(ROWS)
     assert _cells(lines[0]) == [
         "config",
@@ -46,14 +56,14 @@ def test_one_line_per_row_with_params_and_main_metrics():
 
 
 def test_columns_are_aligned():
-    lines = results_table(ROWS).splitlines()
+    lines = _table_lines(ROWS)
     assert len({len(line) for line in lines}) == 1
     assert len({tuple(i for i, ch in enumerate(line) if ch == "|") for line in lines}) == 1
 
 
 def test_no_difference_column_without_the_difference():
     rows = [{"digest": "c", "params": {"seed": 1}, "metrics": {"EKF/time_averaged_nees": 2.5}}]
-    header = _cells(results_table(rows).splitlines()[0])
+    header = _cells(_table_lines(rows)[0])
     assert header == ["config", "seed", "EKF RMS (deg)", "EKF NEES"]
 
 

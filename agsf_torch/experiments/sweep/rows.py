@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from ..statistics import WINDOW_TEXT
+
 __all__ = ["config_metrics", "results_table"]
 
 
@@ -13,16 +15,16 @@ def config_metrics(summary: dict[str, Any]) -> dict[str, float]:
     (deg) and its time-averaged NEES, and the paired AGSF − GSF difference (deg) when there is one."""
     m: dict[str, float] = {}
     for name, f in summary["filters"].items():
-        if "between_updates" in f:
-            m[f"{name}/mean_rms_between_updates_deg"] = f["between_updates"]["mean_rms_deg"]
+        if "between_frames" in f:
+            m[f"{name}/mean_rms_between_frames_deg"] = f["between_frames"]["mean_rms_deg"]
         m[f"{name}/time_averaged_nees"] = f["time_averaged_nees"]
-    d = summary.get("agsf_minus_gsf", {}).get("between_updates")
+    d = summary.get("agsf_minus_gsf", {}).get("between_frames")
     if d:
         m["agsf_minus_gsf_deg"] = d["mean_deg"]
     return m
 
 
-_RMS_SUFFIX = "/mean_rms_between_updates_deg"
+_RMS_SUFFIX = "/mean_rms_between_frames_deg"
 _NEES_SUFFIX = "/time_averaged_nees"
 _DIFFERENCE_KEY = "agsf_minus_gsf_deg"
 
@@ -49,7 +51,8 @@ def results_table(rows: list[dict[str, Any]]) -> str:
     parameter, then per filter its mean RMS between star frames (deg) and its time-averaged
     NEES (dimensionless), and ``AGSF − GSF`` (deg, the paired difference of the mean RMS
     between frames) when any row has it.  A metric a row lacks is shown as ``—``.  Cells are
-    padded so that the table also reads as plain text.
+    padded so that the table also reads as plain text; one sentence under the table says what its
+    window is (:data:`~agsf_torch.experiments.statistics.WINDOW_TEXT`).
 
     Raises:
         ValueError: a row without a ``params`` or ``metrics`` mapping (named by its index).
@@ -89,4 +92,9 @@ def results_table(rows: list[dict[str, Any]]) -> str:
     def line(cells: list[str]) -> str:
         return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"
 
-    return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in body)])
+    note = (
+        f"RMS: the mean over runs of each run's RMS in the window {WINDOW_TEXT['between_frames']}; "
+        "NEES: averaged over every step and run"
+        + ("; AGSF − GSF: the paired per-run difference of that RMS." if difference else ".")
+    )
+    return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in body), "", note])

@@ -1,0 +1,49 @@
+"""The time windows of the error statistics and the sentences that say what they are."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agsf_torch.experiments.reproduce import results_table
+from agsf_torch.experiments.statistics import WINDOW_TEXT, error_windows
+
+
+def test_windows_split_the_prior_stretch_the_frames_and_the_steps_between():
+    frames = np.array([False, False, False, True, False, False, True, False])
+    w = error_windows(frames)
+    assert w["before_first_frame"].tolist() == [True, True, True, False, False, False, False, False]
+    assert w["between_frames"].tolist() == [False, False, False, False, True, True, False, True]
+    assert w["all"].all()
+    # every step is in exactly one of: the prior's stretch, a frame, between frames
+    assert (w["before_first_frame"].astype(int) + frames + w["between_frames"]).tolist() == [1] * len(frames)
+
+
+def test_a_run_without_frames_is_all_prior_and_a_frame_at_t0_has_no_prior_stretch():
+    none = error_windows(np.zeros(5, dtype=bool))
+    assert none["before_first_frame"].all() and not none["between_frames"].any()
+    at_start = error_windows(np.array([True, False, False, True, False]))
+    assert not at_start["before_first_frame"].any()
+    assert at_start["between_frames"].tolist() == [False, True, True, False, True]
+
+
+def test_reproduce_tables_say_what_their_windows_are():
+    filters = {
+        f: {
+            "between_frames_mean_rms_deg": 0.5,
+            "before_first_frame_mean_rms_deg": 8.0,
+            "final_rms_deg": 0.01,
+            "time_averaged_nees": 3.0,
+        }
+        for f in ("GSF", "AGSF")
+    }
+    diff = {
+        w: {"mean_deg": -0.01, "ci95_deg": [-0.02, 0.0], "relative": -0.02}
+        for w in ("between_frames", "before_first_frame")
+    }
+    text = results_table({"case1": {"star_period_s": 1.0, "filters": filters, "agsf_minus_gsf": diff}})
+    blocks = text.split("\n\n")
+    assert len(blocks) == 4  # the table, its sentence, the differences, their sentence
+    for table, note in ((blocks[0], blocks[1]), (blocks[2], blocks[3])):
+        assert table.startswith("| case |") and not note.startswith("|")
+        assert WINDOW_TEXT["between_frames"] in note and WINDOW_TEXT["before_first_frame"] in note
+    assert "| case1 | between frames | -0.01 |" in blocks[2]
