@@ -50,6 +50,7 @@ import torch
 from .cli_terminal import (
     FORCE_HELP,
     Parser,
+    key_value,
     messages,
     nonnegative_float,
     one_line,
@@ -311,7 +312,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(p):
         p.add_argument(
-            "--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (the keys: below)"
+            "--set",
+            action="append",
+            default=[],
+            type=key_value("--set", "VALUE"),
+            metavar="KEY=VALUE",
+            help="override a config key (the keys: below)",
         )
         p.formatter_class = argparse.RawDescriptionHelpFormatter
         p.epilog = keys_epilog()
@@ -365,7 +371,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sweep", help="a grid of configurations, each one batched Monte Carlo")
     p.add_argument("config", help="base TOML file or preset")
-    p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...", help="a swept key")
+    p.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        type=key_value("--grid", "V1,V2"),
+        metavar="KEY=V1,V2,...",
+        help="a swept key",
+    )
     p.add_argument("--out", required=True, help="output folder (rerun the same command on it to resume)")
     p.add_argument(
         "--backend",

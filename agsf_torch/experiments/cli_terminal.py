@@ -92,6 +92,21 @@ def tensorboard_command(logdir: str | Path) -> str:
 FORCE_HELP = "run even if the memory estimate exceeds the memory available"
 
 
+def key_value(option: str, example: str):
+    """An argparse ``type`` for ``option KEY=VALUE``: a word without ``=`` (``--set runs 8``, whose ``8``
+    argparse would only call an unrecognized argument) is refused naming the form, e.g. ``--set runs=8``."""
+
+    def parse(text: str) -> str:
+        if "=" not in text:
+            key = text.strip() or "KEY"
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not KEY=VALUE: write the key, '=' and the value as one argument, e.g. {option} {key}={example}"
+            )
+        return text
+
+    return parse
+
+
 class Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line (``agsf run: error: …``, exit 2), like every other refusal."""
 

@@ -125,7 +125,10 @@ class _ExperimentFields:
                     raise ValueError(f"config key '{key}' must be a string, got {value!r}")
             elif kind == "list":
                 if not isinstance(value, list):
-                    raise ValueError(f"config key '{key}' must be a list, got {value!r}")
+                    example = json.dumps([value] if isinstance(value, (str, int, float)) else [])
+                    raise ValueError(
+                        f"config key '{key}' must be a list (a TOML array), e.g. --set {key}='{example}', got {value!r}"
+                    )
         positive = (
             "duration",
             "dt",

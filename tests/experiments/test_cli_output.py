@@ -132,6 +132,35 @@ def test_run_prints_every_filter_aligned_and_every_adaptive_difference_with_its_
     assert "  (window — between frames: every step after the first star frame that is not itself a frame)" in lines
 
 
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (
+            ["run", "case1", "--set", "runs", "8"],
+            "argument --set: 'runs' is not KEY=VALUE: write the key, '=' and the value as one argument, e.g. --set runs=VALUE",
+        ),
+        (
+            ["sweep", "case1", "--grid", "seed", "3,4"],
+            "argument --grid: 'seed' is not KEY=VALUE: write the key, '=' and the value as one argument, e.g. --grid seed=V1,V2",
+        ),
+        (
+            ["run", "case1", "--set", "filters=EKF"],
+            """config key 'filters' must be a list (a TOML array), e.g. --set filters='["EKF"]', got 'EKF'""",
+        ),
+        (
+            ["run", "case1", "--set", "rate_axes=1"],
+            "config key 'rate_axes' must be a list (a TOML array), e.g. --set rate_axes='[1]', got 1",
+        ),
+    ],
+)
+def test_a_malformed_set_or_grid_shows_the_form_it_needs(tmp_path, argv, says):
+    out = tmp_path / "out"
+    code, stdout, stderr = _agsf([*argv, "--out", str(out)])
+    assert code == 2 and stdout == ""
+    assert len(stderr.splitlines()) == 1 and says in stderr
+    assert not out.exists()
+
+
 def test_an_unknown_set_key_lists_the_known_keys(tmp_path):
     code, _, stderr = _agsf(["run", "case1", "--set", "sigma_q=1", "--out", str(tmp_path / "x")])
     assert code == 2 and stderr.count("\n") == 1
