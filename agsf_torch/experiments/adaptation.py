@@ -118,9 +118,9 @@ def run_scenario(
         noise_model=cfg.star_noise_model,
     )
     if progress:
-        from tqdm import tqdm
+        from .progress import progress_bar
 
-        steps = tqdm(steps, desc=cfg.name, unit="step", total=cfg.num_steps)
+        steps = progress_bar(steps, desc=cfg.name, unit="step", total=cfg.num_steps)
     rec: dict[str, list] = {"time": [], "frame": [], "ess": [], "ess_small": []}
     per: dict[str, dict[str, list]] = {
         f: {"error_angle": [], "nees": [], "score": [], "score_se": [], "score_small": []} for f in filters

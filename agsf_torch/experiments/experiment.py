@@ -42,8 +42,12 @@ def run_experiment(
     kind: str = "run",
     recording: str | Path | None = None,
     force: bool = False,
+    label: str | None = None,
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
+
+    ``label`` names the run on its progress bar (default: the configuration's ``name``; a sweep passes
+    the configuration's parameters).
 
     With ``recording`` the filters replay that file (it must hold the truth and
     ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps) instead of a simulation;
@@ -78,7 +82,7 @@ def run_experiment(
         estimate_bias=cfg.estimate_bias,
         progress=progress,
         noise_model=cfg.star_noise_model,
-        label=cfg.name,
+        label=cfg.name if label is None else label,
     )
     data = save_runs(out / "runs.npz", res)
     summary = summarize(data, cfg)

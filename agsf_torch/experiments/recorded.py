@@ -6,9 +6,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from ..attitude.recordings import Recording
+from .progress import progress_bar
 
 __all__ = ["record_environment", "RecordingEnv"]
 
@@ -25,7 +25,9 @@ def record_environment(env, num_steps: int, seed: int, progress: bool = False) -
     truth = {"truth_mrp": [torch.as_tensor(info["truth_mrp"])], "truth_bias": [torch.as_tensor(info["truth_bias"])]}
     times = [float(torch.as_tensor(obs["time"]).reshape(-1)[0])]
     zeros = torch.zeros(env.num_envs, 3, dtype=torch.float64)
-    for _ in tqdm(range(num_steps), desc="simulating", unit="step", disable=not progress, leave=False):
+    for _ in progress_bar(
+        range(num_steps), desc="simulating", unit="step", total=num_steps, disable=not progress, leave=False
+    ):
         obs, _, _, _, info = env.step(zeros)
         for k in keys:
             rows[k].append(torch.as_tensor(obs[k]))

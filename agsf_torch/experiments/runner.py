@@ -248,9 +248,9 @@ def run_monte_carlo(
         gyro_hold_sigma=gyro_hold_sigma,
     )
     if progress:
-        from tqdm import tqdm
+        from .progress import progress_bar
 
-        steps = tqdm(steps, desc=label, unit="step", total=num_steps)
+        steps = progress_bar(steps, desc=label, unit="step", total=num_steps)
     for step in steps:
         times.append(step.time)
         frames.append(step.star_frame)

@@ -113,7 +113,7 @@ def run_on_ray(
         KeyboardInterrupt: Ctrl-C in the driver.
     """
     ray = import_ray()
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
     started = not ray.is_initialized()
     if started:
@@ -133,7 +133,7 @@ def run_on_ray(
             submitted[task.remote(runner_ref, cfg, cpus_per_task)] = (params, cfg)
         failures: list[tuple[str, dict[str, Any], str]] = []
         waiting = list(submitted)
-        bar = tqdm(total=len(waiting), desc="sweep (ray)", unit="config", disable=not progress)
+        bar = progress_bar(desc="sweep (ray)", unit="config", total=len(waiting), disable=not progress)
         try:
             while waiting:
                 ready, waiting = ray.wait(waiting, num_returns=1)

@@ -112,8 +112,9 @@ def run_sweep(
     One sweep at a time may write ``out``: a second one raises :class:`SweepBusy`.
 
     Args:
-        runner: runs one configuration, ``runner(cfg, out, progress=, kind=)`` →
-            summary (:func:`run_experiment`; tests inject failures through it).
+        runner: runs one configuration, ``runner(cfg, out, progress=, kind=, label=)`` →
+            summary (:func:`run_experiment`; tests inject failures through it); ``label`` (local
+            backend) names the configuration on its progress bar: its preset and parameters.
             With ``backend="ray"`` it runs on the workers, so it must be picklable.
         backend: ``"local"`` (in this process, one configuration after another)
             or ``"ray"`` (one Ray task per configuration, see the module docstring).
@@ -215,7 +216,9 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
     with _interrupt_latch() as interrupted:
         if backend == "local":
             for params, cfg in pending:
-                summary = runner(cfg, out / "configs" / cfg.digest(), progress=progress, kind="sweep-config")
+                folder = out / "configs" / cfg.digest()
+                label = f"{cfg.name} {names[cfg.digest()]}"  # the bar names the configuration, not only its preset
+                summary = runner(cfg, folder, progress=progress, kind="sweep-config", label=label)
                 record(params, cfg, config_metrics(summary))
                 if interrupted.is_set():  # a Ctrl-C that Python swallowed (e.g. raised inside a finaliser)
                     raise KeyboardInterrupt
