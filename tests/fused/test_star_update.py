@@ -70,7 +70,10 @@ def _reference(mean, P, y, meas, b):
 def test_fused_update_matches_a_50_digit_reference(gen, n, sigma, prior_var, condition):
     """The information form is backward stable: its error in ``z = (I + A)⁻¹g`` is bounded by
     ``κ(I + A)·ε`` relative, which bounds the mean's and the NIS's; ``P⁺ = YYᵀ + L_bb L_bbᵀ`` is a sum of
-    outer products of such solutions."""
+    outer products of such solutions.  The kernel evaluates ``h = R(p)r`` on lanes, in another order than
+    the reference's float64 ``h``: the innovation differs by up to ``8ε`` per entry (``|h| = 1``), which
+    moves the NIS by up to ``2√NIS·√(3M)·8ε/σ`` (``λ_min(S) ≥ σ²``) — the dominant term for a precise
+    camera, whose NIS is mostly the innovation's part along the star vectors, ``O(|ν|²/σ²)``."""
     log_w, means, covs, y, meas = _problem(gen, 4, 2, n, sigma, prior_var, condition=condition)
     out = fused_star_update(log_w, means, covs, y, meas)
     for b in range(4):
@@ -80,7 +83,8 @@ def test_fused_update_matches_a_50_digit_reference(gen, n, sigma, prior_var, con
             assert float((out.covs[b, i] - P_ref).abs().max() / P_ref.abs().max()) <= tol
             step = (x_ref - means[b, i]).abs().max()
             assert float((out.means[b, i] - x_ref).abs().max() / step) <= tol
-            assert abs(float(out.nis[b, i]) - nis_ref) <= tol * nis_ref
+            h_rounding = 2 * math.sqrt(nis_ref) * math.sqrt(3 * 5) * 8 * EPS / sigma
+            assert abs(float(out.nis[b, i]) - nis_ref) <= tol * nis_ref + h_rounding
 
 
 @pytest.mark.parametrize("n", [3, 6])
