@@ -13,11 +13,12 @@ import argparse
 import logging
 import shlex
 import sys
-import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+
+from ..torch_internals import torch_internal_deprecations_hidden
 
 __all__ = [
     "FORCE_HELP",
@@ -148,14 +149,7 @@ def messages(quiet: bool):
     logger.addHandler(handler)
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
     try:
-        with warnings.catch_warnings():
-            # torch's own inductor lowering calls its deprecated torch._prims_common.check
-            warnings.filterwarnings(
-                "ignore",
-                message=r"`torch\._prims_common\.check` is deprecated",
-                category=FutureWarning,
-                module=r"torch\._inductor\.",
-            )
+        with torch_internal_deprecations_hidden():
             yield
     finally:
         logger.removeHandler(handler)

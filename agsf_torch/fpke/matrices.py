@@ -17,6 +17,7 @@ from torch import Tensor
 
 from ..models.base import ContinuousModel
 from ..quadrature import ProductRule
+from ..torch_internals import torch_internal_deprecations_hidden
 from .moments import residual_mean
 from .pairs import ProductGaussians, product_gaussians
 from .residual import ComponentRates, residual_factor
@@ -85,14 +86,16 @@ class _AnnouncedCompile:
 
     def __call__(self, *args):
         if self._first_call_done:
-            return self._compiled_fn(*args)
+            with torch_internal_deprecations_hidden():  # a new shape recompiles
+                return self._compiled_fn(*args)
         _log.info(
             "compiling the FPKE kernel %r with torch.compile (first step only: a few seconds once "
             "torch's on-disk cache holds it, about 20 s the first time on a machine)",
             self.name,
         )
         t0 = time.perf_counter()
-        out = self._compiled_fn(*args)
+        with torch_internal_deprecations_hidden():
+            out = self._compiled_fn(*args)
         self._first_call_done = True
         _log.info("compiled the FPKE kernel %r in %.1f s", self.name, time.perf_counter() - t0)
         return out

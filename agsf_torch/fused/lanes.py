@@ -24,6 +24,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from ..torch_internals import torch_internal_deprecations_hidden
+
 __all__ = [
     "entries",
     "stack_entries",
@@ -170,7 +172,12 @@ def run_in_chunks(
                     size,
                 )
                 t0 = time.perf_counter()
-            outs.append(tuple(o[:c] for o in fn(*part, *shared)))
+            if first:  # compiling: torch's own deprecation warnings from inductor are not the user's concern
+                with torch_internal_deprecations_hidden():
+                    result = fn(*part, *shared)
+            else:
+                result = fn(*part, *shared)
+            outs.append(tuple(o[:c] for o in result))
             if first:
                 _RAN.add(cache_key)
                 logger.info("compiled the fused kernel %r for %d lanes in %.1f s", name, size, time.perf_counter() - t0)
