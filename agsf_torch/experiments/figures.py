@@ -10,7 +10,7 @@ open); :func:`write_figures` saves them:
   each body axis of the truth (arcsec) inside the ±3σ band of the filter's
   own covariance; with bias states also the gyro-bias error (deg/h);
 * ``weights.png`` (:func:`weights_figure`): per mixture filter, run 0's
-  component weights;
+  component weights, stacked (each band's thickness one component's weight);
 * ``fpke.png`` (:func:`fpke_figure`): the FPKE residual ``wᵀLw`` (mean over the
   runs) with the propagated weights (before the weight update) and the adapted
   weights (after it).
@@ -67,8 +67,26 @@ def _star_times(summary: dict[str, Any]) -> np.ndarray:
     return t[frames] if frames.shape == t.shape else np.zeros(0)
 
 
-def _mark_star_frames(ax: Any, times: np.ndarray) -> Any:
-    """Faint vertical lines at the star frames; returns one of them (for a legend) or ``None``."""
+def _mark_star_frames(ax: Any, times: np.ndarray, top: bool = False) -> Any:
+    """The star frames: faint vertical lines, or with ``top`` (and on every plot whose frames could be
+    taken for grid lines) downward triangles along the top edge of the axes; returns the artist for a
+    legend, or ``None`` when there are no frames.  Each marks ``gid="star_frame"``."""
+    if len(times) == 0:
+        return None
+    if top:
+        (marks,) = ax.plot(
+            times,
+            np.ones(len(times)),
+            ls="none",
+            marker="v",
+            markersize=5,
+            color="0.15",
+            clip_on=False,
+            zorder=5,
+            transform=ax.get_xaxis_transform(),  # x in data, y in axes coordinates: on the top edge
+            gid="star_frame",
+        )
+        return marks
     first = None
     for k, s in enumerate(times):
         line = ax.axvline(s, color="0.55", lw=0.6, alpha=0.45, zorder=0, gid="star_frame")
@@ -87,7 +105,7 @@ def rms_figure(summary: dict[str, Any]) -> Any:
     colors = _filter_colors(summary)
     fig = _figure((7.5, 4.4))
     ax = fig.add_subplot()
-    star = _mark_star_frames(ax, _star_times(summary))
+    star = _mark_star_frames(ax, _star_times(summary), top=True)
     for name, f in summary["filters"].items():
         ax.plot(t, f["rms_deg"], color=colors[name], lw=1.4, label=name, gid=f"{name}/rms")
     ax.set_yscale("log")
@@ -220,10 +238,12 @@ def axes_figure(summary: dict[str, Any]) -> Any:
 
 
 def weights_figure(summary: dict[str, Any]) -> Any:
-    """``weights.png``: run 0's component weights of every mixture filter, one panel each.
+    """``weights.png``: run 0's component weights of every mixture filter, one panel each, stacked.
 
-    Each component has its own colour, line style, width and marker phase (the
-    widest drawn first), so that components with equal weights stay visible.
+    The weights sum to 1, so each component is drawn as a band whose thickness is its weight, stacked in
+    component order (band ``i`` spans ``Σ_{j<i} w_j … Σ_{j≤i} w_j``): components with equal weights are
+    bands of equal thickness side by side, never one line hidden under another.  The upper edge of band
+    ``i`` is a line with ``gid`` ``"{filter}/weight_top/{i}"``; the band itself ``"{filter}/weight/{i}"``.
     """
     t = np.asarray(summary["time_s"], dtype=float)
     shown = {
@@ -245,44 +265,37 @@ def weights_figure(summary: dict[str, Any]) -> Any:
             transform=ax.transAxes,
         )
         return fig
+    from matplotlib.patches import Patch
+
     ncomp = max(w.shape[1] for w in shown.values())
-    fig = _figure((12.0, 2.9 * len(shown) + 1.0))
+    fig = _figure((12.0, 2.6 * len(shown) + 1.0))
     grid = fig.subplots(len(shown), 1, squeeze=False, sharex=True)
-    every = max(len(t) // 12, 1)
-    handles: list[Any] = []
+    colors = [f"C{i % 10}" for i in range(ncomp)]
     star = None
     for row, (name, w) in enumerate(shown.items()):
         ax = grid[row, 0]
-        star = _mark_star_frames(ax, stars)
-        N = w.shape[1]
-        for i in range(N):
-            frac = (N - 1 - i) / max(N - 1, 1)
-            (line,) = ax.plot(
-                t,
-                w[:, i],
-                color=f"C{i % 10}",
-                ls=_LINESTYLES[i % len(_LINESTYLES)],
-                lw=1.0 + 2.2 * frac,
-                alpha=0.85,
-                marker=_MARKERS[i % len(_MARKERS)],
-                markersize=5,
-                markevery=(i * every // N, every),
-                zorder=2 + i,
-                label=f"component {i + 1}",
-                gid=f"{name}/weight/{i}",
+        top = np.cumsum(w, axis=1)
+        bottom = np.concatenate((np.zeros_like(top[:, :1]), top[:, :-1]), axis=1)
+        for i in range(w.shape[1]):
+            ax.fill_between(
+                t, bottom[:, i], top[:, i], color=colors[i], alpha=0.8, lw=0, step="post", gid=f"{name}/weight/{i}"
             )
-            if len(handles) <= i:  # the first panel with this many components names them
-                handles.append(line)
-        ax.set(title=name, ylabel="weight (sum 1)", ylim=(-0.03, 1.03))
+            ax.plot(t, top[:, i], color="white", lw=0.6, drawstyle="steps-post", gid=f"{name}/weight_top/{i}")
+        star = _mark_star_frames(ax, stars, top=True)
+        ax.set(title=name, ylabel="weight (stacked, sum 1)", ylim=(0.0, 1.0), xlim=(float(t[0]), float(t[-1])))
         if row == len(shown) - 1:
             ax.set_xlabel("time (s)")
-        ax.grid(True, alpha=0.3)
-    labels = [f"component {i + 1}" for i in range(len(handles))]
+    handles: list[Any] = [Patch(facecolor=colors[i], alpha=0.8) for i in range(ncomp)]
+    labels = [f"component {i + 1}" for i in range(ncomp)]
     if star is not None:
         handles.append(star)
         labels.append("star frame")
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=9, frameon=False)
-    fig.suptitle(f"{summary['config']['name']}: component weights of each mixture filter, run 0", fontsize=11)
+    fig.suptitle(
+        f"{summary['config']['name']}: component weights of each mixture filter, run 0 "
+        "(stacked: each band's thickness is one component's weight)",
+        fontsize=11,
+    )
     fig.tight_layout(rect=(0, (0.4 if ncomp <= 7 else 0.7) / fig.get_figheight(), 1, 1))
     return fig
 

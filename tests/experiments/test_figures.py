@@ -147,28 +147,27 @@ def test_axes_figure_shows_the_bias_error_in_deg_per_hour_for_six_states(summary
     assert "bias" in fig._suptitle.get_text()
 
 
-def test_weights_figure_names_every_component_and_keeps_equal_weights_visible(summary3):
+def test_weights_figure_stacks_the_weights_so_that_equal_ones_stay_visible(summary3):
+    """Each component a band whose thickness is its weight: the bands' upper edges are the cumulative sums
+    (so equal weights are equal bands side by side, none hidden under another), and they fill [0, 1]."""
     fig = weights_figure(summary3)
     lines = _lines(fig)
     texts = _legend_texts(fig)
     for i in range(3):
         assert f"component {i + 1}" in texts
     assert "star frame" in texts
-    assert not any(line.get_gid().startswith("EKF/") for line in lines.values())  # one component: no panel
+    assert not any(gid.startswith("EKF/") for gid in lines)  # one component: no panel
     for name in ("GSF", "AGSF"):
         w = np.array(summary3["filters"][name]["weights_run0"])
-        comps = [lines[f"{name}/weight/{i}"] for i in range(3)]
-        for i, line in enumerate(comps):
-            np.testing.assert_allclose(line.get_ydata(), w[:, i])
-        styles = {(str(c.get_linestyle()), c.get_marker()) for c in comps}
-        assert len(styles) == 3  # equal weights stay distinguishable
-        widths = [c.get_linewidth() for c in comps]
-        zorders = [c.get_zorder() for c in comps]
-        assert widths == sorted(widths, reverse=True) and zorders == sorted(zorders)  # wider lines underneath
+        tops = np.stack([lines[f"{name}/weight_top/{i}"].get_ydata() for i in range(3)], axis=1)
+        thickness = np.diff(np.concatenate((np.zeros((len(w), 1)), tops), axis=1), axis=1)
+        np.testing.assert_allclose(thickness, w, atol=1e-15)
+        np.testing.assert_allclose(tops[:, -1], 1.0, atol=1e-12)
+        bands = {c.get_gid() for ax in fig.axes for c in ax.collections}
+        assert {f"{name}/weight/{i}" for i in range(3)} <= bands
     frames = np.array(summary3["time_s"])[np.array(summary3["star_frame"])]
-    ax = fig.axes[0]
-    marked = sorted(line.get_xdata()[0] for line in ax.get_lines() if line.get_gid() == "star_frame")
-    np.testing.assert_allclose(marked, frames)
+    (marks,) = [line for line in fig.axes[0].get_lines() if line.get_gid() == "star_frame"]
+    np.testing.assert_allclose(marks.get_xdata(), frames)
     assert fig.axes[-1].get_xlabel() == "time (s)"
     assert all("weight" in ax.get_ylabel() for ax in fig.axes)
 
@@ -188,6 +187,14 @@ def test_rms_figure_states_what_it_plots(summary3):
     for name in FILTERS:
         np.testing.assert_allclose(lines[f"{name}/rms"].get_ydata(), summary3["filters"][name]["rms_deg"])
         assert name in _legend_texts(fig)
+    # star frames as marks on the top edge (vertical lines at whole seconds would read as grid lines)
+    frames = np.array(summary3["time_s"])[np.array(summary3["star_frame"])]
+    marks = lines["star_frame"]
+    np.testing.assert_allclose(marks.get_xdata(), frames)
+    assert marks.get_linestyle() == "None" and marks.get_marker() == "v"
+    np.testing.assert_allclose(marks.get_ydata(), 1.0)  # in axes coordinates: the top edge
+    assert marks.get_transform() == ax.get_xaxis_transform()
+    assert "star frame" in _legend_texts(fig)
 
 
 def test_fpke_figure_shows_the_residual_before_and_after_the_weight_update(summary3):
