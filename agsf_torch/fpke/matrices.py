@@ -248,6 +248,7 @@ def fpke_matrix(
     chunk_size: int | None = None,
     max_chunk_elements: int = 2**24,
     compile: bool = False,
+    pair_products: bool = True,
 ) -> FPKEMatrix:
     """``L_ij = ∫ Lᵢ Lⱼ dx`` for every pair of components (method.md §3).
 
@@ -269,6 +270,9 @@ def fpke_matrix(
         compile: evaluate the per-chunk products with a ``torch.compile``-d
             kernel (fused elementwise work; measured 6× faster on the 3-state
             attitude model, after a one-off compilation of ~20 s per shape).
+        pair_products: with a :class:`ProductRule`, take the model's own exact route to ``E[ℓᵢℓⱼ]`` when it
+            has one (:meth:`~agsf_torch.models.base.ContinuousModel.fpke_pair_products`: the 6-state attitude
+            model integrates the bias block in closed form); ``False`` interpolates on the product rule.
 
     Returns:
         :class:`FPKEMatrix` (``[..., N, N]``).
@@ -278,7 +282,11 @@ def fpke_matrix(
     rates = rates.with_precision()  # ℓᵢ at the nodes reads Πᵢ: formed per component, not per pair
     if isinstance(nodes, ProductRule):
         prod, log_scale = _pairs(rates)
-        acc = _product_rule_pairs(_kernel("product", compile), model, u, prod, nodes, chunk_size, max_chunk_elements)
+        acc = model.fpke_pair_products(u, prod) if pair_products else None
+        if acc is None:
+            acc = _product_rule_pairs(
+                _kernel("product", compile), model, u, prod, nodes, chunk_size, max_chunk_elements
+            )
     else:
         prod, log_scale, acc = _integrate_pairs(
             _kernel("pair", compile), model, u, rates, nodes, node_weights, chunk_size, max_chunk_elements, ()

@@ -283,6 +283,16 @@ class AttitudeModel(ContinuousModel):
         p = ((0, 1, 2), 6)
         return (p, ((3, 4, 5), 2)) if self.estimate_bias else (p,)
 
+    def fpke_pair_products(self, u: Tensor | None, pairs) -> Tensor | None:
+        """With bias states: ``E[ℓᵢℓⱼ]`` with the bias block integrated in closed form (``ℓ`` is quadratic in
+        it) and the MRP block by interpolation at 84 nodes (:mod:`agsf_torch.fpke.bias_block`), a tenth of
+        the 840 nodes of :meth:`fpke_polynomial_space`; ``None`` for the 3-state model (84 nodes already)."""
+        if not self.estimate_bias:
+            return None
+        from ..fpke.bias_block import attitude_pair_products
+
+        return attitude_pair_products(self, u, pairs)
+
     #: The largest rotation (rad) the moment equations are asked to follow over one interval: the MRP chart
     #: is switched between intervals only (``canonicalize``), and within one the MRP runs to ``tan(θ/4)``,
     #: singular at θ = 2π; a radian keeps ``|p| ≤ tan((π + 1)/4) ≈ 1.7`` and RK4's error small.

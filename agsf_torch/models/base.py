@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -233,6 +234,13 @@ class ContinuousModel(nn.Module):
         then computed exactly by interpolation at a unisolvent node set
         (:func:`agsf_torch.quadrature.product_rule`).  ``None`` (default): a quadrature rule.
         """
+        return None
+
+    def fpke_pair_products(self, u: Tensor | None, pairs: Any) -> Tensor | None:
+        """``E_{N(m_ij, S_ij)}[ℓᵢℓⱼ]`` ``[..., P]`` for every pair of components by a route of the model's own
+        (``pairs``: :class:`~agsf_torch.fpke.ProductGaussians`, precisions formed), exact like the interpolatory
+        rule of :meth:`fpke_polynomial_space` and cheaper; ``None`` (default): that rule is used.  The paper's
+        matrix ``L`` is computed from it (:func:`~agsf_torch.fpke.fpke_matrix`)."""
         return None
 
     def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor | None) -> FokkerPlanckMoments | None:

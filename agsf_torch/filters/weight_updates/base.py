@@ -200,9 +200,11 @@ class QuadratureUpdate(WeightUpdate):
         quadrature: how the residual integrals under each product Gaussian are computed.
             ``None`` (default) takes the fastest exact route the model offers: for the
             Galerkin ``K``, closed-form Gaussian moments (``fokker_planck_moments``;
-            the attitude models have them), for the paper's ``L`` an interpolatory
-            product rule on the polynomial space of ``ℓ`` (``fpke_polynomial_space``:
-            840 nodes per pair for 6-state attitude instead of 9261); otherwise the
+            the attitude models have them), for the paper's ``L`` the model's own exact route
+            (``fpke_pair_products``: the 6-state attitude model integrates the bias block in
+            closed form, 84 nodes per pair) or an interpolatory product rule on the polynomial
+            space of ``ℓ`` (``fpke_polynomial_space``: 840 nodes per pair for 6-state attitude
+            instead of 9261); otherwise the
             model's exact Gauss–Hermite rule (``fpke_quadrature_points``), else 7
             points per axis for ``n ≤ 4`` and a level-7 Smolyak grid above.  Or an int
             (points per axis), a tuple (points per axis), or ``(nodes [K, n], weights [K])``
