@@ -56,51 +56,62 @@ def _cross_matrix_t(p: Tensor, v: Tensor) -> Tensor:
     return (1.0 - s) * v - 2.0 * torch.linalg.cross(p, v, dim=-1) + 2.0 * p * (p * v).sum(-1, keepdim=True)
 
 
-def _b_matrix(p: Tensor) -> Tensor:
-    """``B(p)`` ``[..., 3, 3]``."""
-    s = (p * p).sum(-1)[..., None, None]
-    eye = torch.eye(3, dtype=p.dtype, device=p.device)
-    px = torch.zeros(*p.shape, 3, dtype=p.dtype, device=p.device)
-    px[..., 0, 1], px[..., 0, 2], px[..., 1, 2] = -p[..., 2], p[..., 1], -p[..., 0]
-    px = px - px.transpose(-1, -2)
-    return (1.0 - s) * eye + 2.0 * px + 2.0 * p.unsqueeze(-1) * p.unsqueeze(-2)
+#: Row and column of the six entries of a symmetric 3×3 matrix: the diagonal, then (0, 1), (0, 2), (1, 2).
+_SYM = ([0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2])
+
+#: ``[e_k×]`` for the three unit vectors: ``[p×] = Σ_k p_k [e_k×]``.
+_E_CROSS = torch.tensor(
+    [
+        [[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
+        [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]],
+        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+    ],
+    dtype=torch.float64,
+)
 
 
-def _side_coefficients(side: ComponentRates, x0: Tensor, terms, L_bb: Tensor, p: Tensor, Bp: Tensor) -> Tensor:
+def _side_coefficients(side: ComponentRates, x0: Tensor, terms, L_bb: Tensor, p: Tensor) -> Tensor:
     """The ten Hermite coefficients in ``ξ_b`` of ``ℓ`` of one side of every pair at every MRP node,
-    ``[..., P, 10, K]`` (module docstring), with ``z = Π(x − μ)`` as :func:`~.residual.residual_factor` forms it."""
-    Pi = side.precision  # [..., P, 6, 6]
+    ``[Q, 10, K]`` (module docstring), with ``z = Π(x − μ)`` as :func:`~.residual.residual_factor` forms it."""
+    Pi = side.precision  # [Q, 6, 6]
     Pdot = side.cov_rates
-    z0 = (x0 - side.means.unsqueeze(-2)) @ Pi  # [..., P, K, 6] (Π symmetric)
-    d = terms.diffusion  # [..., P, K, 6]: D is diagonal
+    z0 = (x0 - side.means.unsqueeze(-2)) @ Pi  # [Q, K, 6] (Π symmetric)
+    d = terms.diffusion  # [Q, K, 6]: D is diagonal
     v0 = side.mean_rates.unsqueeze(-2) - terms.drift + 2.0 * terms.diffusion_divergence
     Pz = z0 @ Pdot  # Ṗz₀ (Ṗ symmetric)
     # c₀ = ℓ(x₀) as in residual_factor: zᵀ(v + ½Ṗz − Dz) + tr(DΠ) + div f − Σ∂²D − ½ tr(ΠṖ)
     tr_D_Pi = (d * Pi.diagonal(dim1=-2, dim2=-1).unsqueeze(-2)).sum(-1)
     scalars = terms.drift_divergence - terms.diffusion_second_divergence - 0.5 * (Pi * Pdot).sum((-2, -1)).unsqueeze(-1)
-    c0 = ((v0 + 0.5 * Pz - d * z0) * z0).sum(-1) + tr_D_Pi + scalars  # [..., P, K]
-    Z = Pi[..., :, 3:] @ L_bb  # Π L_{:,b} (L lower-triangular) [..., P, 6, 3]
-    Zn = Z.unsqueeze(-3)  # [..., P, 1, 6, 3]
+    c0 = ((v0 + 0.5 * Pz - d * z0) * z0).sum(-1) + tr_D_Pi + scalars  # [Q, K]
+    Z = Pi[..., :, 3:] @ L_bb  # Π L_{:,b} (L lower-triangular) [Q, 6, 3]
+    Zp = Z[..., :3, :]
     # g = Zᵀ(v₀ + Ṗz₀ − 2Dz₀) − Fᵀz₀ − 1.5 L_bbᵀp, with −Fᵀz₀ = ¼ L_bbᵀ B(p)ᵀ z₀,p
-    w = v0 + Pz - 2.0 * d * z0
-    g = (w.unsqueeze(-2) @ Zn).squeeze(-2)  # [..., P, K, 3]
-    bias_part = 0.25 * _cross_matrix_t(p, z0[..., :3]) - 1.5 * p
-    g = g + (bias_part.unsqueeze(-2) @ L_bb.unsqueeze(-3)).squeeze(-2)
-    # G = Zᵀ(½Ṗ − D)Z − sym(ZᵀF), with −ZᵀF = ¼ Z_pᵀ B(p) L_bb
-    ZPZ = 0.5 * (Z.transpose(-1, -2) @ Pdot @ Z)  # [..., P, 3, 3]
-    ZDZ = Zn.transpose(-1, -2) @ (d.unsqueeze(-1) * Zn)  # [..., P, K, 3, 3]
-    ZF = 0.25 * (Zn[..., :3, :].transpose(-1, -2) @ Bp @ L_bb.unsqueeze(-3))  # −ZᵀF
-    G = ZPZ.unsqueeze(-3) - ZDZ + 0.5 * (ZF + ZF.transpose(-1, -2))
-    Gd = G.diagonal(dim1=-2, dim2=-1)
+    g = (v0 + Pz - 2.0 * d * z0) @ Z  # [Q, K, 3]
+    g = g + (0.25 * _cross_matrix_t(p, z0[..., :3]) - 1.5 * p) @ L_bb
+    # G = Zᵀ(½Ṗ − D)Z − sym(ZᵀF), as its six entries (00, 11, 22, 01, 02, 12).  Per node only scalars change,
+    # so every 3×3 product is formed once per pair: ZᵀDZ = Σ_a d_a Z_aᵀZ_a, and with B(p) = (1 − s)I + 2[p×] + 2ppᵀ,
+    # −ZᵀF = ¼ Z_pᵀB(p)L_bb = ¼[(1 − s)Z_pᵀL_bb + 2 Σ_k p_k Z_pᵀ[e_k×]L_bb + 2 (Z_pᵀp)(L_bbᵀp)ᵀ]
+    r, c = _SYM
+    ZPZ = 0.5 * (Z.transpose(-1, -2) @ Pdot @ Z)[..., r, c]  # [Q, 6]
+    outer = 0.5 * (Z[..., :, r] * Z[..., :, c] + Z[..., :, c] * Z[..., :, r])  # [Q, 6 rows a, 6 entries]
+    A0 = Zp.transpose(-1, -2) @ L_bb  # [Q, 3, 3]
+    Mk = torch.stack([Zp.transpose(-1, -2) @ (_E_CROSS[k].to(Z) @ L_bb) for k in range(3)], 1)  # [Q, 3, 3, 3]
+    sym = lambda A: 0.5 * (A[..., r, c] + A[..., c, r])  # noqa: E731 - the six entries of sym(A)
+    zp, lb = p @ Zp, p @ L_bb  # Z_pᵀp, L_bbᵀp [Q, K, 3]
+    s_node = (p * p).sum(-1, keepdim=True)
+    G = (
+        ZPZ.unsqueeze(-2)
+        - d @ outer
+        + 0.25
+        * (
+            (1.0 - s_node) * sym(A0).unsqueeze(-2)
+            + 2.0 * p @ sym(Mk)
+            + (zp[..., r] * lb[..., c] + zp[..., c] * lb[..., r])
+        )
+    )  # [Q, K, 6]
     coeffs = torch.cat(
-        (
-            (c0 + Gd.sum(-1)).unsqueeze(-1),
-            g,
-            math.sqrt(2.0) * Gd,
-            2.0 * torch.stack((G[..., 0, 1], G[..., 0, 2], G[..., 1, 2]), -1),
-        ),
-        -1,
-    )  # [..., P, K, 10]
+        ((c0 + G[..., :3].sum(-1)).unsqueeze(-1), g, math.sqrt(2.0) * G[..., :3], 2.0 * G[..., 3:]), -1
+    )  # [Q, K, 10]
     return coeffs.transpose(-1, -2)
 
 
@@ -159,7 +170,6 @@ def _chunk_products(
     beta = m[..., None, 3:] + xi @ L_bp.transpose(-1, -2)
     x0 = torch.cat((p, beta), -1)  # [Q, K, 6]
     terms = model.fokker_planck_terms(x0, None if u is None else u[..., None, :])
-    Bp = _b_matrix(p)  # [Q, K, 3, 3]
-    ci = rule.coefficients(_side_coefficients(first, x0, terms, L_bb, p, Bp))  # [Q, 10, K]
-    cj = rule.coefficients(_side_coefficients(second, x0, terms, L_bb, p, Bp))
+    ci = rule.coefficients(_side_coefficients(first, x0, terms, L_bb, p))  # [Q, 10, K]
+    cj = rule.coefficients(_side_coefficients(second, x0, terms, L_bb, p))
     return (ci * cj).sum((-2, -1))

@@ -36,6 +36,15 @@ def test_peers_do_the_gsf_propagation_work():
 def test_adaptive_side_by_side_reports_ratios():
     r = bench.bench_adaptive(False, B=4, repeats=1)
     assert set(r["seconds"]) == {"GSF (generic)", "GSF", "AGSF-galerkin", "AGSF-penalty"}
+    six = bench.bench_adaptive(True, B=4, repeats=1)  # the 840-node rule kept as the penalty's reference row
+    assert set(six["seconds"]) == {
+        "GSF (generic)",
+        "GSF",
+        "AGSF-galerkin",
+        "AGSF-penalty",
+        "AGSF-penalty (840-node rule)",
+    }
+    assert six["penalty_840_ratio"] == six["seconds"]["AGSF-penalty (840-node rule)"] / six["seconds"]["GSF"]
     assert r["galerkin_ratio"] == r["seconds"]["AGSF-galerkin"] / r["seconds"]["GSF"]
 
 
