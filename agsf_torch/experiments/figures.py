@@ -6,17 +6,17 @@ open); :func:`write_figures` saves them:
 
 * ``rms.png`` (:func:`rms_figure`): per filter, the RMS over the runs of the
   attitude error angle (deg, log scale);
-* ``axes.png`` (:func:`axes_figure`): per filter, run 0's rotation error about
-  each body axis of the truth (arcsec) inside the ±3σ band of the filter's
-  own covariance; with bias states also the gyro-bias error (deg/h);
+* ``axes.png`` (:func:`axes_figure`): per filter, the RMS over the runs of the
+  rotation error about each body axis of the truth (arcsec) beside 3× the RMS of
+  the filter's own σ, log scale; with bias states also the gyro-bias error (deg/h);
 * ``weights.png`` (:func:`weights_figure`): per mixture filter, run 0's
   component weights, stacked (each band's thickness one component's weight);
 * ``fpke.png`` (:func:`fpke_figure`): the FPKE residual ``wᵀLw`` (mean over the
   runs) with the propagated weights (before the weight update) and the adapted
   weights (after it).
 
-Lines carry a ``gid`` naming what they plot (``"GSF/error/0"``,
-``"GSF/+3sigma/0"``, ``"AGSF/weight/2"``, …) so that tests and notebooks can
+Lines carry a ``gid`` naming what they plot (``"GSF/rms_error/0"``,
+``"GSF/3sigma/0"``, ``"AGSF/weight_top/2"``, …) so that tests and notebooks can
 find them.
 """
 
@@ -166,74 +166,85 @@ def _set_range(axs: list[Any], values: np.ndarray, spread: np.ndarray) -> str:
 
 
 def axes_figure(summary: dict[str, Any]) -> Any:
-    """``axes.png``: run 0's error of every filter about each body axis of the truth, with ±3σ.
+    """``axes.png``: per filter and state axis, the RMS over the runs of the error and 3× the RMS of the filter's
+    own σ, on a log scale.
 
-    Rows are filters; the first three columns the rotation error (``error_run0_rad``
-    → arcsec) about body x, y, z with the band ``±3·sigma_run0_rad``; with bias
-    states (``n = 6``) three more columns the gyro-bias error (rad/s → deg/h).
+    Rows are filters; the first three columns the rotation error about body x, y, z (``rms_error_axes_rad`` →
+    arcsec) with ``3·rms_sigma_axes_rad``; with bias states (``n = 6``) three more columns the gyro-bias error
+    (rad/s → deg/h).  A consistent filter's error curve runs below its dashed 3σ curve; one run's trace would
+    be a forest of sign changes at every frame, and its band would span decades.  Star frames are marked along
+    the top edge.  Lines: ``"{filter}/rms_error/{k}"`` and ``"{filter}/3sigma/{k}"``.
     """
     from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
+    from matplotlib.ticker import FuncFormatter, LogLocator
 
     t = np.asarray(summary["time_s"], dtype=float)
     filters = summary["filters"]
     colors = _filter_colors(summary)
     names = list(filters)
-    n = np.asarray(filters[names[0]]["error_run0_rad"]).shape[-1]
+    n = np.asarray(filters[names[0]]["rms_error_axes_rad"]).shape[-1]
     bias = n >= 6
     ncol = 6 if bias else 3
-    fig = _figure((3.5 * ncol, 2.5 * len(names) + 1.3))
+    stars = _star_times(summary)
+    fig = _figure((3.5 * ncol, 2.4 * len(names) + 1.3))
     grid = fig.subplots(len(names), ncol, squeeze=False, sharex=True)
-    groups: dict[str, tuple[list[Any], list[np.ndarray], list[np.ndarray]]] = {
-        "attitude": ([], [], []),
-        "bias": ([], [], []),
-    }
+    groups: dict[str, tuple[list[Any], list[np.ndarray]]] = {"attitude": ([], []), "bias": ([], [])}
+    star = None
     for row, name in enumerate(names):
-        err_rad = np.asarray(filters[name]["error_run0_rad"], dtype=float)
-        sig_rad = np.asarray(filters[name]["sigma_run0_rad"], dtype=float)
+        err_rad = np.asarray(filters[name]["rms_error_axes_rad"], dtype=float)
+        sig_rad = np.asarray(filters[name]["rms_sigma_axes_rad"], dtype=float)
         for col in range(ncol):
             ax, k = grid[row, col], col
             if col < 3:
                 scale, group = ARCSEC_PER_RAD, "attitude"
                 title = f"{name}: rotation error about body {_BODY_AXES[col]}"
-                ylabel = "rotation error (arcsec)"
+                ylabel = "RMS error (arcsec)"
             else:
                 scale, group = DEG_PER_HOUR_PER_RAD_PER_S, "bias"
                 title = f"{name}: gyro bias error, body {_BODY_AXES[col - 3]}"
-                ylabel = "bias error (deg/h)"
+                ylabel = "RMS error (deg/h)"
             err = err_rad[:, k] * scale
             band = 3.0 * sig_rad[:, k] * scale
-            ax.fill_between(t, -band, band, color="0.6", alpha=0.3, lw=0, zorder=1)
-            ax.plot(t, band, color="0.35", ls="--", lw=0.8, zorder=2, gid=f"{name}/+3sigma/{k}")
-            ax.plot(t, -band, color="0.35", ls="--", lw=0.8, zorder=2, gid=f"{name}/-3sigma/{k}")
-            ax.plot(t, err, color=colors[name], lw=1.1, zorder=3, gid=f"{name}/error/{k}")
-            ax.axhline(0.0, color="k", lw=0.5, zorder=1.5)
+            ax.plot(t, band, color="0.35", ls="--", lw=0.9, zorder=2, gid=f"{name}/3sigma/{k}")
+            ax.plot(t, err, color=colors[name], lw=1.2, zorder=3, gid=f"{name}/rms_error/{k}")
+            ax.set_yscale("log")
+            star = _mark_star_frames(ax, stars, top=True)
             ax.set_title(title, fontsize=9)
             if col in (0, 3):
                 ax.set_ylabel(ylabel)
             if row == len(names) - 1:
                 ax.set_xlabel("time (s)")
-            ax.grid(True, alpha=0.3)
-            axs, vals, spreads = groups[group]
+            ax.grid(True, which="major", alpha=0.3)
+            axs, vals = groups[group]
             axs.append(ax)
             vals.extend([err, band])
-            spreads.append(band)
-    for axs, vals, spreads in groups.values():
+    for axs, vals in groups.values():
         if axs:
-            note = _set_range(axs, np.concatenate(vals), np.concatenate(spreads))
-            for ax in axs:
-                if ax.get_ylabel() and note:
-                    ax.set_ylabel(f"{ax.get_ylabel()}\n{note}", fontsize=9)
-    handles = [Line2D([], [], color=colors[name], lw=1.5) for name in names]
-    labels = [f"{name}: error (run 0)" for name in names]
-    handles.append((Patch(facecolor="0.6", alpha=0.3), Line2D([], [], color="0.35", ls="--", lw=0.8)))
-    labels.append("±3σ of the filter's covariance")
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=9, frameon=False)
-    what = "rotation error about the true body axes (arcsec)"
-    what += " and gyro bias error (deg/h)" if bias else ""
-    state = "" if bias else "; attitude-only state (no bias states)"
-    fig.suptitle(f"{summary['config']['name']}, run 0: {what} with ±3σ of each filter's covariance{state}", fontsize=11)
-    fig.tight_layout(rect=(0, 0.45 / fig.get_figheight(), 1, 1))
+            v = np.concatenate(vals)
+            v = v[np.isfinite(v) & (v > 0)]
+            lo, hi = (float(v.min()), float(v.max())) if v.size else (1e-3, 1.0)
+            for ax in axs:  # one range per group: every filter on the same scale, every value shown
+                ax.set_ylim(lo / 1.5, hi * 1.5)
+                ax.yaxis.set_major_locator(LogLocator(base=10.0, numticks=12))
+                ax.yaxis.set_major_formatter(FuncFormatter(_fmt_tick))
+    runs = _runs(summary)
+    handles: list[Any] = [Line2D([], [], color=colors[name], lw=1.5) for name in names]
+    labels = [f"{name}: RMS error over {runs} runs" for name in names]
+    handles.append(Line2D([], [], color="0.35", ls="--", lw=0.9))
+    labels.append("3 × RMS of the filter's σ")
+    if star is not None:
+        handles.append(star)
+        labels.append("star frame")
+    ncol = min(len(labels), 3)
+    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=9, frameon=False)
+    what = "error about the true body axes" + (" and gyro bias error" if bias else "")
+    state = "" if bias else "\nattitude-only state (no bias states)"
+    fig.suptitle(
+        f"{summary['config']['name']}: RMS over {runs} runs of the {what}, and 3× the RMS of each filter's σ{state}",
+        fontsize=11,
+    )
+    rows_of_legend = -(-len(labels) // ncol)
+    fig.tight_layout(rect=(0, (0.25 + 0.22 * rows_of_legend) / fig.get_figheight(), 1, 1))
     return fig
 
 

@@ -49,6 +49,8 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     * ``between_frames``: per run ``r_b = sqrt(mean_t θ_b(t)²)`` over the steps after the first
       star frame that are not frames (:func:`error_windows`); ``mean_rms_deg`` is ``mean_b r_b``;
     * ``before_first_frame``: the same over the prior's stretch, the steps before the first frame;
+    * ``rms_error_axes_rad``, ``rms_sigma_axes_rad`` ``[T, n]``: per state axis (rotation about each true body
+      axis, then the bias) the RMS over runs of the error and of the filter's 1σ;
     * ``agsf_minus_gsf`` (``agsf_galerkin_minus_gsf``): paired differences
       ``r_b(AGSF) − r_b(GSF)`` (the Galerkin filter's), mean and a Student-t 95 %
       confidence interval; every per-run mean above carries its own interval
@@ -79,6 +81,8 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
             "weights_run0": data[f"{name}/weights"][0].tolist(),
             "error_run0_rad": data[f"{name}/error"][0].tolist(),
             "sigma_run0_rad": data[f"{name}/sigma"][0].tolist(),
+            "rms_error_axes_rad": np.sqrt(np.mean(data[f"{name}/error"] ** 2, axis=0)).tolist(),
+            "rms_sigma_axes_rad": np.sqrt(np.mean(data[f"{name}/sigma"] ** 2, axis=0)).tolist(),
             "mean_weight_entropy": float(data[f"{name}/weight_entropy"].mean()),
         }
         for key in ("fpke_error_before", "fpke_error_after"):

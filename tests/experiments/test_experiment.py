@@ -85,6 +85,13 @@ def test_summary_matches_independent_recomputation(experiment):
         assert summary["filters"][name]["between_frames"]["mean_rms_deg"] == pytest.approx(np.mean(r), rel=1e-12)
         got_prior = summary["filters"][name]["before_first_frame"]["mean_rms_deg"]
         assert got_prior == pytest.approx(np.mean(r_prior), rel=1e-12)
+        err, sig = data[f"{name}/error"], data[f"{name}/sigma"]  # [B, T, n]
+        for k in (0, len(frames) - 1):
+            for a in range(err.shape[-1]):
+                want_err = np.sqrt(sum(err[b, k, a] ** 2 for b in range(B)) / B)
+                want_sig = np.sqrt(sum(sig[b, k, a] ** 2 for b in range(B)) / B)
+                assert summary["filters"][name]["rms_error_axes_rad"][k][a] == pytest.approx(want_err, rel=1e-12)
+                assert summary["filters"][name]["rms_sigma_axes_rad"][k][a] == pytest.approx(want_sig, rel=1e-12)
         assert summary["filters"][name]["time_averaged_nees"] == pytest.approx(
             float(np.mean(data[f"{name}/nees"])), rel=1e-12
         )
