@@ -158,3 +158,7 @@ def test_table_marks_targets():
     assert met["peak RSS, galerkin adaptive step at B=8192 (GB)"] == "no"
     assert met["first galerkin step in a new process (s)"] == "yes"
     assert "20.0 % of the float64 matmul peak" in table
+    lines = table.splitlines()
+    for k, line in enumerate(lines[1:], 1):  # every Markdown table: a rule with one cell per header cell
+        if set(line.replace("|", "").split()) == {"---"}:
+            assert line.count("|") == lines[k - 1].count("|"), lines[k - 1]

@@ -102,7 +102,7 @@ def format_table(r: dict[str, Any]) -> str:
         "",
         "| n | N | B | GSF generic s | GSF fused s | AGSF Galerkin s | AGSF penalty s | AGSF penalty, 840-node rule s "
         "| Galerkin ÷ fused GSF | penalty ÷ fused GSF | penalty (840-node rule) ÷ fused GSF |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for a in r["adaptive"]:
         s = a["seconds"]
