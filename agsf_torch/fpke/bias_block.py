@@ -35,10 +35,7 @@ from ..quadrature import ProductRule, product_rule
 from .pairs import ProductGaussians
 from .residual import ComponentRates
 
-__all__ = ["attitude_pair_products", "MRP_RULE_NODES"]
-
-#: Nodes of the MRP block's interpolation rule (total degree 6 in three coordinates).
-MRP_RULE_NODES = 84
+__all__ = ["attitude_pair_products"]
 
 _RULES: dict[tuple, ProductRule] = {}
 
