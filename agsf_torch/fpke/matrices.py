@@ -269,7 +269,9 @@ def fpke_matrix(
             positive integer, or ``None`` (automatic).
         compile: evaluate the per-chunk products with a ``torch.compile``-d
             kernel (fused elementwise work; measured 6× faster on the 3-state
-            attitude model, after a one-off compilation of ~20 s per shape).
+            attitude model, after a one-off compilation of ~20 s per shape); the model's own
+            route is asked for its compiled form (the attitude models: the lanes kernel of
+            :mod:`agsf_torch.fused.pair_products`, ~60 s to compile the first time on a machine).
         pair_products: with a :class:`ProductRule`, take the model's own exact route to ``E[ℓᵢℓⱼ]`` when it
             has one (:meth:`~agsf_torch.models.base.ContinuousModel.fpke_pair_products`: the 6-state attitude
             model integrates the bias block in closed form); ``False`` interpolates on the product rule.
@@ -282,7 +284,7 @@ def fpke_matrix(
     rates = rates.with_precision()  # ℓᵢ at the nodes reads Πᵢ: formed per component, not per pair
     if isinstance(nodes, ProductRule):
         prod, log_scale = _pairs(rates)
-        acc = model.fpke_pair_products(u, prod) if pair_products else None
+        acc = model.fpke_pair_products(u, prod, compile=compile) if pair_products else None
         if acc is None:
             acc = _product_rule_pairs(
                 _kernel("product", compile), model, u, prod, nodes, chunk_size, max_chunk_elements

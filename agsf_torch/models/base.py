@@ -236,11 +236,12 @@ class ContinuousModel(nn.Module):
         """
         return None
 
-    def fpke_pair_products(self, u: Tensor | None, pairs: Any) -> Tensor | None:
+    def fpke_pair_products(self, u: Tensor | None, pairs: Any, *, compile: bool = False) -> Tensor | None:
         """``E_{N(m_ij, S_ij)}[ℓᵢℓⱼ]`` ``[..., P]`` for every pair of components by a route of the model's own
         (``pairs``: :class:`~agsf_torch.fpke.ProductGaussians`, precisions formed), exact like the interpolatory
         rule of :meth:`fpke_polynomial_space` and cheaper; ``None`` (default): that rule is used.  The paper's
-        matrix ``L`` is computed from it (:func:`~agsf_torch.fpke.fpke_matrix`)."""
+        matrix ``L`` is computed from it (:func:`~agsf_torch.fpke.fpke_matrix`); ``compile`` asks for a
+        ``torch.compile``-d route where the model has one."""
         return None
 
     def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor | None) -> FokkerPlanckMoments | None:

@@ -201,8 +201,8 @@ class QuadratureUpdate(WeightUpdate):
             ``None`` (default) takes the fastest exact route the model offers: for the
             Galerkin ``K``, closed-form Gaussian moments (``fokker_planck_moments``;
             the attitude models have them), for the paper's ``L`` the model's own exact route
-            (``fpke_pair_products``: the 6-state attitude model integrates the bias block in
-            closed form, 84 nodes per pair) or an interpolatory product rule on the polynomial
+            (``fpke_pair_products``: the attitude models evaluate ``ℓ`` at 84 nodes per pair on
+            lanes, the 6-state one with the bias block in closed form) or an interpolatory product rule on the polynomial
             space of ``ℓ`` (``fpke_polynomial_space``: 840 nodes per pair for 6-state attitude
             instead of 9261); otherwise the
             model's exact Gauss–Hermite rule (``fpke_quadrature_points``), else 7

@@ -1,0 +1,276 @@
+"""The attitude model's ``E[ℓᵢℓⱼ]`` (the penalty update's ``L``, method.md §3) on lanes.
+
+The same mathematics as :mod:`agsf_torch.fpke.bias_block` (6 states: the bias block in closed form,
+ten Hermite coefficients in ``ξ_b`` per MRP node) and as the 84-node interpolatory rule of the
+3-state model (one value per node), written on entries (:mod:`agsf_torch.fused.algebra`) with one
+lane per pair and node: a pair's ``N(m, S = LLᵀ)`` gives the nodes ``p = m_p + L_pp ξ`` and
+``β = m_b + L_bp ξ`` for the ``K = 84`` MRP nodes ``ξ`` of
+:func:`~agsf_torch.quadrature.product_rule` (total degree 6 in three dimensions).  Everything
+affine in ``ξ`` is formed once per pair and side and evaluated at the nodes with three multiply–adds:
+
+.. math:: z_0 = Π(x_0 − μ) = Π(m − μ) + ΠL_{:,p}\\,ξ,\\qquad \\dot P z_0 = \\dot PΠ(m − μ) + \\dot PΠL_{:,p}\\,ξ,
+
+and so are the per-pair matrices of the bias block (``Z = Π_{:,b}L_bb``, ``ZᵀṖZ``, ``Z_pᵀL_bb``,
+``Z_pᵀ[e_k×]L_bb``); a node pays only for what varies with it (``s = pᵀp``, the drift, ``D``, the
+coefficients).  Per node the kernel is ~700 floating-point operations for both sides of a 6-state
+pair.  ``E[ℓᵢℓⱼ]`` is then ``Σ_c vᵢ,cᵀ W vⱼ,c`` over the channels ``c`` with ``W = TᵀT`` (``T`` the
+rule's map from values at the nodes to orthonormal Hermite coefficients): exactly the dot product of
+the two sides' coefficients.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .algebra import Entry, add, dot, mul, sub
+from .lanes import entries
+
+__all__ = ["attitude_pair_values_kernel", "pair_product_weights", "attitude_pair_products"]
+
+Mat = list[list[Entry]]
+
+#: Row and column of the six entries of a symmetric 3×3 matrix: the diagonal, then (0, 1), (0, 2), (1, 2).
+_SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def pair_product_weights(T: Tensor) -> Tensor:
+    """``W = TᵀT`` ``[K, K]``: ``E[fg] = f(ξ)ᵀ W g(ξ)`` for two functions of the rule's space given by their
+    values at its nodes (``T`` maps values to orthonormal Hermite coefficients)."""
+    return T.transpose(0, 1) @ T
+
+
+def _lower(L: Mat) -> Mat:
+    """A lower-triangular factor with its upper triangle as structural zeros."""
+    return [[v if j <= i else None for j, v in enumerate(row)] for i, row in enumerate(L)]
+
+
+def _affine_at_nodes(a: list[Entry], A: Mat, xi: list[Tensor]) -> list[Entry]:
+    """``a + Aξ`` at every node: ``a [r]`` and ``A [r][3]`` per pair (``[c, 1]`` lanes), ``ξ`` three ``[K]``."""
+    return [add(a[r], dot((A[r][k], xi[k]) for k in range(3))) for r in range(len(a))]
+
+
+def _matvec(A: Mat, x: list[Entry]) -> list[Entry]:
+    return [dot((A[r][k], x[k]) for k in range(len(x))) for r in range(len(A))]
+
+
+def _matmul(A: Mat, B: Mat) -> Mat:
+    return [[dot((A[r][t], B[t][k]) for t in range(len(B))) for k in range(len(B[0]))] for r in range(len(A))]
+
+
+def _cross(a: list[Entry], b: list[Entry]) -> list[Entry]:
+    return [
+        sub(mul(a[1], b[2]), mul(a[2], b[1])),
+        sub(mul(a[2], b[0]), mul(a[0], b[2])),
+        sub(mul(a[0], b[1]), mul(a[1], b[0])),
+    ]
+
+
+def _node_terms(p: list[Entry], w: list[Entry], c: Tensor) -> dict:
+    """The attitude model's Fokker–Planck terms at the nodes (:meth:`~agsf_torch.models.AttitudeModel.fokker_planck_terms`),
+    what both sides share: ``s``, ``h = −f_p + 2a_p`` (``f_p = ¼B(p)ω``, ``a_p = 4c(1+s)p``), ``d_p = c(1+s)²``
+    and ``div f − Σ∂²D = 1.5pᵀω − 4c(3 + 5s)``."""
+    s = dot((p[k], p[k]) for k in range(3))
+    one_s = add(1.0, s)
+    pw = dot((p[k], w[k]) for k in range(3))
+    pxw = _cross(p, w)
+    one_minus = sub(1.0, s)
+    f = [mul(0.25, add(add(mul(one_minus, w[k]), mul(2.0, pxw[k])), mul(mul(2.0, pw), p[k]))) for k in range(3)]
+    c4s = mul(mul(8.0, c), one_s)  # 2·4c(1+s)
+    h = [sub(mul(c4s, p[k]), f[k]) for k in range(3)]
+    d_p = mul(c, mul(one_s, one_s))
+    scalar = sub(mul(1.5, pw), mul(mul(4.0, c), add(3.0, mul(5.0, s))))
+    return {"s": s, "one_minus_s": one_minus, "h": h, "d_p": d_p, "scalar": scalar}
+
+
+def _side_values(
+    n: int,
+    mE: list[Entry],
+    LE: Mat,
+    xi: list[Tensor],
+    p: list[Entry],
+    lb: list[Entry] | None,
+    terms: dict,
+    mu: list[Entry],
+    Pi: Mat,
+    rate: list[Entry],
+    Pdot: Mat,
+    d_b: Tensor,
+) -> list[Entry]:
+    """The channels of ``ℓ`` of one side at every node: ``[ℓ]`` (3 states) or the ten Hermite coefficients in
+    ``ξ_b`` (6 states; :mod:`agsf_torch.fpke.bias_block`)."""
+    delta = [sub(mE[r], mu[r]) for r in range(n)]
+    a = _matvec(Pi, delta)  # Π(m − μ) per pair
+    A = _matmul(Pi, [row[:3] for row in LE])  # Π L_{:,p} per pair
+    z0 = _affine_at_nodes(a, A, xi)
+    Pz = _affine_at_nodes(_matvec(Pdot, a), _matmul(Pdot, A), xi)
+    d = [terms["d_p"]] * 3 + [d_b] * (n - 3)
+    v0 = [add(rate[r], terms["h"][r]) for r in range(3)] + [rate[r] for r in range(3, n)]
+    # ℓ(x₀) = Σ zᵣ(v₀ᵣ + ½(Ṗz)ᵣ − dᵣzᵣ) + tr(DΠ) + div f − Σ∂²D − ½tr(ΠṖ)
+    tr_Pi_p = add(add(Pi[0][0], Pi[1][1]), Pi[2][2])
+    per_pair = mul(-0.5, dot((Pi[r][t], Pdot[r][t]) for r in range(n) for t in range(n)))
+    if n == 6:
+        per_pair = add(per_pair, mul(d_b, add(add(Pi[3][3], Pi[4][4]), Pi[5][5])))
+    c0 = add(
+        add(dot((z0[r], sub(add(v0[r], mul(0.5, Pz[r])), mul(d[r], z0[r]))) for r in range(n)), per_pair),
+        add(mul(terms["d_p"], tr_Pi_p), terms["scalar"]),
+    )
+    if n == 3:
+        return [c0]
+    L_bb = [row[3:] for row in LE[3:]]
+    Z = _matmul([row[3:] for row in Pi], L_bb)  # Π_{:,b} L_bb [6][3] per pair
+    Zp = Z[:3]
+    # g = Zᵀ(v₀ + Ṗz₀ − 2Dz₀) + (¼B(p)ᵀz₀,p − 1.5p)ᵀL_bb
+    wv = [sub(add(v0[r], Pz[r]), mul(mul(2.0, d[r]), z0[r])) for r in range(n)]
+    zp0 = z0[:3]
+    pz = dot((p[k], zp0[k]) for k in range(3))
+    pxz = _cross(p, zp0)
+    Btz = [add(sub(mul(terms["one_minus_s"], zp0[k]), mul(2.0, pxz[k])), mul(mul(2.0, pz), p[k])) for k in range(3)]
+    q = [sub(mul(0.25, Btz[k]), mul(1.5, p[k])) for k in range(3)]
+    g = [add(dot((Z[r][k], wv[r]) for r in range(n)), dot((q[t], L_bb[t][k]) for t in range(3))) for k in range(3)]
+    # G = ½ZᵀṖZ − Σₐ dₐ ZₐZₐᵀ + ¼[(1 − s) sym(Z_pᵀL_bb) + 2 Σₖ pₖ sym(Z_pᵀ[eₖ×]L_bb) + sym2(Z_pᵀp (L_bbᵀp)ᵀ)]
+    PZ = _matmul(Pdot, Z)
+    A0 = _matmul([list(col) for col in zip(*Zp)], L_bb)  # Z_pᵀ L_bb
+    ex = [  # [e_k×], its zeros structural
+        [[None, None, None], [None, None, -1.0], [None, 1.0, None]],
+        [[None, None, 1.0], [None, None, None], [-1.0, None, None]],
+        [[None, -1.0, None], [1.0, None, None], [None, None, None]],
+    ]
+    Mk = [_matmul([list(col) for col in zip(*Zp)], _matmul(ex[k], L_bb)) for k in range(3)]
+    zp = [dot((Zp[r][k], p[r]) for r in range(3)) for k in range(3)]  # Z_pᵀp
+    G = []
+    for r, col in _SYM:
+        ZPZ = mul(0.5, dot((Z[t][r], PZ[t][col]) for t in range(n)))  # per pair
+        Op = dot((Z[t][r], Z[t][col]) for t in range(3))
+        Ob = dot((Z[t][r], Z[t][col]) for t in range(3, n))
+        per = sub(ZPZ, mul(d_b, Ob))
+        symA0 = A0[r][col] if r == col else mul(0.5, add(A0[r][col], A0[col][r]))
+        symM = [Mk[k][r][col] if r == col else mul(0.5, add(Mk[k][r][col], Mk[k][col][r])) for k in range(3)]
+        inner = add(
+            add(mul(terms["one_minus_s"], symA0), mul(2.0, dot((p[k], symM[k]) for k in range(3)))),
+            add(mul(zp[r], lb[col]), mul(zp[col], lb[r])),
+        )
+        G.append(add(sub(per, mul(terms["d_p"], Op)), mul(0.25, inner)))
+    root2 = math.sqrt(2.0)
+    return (
+        [add(c0, add(add(G[0], G[1]), G[2]))]
+        + g
+        + [mul(root2, G[k]) for k in range(3)]
+        + [mul(2.0, G[k]) for k in range(3, 6)]
+    )
+
+
+def attitude_pair_values_kernel(
+    m: Tensor,
+    L: Tensor,
+    mu_i: Tensor,
+    Pi_i: Tensor,
+    rate_i: Tensor,
+    Pdot_i: Tensor,
+    mu_j: Tensor,
+    Pi_j: Tensor,
+    rate_j: Tensor,
+    Pdot_j: Tensor,
+    u: Tensor,
+    nodes: Tensor,
+    W: Tensor,
+    c: Tensor,
+    d_b: Tensor,
+) -> tuple[Tensor]:
+    """``E[ℓᵢℓⱼ]`` ``[Q]`` of ``Q`` pairs (module docstring).
+
+    Args:
+        m, L: the pair's product Gaussian ``N(m, LLᵀ)``: ``[Q, n]``, ``[Q, n, n]`` (lower-triangular).
+        mu_*, Pi_*, rate_*, Pdot_*: each side's ``μ``, ``Π = P⁻¹``, ``μ̇`` and ``Ṗ`` (``[Q, n]``, ``[Q, n, n]``).
+        u: the gyro rate ``[Q, 3]`` (rad/s; the 3-state model's known bias removed).
+        nodes: the MRP nodes ``ξ`` ``[K, 3]``; W: ``TᵀT`` ``[K, K]`` (:func:`pair_product_weights`).
+        c: ``σ_v²/32``; d_b: ``σ_u²/2`` (0-d tensors; unused with 3 states).
+    """
+    n = m.shape[-1]
+
+    def col(t: Tensor, shape) -> list:
+        def nest(x):
+            return [nest(v) for v in x] if isinstance(x, list) else x.unsqueeze(-1)
+
+        return nest(entries(t, shape))
+
+    mE = col(m, (n,))
+    LE = _lower(col(L, (n, n)))
+    xi = list(nodes.unbind(-1))
+    p = _affine_at_nodes(mE[:3], LE[:3], xi)
+    uE = col(u, (3,))
+    if n == 6:
+        beta = _affine_at_nodes(mE[3:], [row[:3] for row in LE[3:]], xi)
+        w = [sub(uE[k], beta[k]) for k in range(3)]
+        L_bb = [row[3:] for row in LE[3:]]
+        lb = [dot((p[t], L_bb[t][k]) for t in range(3)) for k in range(3)]  # L_bbᵀp
+    else:
+        w, lb = uE, None
+    terms = _node_terms(p, w, c)
+    K = nodes.shape[0]
+    sides = []
+    for mu, Pi, rate, Pdot in ((mu_i, Pi_i, rate_i, Pdot_i), (mu_j, Pi_j, rate_j, Pdot_j)):
+        vals = _side_values(
+            n, mE, LE, xi, p, lb, terms, col(mu, (n,)), col(Pi, (n, n)), col(rate, (n,)), col(Pdot, (n, n)), d_b
+        )
+        sides.append(torch.stack([v.expand(m.shape[0], K) for v in vals], 1))  # [Q, channels, K]
+    vi, vj = sides
+    return (((vi @ W) * vj).sum((-2, -1)),)
+
+
+_WEIGHTS: dict[tuple, tuple[Tensor, Tensor]] = {}
+
+
+def _mrp_nodes_and_weights(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The 84 MRP nodes of total degree 6 and their ``W = TᵀT``."""
+    key = (dtype, device)
+    if key not in _WEIGHTS:
+        from ..quadrature import product_rule
+
+        rule = product_rule((((0, 1, 2), 6),), 3, dtype=dtype, device=device)
+        _WEIGHTS[key] = (rule.nodes, pair_product_weights(rule.groups[0][1].to(dtype=dtype, device=device)))
+    return _WEIGHTS[key]
+
+
+def attitude_pair_products(
+    prod, rate: Tensor, sigma_v: Tensor, sigma_u: Tensor, *, compile: bool = False, chunk: int | None = None
+) -> Tensor:
+    """``E_{N(m_ij, S_ij)}[ℓᵢℓⱼ]`` ``[..., P]`` of every pair of an attitude mixture on lanes (module docstring).
+
+    Args:
+        prod: the pairs' :class:`~agsf_torch.fpke.pairs.ProductGaussians` (sides with precisions formed).
+        rate: the gyro rate ``[..., 3]`` (rad/s; the 3-state model's known bias removed), broadcast against the
+            trajectory dims.
+        sigma_v, sigma_u: the gyro's rate and bias noise densities.
+        compile: run the kernel through ``torch.compile`` in fixed chunks of pairs (:func:`~.lanes.run_in_chunks`).
+        chunk: pairs per eager call (default: as many as keep ``DEFAULT_CHUNK`` node lanes).
+    """
+    from .lanes import DEFAULT_CHUNK, run_in_chunks
+
+    lead = prod.mean.shape[:-1]
+    n = prod.mean.shape[-1]
+
+    def flat(t: Tensor, event: int) -> Tensor:
+        tail = t.shape[t.dim() - event :]
+        return t.expand(*lead, *tail).reshape(-1, *tail)
+
+    sides = []
+    for r in (prod.first, prod.second):
+        sides += [flat(r.means, 1), flat(r.precision, 2), flat(r.mean_rates, 1), flat(r.cov_rates, 2)]
+    m = flat(prod.mean, 1)
+    inputs = (m, flat(prod.chol, 2), *sides, flat(rate.unsqueeze(-2), 1))
+    nodes, W = _mrp_nodes_and_weights(m.dtype, m.device)
+    shared = (nodes, W, (sigma_v**2 / 32.0).to(m), (0.5 * sigma_u**2).to(m))
+    if m.shape[0] == 0:
+        return m.new_zeros(lead)
+    (acc,) = run_in_chunks(
+        attitude_pair_values_kernel,
+        inputs,
+        shared=shared,
+        compile=compile,
+        chunk=chunk or max(1, DEFAULT_CHUNK // nodes.shape[0]),
+        key=("attitude pair products", n),
+    )
+    return acc.reshape(lead)
