@@ -24,8 +24,8 @@ effective sample size is reported.
 
 Output folder: ``summary.json`` (every number), ``<scenario>.png`` (RMS, NEES and
 density score against time), ``scores.png`` (the density score of every filter in
-every scenario), ``tensorboard/<scenario>/`` (per-step scalars, time in
-milliseconds as the step).
+every scenario), ``tensorboard/<scenario>/<filter>/`` (per-step scalars ``rms_deg``, ``nees``,
+``density_score``; ``tensorboard/<scenario>/reference/``: ``ess_median``; time in milliseconds as the step).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ from .factories import filter_model
 from .resources import check_memory
 from .runner import monte_carlo_steps
 from .statistics import WINDOW_TEXT, error_windows
-from .tensorboard_log import clear_events
+from .tensorboard_log import clear_runs, time_steps
 
 __all__ = ["SCENARIOS", "STUDY_FILTERS", "run_scenario", "run_adaptation_study", "study_table"]
 
@@ -295,20 +295,21 @@ def _scores_figure(path: Path, summaries: dict[str, dict[str, Any]]) -> None:
 
 
 def _tensorboard(folder: Path, summary: dict[str, Any], res: dict[str, Any]) -> None:
+    """One run per filter (tags ``rms_deg``, ``nees``, ``density_score``) and one ``reference`` run (``ess_median``)
+    under the scenario's ``folder``, steps in simulated ms (:mod:`.tensorboard_log`)."""
     from torch.utils.tensorboard import SummaryWriter
 
-    clear_events(folder)  # a rerun replaces this run's events, never appends to them
-    writer = SummaryWriter(str(folder))
-    t = np.array(summary["time_s"])
+    clear_runs(folder)  # a rerun replaces this scenario's events, never appends to them
+    steps, _ = time_steps(np.array(summary["time_s"]))
     for fname, f in summary["filters"].items():
-        for k, tk in enumerate(t):
-            step = int(round(tk * 1000))  # milliseconds
-            writer.add_scalar(f"rms_deg/{fname}", f["rms_deg_t"][k], step)
-            writer.add_scalar(f"nees/{fname}", f["nees_t"][k], step)
-            writer.add_scalar(f"density_score/{fname}", f["density_score_t"][k], step)
-    for k, tk in enumerate(t):
-        writer.add_scalar("reference/ess_median", float(np.median(res["ess"][k])), int(round(tk * 1000)))
-    writer.close()
+        with SummaryWriter(str(folder / fname)) as writer:
+            for k, step in enumerate(steps):
+                writer.add_scalar("rms_deg", f["rms_deg_t"][k], int(step))
+                writer.add_scalar("nees", f["nees_t"][k], int(step))
+                writer.add_scalar("density_score", f["density_score_t"][k], int(step))
+    with SummaryWriter(str(folder / "reference")) as writer:
+        for k, step in enumerate(steps):
+            writer.add_scalar("ess_median", float(np.median(res["ess"][k])), int(step))
 
 
 def run_adaptation_study(

@@ -1,10 +1,13 @@
 """``agsf reproduce``: the paper's three cases (method.md §4) and their summary table.
 
-Each case's TensorBoard run (``out/case{k}/tensorboard``) is also an HParams session
+Each case's TensorBoard folder (``out/case{k}/tensorboard``) is an HParams session
 (:func:`.tensorboard_log.write_hparams_session`): its hyperparameters are the case name
 and the fields of its configuration (lists as JSON; ``compile`` left out: it changes no
-number), its metrics the per-filter numbers of the summary table, so the HParams tab of
-``tensorboard --logdir out`` compares the cases and opens onto each case's curves.
+number), its metrics the per-filter numbers of the summary table; beneath it one run per
+filter (``out/case{k}/tensorboard/GSF``) holds the curves, tags per metric.  So
+``tensorboard --logdir out`` overlays the filters of a case in one chart (run filter
+``case1``), one filter across the cases (run filter ``GSF``), and its HParams tab
+compares the cases.
 """
 
 from __future__ import annotations

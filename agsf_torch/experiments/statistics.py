@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import numpy as np
@@ -88,6 +89,8 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
         for key in ("fpke_error_before", "fpke_error_after"):
             if f"{name}/{key}" in data:
                 entry[f"{key}_mean"] = data[f"{name}/{key}"].mean(0).tolist()
+        if f"{name}/fpke_error_after" in data:
+            entry.update(fpke_ratio(data[f"{name}/fpke_error_before"], data[f"{name}/fpke_error_after"]))
         for key in ("gate_rejected", "gyro_held"):
             if f"{name}/{key}" in data:
                 entry[f"{key}_total"] = int(data[f"{name}/{key}"].sum())
@@ -111,6 +114,20 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
                 if wname in per_run["GSF"]
             }
     return out
+
+
+def fpke_ratio(before: np.ndarray, after: np.ndarray) -> dict[str, Any]:
+    """The fraction of the FPKE residual the weight update leaves, ``after / before`` per run and step
+    (``[B, T]``; NaN where ``before`` is 0 or not finite): ``fpke_ratio_mean`` ``[T]`` over the runs and
+    ``fpke_ratio_p10_p90`` (two ``[T]`` lists), NaN-aware."""
+    before, after = np.asarray(before, dtype=np.float64), np.asarray(after, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where((before > 0) & np.isfinite(before), after / before, np.nan)
+    with warnings.catch_warnings():  # a step where no run has a ratio gives NaN, as said
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(ratio, 0)
+        lo, hi = np.nanpercentile(ratio, [10.0, 90.0], axis=0)
+    return {"fpke_ratio_mean": mean.tolist(), "fpke_ratio_p10_p90": [lo.tolist(), hi.tolist()]}
 
 
 def mean_ci95(values: np.ndarray) -> tuple[float, float, float]:

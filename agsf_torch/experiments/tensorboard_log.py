@@ -1,28 +1,32 @@
 """An experiment's TensorBoard events, and the HParams sessions that compare experiments.
 
+Layout
+------
+One run per filter, tags per metric, so that one chart overlays the filters and TensorBoard's
+run filter selects cases or configurations (``tensorboard --logdir runs/reproduce``, then
+``case1`` in the run filter compares case 1's filters; ``GSF`` compares the GSF across cases)::
+
+    <experiment>/tensorboard/            the experiment's HParams session (reproduce, sweeps)
+    <experiment>/tensorboard/EKF/        one run per filter, each with the tags
+        rms_deg                  RMS attitude error over the runs (deg)
+        nees                     mean NEES over the runs
+        nis                      mean NIS, at star frames only
+        fpke/error_before        FPKE residual wᵀLw before / after the weight update
+        fpke/error_after         (filters that record it: the paper's update)
+        fpke/ratio               after ÷ before, mean over the runs
+        weights/entropy          mean entropy of the mixture weights (nat)  ┐ mixtures only:
+        weights/component_<i>    weight of component i in the first run     │ not for one
+        weights/all_runs         histogram of the weights over the runs     ┘ Gaussian
+        time_axis                (text, shown as time_axis/text_summary) what the step counts
+
 Time axis
 ---------
-Every time series is written against the *simulated* time, never the step index:
-
-* the TensorBoard **step** is the simulated time in integer milliseconds, and every
-  time-series tag says so with the suffix ``_vs_ms`` (``GSF/rms_deg_vs_ms`` at step
-  1500 is the RMS error at t = 1.5 s).  Steps must be integers; a time grid finer
-  than 1 ms (``dt`` < 1 ms) is written in integer microseconds instead, tags ending
-  in ``_vs_us`` (:func:`time_steps`);
-* the event **walltime** is the simulated time in seconds, so TensorBoard's
-  ``RELATIVE`` x-axis reads simulated seconds since the first sample (the first
-  sample is at ``t = dt``).  The ``WALL`` axis has no meaning for these series.
-
-Tags of one filter ``F`` (one run directory per experiment)::
-
-    F/rms_deg_vs_ms            RMS attitude error over the runs (deg)
-    F/nees_vs_ms               mean NEES over the runs
-    F/nis_vs_ms                mean NIS, at star frames only
-    F/fpke_error_before_vs_ms  FPKE residual before / after the weight update
-    F/fpke_error_after_vs_ms   (adaptive filters only)
-    F/weight_entropy_vs_ms     mean entropy of the mixture weights (nat)  ┐ mixtures
-    F/weight_<i>_run0_vs_ms    weight of component i in the first run     │ only: not for
-    F/weights_vs_ms            histogram of the weights over the runs     ┘ one Gaussian
+The **step** is the simulated time in integer milliseconds (``rms_deg`` at step 1500 is the RMS
+error at t = 1.5 s), or in integer microseconds when ``dt`` < 1 ms keeps times apart
+(:func:`time_steps`); each run's ``time_axis`` text says which.  Use TensorBoard's ``STEP``
+x-axis.  Every event's wall time is the clock time at which it was written, curves and
+HParams sessions alike, so the ``WALL`` and ``RELATIVE`` axes mean one thing: when the
+events were written.
 
 HParams
 -------
@@ -58,6 +62,7 @@ __all__ = [
     "hparam_domains",
     "write_hparams_session",
     "clear_events",
+    "clear_runs",
     "move_events",
     "METRIC_PREFIX",
     "EVENTS_GLOB",
@@ -69,15 +74,13 @@ _MAX_NAME = 200  # characters of a run directory name (file systems allow 255 by
 
 
 def time_steps(time_s: np.ndarray) -> tuple[np.ndarray, str]:
-    """Integer TensorBoard steps of the simulated times ``time_s`` (s) and the tag suffix naming their unit.
-
-    Milliseconds (``"_vs_ms"``) when they keep every time distinct, else microseconds (``"_vs_us"``).
-    """
+    """Integer TensorBoard steps of the simulated times ``time_s`` (s) and their unit, ``"ms"`` when milliseconds
+    keep every time distinct, else ``"µs"``."""
     t = np.asarray(time_s, dtype=np.float64)
-    for scale, suffix in ((1e3, "_vs_ms"), (1e6, "_vs_us")):
+    for scale, unit in ((1e3, "ms"), (1e6, "µs")):
         steps = np.rint(t * scale).astype(np.int64)
         if len(steps) < 2 or (np.diff(steps) > 0).all():
-            return steps, suffix
+            return steps, unit
     raise ValueError("simulated times closer than 1 µs cannot be TensorBoard steps")
 
 
@@ -88,52 +91,67 @@ def clear_events(folder: Path) -> None:
             p.unlink()
 
 
-def write_tensorboard(out: Path, data: dict[str, np.ndarray], summary: dict[str, Any]) -> None:
-    """Write the events of one experiment under ``out/tensorboard`` from its data and summary.
+def clear_runs(folder: Path) -> None:
+    """Remove an experiment's earlier events: those in ``folder`` and in its per-filter runs (subfolders left
+    empty are removed), so that a rerun replaces them and a filter no longer run leaves no run behind."""
+    folder = Path(folder)
+    clear_events(folder)
+    if folder.is_dir():
+        for sub in folder.iterdir():
+            if sub.is_dir():
+                clear_events(sub)
+                if not any(sub.iterdir()):
+                    sub.rmdir()
 
-    Time is simulated time (see the module docstring); event files of an earlier
-    writing of the same experiment folder are replaced, not added to.
+
+def write_tensorboard(out: Path, data: dict[str, np.ndarray], summary: dict[str, Any]) -> None:
+    """Write the events of one experiment under ``out/tensorboard``, one run per filter (module docstring).
+
+    Events of an earlier writing of the same experiment folder are replaced, not added to.
     """
     from torch.utils.tensorboard import SummaryWriter
 
     folder = out / "tensorboard"
-    clear_events(folder)
+    clear_runs(folder)
     frames = np.asarray(data["star_frame"], dtype=bool)
     t = np.asarray(data["time"], dtype=np.float64)
     steps, unit = time_steps(t)
-    writer = SummaryWriter(str(folder))
-    try:
-        for name, f in summary["filters"].items():
-            series: dict[str, np.ndarray] = {
-                "rms_deg": np.asarray(f["rms_deg"], dtype=np.float64),
-                "nees": np.asarray(f["nees_mean"], dtype=np.float64),
-            }
-            if "fpke_error_before_mean" in f:
-                series["fpke_error_before"] = np.asarray(f["fpke_error_before_mean"], dtype=np.float64)
-                series["fpke_error_after"] = np.asarray(f["fpke_error_after_mean"], dtype=np.float64)
-            weights = data.get(f"{name}/weights")
-            mixture = weights is not None and weights.shape[-1] > 1  # one Gaussian: weight 1, entropy 0
-            if mixture:
-                series["weight_entropy"] = np.asarray(data[f"{name}/weight_entropy"], dtype=np.float64).mean(0)
-                for i in range(weights.shape[-1]):
-                    series[f"weight_{i}_run0"] = np.asarray(weights[0, :, i], dtype=np.float64)
+    for name, f in summary["filters"].items():
+        series: dict[str, np.ndarray] = {
+            "rms_deg": np.asarray(f["rms_deg"], dtype=np.float64),
+            "nees": np.asarray(f["nees_mean"], dtype=np.float64),
+        }
+        if "fpke_error_before_mean" in f:
+            series["fpke/error_before"] = np.asarray(f["fpke_error_before_mean"], dtype=np.float64)
+            series["fpke/error_after"] = np.asarray(f["fpke_error_after_mean"], dtype=np.float64)
+            series["fpke/ratio"] = np.asarray(f["fpke_ratio_mean"], dtype=np.float64)
+        weights = data.get(f"{name}/weights")
+        mixture = weights is not None and weights.shape[-1] > 1  # one Gaussian: weight 1, entropy 0
+        if mixture:
+            series["weights/entropy"] = np.asarray(data[f"{name}/weight_entropy"], dtype=np.float64).mean(0)
+            for i in range(weights.shape[-1]):
+                series[f"weights/component_{i}"] = np.asarray(weights[0, :, i], dtype=np.float64)
+        writer = SummaryWriter(str(folder / name))
+        try:
+            writer.add_text(
+                "time_axis",
+                f"step = simulated time in {unit} (t = {t[0]:g} s … {t[-1]:g} s); weights/component_<i> is the "
+                "first run's; every other curve is over all runs",
+                0,
+            )
             for key, values in series.items():
                 for k in range(len(values)):
-                    writer.add_scalar(f"{name}/{key}{unit}", float(values[k]), int(steps[k]), walltime=float(t[k]))
+                    writer.add_scalar(key, float(values[k]), int(steps[k]))
             nis = data.get(f"{name}/nis")
             if nis is not None:
                 for k in np.flatnonzero(frames):
-                    writer.add_scalar(
-                        f"{name}/nis{unit}", float(np.nanmean(nis[:, k])), int(steps[k]), walltime=float(t[k])
-                    )
+                    writer.add_scalar("nis", float(np.nanmean(nis[:, k])), int(steps[k]))
             if mixture:
                 for k in range(len(t)):
                     if frames[k] or k % 10 == 0:
-                        writer.add_histogram(
-                            f"{name}/weights{unit}", weights[:, k].reshape(-1), int(steps[k]), walltime=float(t[k])
-                        )
-    finally:
-        writer.close()
+                        writer.add_histogram("weights/all_runs", weights[:, k].reshape(-1), int(steps[k]))
+        finally:
+            writer.close()
 
 
 # ----------------------------------------------------------------------------

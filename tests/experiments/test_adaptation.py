@@ -48,20 +48,23 @@ def test_before_the_first_frame_the_galerkin_filter_equals_the_gsf_in_density(st
 
 
 def test_files_figures_and_tensorboard(study):
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    """One run per (scenario, filter) with a tag per metric, read back by TensorBoard's data provider."""
+    from tests.experiments.test_tensorboard_layout import scalars_view
 
     out, summaries = study
+    view = scalars_view(out / "tensorboard")
     for name in summaries:
         assert (out / f"{name}.png").stat().st_size > 10_000
-        acc = EventAccumulator(str(out / "tensorboard" / name))
-        acc.Reload()
-        tags = acc.Tags()["scalars"]
-        assert {f"density_score/{f}" for f in STUDY_FILTERS} <= set(tags)
-        events = acc.Scalars("density_score/GSF")
+        assert {f"{name}/{f}" for f in STUDY_FILTERS} | {f"{name}/reference"} == {
+            r for r in view if r.startswith(f"{name}/")
+        }
+        assert all(set(view[f"{name}/{f}"]) == {"rms_deg", "nees", "density_score"} for f in STUDY_FILTERS)
+        events = view[f"{name}/GSF"]["density_score"]
         assert [e.step for e in events][:3] == [100, 200, 300]  # time in ms
         np.testing.assert_allclose(
             [e.value for e in events], summaries[name]["filters"]["GSF"]["density_score_t"], rtol=1e-6
         )
+        assert set(view[f"{name}/reference"]) == {"ess_median"}
     assert (out / "scores.png").exists()
     assert "| ambiguous | MEKF |" in (out / "results.md").read_text()
 

@@ -195,18 +195,21 @@ def test_rms_figure_states_what_it_plots(summary3):
     assert "star frame" in _legend_texts(fig)
 
 
-def test_fpke_figure_shows_the_residual_before_and_after_the_weight_update(summary3):
+def test_fpke_figure_shows_the_fraction_of_the_residual_the_update_leaves(summary3):
+    """The fixture's update halves every residual: the ratio is 0.5 in every run, its band collapses there."""
     fig = fpke_figure(summary3)
     (ax,) = fig.axes
     lines = _lines(fig)
     f = summary3["filters"]["AGSF"]
-    np.testing.assert_allclose(lines["AGSF/fpke_before"].get_ydata(), f["fpke_error_before_mean"])
-    np.testing.assert_allclose(lines["AGSF/fpke_after"].get_ydata(), f["fpke_error_after_mean"])
+    np.testing.assert_allclose(lines["AGSF/fpke_ratio"].get_ydata(), 0.5)
+    np.testing.assert_allclose(f["fpke_ratio_p10_p90"], 0.5)
+    band = next(c for c in ax.collections if c.get_gid() == "AGSF/fpke_ratio_band")
+    assert band.get_paths()  # the 10–90 % band is drawn
     texts = _legend_texts(fig)
-    assert any("AGSF" in s and "before the weight update" in s for s in texts)
-    assert any("AGSF" in s and "after the weight update" in s for s in texts)
-    assert "before and after the weight update" in ax.get_title() and "4 runs" in ax.get_title()
-    assert ax.get_yscale() == "log" and ax.get_xlabel() == "time (s)" and "wᵀLw" in ax.get_ylabel()
+    assert any("AGSF" in s and "mean over runs" in s for s in texts)
+    assert any("removed nothing" in s for s in texts)
+    assert "relative to before it" in ax.get_title() and "4 runs" in ax.get_title()
+    assert ax.get_yscale() == "log" and ax.get_xlabel() == "time (s)" and "wᵀLw(adapted w)" in ax.get_ylabel()
     assert any("EKF" in t.get_text() and "GSF" in t.get_text() for t in ax.texts)  # who does not record it
 
 

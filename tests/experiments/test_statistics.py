@@ -47,3 +47,18 @@ def test_reproduce_tables_say_what_their_windows_are():
         assert table.startswith("| case |") and not note.startswith("|")
         assert WINDOW_TEXT["between_frames"] in note and WINDOW_TEXT["before_first_frame"] in note
     assert "| case1 | between frames | -0.01 |" in blocks[2]
+
+
+def test_fpke_ratio_is_per_run_and_skips_steps_without_a_residual():
+    """``after / before`` per run, then the mean and the 10–90 % range over the runs; a zero or non-finite
+    ``before`` gives no ratio for that run (a step without any gives NaN, not a warning)."""
+    from agsf_torch.experiments.statistics import fpke_ratio
+
+    before = np.array([[1.0, 2.0, 0.0], [4.0, 1.0, np.inf]])
+    after = np.array([[0.5, 2.0, 1.0], [1.0, 0.1, 1.0]])
+    out = fpke_ratio(before, after)
+    np.testing.assert_allclose(out["fpke_ratio_mean"][:2], [(0.5 + 0.25) / 2, (1.0 + 0.1) / 2])
+    assert np.isnan(out["fpke_ratio_mean"][2])
+    lo, hi = out["fpke_ratio_p10_p90"]
+    np.testing.assert_allclose(lo[:2], [0.25 + 0.1 * 0.25, 0.1 + 0.1 * 0.9])
+    np.testing.assert_allclose(hi[:2], [0.25 + 0.9 * 0.25, 0.1 + 0.9 * 0.9])

@@ -1,11 +1,14 @@
-"""TensorBoard as a user opens it, read back with TensorBoard's own readers: a sweep's runs are named by
-their parameters and each holds both its HParams session and its curves; the HParams experiment
-knows every swept value and that it differs; time is simulated time; single-Gaussian filters log no
-mixture scalars; ``agsf reproduce`` makes each case a session; resuming a sweep duplicates nothing."""
+"""TensorBoard as a user opens it, read back with TensorBoard's own readers (its data provider, as the
+server uses it): one run per (case, filter) and per (configuration, filter), tags per metric so one chart
+overlays the filters; a sweep's configurations are named by their parameters and each is an HParams
+session over its filters' runs; the HParams experiment knows every swept value and that it differs; the
+step is simulated time and every wall time the clock's; single-Gaussian filters log no mixture scalars;
+``agsf reproduce`` makes each case a session; resuming a sweep duplicates nothing."""
 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -53,17 +56,22 @@ def experiment_domains(experiment: api_pb2.Experiment) -> dict[str, tuple[list, 
     return out
 
 
-def tensorboard_view(logdir: Path):
-    """What the HParams tab shows: the experiment and session groups from TensorBoard's HParams plugin."""
-    from tensorboard import context
+def _provider(logdir: Path):
     from tensorboard.backend.event_processing import data_provider, plugin_event_multiplexer
-    from tensorboard.plugins import base_plugin
-    from tensorboard.plugins.hparams import backend_context, get_experiment, list_session_groups
 
     mux = plugin_event_multiplexer.EventMultiplexer()
     mux.AddRunsFromDirectory(str(logdir))
     mux.Reload()
-    provider = data_provider.MultiplexerDataProvider(mux, str(logdir))
+    return mux, data_provider.MultiplexerDataProvider(mux, str(logdir))
+
+
+def tensorboard_view(logdir: Path):
+    """What the HParams tab shows: the experiment and session groups from TensorBoard's HParams plugin."""
+    from tensorboard import context
+    from tensorboard.plugins import base_plugin
+    from tensorboard.plugins.hparams import backend_context, get_experiment, list_session_groups
+
+    mux, provider = _provider(logdir)
     ctx = backend_context.Context(base_plugin.TBContext(logdir=str(logdir), multiplexer=mux, data_provider=provider))
     request_context = context.RequestContext()
     experiment = get_experiment.Handler(request_context, ctx, "", api_pb2.GetExperimentRequest()).run()
@@ -74,28 +82,48 @@ def tensorboard_view(logdir: Path):
     return sorted(mux.Runs()), experiment, groups
 
 
-def check_time_series(acc: EventAccumulator, data, summary: dict, filters: list[str]) -> None:
-    """Curves against simulated time: step = integer ms of data["time"], walltime = data["time"] in s."""
+def scalars_view(logdir: Path) -> dict[str, dict[str, list]]:
+    """What the Scalars tab shows: ``{run: {tag: [ScalarDatum(step, wall_time, value)]}}`` from TensorBoard's
+    data provider (every point, no downsampling), the HParams metrics (``summary/…``) included."""
+    from tensorboard import context
+
+    _, provider = _provider(logdir)
+    return provider.read_scalars(context.RequestContext(), experiment_id="", plugin_name="scalars", downsample=10**9)
+
+
+def texts_view(logdir: Path) -> dict[str, dict[str, str]]:
+    """The Text tab: ``{run: {tag: text at step 0}}``."""
+    from tensorboard import context
+
+    _, provider = _provider(logdir)
+    data = provider.read_tensors(context.RequestContext(), experiment_id="", plugin_name="text", downsample=10**9)
+    return {
+        run: {tag: points[0].numpy.reshape(-1)[0].decode() for tag, points in tags.items()}
+        for run, tags in data.items()
+    }
+
+
+def check_time_series(logdir: Path, data, summary: dict, filters: list[str], written_after: float) -> None:
+    """One run per filter under ``logdir`` with a tag per metric; step = integer ms of data["time"]; every wall
+    time the clock's (written after ``written_after``), none simulated."""
     t = data["time"]
-    scalars = acc.Tags()["scalars"]
+    view, texts = scalars_view(logdir), texts_view(logdir)
     for name in filters:
-        events = acc.Scalars(f"{name}/rms_deg_vs_ms")
+        run = view[name]
+        events = run["rms_deg"]
         np.testing.assert_array_equal([e.step for e in events], np.rint(t * 1000).astype(int))
-        np.testing.assert_allclose([e.step / 1000 for e in events], t, rtol=0, atol=1e-9)
-        np.testing.assert_allclose([e.wall_time for e in events], t, rtol=0, atol=1e-9)
+        assert all(written_after <= e.wall_time <= time.time() for e in events)
         np.testing.assert_allclose([e.value for e in events], summary["filters"][name]["rms_deg"], rtol=1e-6)
-        assert len(acc.Scalars(f"{name}/nees_vs_ms")) == len(t)
+        assert len(run["nees"]) == len(t)
+        assert "step = simulated time in ms" in texts[name]["time_axis/text_summary"]
         mixture = data[f"{name}/weights"].shape[-1] > 1
-        own = [tag for tag in scalars + acc.Tags()["histograms"] if tag.startswith(f"{name}/")]
-        assert all(tag.endswith("_vs_ms") for tag in own), own
-        has_mixture_tags = any(tag[len(name) + 1 :].startswith(MIXTURE_ONLY) for tag in own)
-        assert has_mixture_tags == mixture, (name, own)
-    assert not [tag for tag in scalars if tag.startswith("EKF/") and "weight" in tag]
+        assert mixture == any(tag.startswith("weights/") for tag in run), (name, sorted(run))
+        assert not [tag for tag in run if "_vs_" in tag or tag.startswith(name)]  # per-metric tags
     for i in range(data["GSF/weights"].shape[-1]):
-        events = acc.Scalars(f"GSF/weight_{i}_run0_vs_ms")
+        events = view["GSF"][f"weights/component_{i}"]
         np.testing.assert_allclose([e.value for e in events], data["GSF/weights"][0, :, i], rtol=1e-6)
     np.testing.assert_allclose(
-        [e.value for e in acc.Scalars("GSF/weight_entropy_vs_ms")], data["GSF/weight_entropy"].mean(0), rtol=1e-6
+        [e.value for e in view["GSF"]["weights/entropy"]], data["GSF/weight_entropy"].mean(0), rtol=1e-6
     )
 
 
@@ -106,14 +134,17 @@ def check_time_series(acc: EventAccumulator, data, summary: dict, filters: list[
 def sweep(tmp_path_factory):
     base = load_config("case1", BASE)
     out = tmp_path_factory.mktemp("tb") / "sweep"
+    started = time.time()
     rows = run_sweep(base, GRID, out, progress=False)
-    return base, out, rows
+    return base, out, rows, started
 
 
 def test_sweep_runs_are_named_by_their_parameters_and_hold_session_and_curves(sweep, capsys):
-    base, out, rows = sweep
+    base, out, rows, started = sweep
     tb = out / "tensorboard"
     assert sorted(p.name for p in tb.iterdir()) == ["reg=0.5", "reg=1.0"]
+    for folder in tb.iterdir():  # the session, and a run per filter beneath it
+        assert sorted(p.name for p in folder.iterdir() if p.is_dir()) == sorted(base.filters)
     assert not list(tb.glob(EVENTS_GLOB))  # no run at the root
     assert not list((out / "configs").rglob(EVENTS_GLOB))  # the curves live only in the named runs
     experiments, reg_values = [], []
@@ -133,7 +164,7 @@ def test_sweep_runs_are_named_by_their_parameters_and_hold_session_and_curves(sw
             assert [e.value for e in acc.Scalars(METRIC_PREFIX + key)] == [pytest.approx(value, rel=1e-6)]
         config = out / "configs" / row["digest"]
         summary = json.loads((config / "summary.json").read_text())
-        check_time_series(acc, np.load(config / "runs.npz"), summary, list(base.filters))
+        check_time_series(folder, np.load(config / "runs.npz"), summary, list(base.filters), started)
         print(folder.relative_to(out), sorted(acc.Tags()["scalars"]), acc.Tags()["histograms"], sorted(hp))
     assert sorted(reg_values) == [0.5, 1.0]  # the sessions differ
     # every session carries the same experiment configuration: the whole grid, marked as differing
@@ -145,9 +176,10 @@ def test_sweep_runs_are_named_by_their_parameters_and_hold_session_and_curves(sw
 
 
 def test_the_hparams_tab_shows_each_configuration_with_its_values_and_metrics(sweep):
-    _, out, rows = sweep
+    base, out, rows, _ = sweep
     runs, experiment, groups = tensorboard_view(out / "tensorboard")
-    assert runs == ["reg=0.5", "reg=1.0"]
+    assert runs == sorted(r for s in ("reg=0.5", "reg=1.0") for r in [s, *(f"{s}/{f}" for f in base.filters)])
+    runs = [r for r in runs if "/" not in r]  # the sessions
     assert [(i.name, i.differs) for i in experiment.hparam_infos] == [("reg", True)]
     assert all(len(g.sessions) == 1 and g.name == g.sessions[0].name for g in groups.session_groups)
     by_session = {g.sessions[0].name: g for g in groups.session_groups}
@@ -159,11 +191,12 @@ def test_the_hparams_tab_shows_each_configuration_with_its_values_and_metrics(sw
         assert metrics == pytest.approx({METRIC_PREFIX + k: v for k, v in row["metrics"].items()}, rel=1e-6)
     # with the whole output folder as logdir the runs are still the named ones only
     runs, _, groups = tensorboard_view(out)
-    assert runs == ["tensorboard/reg=0.5", "tensorboard/reg=1.0"] and groups.total_size == 2
+    assert [r for r in runs if r.count("/") == 1] == ["tensorboard/reg=0.5", "tensorboard/reg=1.0"]
+    assert all(r.startswith("tensorboard/reg=") for r in runs) and groups.total_size == 2
 
 
 def test_resuming_a_sweep_duplicates_no_session_or_curve(sweep, tmp_path):
-    base, out, rows = sweep
+    base, out, rows, _ = sweep
     ran = []
     again = run_sweep(base, GRID, out, progress=False, runner=lambda cfg, *a, **k: ran.append(cfg))
     assert again == rows and not ran
@@ -181,9 +214,11 @@ def test_resuming_a_sweep_duplicates_no_session_or_curve(sweep, tmp_path):
     assert ran == [last["digest"]]
     _, _, groups = tensorboard_view(out / "tensorboard")
     assert groups.total_size == 2
-    acc = accumulate(out / "tensorboard" / run_name(last["params"]))
-    assert len(list((out / "tensorboard" / run_name(last["params"])).glob(EVENTS_GLOB))) == 2  # curves + session
-    assert len(acc.Scalars("GSF/rms_deg_vs_ms")) == len(np.load(out / "configs" / last["digest"] / "runs.npz")["time"])
+    session = out / "tensorboard" / run_name(last["params"])
+    assert len(list(session.glob(EVENTS_GLOB))) == 1  # the session
+    assert all(len(list((session / f).glob(EVENTS_GLOB))) == 1 for f in base.filters)  # one file of curves each
+    view = scalars_view(session)
+    assert len(view["GSF"]["rms_deg"]) == len(np.load(out / "configs" / last["digest"] / "runs.npz")["time"])
 
 
 # -------------------------------------------------------------- agsf reproduce
@@ -191,6 +226,7 @@ def test_resuming_a_sweep_duplicates_no_session_or_curve(sweep, tmp_path):
 
 def test_reproduce_makes_each_case_an_hparams_session(tmp_path):
     out = tmp_path / "reproduce"
+    started = time.time()
     reproduce(
         [1, 2],
         out,
@@ -199,7 +235,8 @@ def test_reproduce_makes_each_case_an_hparams_session(tmp_path):
     )
     combined = json.loads((out / "summary.json").read_text())
     runs, experiment, groups = tensorboard_view(out)
-    assert runs == ["case1/tensorboard", "case2/tensorboard"]
+    assert runs == [f"case{k}/tensorboard{f}" for k in (1, 2) for f in ("", "/EKF", "/GSF")]  # a run per (case, filter)
+    runs = [r for r in runs if r.endswith("tensorboard")]  # the sessions
     infos = {i.name: i for i in experiment.hparam_infos}
     assert {"case", "star_period", "runs", "components", "reg", "dt", "duration"} <= set(infos)
     assert "compile" not in infos and "name" not in infos
@@ -218,12 +255,11 @@ def test_reproduce_makes_each_case_an_hparams_session(tmp_path):
             s = combined[case]["filters"][f]
             assert metrics[f"{METRIC_PREFIX}{f}/time_averaged_nees"] == pytest.approx(s["time_averaged_nees"], rel=1e-6)
             assert metrics[f"{METRIC_PREFIX}{f}/final_rms_deg"] == pytest.approx(s["final_rms_deg"], rel=1e-6)
-        acc = accumulate(out / case / "tensorboard")
         data = np.load(out / case / "runs.npz")
         summary = json.loads((out / case / "summary.json").read_text())
-        check_time_series(acc, data, summary, ["EKF", "GSF"])
+        check_time_series(out / case / "tensorboard", data, summary, ["EKF", "GSF"], started)
         # star frames: NIS only at frame times, in ms
-        nis = acc.Scalars("GSF/nis_vs_ms")
+        nis = scalars_view(out / case / "tensorboard")["GSF"]["nis"]
         assert [e.step for e in nis] == list(np.rint(data["time"][data["star_frame"]] * 1000).astype(int))
         assert nis and len(nis) < len(data["time"])
 
@@ -249,8 +285,8 @@ def test_run_names_are_the_parameters_sanitized_and_unique():
 
 def test_time_steps_are_integer_milliseconds_or_microseconds_when_finer():
     steps, unit = time_steps(np.arange(1, 6) * 0.1)
-    assert unit == "_vs_ms" and steps.tolist() == [100, 200, 300, 400, 500]
+    assert unit == "ms" and steps.tolist() == [100, 200, 300, 400, 500]
     steps, unit = time_steps(np.arange(1, 4) * 2.5e-4)
-    assert unit == "_vs_us" and steps.tolist() == [250, 500, 750]
+    assert unit == "µs" and steps.tolist() == [250, 500, 750]
     with pytest.raises(ValueError, match="1 µs"):
         time_steps(np.arange(1, 4) * 1e-7)

@@ -5,18 +5,19 @@ Every finished configuration is appended as one JSON line to ``results.jsonl``
 base and grid skips the digests already there, so an interrupted sweep loses
 only the configurations that were running.
 
-TensorBoard (``tensorboard --logdir out/tensorboard``) gets one run per
+TensorBoard (``tensorboard --logdir out/tensorboard``) gets one HParams session per
 configuration, named by its swept parameters (``reg=0.5,scaling=trace``,
 :func:`.tensorboard_log.run_name`; a digest is appended only where two names would
-collide).  That run holds both the configuration's time series (simulated time on
-the x-axis, see :mod:`.tensorboard_log`) and its HParams session (its parameters,
-its metrics, and the sweep's complete grid as the experiment configuration), so the
-HParams tab opens onto each configuration's curves::
+collide), holding its parameters, its metrics and the sweep's complete grid as the
+experiment configuration, and beneath it one run per filter with the configuration's
+time series (tags per metric, simulated time as the step, see :mod:`.tensorboard_log`):
+one chart overlays the filters, the run filter selects configurations::
 
-    out/tensorboard/reg=0.5,scaling=trace/   events: curves + HParams session
-    out/tensorboard/reg=1.0,scaling=trace/   ...
-    out/configs/<digest>/                    the configuration's experiment folder
-                                             (runs.npz, summary.json, figures)
+    out/tensorboard/reg=0.5,scaling=trace/       events: the HParams session
+    out/tensorboard/reg=0.5,scaling=trace/GSF/   events: the GSF's curves (rms_deg, nees, …)
+    out/tensorboard/reg=1.0,scaling=trace/…      ...
+    out/configs/<digest>/                        the configuration's experiment folder
+                                                 (runs.npz, summary.json, figures)
 
 The configuration's events are moved there from its folder when it is recorded,
 just before its row is appended (a rerun replaces the run of a configuration
