@@ -242,6 +242,20 @@ class _ExperimentFields:
         """Short hash of the configuration (identifies an experiment in an output folder)."""
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 
+    def filter_digest(self, name: str) -> str:
+        """Short hash of what filter ``name``'s results depend on in this configuration: every field except
+        the label, the list of filters, the options of the other filters and, for a one-component filter,
+        ``components`` and ``spread``.  Two configurations with the same filter digest give that filter the
+        same simulated data, prior and options, hence the same numbers (a sweep runs it once)."""
+        from ..filters.registry import filter_spec
+
+        spec = filter_spec(name)
+        skip = {"name", "filters"} | (set(CONFIG_OPTIONS) - spec.option_names)
+        if not spec.mixture:
+            skip |= {"components", "spread"}
+        fields = {k: v for k, v in self.to_dict().items() if k not in skip}
+        return hashlib.sha256(json.dumps({"filter": name, **fields}, sort_keys=True).encode()).hexdigest()[:16]
+
     def replace(self, **changes: Any) -> ExperimentConfig:
         return _from_mapping({**self.to_dict(), **changes})
 

@@ -8,6 +8,7 @@ TensorBoard events (:mod:`.tensorboard_log`); the names are re-exported here.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,7 @@ from ..storage.files import write_json
 from .config import ExperimentConfig
 from .factories import make_env, make_filters, prior_covariance
 from .figures import write_figures
-from .outputs import OutputConflict, prepare_output, save_runs
+from .outputs import OutputConflict, load_filter_runs, prepare_output, save_runs
 from .resources import check_memory
 from .runner import run_monte_carlo
 from .statistics import mean_ci95, paired_difference, summarize
@@ -43,11 +44,18 @@ def run_experiment(
     recording: str | Path | None = None,
     force: bool = False,
     label: str | None = None,
+    reuse: Mapping[str, Path] | None = None,
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
 
     ``label`` names the run on its progress bar (default: the configuration's ``name``; a sweep passes
     the configuration's parameters).
+
+    ``reuse`` maps filters of the configuration to the folder of an earlier experiment that ran them with the
+    same :meth:`~.config.ExperimentConfig.filter_digest` (the same simulation, prior and options): their arrays
+    are copied from its ``runs.npz`` instead of running them again (a sweep over an option only some filters
+    read), and ``summary["reused"]`` names the folder each came from.  The simulation of the filters that do
+    run must match theirs (times and star frames), else ``RuntimeError``.
 
     With ``recording`` the filters replay that file (it must hold the truth and
     ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps) instead of a simulation;
@@ -70,8 +78,20 @@ def run_experiment(
     else:
         check_memory(cfg, force=force)
         env, digest = make_env(cfg), cfg.digest()
-    filters = make_filters(cfg)
+    reuse = dict(reuse or {})
+    unknown = sorted(set(reuse) - set(cfg.filters))
+    if unknown:
+        raise ValueError(f"cannot reuse results of {unknown}: the configuration runs {cfg.filters}")
+    if reuse and recording is not None:
+        raise ValueError("results are reused between simulated experiments only, not with a recording")
+    for name, folder in reuse.items():
+        _check_reusable(cfg, name, Path(folder))
+    reused = {name: load_filter_runs(Path(folder) / "runs.npz", name) for name, folder in reuse.items()}
+    filters = {name: setup for name, setup in make_filters(cfg).items() if name not in reuse}
     out = prepare_output(Path(out), kind, digest, cfg.to_dict())
+    if not filters:
+        data = save_runs(out / "runs.npz", None, reused)
+        return _write_results(out, data, cfg, reuse)
     res = run_monte_carlo(
         env,
         filters,
@@ -84,8 +104,32 @@ def run_experiment(
         noise_model=cfg.star_noise_model,
         label=cfg.name if label is None else label,
     )
-    data = save_runs(out / "runs.npz", res)
+    data = save_runs(out / "runs.npz", res, reused)
+    return _write_results(out, data, cfg, reuse)
+
+
+def _check_reusable(cfg: ExperimentConfig, name: str, folder: Path) -> None:
+    """Refuse to reuse ``name``'s results from ``folder`` unless its experiment had the same filter digest."""
+    import json
+
+    from .config import _from_mapping
+
+    try:
+        theirs = _from_mapping(json.loads((folder / "experiment.json").read_text())["config"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"cannot reuse results of {name} from {folder}: no readable experiment.json ({exc})") from None
+    if theirs.filter_digest(name) != cfg.filter_digest(name):
+        raise ValueError(
+            f"cannot reuse results of {name} from {folder}: that experiment differs in what {name} reads "
+            "(its simulation, prior or options)"
+        )
+
+
+def _write_results(out: Path, data: dict, cfg: ExperimentConfig, reuse: dict[str, Path]) -> dict[str, Any]:
+    """The summary, figures and TensorBoard events of an experiment's data."""
     summary = summarize(data, cfg)
+    if reuse:
+        summary["reused"] = {name: Path(folder).name for name, folder in reuse.items()}
     write_json(out / "summary.json", summary)
     write_figures(out, summary)
     write_tensorboard(out, data, summary)

@@ -29,6 +29,7 @@ __all__ = [
     "release_outputs",
     "save_runs",
     "save_npz",
+    "load_filter_runs",
 ]
 
 
@@ -134,6 +135,7 @@ def save_npz(path: Path, data: dict[str, np.ndarray]) -> Path:
 RUN_UNITS = {
     "time": "s",
     "star_frame": "bool",
+    "prior_error_angle": "rad",
     "error_angle": "rad",
     "error": "rad (attitude: rotation-error vector, body axes of the truth), rad/s (bias)",
     "sigma": "rad (attitude: 1σ of the rotation error), rad/s (bias)",
@@ -150,21 +152,39 @@ RUN_UNITS = {
 }
 
 
-def save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
+#: The arrays of ``runs.npz`` that belong to the simulation, not to a filter.
+SHARED_KEYS = ("time", "star_frame", "prior_error_angle")
+
+
+def save_runs(
+    path: Path, res: MonteCarloResult | None, reused: dict[str, tuple[dict, dict]] | None = None
+) -> dict[str, np.ndarray]:
     """Write ``runs.npz`` and return what it wrote.
 
     Layout (batch first, as everywhere in the package): ``time [T]`` (s), ``star_frame [T]``,
-    and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
+    ``prior_error_angle [B]`` (rad: the prior mean's attitude error at ``t = 0``), and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
     ``[B, T, ...]`` — ``error_angle``, ``error`` and ``sigma`` (rotation error and its 1σ),
     ``cov [B, T, n, n]`` (the filter's covariance), ``nees``, ``nis``, ``nis_dof``,
     ``weights [B, T, N]``, ``weight_entropy`` — plus every per-trajectory diagnostic
     ``[B, T]`` the filter reported (its ``diagnostic_keys``, e.g. ``fpke_error_before``,
     ``qp_kkt_residual``, ``gate_rejected``) and the input's (``gyro_held``).  ``units`` holds
     a JSON object: key (without the filter prefix) → unit (:data:`RUN_UNITS`).
+
+    ``reused``: filters whose arrays come from an earlier experiment with the same simulation and options
+    (:func:`load_filter_runs`: name → ``(arrays, units)``), written beside the ones run now; with ``res``
+    ``None`` every filter is reused and ``time``/``star_frame`` are taken from the first of them.
     """
-    data: dict[str, np.ndarray] = {"time": res.time, "star_frame": res.star_frame}
-    units = {k: RUN_UNITS[k] for k in ("time", "star_frame")}
-    for name, tr in res.traces.items():
+    reused = reused or {}
+    if res is not None:
+        data: dict[str, np.ndarray] = {"time": res.time, "star_frame": res.star_frame}
+        if res.prior_error_angle is not None:
+            data["prior_error_angle"] = res.prior_error_angle
+        traces = res.traces
+    else:
+        first = next(iter(reused.values()))[0]
+        data, traces = {k: first[k] for k in SHARED_KEYS if k in first}, {}
+    units = {k: RUN_UNITS[k] for k in SHARED_KEYS if k in data}
+    for name, tr in traces.items():
         for key in ("error_angle", "error", "sigma", "cov", "nees", "nis", "nis_dof", "weights", "weight_entropy"):
             data[f"{name}/{key}"] = getattr(tr, key)
             units[key] = RUN_UNITS[key]
@@ -172,5 +192,24 @@ def save_runs(path: Path, res: MonteCarloResult) -> dict[str, np.ndarray]:
             if values.shape == tr.error_angle.shape:
                 data[f"{name}/{key}"] = values
                 units[key] = RUN_UNITS.get(key, "1")
+    for name, (arrays, their_units) in reused.items():
+        for key in SHARED_KEYS:
+            if (key in arrays) != (key in data) or (key in data and not np.array_equal(arrays[key], data[key])):
+                raise RuntimeError(
+                    f"the reused results of {name} do not match this experiment's simulation ({key} differs)"
+                )
+        data.update({k: v for k, v in arrays.items() if k.startswith(f"{name}/")})
+        units.update(their_units)
     save_npz(path, {**data, "units": np.array(json.dumps(units, sort_keys=True))})
     return data
+
+
+def load_filter_runs(path: Path, name: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """Filter ``name``'s arrays of a ``runs.npz`` (with ``time`` and ``star_frame``) and the units of its keys."""
+    with np.load(path) as f:
+        arrays = {k: f[k] for k in f.files if k.startswith(f"{name}/") or k in SHARED_KEYS}
+        units = json.loads(str(f["units"]))
+    if not any("/" in k for k in arrays):
+        raise ValueError(f"{path} holds no results of the filter {name}")
+    keys = {k.split("/", 1)[1] for k in arrays if "/" in k}
+    return arrays, {k: v for k, v in units.items() if k in keys}

@@ -64,6 +64,12 @@ class FilterSpec:
         """Whether the filter adapts its weights during propagation."""
         return self.weight_update is not None
 
+    @property
+    def option_names(self) -> frozenset[str]:
+        """The options this filter reads: every :class:`FilterOptions` field and its weight update's."""
+        classes = (FilterOptions,) + ((self.weight_update,) if self.weight_update is not None else ())
+        return frozenset(f.name for cls in classes for f in dataclasses.fields(cls) if f.init)
+
     def build(self, model: ContinuousModel, **options: Any) -> Filter:
         """The filter on ``model`` with the ``options`` its classes declare (others are ignored)."""
         kwargs = _own(FilterOptions, options)

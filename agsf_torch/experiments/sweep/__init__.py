@@ -23,6 +23,14 @@ The configuration's events are moved there from its folder when it is recorded,
 just before its row is appended (a rerun replaces the run of a configuration
 interrupted in between).
 
+No filter runs twice on the same numbers: each filter's results depend on the simulation, the
+prior and the options it reads (:meth:`~agsf_torch.experiments.config.ExperimentConfig.filter_digest`),
+so a sweep over ``reg`` runs the EKF, the GSF and the Galerkin filter once and copies their
+arrays into the other configurations' folders (``summary.json``'s ``reused``, the row's
+``reused`` and the table's "reused (not rerun)" column name the configuration they came
+from).  The local backend does this; the Ray backend runs every configuration whole (its
+tasks run at once and cannot wait for one another's filters).
+
 Two backends run the pending configurations:
 
 * ``"local"`` (default): one after another in this process.

@@ -145,7 +145,7 @@ def run_on_ray(
                         failures.append((cfg.digest(), params, str(exc)))
                     else:
                         _write_config_folder(out / "configs", cfg.digest(), result["files"])
-                        record(params, cfg, result["metrics"])
+                        record(params, cfg, result["metrics"], {})  # every task runs its configuration whole
                     bar.update(1)
                 if interrupted is not None and interrupted.is_set():
                     raise KeyboardInterrupt

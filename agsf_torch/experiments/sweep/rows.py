@@ -50,7 +50,8 @@ def results_table(rows: list[dict[str, Any]]) -> str:
     Columns: the configuration's digest (its folder ``configs/<digest>/``), every swept
     parameter, then per filter its mean RMS between star frames (deg) and its time-averaged
     NEES (dimensionless), and ``AGSF − GSF`` (deg, the paired difference of the mean RMS
-    between frames) when any row has it.  A metric a row lacks is shown as ``—``.  Cells are
+    between frames) when any row has it, and ``reused (not rerun)`` when a row copied a filter's results
+    from the configuration named (``row["reused"]``: filter → digest).  A metric a row lacks is shown as ``—``.  Cells are
     padded so that the table also reads as plain text; one sentence under the table says what its
     window is (:data:`~agsf_torch.experiments.statistics.WINDOW_TEXT`).
 
@@ -73,11 +74,14 @@ def results_table(rows: list[dict[str, Any]]) -> str:
         )
     )
     difference = any(_DIFFERENCE_KEY in row["metrics"] for row in rows)
+    reused = any(row.get("reused") for row in rows)
     header = ["config", *params]
     for name in filters:
         header += [f"{name} RMS (deg)", f"{name} NEES"]
     if difference:
         header.append("AGSF − GSF (deg)")
+    if reused:
+        header.append("reused (not rerun)")
     body = []
     for row in rows:
         m = row["metrics"]
@@ -86,6 +90,11 @@ def results_table(rows: list[dict[str, Any]]) -> str:
             cells += [_table_cell(m.get(name + _RMS_SUFFIX)), _table_cell(m.get(name + _NEES_SUFFIX))]
         if difference:
             cells.append(_table_cell(m.get(_DIFFERENCE_KEY)))
+        if reused:
+            by_source: dict[str, list[str]] = {}
+            for name, source in (row.get("reused") or {}).items():
+                by_source.setdefault(source, []).append(name)
+            cells.append("; ".join(f"{', '.join(n)} ← {src}" for src, n in by_source.items()) or "—")
         body.append(cells)
     widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
 
@@ -96,5 +105,11 @@ def results_table(rows: list[dict[str, Any]]) -> str:
         f"RMS: the mean over runs of each run's RMS in the window {WINDOW_TEXT['between_frames']}; "
         "NEES: averaged over every step and run"
         + ("; AGSF − GSF: the paired per-run difference of that RMS." if difference else ".")
+        + (
+            " Reused: a filter that reads none of the options in which two configurations differ ran once; the "
+            "later rows repeat the numbers of the configuration named (its arrays copied, not recomputed)."
+            if reused
+            else ""
+        )
     )
     return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in body), "", note])

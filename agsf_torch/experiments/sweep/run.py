@@ -205,11 +205,22 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
     names = run_names((params, cfg.digest()) for params, cfg in configs)
     domains = hparam_domains(params for params, _ in configs)
 
-    def record(params: dict[str, Any], cfg: ExperimentConfig, summary_metrics: dict[str, float]) -> None:
+    # every filter's results by its own digest (the options it reads): the configuration folder that holds them
+    sources: dict[str, Path] = {}
+    for _, cfg in configs:
+        if cfg.digest() in done and (out / "configs" / cfg.digest() / "runs.npz").is_file():
+            for name in cfg.filters:
+                sources.setdefault(cfg.filter_digest(name), out / "configs" / cfg.digest())
+
+    def record(
+        params: dict[str, Any], cfg: ExperimentConfig, summary_metrics: dict[str, float], reused: dict[str, str]
+    ) -> None:
         run_dir = out / "tensorboard" / names[cfg.digest()]
         move_events(out / "configs" / cfg.digest() / "tensorboard", run_dir)
         write_hparams_session(run_dir, params, summary_metrics, domains)
         row = {"digest": cfg.digest(), "params": params, "metrics": summary_metrics}
+        if reused:
+            row["reused"] = reused
         append_line(results, json_text(row))
         rows.append(row)
 
@@ -218,8 +229,12 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
             for params, cfg in pending:
                 folder = out / "configs" / cfg.digest()
                 label = f"{cfg.name} {names[cfg.digest()]}"  # the bar names the configuration, not only its preset
-                summary = runner(cfg, folder, progress=progress, kind="sweep-config", label=label)
-                record(params, cfg, config_metrics(summary))
+                reuse = {n: sources[d] for n in cfg.filters if (d := cfg.filter_digest(n)) in sources}
+                kwargs = {"reuse": reuse} if reuse else {}
+                summary = runner(cfg, folder, progress=progress, kind="sweep-config", label=label, **kwargs)
+                record(params, cfg, config_metrics(summary), {n: p.name for n, p in reuse.items()})
+                for name in cfg.filters:
+                    sources.setdefault(cfg.filter_digest(name), folder)
                 if interrupted.is_set():  # a Ctrl-C that Python swallowed (e.g. raised inside a finaliser)
                     raise KeyboardInterrupt
         elif pending:
