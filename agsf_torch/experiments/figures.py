@@ -100,14 +100,21 @@ def _runs(summary: dict[str, Any]) -> int:
 
 
 def rms_figure(summary: dict[str, Any]) -> Any:
-    """``rms.png``: the RMS over the runs of the attitude error angle (deg) of every filter, log scale."""
+    """``rms.png``: the RMS over the runs of the attitude error angle (deg) of every filter, log scale, from
+    ``t = 0`` (the prior, every filter's estimate before its first step: ``summary["prior_rms_deg"]``)."""
     t = np.asarray(summary["time_s"], dtype=float)
+    prior = summary.get("prior_rms_deg")
+    if prior is not None:
+        t = np.concatenate(([0.0], t))
     colors = _filter_colors(summary)
     fig = _figure((7.5, 4.4))
     ax = fig.add_subplot()
     star = _mark_star_frames(ax, _star_times(summary), top=True)
     for name, f in summary["filters"].items():
-        ax.plot(t, f["rms_deg"], color=colors[name], lw=1.4, label=name, gid=f"{name}/rms")
+        rms = f["rms_deg"] if prior is None else [prior, *f["rms_deg"]]
+        ax.plot(t, rms, color=colors[name], lw=1.4, label=name, gid=f"{name}/rms")
+    if prior is not None:
+        ax.plot([0.0], [prior], "o", color="0.25", ms=4, label="the prior (t = 0)", gid="prior")
     ax.set_yscale("log")
     ax.set(
         xlabel="time (s)",

@@ -71,12 +71,14 @@ class FilterTrace:
 
 @dataclass
 class MonteCarloResult:
-    """Times ``[T]`` (s), star-frame flags ``[T]`` and one :class:`FilterTrace` per filter."""
+    """Times ``[T]`` (s), star-frame flags ``[T]``, one :class:`FilterTrace` per filter and the attitude error
+    of the prior mean at ``t = 0`` (every filter's estimate before its first step) ``[B]`` (rad)."""
 
     time: np.ndarray
     star_frame: np.ndarray
     traces: dict[str, FilterTrace]
     state_dim: int
+    prior_error_angle: np.ndarray | None = None
 
 
 @dataclass
@@ -87,7 +89,8 @@ class SimulatedStep:
     in the 3-state model; invalid samples bridged by the last valid one, whose extra
     uncertainty the filters add to their covariance but ``u`` itself does not carry) and, at a star frame, ``measurement``
     ``(y [B, d], StarVectorMeasurement)``; ``prior_mean [B, n]`` is the mean of the Gaussian prior
-    ``N(prior_mean, prior_cov)`` every filter's initial mixture was split from; ``chart_error``:
+    ``N(prior_mean, prior_cov)`` every filter's initial mixture was split from (its estimate at ``t = 0``,
+    against the truth then ``prior_truth_mrp [B, 3]``); ``chart_error``:
     name → the state error of the filter's estimate against the truth in the estimate's chart
     ``[B, n]`` (MRP and rad/s: the units of the covariance, for NEES; :class:`FilterTrace`
     stores the error as a rotation instead, :func:`rotation_error`)."""
@@ -102,6 +105,7 @@ class SimulatedStep:
     measurement: tuple | None = None
     prior_mean: Tensor | None = None
     chart_error: dict[str, Tensor] = field(default_factory=dict)
+    prior_truth_mrp: Tensor | None = None
 
 
 def monte_carlo_steps(
@@ -137,6 +141,7 @@ def monte_carlo_steps(
         raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
     obs, info = env.reset(seed=seed)
     truth_p, truth_b = as_float64(info["truth_mrp"]), as_float64(info["truth_bias"])
+    truth0 = truth_p
     gen = torch.Generator().manual_seed(int(seed) + PRIOR_SEED_OFFSET)
     mean0 = sample_prior(torch.cat((truth_p, truth_b), -1)[:, :n], prior_cov, gen)
     for setup in filters.values():
@@ -173,6 +178,7 @@ def monte_carlo_steps(
             step.input.measurement,
             mean0,
             errors,
+            truth0,
         )
 
 
@@ -251,7 +257,10 @@ def run_monte_carlo(
         from .progress import progress_bar
 
         steps = progress_bar(steps, desc=label, unit="step", total=num_steps)
+    prior_error = None
     for step in steps:
+        if prior_error is None:
+            prior_error = attitude_error_angle(step.prior_mean[:, :3], step.prior_truth_mrp).numpy()
         times.append(step.time)
         frames.append(step.star_frame)
         for name, fs in step.filters.items():
@@ -277,4 +286,4 @@ def run_monte_carlo(
         stacked["extra"] = {k: torch.stack([e[k] for e in rec["extra"]], 1).numpy() for k in extra_keys}
         traces[name] = FilterTrace(**stacked)
     state_dim = next(iter(filters.values())).filter.model.state_dim
-    return MonteCarloResult(np.array(times), np.array(frames), traces, state_dim)
+    return MonteCarloResult(np.array(times), np.array(frames), traces, state_dim, prior_error)

@@ -17,9 +17,10 @@ __all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key", "erro
 
 #: What each time window of the error statistics covers, in one sentence (printed under every table).
 WINDOW_TEXT = {
-    "before_first_frame": "before the first star frame: the prior's stretch, every step from t = 0 up to that frame",
+    "before_first_frame": "before the first star frame: the prior's stretch, every step from t = dt (the first "
+    "gyro period) up to that frame",
     "between_frames": "between frames: every step after the first star frame that is not itself a frame",
-    "all": "all: every step of the run, t = 0 to the end",
+    "all": "all: every step of the run, t = dt to the end",
 }
 
 
@@ -71,6 +72,8 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
         "nees_band_95": [lo, hi],
         "filters": {},
     }
+    if "prior_error_angle" in data:  # every filter's estimate at t = 0: the prior mean
+        out["prior_rms_deg"] = float(np.degrees(rms(np.asarray(data["prior_error_angle"]), 0)))
     per_run: dict[str, dict[str, np.ndarray]] = {}
     for name in names:
         theta = data[f"{name}/error_angle"]  # [B, T]

@@ -157,3 +157,14 @@ def test_cli_rejects_bad_config_before_work(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
     assert cli.main(["sweep", "case1", "--grid", "bogus=1,2", "--out", str(tmp_path / "y")]) == 2
     assert "bogus" in capsys.readouterr().err
+
+
+def test_the_prior_error_at_t0_is_the_prior_means_against_the_truth(experiment):
+    """``prior_error_angle`` is the error of every filter's estimate before its first step (the prior mean drawn
+    around the truth at t = 0); the summary's ``prior_rms_deg`` is its RMS over the runs, where rms.png starts."""
+    cfg, out, summary = experiment
+    data = np.load(out / "runs.npz")
+    prior = data["prior_error_angle"]
+    assert prior.shape == (cfg.runs,) and np.isfinite(prior).all() and (prior > 0).all()
+    assert summary["prior_rms_deg"] == pytest.approx(np.degrees(np.sqrt(np.mean(prior**2))), rel=1e-12)
+    assert json.loads(str(data["units"]))["prior_error_angle"] == "rad"

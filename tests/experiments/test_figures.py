@@ -40,7 +40,7 @@ def _summary(n: int = 3, components: int = 3, runs: int = 4, steps: int = 40, fi
     frames = np.zeros(steps, bool)
     frames[9::10] = True
     decay = np.exp(-time / 0.8)[None, :, None]
-    data = {"time": time, "star_frame": frames}
+    data = {"time": time, "star_frame": frames, "prior_error_angle": np.full(runs, 0.12)}
     for name in filters:
         N = 1 if name == "EKF" else components
         sigma = (2e-6 + 0.05 * decay) * np.ones((runs, steps, n))
@@ -182,9 +182,14 @@ def test_rms_figure_states_what_it_plots(summary3):
     assert "deg" in ax.get_ylabel() and ax.get_xlabel() == "time (s)"
     assert "RMS over 4 runs" in ax.get_title() and "attitude error angle" in ax.get_title()
     lines = _lines(fig)
-    for name in FILTERS:
-        np.testing.assert_allclose(lines[f"{name}/rms"].get_ydata(), summary3["filters"][name]["rms_deg"])
+    prior = np.degrees(0.12)  # the fixture's prior error in every run
+    assert summary3["prior_rms_deg"] == pytest.approx(prior, rel=1e-12)
+    for name in FILTERS:  # every curve starts at the prior, t = 0
+        np.testing.assert_allclose(lines[f"{name}/rms"].get_ydata(), [prior, *summary3["filters"][name]["rms_deg"]])
+        np.testing.assert_allclose(lines[f"{name}/rms"].get_xdata(), [0.0, *summary3["time_s"]])
         assert name in _legend_texts(fig)
+    np.testing.assert_allclose(lines["prior"].get_xydata(), [[0.0, prior]])
+    assert "the prior (t = 0)" in _legend_texts(fig)
     # star frames as marks on the top edge (vertical lines at whole seconds would read as grid lines)
     frames = np.array(summary3["time_s"])[np.array(summary3["star_frame"])]
     marks = lines["star_frame"]
