@@ -58,8 +58,8 @@ def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
         f"penalty AGSF predict ÷ fused GSF, 6-state N=5 B={six['B']}",
         six["penalty_ratio"],
         20.0,
-        limit="the FPKE matrix L (84 nodes per pair with the bias block in closed form, 322,560 points per step, "
-        "batched but not on the fused layer)",
+        limit="the FPKE matrix L on lanes: ~700 lane operations per MRP node, 84 nodes per pair (322,560 node lanes "
+        "per step), and its contraction with W (a [pairs·10, 84] × [84, 84] product); then the weight QP",
     )
     if "compile" in r:
         add(
@@ -89,6 +89,8 @@ def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
             f"first {row['update']} step in a new process{' (compiled)' if row['compile'] else ''} (s)",
             row["first_process_s"],
             10.0,
+            limit="compiling the lanes kernel of L (~3,000 lane operations): dynamo traces it again in every new "
+            "process before torch's cache is consulted",
         )
     for q in r["qp"]:
         add(f"weight QP N={q['N']} B={q['B']}: speed-up per problem over Clarabel", q["speedup"], 100.0, lower=False)
