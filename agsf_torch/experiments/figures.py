@@ -358,17 +358,8 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
             handles.append(star)
             labels.append("star frame")
         ax.legend(handles, labels, fontsize=8)
-        if others:
-            ax.text(
-                0.99,
-                0.01,
-                "no FPKE residual recorded by: " + ", ".join(others),
-                transform=ax.transAxes,
-                fontsize=8,
-                ha="right",
-                va="bottom",
-                color="0.3",
-            )
+        if others:  # under the title, where no curve or legend runs
+            ax.set_title(ax.get_title() + "\n(no FPKE residual recorded by: " + ", ".join(others) + ")", fontsize=10)
     else:
         ax.text(
             0.5,
