@@ -1,6 +1,6 @@
 """Attitude parametrisations: MRP, quaternion, attitude matrix, shadow set.
 
-Conventions (the package's, stated in the README's *Conventions*):
+Conventions (the package's, stated in the user guide's *Conventions*, docs/guide/filters.md):
 
 * The attitude matrix ``C`` maps inertial to body coordinates, ``b = C r``.
   It is the *transpose* of scipy's ``Rotation.as_matrix()`` for the same
@@ -268,7 +268,7 @@ def attitude_error_jacobian(p: Tensor) -> Tensor:
     how an additive MRP perturbation ``δp`` of the estimate turns into the small-angle error,
     ``δθ ≈ J δp``.
 
-    .. math:: J = \frac{4}{(1 + |p|^2)^2} B(p)^T
+    .. math:: J = \\frac{4}{(1 + |p|^2)^2} B(p)^T
 
     (:func:`mrp_kinematics_matrix`; ``J = 4 I`` at ``p = 0``).  Maps an MRP covariance ``P`` to
     the covariance ``J P Jᵀ`` of the rotation error (rad²).

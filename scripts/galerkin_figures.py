@@ -1,4 +1,4 @@
-"""Figures of the Galerkin weight update on the authors' two benchmarks (README, docs/figures).
+"""Figures of the Galerkin weight update on the authors' two benchmarks (docs/results/galerkin.md, docs/figures).
 
 * ``sine-forecast.png``: the sine SDE of method.md §5 at t = 8 s without measurements —
   the exact density (Crank–Nicolson FPKE on a fine grid) and the densities of the classic

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create (or reuse) the project's virtual environment in .venv and install the
-# package with its dev and ray extras, every version pinned by constraints.txt.
+# package with its dev, ray and docs extras, every version pinned by constraints.txt.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$here"
@@ -9,7 +9,7 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 stamp=.venv/.agsf-installed
-extras="dev,ray"
+extras="dev,ray,docs"
 want="$( (cat constraints.txt pyproject.toml; echo "extras=$extras") | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     echo "installing agsf-torch[$extras] and its pinned dependencies into .venv (the first time: a few minutes)..." >&2

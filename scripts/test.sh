@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Set up .venv (pinned), check the tree with ruff (lint and format) and run the test suite.
+# Set up .venv (pinned), check the tree with ruff (lint and format), build the documentation (warnings are
+# errors) and run the test suite.
 # `--slow` runs only the slow tests; with no arguments the numerically sensitive tests run a second time
 # under another seed, MKL code path and thread count.
 set -euo pipefail
@@ -12,6 +13,8 @@ if [ "${1:-}" = "--slow" ]; then
 fi
 .venv/bin/ruff check --quiet . || { echo "ruff check failed: .venv/bin/ruff check --fix . mends most" >&2; exit 1; }
 .venv/bin/ruff format --check --quiet . || { echo "ruff format --check failed: .venv/bin/ruff format . reformats" >&2; exit 1; }
+.venv/bin/python -m sphinx -E -W --keep-going -q -b html docs docs/_build/html \
+    || { echo "docs build failed (warnings are errors): bash scripts/docs.sh shows them" >&2; exit 1; }
 .venv/bin/python -m pytest -n 2 "$@"
 # The numerically sensitive tests once more as another machine would run them: another draw of the shared
 # generator (pytest --seed), MKL's conditional-numerical-reproducibility code path, one thread.  A tolerance

@@ -33,10 +33,12 @@ class ComponentRates:
     """A mixture's components and their moment rates at one time.
 
     Attributes:
-        means: ``μᵢ`` ``[..., N, n]``; chol: Cholesky factors of ``Pᵢ`` ``[..., N, n, n]``;
-        mean_rates: ``μ̇ᵢ`` ``[..., N, n]``; cov_rates: ``Ṗᵢ`` ``[..., N, n, n]``;
+        means: ``μᵢ`` ``[..., N, n]``.
+        chol: Cholesky factors of ``Pᵢ`` ``[..., N, n, n]``.
+        mean_rates: ``μ̇ᵢ`` ``[..., N, n]``.
+        cov_rates: ``Ṗᵢ`` ``[..., N, n, n]``.
         precision: ``Πᵢ = Pᵢ⁻¹`` (it appears in ``ℓᵢ`` itself), formed from the Cholesky factor
-            (``cholesky_inverse``) when first read, unless given as ``_precision``;
+            (``cholesky_inverse``) when first read, unless given as ``_precision``.
         covs: ``Pᵢ`` ``[..., N, n, n]``, formed as ``LLᵀ`` unless given.
     """
 
