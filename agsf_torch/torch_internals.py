@@ -1,9 +1,11 @@
-"""Torch's own deprecation warnings raised inside the library's ``torch.compile`` calls, kept from its users.
+"""Torch's own deprecation warnings raised inside the library's compile calls, kept from its users.
 
-Inductor's lowering calls torch's deprecated ``torch._prims_common.check``: compiling any of the library's
-kernels prints a ``FutureWarning`` about torch's internals that no user of the library can act on.  The
-library wraps its compiled calls in :func:`torch_internal_deprecations_hidden`, which hides exactly that
-warning (by category, message and module) and nothing else.
+Inductor's lowering calls torch's deprecated ``torch._prims_common.check``, and exporting a kernel
+(:func:`torch.export.export`, AOTInductor) pickles pytree specs through the deprecated
+``isinstance(treespec, LeafSpec)``: compiling any of the library's kernels prints ``FutureWarning`` warnings about
+torch's internals that no user of the library can act on.  The library wraps its compile calls in
+:func:`torch_internal_deprecations_hidden`, which hides exactly those two warnings (by category and
+message) and nothing else.
 """
 
 from __future__ import annotations
@@ -23,12 +25,15 @@ def hide_torch_internal_deprecations() -> None:
         category=FutureWarning,
         module=r"torch\._inductor\.",
     )
+    warnings.filterwarnings(
+        "ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated", category=FutureWarning
+    )
 
 
 @contextmanager
 def torch_internal_deprecations_hidden() -> Iterator[None]:
-    """While the block runs: torch's inductor's ``FutureWarning`` about its own deprecated
-    ``torch._prims_common.check`` is hidden; every other warning is shown as before."""
+    """While the block runs: torch's ``FutureWarning`` warnings about its own deprecated ``torch._prims_common.check``
+    (inductor) and ``isinstance(treespec, LeafSpec)`` (export) are hidden; every other warning is shown as before."""
     with warnings.catch_warnings():
         hide_torch_internal_deprecations()
         yield

@@ -139,18 +139,19 @@ class BaseFilter:
 
     Args:
         model: the continuous-time model (:attr:`model_type`).
-        update_iterations, gate_probability, fused, compile_fused: the options of every filter
-            (:class:`~agsf_torch.filters.options.FilterOptions`); ``fused`` (default) takes the
-            fused path of a model or measurement that has one (:mod:`agsf_torch.fused`) at the
-            propagate and Kalman steps, ``compile_fused`` runs it through ``torch.compile``.  ``update_iterations``: linearisations
-            per measurement update; 1 (default) is the EKF update of the method, more give the
-            iterated EKF update (:func:`agsf_torch.update.kalman_update`).  ``gate_probability``:
-            ``None`` (default, the method: every measurement is used) or ``p``
+        update_iterations: linearisations per measurement update; 1 (default) is the EKF update
+            of the method, more give the iterated EKF update (:func:`agsf_torch.update.kalman_update`).
+            This and the next three are the options of every filter
+            (:class:`~agsf_torch.filters.options.FilterOptions`).
+        gate_probability: ``None`` (default, the method: every measurement is used) or ``p``
             in (0, 1): each measurement block (a star) whose mixture NIS exceeds ``χ²_s(p)``
             (``s`` = the model's ``block_size``) is rejected before the update and counted
             in the diagnostics, unless fewer than ``min(2, V − 1)`` of the ``V`` valid blocks
             pass, in which case the prediction is distrusted and all are kept
             (:mod:`agsf_torch.gating`).  ``1 − 1e-4`` is a sensible choice.
+        fused: ``True`` (default) takes the fused path of a model or measurement that has one
+            (:mod:`agsf_torch.fused`) at the propagate and Kalman steps.
+        compile_fused: runs the fused path compiled ahead of time (:mod:`agsf_torch.fused.lanes`).
         repair_covariance: if ``False`` (default) a component covariance that stops being
             positive definite raises ``ValueError`` naming the trajectory and component;
             if ``True`` it is repaired by clipping its eigenvalues at ``min_eigenvalue``

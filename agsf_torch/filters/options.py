@@ -98,9 +98,9 @@ class FilterOptions:
         fused: use the fused (matrix-major) path of a model or measurement that declares one
             (:mod:`agsf_torch.fused`: the attitude model's propagation, the star-vector update);
             ``False``: the generic path (any model, ``torch.func``), the reference.
-        compile_fused: run the fused kernels through ``torch.compile`` in fixed-size chunks
-            (one compilation per kernel and chunk size: 30–60 s the first time on a machine,
-            seconds once torch's on-disk cache holds it); ``False`` runs the same code eagerly
+        compile_fused: run the fused kernels compiled ahead of time (:mod:`agsf_torch.fused.lanes`:
+            one compilation per kernel for every batch size, 20–60 s the first time on a machine,
+            about a second to load in a later process); ``False`` runs the same code eagerly
             (from :data:`~agsf_torch.fused.lanes.EAGER_MIN_LANES` components on; fewer take the
             generic path, which is faster there).  The adaptive filters' FPKE kernels are
             compiled by their weight update's own ``compile``.
@@ -128,7 +128,7 @@ class FilterOptions:
     compile_fused: bool = field(
         default=False,
         metadata=option(
-            "torch.compile the fused kernels (30–60 s once per machine; pays for long runs of thousands of components)",
+            "compile the fused kernels ahead of time (20–60 s each, once per machine; then ~1 s to load)",
             config="bool",
         ),
     )

@@ -271,7 +271,7 @@ def fpke_matrix(
             kernel (fused elementwise work; measured 6× faster on the 3-state
             attitude model, after a one-off compilation of ~20 s per shape); the model's own
             route is asked for its compiled form (the attitude models: the lanes kernel of
-            :mod:`agsf_torch.fused.pair_products`, ~60 s to compile the first time on a machine).
+            :mod:`agsf_torch.fused.pair_products`, compiled ahead of time once per machine).
         pair_products: with a :class:`ProductRule`, take the model's own exact route to ``E[ℓᵢℓⱼ]`` when it
             has one (:meth:`~agsf_torch.models.base.ContinuousModel.fpke_pair_products`: the 6-state attitude
             model integrates the bias block in closed form); ``False`` interpolates on the product rule.
@@ -338,7 +338,7 @@ def galerkin_matrices(
     (:meth:`~agsf_torch.models.base.ContinuousModel.fused_galerkin_pairs`: the attitude models) computes
     ``log z_ij`` and both ``E[ℓ]`` in one pass over memory (:func:`fused_galerkin_matrices`; it forms the
     components' moment rates itself, from ``rates.means`` and ``rates.covs``: the model's own rates),
-    ``torch.compile``-d if ``compile``; the numbers are those of the generic route to rounding.
+    compiled ahead of time if ``compile``; the numbers are those of the generic route to rounding.
 
     Returns:
         :class:`GalerkinMatrices` (``[..., N, N]``).
@@ -385,7 +385,7 @@ def fused_galerkin_matrices(
     """:func:`galerkin_matrices` of the components ``means [..., N, n]``, ``covs [..., N, n, n]`` with their
     moment rates (:func:`~agsf_torch.propagation.moment_derivatives` at ``u [..., m]``) by the model's fused
     kernel (:meth:`~agsf_torch.models.base.ContinuousModel.fused_galerkin_pairs`: rates, product Gaussians and
-    ``E[ℓ]`` in one pass), ``torch.compile``-d if ``compile``; ``None`` if the model has no such kernel or
+    ``E[ℓ]`` in one pass), compiled ahead of time if ``compile``; ``None`` if the model has no such kernel or
     declines this many pairs (then the generic route applies)."""
     N, n = means.shape[-2:]
     lead = torch.broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])

@@ -5,8 +5,8 @@ Python number known when the kernel is traced, or ``None`` for a structural zero
 operations here fold what is known: ``None`` terms are skipped, ``1.0`` factors are not
 multiplied, so a product with the attitude model's zero bias rows, Φ's identity bias block or
 a block-diagonal noise matrix emits no arithmetic for those entries (as Matriplex's generated
-code does).  Every function is plain Python over entries: it runs eagerly, or is traced by
-``torch.compile`` into one loop (:mod:`agsf_torch.fused.lanes`).
+code does).  Every function is plain Python over entries: it runs eagerly, or is traced
+by :func:`torch.export.export` and compiled into one loop (:mod:`agsf_torch.fused.lanes`).
 """
 
 from __future__ import annotations

@@ -244,7 +244,7 @@ def attitude_pair_products(
         rate: the gyro rate ``[..., 3]`` (rad/s; the 3-state model's known bias removed), broadcast against the
             trajectory dims.
         sigma_v, sigma_u: the gyro's rate and bias noise densities.
-        compile: run the kernel through ``torch.compile`` in fixed chunks of pairs (:func:`~.lanes.run_in_chunks`).
+        compile: run the kernel compiled ahead of time (:func:`~.lanes.run_in_chunks`).
         chunk: pairs per eager call (default: as many as keep ``DEFAULT_CHUNK`` node lanes).
     """
     from .lanes import DEFAULT_CHUNK, run_in_chunks

@@ -321,7 +321,7 @@ def fused_star_update(
     Same arguments and result as :func:`~agsf_torch.update.kalman_update` (``mask``: entry validity
     ``[..., 3M]``, e.g. the gate's; else the measurement's star mask) and the same checks before
     anything changes (:func:`~agsf_torch.update.check_innovation`); ``innovation_cov`` is not formed
-    (``None``).  ``compile`` runs the kernel through ``torch.compile`` in fixed chunks
+    (``None``).  ``compile`` runs the kernel compiled ahead of time
     (:func:`~agsf_torch.fused.lanes.run_in_chunks`).  Where the kernel's result is not finite (a problem
     beyond its range, e.g. a pivot of ``I + A`` clamped), the whole call takes the generic update: never a
     wrong number.
@@ -420,8 +420,11 @@ def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2:
     conditioning of ``S̄``.
 
     Args:
-        log_weights: ``[..., N]``; nu: ``[..., N, d]`` (zero at masked entries); HL: ``Hᵢ Lᵢ``
-        ``[..., N, d, k]`` (zero rows at masked entries); sigma2: ``σ²``; valid: ``[..., d]`` entry validity.
+        log_weights: ``[..., N]``.
+        nu: ``[..., N, d]`` (zero at masked entries).
+        HL: ``Hᵢ Lᵢ`` ``[..., N, d, k]`` (zero rows at masked entries).
+        sigma2: ``σ²``.
+        valid: ``[..., d]`` entry validity.
 
     Returns:
         ``[...]``.

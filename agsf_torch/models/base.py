@@ -241,7 +241,7 @@ class ContinuousModel(nn.Module):
         (``pairs``: :class:`~agsf_torch.fpke.ProductGaussians`, precisions formed), exact like the interpolatory
         rule of :meth:`fpke_polynomial_space` and cheaper; ``None`` (default): that rule is used.  The paper's
         matrix ``L`` is computed from it (:func:`~agsf_torch.fpke.fpke_matrix`); ``compile`` asks for a
-        ``torch.compile``-d route where the model has one."""
+        route compiled ahead of time where the model has one."""
         return None
 
     def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor | None) -> FokkerPlanckMoments | None:
@@ -265,7 +265,7 @@ class ContinuousModel(nn.Module):
         (:mod:`agsf_torch.fused`), if the model has one: ``(mean [..., n], cov [..., n, n],
         positive_definite [...] bool)`` (the kernel's own Cholesky pivots); ``None`` (default): the
         filters take the generic path.  Arguments as :func:`~agsf_torch.propagation.propagate_moments`;
-        ``compile`` runs the kernel through ``torch.compile``."""
+        ``compile`` runs the kernel compiled ahead of time (:mod:`agsf_torch.fused.lanes`)."""
         return None
 
     def fused_galerkin_pairs(
@@ -345,7 +345,7 @@ class MeasurementModel(nn.Module):
     ):
         """The update of :func:`agsf_torch.update.kalman_update` (same arguments and result) by a fused
         kernel (:mod:`agsf_torch.fused`), if the measurement has one for this state; ``None`` (default):
-        the filters take the generic path.  ``compile`` runs the kernel through ``torch.compile``."""
+        the filters take the generic path.  ``compile`` runs the kernel compiled ahead of time (:mod:`agsf_torch.fused.lanes`)."""
         return None
 
     def check_measurement(self, y: Tensor) -> Tensor:

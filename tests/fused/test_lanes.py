@@ -29,13 +29,10 @@ def test_chunked_eager_runs_equal_one_pass(gen, C):
 
 
 def test_a_failing_compile_falls_back_to_the_eager_kernel_with_one_warning(monkeypatch, gen):
-    def broken(fn, **kwargs):
-        def compiled(*args):
-            raise RuntimeError("no compiler")
+    def broken(*args):
+        raise RuntimeError("no compiler")
 
-        return compiled
-
-    monkeypatch.setattr(torch, "compile", broken)
+    monkeypatch.setattr(lanes, "_load", broken)
     monkeypatch.setattr(lanes, "_COMPILED", {})
     monkeypatch.setattr(lanes, "_FAILED", set())
     x, y = torch.randn(70, 3, generator=gen, dtype=F64), torch.randn(70, 2, generator=gen, dtype=F64)
@@ -58,28 +55,86 @@ class warnings_as_errors:
         return self._ctx.__exit__(*exc)
 
 
-def test_the_compiled_ladder_pads_the_last_chunk_to_a_fixed_size(monkeypatch, gen):
-    """Compiled calls see only the ladder's sizes (full chunks of the largest, the rest in the smallest
-    size that holds it), and the padding never reaches the result."""
+def test_compiled_calls_take_chunks_and_never_a_single_lane(monkeypatch, gen):
+    """The compiled kernel (one for every lane count) sees chunks of COMPILED_CHUNK lanes, the rest in one call;
+    a single lane is padded to two (an exported dimension starts at 2) and the padding never reaches the result."""
     seen = []
 
-    def recording(fn, **kwargs):
+    def recording(kernel, key, inputs, shared):
         def compiled(*args):
             seen.append(args[0].shape[0])
-            return fn(*args)
+            return kernel(*args)
 
         return compiled
 
-    monkeypatch.setattr(torch, "compile", recording)
+    monkeypatch.setattr(lanes, "_load", recording)
     monkeypatch.setattr(lanes, "_COMPILED", {})
-    big = lanes.CHUNK_SIZES[-1]
-    for C in (3, 300, big + 70):
+    big = lanes.COMPILED_CHUNK
+    for C, calls in ((1, [2]), (300, [300]), (big + 1, [big, 2]), (2 * big + 70, [big, big, 70])):
         seen.clear()
         x, y = torch.randn(C, 3, generator=gen, dtype=F64), torch.randn(C, 2, generator=gen, dtype=F64)
         out = run_in_chunks(_kernel, (x, y), compile=True)
         assert all(torch.equal(a, b) for a, b in zip(out, _kernel(x, y)))
-        assert set(seen) <= set(lanes.CHUNK_SIZES) and sum(seen) >= C
-    assert seen == [big, lanes.CHUNK_SIZES[1]]  # 4096 + 70: one full chunk, the rest in a 512-lane call
+        assert seen == calls
+
+
+def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog, gen, tmp_path):
+    """The first use on a machine compiles (announced, start and end) into the cache; a new process (here: the
+    in-memory table cleared) loads the package without compiling."""
+    import logging
+
+    compiled = []
+
+    def fake_compile(kernel, inputs, shared, path):
+        compiled.append(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"package")
+
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(lanes, "_compile_ahead_of_time", fake_compile)
+    monkeypatch.setattr(lanes, "_load_package", lambda path: _kernel)
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    caplog.set_level(logging.INFO, logger="agsf_torch")
+    x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
+    run_in_chunks(_kernel, (x, y), compile=True)
+    run_in_chunks(_kernel, (x, y), compile=True)
+    assert [r.getMessage().split(" the fused kernel ")[0] for r in caplog.records] == ["compiling", "compiled"]
+    assert "'_kernel' ahead of time" in caplog.records[0].getMessage()
+    assert len(compiled) == 1 and compiled[0].parent == tmp_path / "cache" and compiled[0].name.startswith("_kernel-")
+    monkeypatch.setattr(lanes, "_COMPILED", {})  # a new process
+    caplog.clear()
+    run_in_chunks(_kernel, (x, y), compile=True)
+    assert len(compiled) == 1 and not caplog.records
+
+
+def test_the_cache_key_follows_what_the_compiled_code_depends_on(gen):
+    x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
+    name = lanes._package_name(_kernel, ("a",), (x, y), ())
+    assert lanes._package_name(_kernel, ("a",), (x[:2], y[:2]), ()) == name  # the lane count is dynamic
+    assert lanes._package_name(_kernel, ("b",), (x, y), ()) != name  # the static configuration
+    assert lanes._package_name(_kernel, ("a",), (x.float(), y), ()) != name  # dtypes
+    assert lanes._package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
+    assert lanes._package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
+    assert lanes._package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
+
+
+def test_the_kernel_cache_lives_where_the_environment_says(monkeypatch, tmp_path):
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "k"))
+    assert lanes.kernel_cache_dir() == tmp_path / "k"
+    monkeypatch.delenv("AGSF_TORCH_KERNEL_CACHE")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert lanes.kernel_cache_dir() == tmp_path / "xdg" / "agsf-torch" / "kernels"
+
+
+@pytest.mark.slow
+def test_a_kernel_compiled_ahead_of_time_equals_the_eager_one_for_every_lane_count(monkeypatch, gen, tmp_path):
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    for C in (1, 7, 5000):
+        x, y = torch.randn(C, 3, generator=gen, dtype=F64), torch.randn(C, 2, generator=gen, dtype=F64)
+        out = run_in_chunks(_kernel, (x, y), compile=True)
+        assert all(torch.equal(a, b) for a, b in zip(out, _kernel(x, y)))
+    assert len(list(tmp_path.glob("_kernel-*.pt2"))) == 1  # one package for every lane count
 
 
 def test_structural_zeros_and_ones_emit_no_arithmetic(gen):
@@ -89,17 +144,3 @@ def test_structural_zeros_and_ones_emit_no_arithmetic(gen):
     assert algebra.matmul(algebra.zeros(6), X) == algebra.zeros(6) and algebra.count() == 0
     algebra.matmul(X, X)
     assert algebra.count() == 6 * 6 * (6 + 5)  # 6 products and 5 sums per entry of a dense product
-
-
-def test_the_first_compiled_call_is_announced(monkeypatch, caplog, gen):
-    import logging
-
-    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
-    monkeypatch.setattr(lanes, "_COMPILED", {})
-    monkeypatch.setattr(lanes, "_RAN", set())
-    caplog.set_level(logging.INFO, logger="agsf_torch")
-    x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
-    run_in_chunks(_kernel, (x, y), compile=True)
-    run_in_chunks(_kernel, (x, y), compile=True)
-    assert [r.getMessage().split(" the fused kernel ")[0] for r in caplog.records] == ["compiling", "compiled"]
-    assert "'_kernel' for 64 lanes" in caplog.records[0].getMessage()

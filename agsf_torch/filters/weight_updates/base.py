@@ -214,8 +214,9 @@ class QuadratureUpdate(WeightUpdate):
         chunk_size: quadrature nodes (or, with a product rule, component pairs) per
             batched evaluation, a positive integer (``None``: sized automatically to
             bound memory).
-        compile: evaluate the node kernels with ``torch.compile`` (fused elementwise
-            work; a one-off compilation of 10–20 s per shape, kept in the on-disk
+        compile: compile the FPKE kernels: the model's own route ahead of time (the attitude
+            models' L on lanes, :mod:`agsf_torch.fused.pair_products`), a generic model's node kernels
+            with ``torch.compile`` (a one-off compilation of 10–20 s per shape, kept in the on-disk
             inductor cache); unused by the closed-form Galerkin path, whose fused pair kernel follows
             the filter's ``compile_fused``.
     """
@@ -225,7 +226,7 @@ class QuadratureUpdate(WeightUpdate):
         default=None, metadata=option("quadrature nodes or pairs per batched evaluation (None: automatic)")
     )
     compile: bool = field(
-        default=False, metadata=option("torch.compile the FPKE node kernels of the adaptive filters", config="bool")
+        default=False, metadata=option("compile the FPKE kernels of the adaptive filters", config="bool")
     )
     rule: dict = field(default_factory=dict, init=False, repr=False)
 
