@@ -99,8 +99,9 @@ class FilterOptions:
             (:mod:`agsf_torch.fused`: the attitude model's propagation, the star-vector update);
             ``False``: the generic path (any model, ``torch.func``), the reference.
         compile_fused: run the fused kernels compiled ahead of time (:mod:`agsf_torch.fused.lanes`:
-            one compilation per kernel for every batch size, 20–60 s the first time on a machine,
-            about a second to load in a later process); ``False`` runs the same code eagerly
+            per kernel a threaded variant for calls of 1,024 lanes or more and a serial one below,
+            each compiled on first use, about 30–100 s the first time on a machine and about a
+            second to load in a later process); ``False`` runs the same code eagerly
             (from :data:`~agsf_torch.fused.lanes.EAGER_MIN_LANES` components on; fewer take the
             generic path, which is faster there).  The adaptive filters' FPKE kernels are
             compiled by their weight update's own ``compile``.
@@ -128,7 +129,7 @@ class FilterOptions:
     compile_fused: bool = field(
         default=False,
         metadata=option(
-            "compile the fused kernels ahead of time (20–60 s each, once per machine; then ~1 s to load)",
+            "compile the fused kernels ahead of time (30–100 s each, once per machine; then ~1 s to load)",
             config="bool",
         ),
     )

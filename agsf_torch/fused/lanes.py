@@ -7,14 +7,17 @@ unrolled in Python at trace time) then does each entry's arithmetic for every co
 elementwise operation, and a compiler fuses the whole kernel into one pass over memory.
 
 :func:`run_in_chunks` runs such a kernel over ``C`` lanes in chunks, eagerly or compiled.  Compiled
-means *ahead of time*: the kernel is exported once (:func:`torch.export.export`, the lane count a
-dynamic dimension) and compiled by inductor into a shared library (AOTInductor,
-:func:`torch._inductor.aoti_compile_and_package`) that every batch size reuses, stored in an on-disk
-cache (:func:`kernel_cache_dir`) keyed by the kernel, its static configuration, the input dtypes and
-trailing shapes, the torch version and the source of this package's fused kernels; a later process
-loads it in about a second instead of tracing the kernel again, and each call skips dynamo's guards
-(~75 µs a call instead of ~300 µs).  Each compilation is announced on the ``agsf_torch`` logger
-(INFO) when it starts and ends.  A compilation or compiled-run failure falls back to the eager
+means *ahead of time*: the kernel is exported (:func:`torch.export.export`) and compiled by inductor
+into a shared library (AOTInductor, :func:`torch._inductor.aoti_compile_and_package`) in two variants,
+each on first use: for large calls, threaded code for a fixed chunk of :data:`COMPILED_CHUNK` lanes
+(every shape known to the compiler; the tail padded), and for small calls (fewer than
+:data:`PARALLEL_MIN_LANES`) serial code for any lane count (a dynamic dimension).  Both are stored in
+an on-disk cache (:func:`kernel_cache_dir`) keyed by the kernel, its static configuration, the
+variant, the input dtypes and trailing shapes, the torch version and the source of this package's
+fused kernels; a later process loads them in about a second instead of tracing the kernel again, and
+each call skips dynamo's guards (~75 µs a call instead of ~300 µs).  Each compilation is announced on
+the ``agsf_torch`` logger (INFO) when it starts and ends.  A compilation or compiled-run failure falls
+back to the eager
 kernel with one warning; the numbers are the eager ones.
 """
 
@@ -28,7 +31,6 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -42,6 +44,7 @@ __all__ = [
     "run_in_chunks",
     "worth_fusing",
     "COMPILED_CHUNK",
+    "PARALLEL_MIN_LANES",
     "DEFAULT_CHUNK",
     "EAGER_MIN_LANES",
     "kernel_cache_dir",
@@ -56,10 +59,11 @@ def worth_fusing(lanes: int, compile: bool) -> bool:
 
 logger = logging.getLogger(__name__)
 
-#: Lanes per compiled call: the compiled kernel takes any lane count (a dynamic dimension), and chunks of
-#: this size keep its working set in cache (measured: 2.3 M lanes/s in chunks of 4096, 1.6 M in one call of
-#: 40,960).  At least two lanes are passed (a single one is padded with a copy): sizes 0 and 1 are special
-#: cases of an exported dimension.
+#: Lanes per call of a large call's compiled kernel, which is compiled for exactly this many (a tail is
+#: padded with copies of its first lane, valid data whose results are dropped): with every shape known the
+#: compiler vectorises and unrolls what a dynamic lane count leaves generic (measured on 2 cores: the 6-state
+#: propagation at 1.6 M lanes/s against 0.75 M/s for the same code with a dynamic lane count), and chunks of
+#: this size keep the working set in cache (2.3 M lanes/s in chunks of 4096, 1.6 M in one call of 40,960).
 COMPILED_CHUNK = 4096
 #: Lanes per eager call: each of a kernel's thousands of lane operations is one torch call, whose
 #: overhead (~3 µs) is paid once per chunk, so eager chunks are large (measured on 2 cores: the Galerkin
@@ -118,23 +122,13 @@ _COMPILED: dict[tuple, Callable] = {}
 _FAILED: set[tuple] = set()
 
 
-#: Below this many lanes a compiled call runs on one thread: the compiled kernel's parallel loop would wake
-#: the other OpenMP threads for microseconds of work, and their spin-wait afterwards slows the LAPACK calls
-#: that follow (measured on 2 cores: one spacecraft's star update 24 ms instead of 0.8 ms).
+#: Below this many lanes a call takes the kernel's *serial* variant, compiled without OpenMP threads for any
+#: lane count (on first use, like the threaded one): padding to a full chunk would multiply the work, and the
+#: threaded code's parallel loop would wake the other threads for microseconds of work, whose spin-wait
+#: afterwards slows the LAPACK calls that follow (measured on 2 cores: one spacecraft's star update 24 ms
+#: instead of 0.8 ms).  At least two lanes are passed to it (a single one is padded with a copy): sizes 0 and 1
+#: are special cases of an exported dimension.
 PARALLEL_MIN_LANES = 1024
-
-
-@contextmanager
-def _one_thread():
-    threads = torch.get_num_threads()
-    if threads == 1:
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def kernel_cache_dir() -> Path:
@@ -164,42 +158,53 @@ def _package_name(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared
     return f"{_kernel_name(kernel)}-{h.hexdigest()[:24]}.pt2"
 
 
-def _compile_ahead_of_time(kernel: Callable, inputs: Sequence[Tensor], shared: Sequence[Tensor], path: Path) -> None:
-    """Export ``kernel`` with a dynamic lane dimension and compile it into the package ``path`` (written atomically)."""
+def _compile_ahead_of_time(
+    kernel: Callable, inputs: Sequence[Tensor], shared: Sequence[Tensor], path: Path, serial: bool = False
+) -> None:
+    """Export ``kernel`` and compile it into the package ``path`` (written atomically): for the lane count of
+    ``inputs`` (threaded code), or with ``serial`` for any lane count ≥ 2 (code without OpenMP threads)."""
+    from torch._inductor import config as inductor_config
     from torch.export import Dim
 
     class Kernel(torch.nn.Module):
         def forward(self, *args):
             return kernel(*args)
 
-    lanes = Dim("lanes", min=2)
-    dynamic = tuple({0: lanes} for _ in inputs) + tuple(None for _ in shared)
-    program = torch.export.export(Kernel(), (*inputs, *shared), dynamic_shapes=(dynamic,), strict=False)
+    dynamic = None
+    if serial:
+        lanes = Dim("lanes", min=2)
+        dynamic = (tuple({0: lanes} for _ in inputs) + tuple(None for _ in shared),)
+    program = torch.export.export(Kernel(), (*inputs, *shared), dynamic_shapes=dynamic, strict=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=path.parent)
     os.close(fd)
     try:
-        torch._inductor.aoti_compile_and_package(program, package_path=tmp)
+        with inductor_config.patch({"cpp.threads": 1} if serial else {}):
+            torch._inductor.aoti_compile_and_package(program, package_path=tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
-def _load(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor]) -> Callable:
-    """The compiled kernel: loaded from the cache, or compiled into it first (announced)."""
-    path = kernel_cache_dir() / _package_name(kernel, key, inputs, shared)
-    name = _kernel_name(kernel)
+def _load(
+    kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor], serial: bool = False
+) -> Callable:
+    """The compiled kernel (``serial``: its variant without threads): loaded from the cache, or compiled into it
+    first (announced)."""
+    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0])
+    path = kernel_cache_dir() / _package_name(kernel, key + variant, inputs, shared)
+    name = _kernel_name(kernel) + (" (serial)" if serial else "")
     if not path.is_file():
         logger.info(
-            "compiling the fused kernel %r ahead of time (once per machine and torch version: 20–60 s; later "
+            "compiling the fused kernel %r ahead of time (once per machine and torch version: about 30–100 s; later "
             "processes load it from %s in about a second)",
             name,
             path.parent,
         )
         t0 = time.perf_counter()
         with torch_internal_deprecations_hidden():  # torch's warnings about its own internals, not the user's
-            _compile_ahead_of_time(kernel, inputs, shared, path)
+            _compile_ahead_of_time(kernel, inputs, shared, path, serial)
         logger.info("compiled the fused kernel %r in %.1f s", name, time.perf_counter() - t0)
     return _load_package(path)
 
@@ -207,6 +212,15 @@ def _load(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequen
 def _load_package(path: Path) -> Callable:
     with torch_internal_deprecations_hidden():
         return torch._inductor.aoti_load_package(str(path))
+
+
+def _padded(t: Tensor, lanes: int) -> Tensor:
+    """``t [c, …]`` contiguous with at least ``lanes`` lanes: the missing ones copies of its first (valid data,
+    whatever the kernel; their results are dropped)."""
+    c = t.shape[0]
+    if c < lanes:
+        t = torch.cat((t, t[:1].expand(lanes - c, *t.shape[1:])))
+    return t.contiguous()
 
 
 def run_in_chunks(
@@ -226,8 +240,9 @@ def run_in_chunks(
         inputs: tensors ``[C, …]`` with the same ``C``.
         shared: tensors passed whole to every call after ``inputs`` (0-d parameters such as
             ``dt`` or a noise density: inputs of the compiled kernel, not constants of it).
-        compile: run the kernel compiled ahead of time (module docstring) in chunks of
-            :data:`COMPILED_CHUNK` lanes; ``False`` runs the same code eagerly.
+        compile: run the kernel compiled ahead of time (module docstring): in chunks of
+            :data:`COMPILED_CHUNK` lanes (the tail padded), or in one serial call below
+            :data:`PARALLEL_MIN_LANES`; ``False`` runs the same code eagerly.
         chunk: lanes per eager call.
         key: identifies the kernel's static configuration in the compile cache (with ``chunk``).
 
@@ -241,28 +256,28 @@ def run_in_chunks(
             return kernel(*inputs, *shared)
         parts = [kernel(*(t[a : a + chunk] for t in inputs), *shared) for a in range(0, C, chunk)]
         return tuple(torch.cat(p) for p in zip(*parts))
-    cache_key = (kernel, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
+    serial = C < PARALLEL_MIN_LANES
+    cache_key = (kernel, serial, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
     try:
         if cache_key in _FAILED:
             raise _Declined
         if cache_key not in _COMPILED:
-            # contiguous, as every call is (the compiled code assumes the strides it was exported with), and
-            # ≥ 2 lanes (an exported dimension of size 1 is specialised)
-            sample = [(t[:64] if C >= 2 else torch.cat((t, t))).contiguous() for t in inputs]
-            _COMPILED[cache_key] = _load(kernel, key, sample, shared)
+            # contiguous, as every call is (the compiled code assumes the strides it was exported with)
+            _COMPILED[cache_key] = _load(
+                kernel,
+                key,
+                [_padded(t[:64], 2) if serial else _padded(t[:COMPILED_CHUNK], COMPILED_CHUNK) for t in inputs],
+                shared,
+                serial,
+            )
         fn = _COMPILED[cache_key]
+        step = C if serial else COMPILED_CHUNK
         outs = []
-        for a in range(0, C, COMPILED_CHUNK):
-            part = [t[a : a + COMPILED_CHUNK].contiguous() for t in inputs]
+        for a in range(0, C, step):
+            part = [t[a : a + step] for t in inputs]
             c = part[0].shape[0]
-            if c < 2:  # an exported dimension starts at 2: pad with a copy of the lane (harmless, valid data)
-                part = [torch.cat((t, t)) for t in part]
-            if c < PARALLEL_MIN_LANES:
-                with _one_thread():
-                    result = fn(*part, *shared)
-            else:
-                result = fn(*part, *shared)
-            outs.append(tuple(o[:c] for o in result))
+            padded = [_padded(t, 2 if serial else COMPILED_CHUNK) for t in part]
+            outs.append(tuple(o[:c] for o in fn(*padded, *shared)))
     except _Declined:
         return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
     except Exception as exc:  # noqa: BLE001 - any compiler or runtime failure: the eager path, never a wrong number

@@ -55,27 +55,45 @@ class warnings_as_errors:
         return self._ctx.__exit__(*exc)
 
 
-def test_compiled_calls_take_chunks_and_never_a_single_lane(monkeypatch, gen):
-    """The compiled kernel (one for every lane count) sees chunks of COMPILED_CHUNK lanes, the rest in one call;
-    a single lane is padded to two (an exported dimension starts at 2) and the padding never reaches the result."""
+def test_compiled_calls_take_full_chunks_or_one_serial_call(monkeypatch, gen):
+    """Below PARALLEL_MIN_LANES one call of the serial variant (any lane count; a single lane padded to two, an
+    exported dimension starts at 2); from there on the threaded variant, compiled for exactly COMPILED_CHUNK lanes,
+    sees only full chunks (the tail padded).  The padding never reaches the result."""
     seen = []
 
-    def recording(kernel, key, inputs, shared):
+    def recording(kernel, key, inputs, shared, serial):
+        assert serial or inputs[0].shape[0] == lanes.COMPILED_CHUNK  # the threaded one is compiled for a chunk
+
         def compiled(*args):
-            seen.append(args[0].shape[0])
+            seen.append((args[0].shape[0], serial))
             return kernel(*args)
 
         return compiled
 
     monkeypatch.setattr(lanes, "_load", recording)
     monkeypatch.setattr(lanes, "_COMPILED", {})
-    big = lanes.COMPILED_CHUNK
-    for C, calls in ((1, [2]), (300, [300]), (big + 1, [big, 2]), (2 * big + 70, [big, big, 70])):
+    big, small = lanes.COMPILED_CHUNK, lanes.PARALLEL_MIN_LANES
+    cases = (
+        (1, [(2, True)]),
+        (300, [(300, True)]),
+        (small - 1, [(small - 1, True)]),
+        (small, [(big, False)]),
+        (big + 1, [(big, False), (big, False)]),
+        (2 * big + 70, [(big, False)] * 3),
+    )
+    for C, calls in cases:
         seen.clear()
         x, y = torch.randn(C, 3, generator=gen, dtype=F64), torch.randn(C, 2, generator=gen, dtype=F64)
         out = run_in_chunks(_kernel, (x, y), compile=True)
         assert all(torch.equal(a, b) for a, b in zip(out, _kernel(x, y)))
         assert seen == calls
+
+
+def test_padding_copies_the_first_lane():
+    t = torch.arange(6.0, dtype=F64).reshape(3, 2)
+    assert torch.equal(lanes._padded(t, 5), torch.tensor([[0, 1], [2, 3], [4, 5], [0, 1], [0, 1]], dtype=F64))
+    assert lanes._padded(t, 2) is t or torch.equal(lanes._padded(t, 2), t)
+    assert lanes._padded(t.t(), 1).is_contiguous()
 
 
 def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog, gen, tmp_path):
@@ -85,7 +103,7 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
 
     compiled = []
 
-    def fake_compile(kernel, inputs, shared, path):
+    def fake_compile(kernel, inputs, shared, path, serial):
         compiled.append(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"package")
@@ -99,12 +117,16 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
     run_in_chunks(_kernel, (x, y), compile=True)
     run_in_chunks(_kernel, (x, y), compile=True)
     assert [r.getMessage().split(" the fused kernel ")[0] for r in caplog.records] == ["compiling", "compiled"]
-    assert "'_kernel' ahead of time" in caplog.records[0].getMessage()
+    assert "'_kernel (serial)' ahead of time" in caplog.records[0].getMessage()
     assert len(compiled) == 1 and compiled[0].parent == tmp_path / "cache" and compiled[0].name.startswith("_kernel-")
     monkeypatch.setattr(lanes, "_COMPILED", {})  # a new process
     caplog.clear()
     run_in_chunks(_kernel, (x, y), compile=True)
     assert len(compiled) == 1 and not caplog.records
+    big = lanes.PARALLEL_MIN_LANES  # a large call: the threaded variant, in its own package
+    run_in_chunks(_kernel, (torch.randn(big, 3, dtype=F64), torch.randn(big, 2, dtype=F64)), compile=True)
+    assert len(compiled) == 2 and compiled[1] != compiled[0] and compiled[1].name.startswith("_kernel-")
+    assert "'_kernel' ahead of time" in caplog.records[0].getMessage()
 
 
 def test_the_cache_key_follows_what_the_compiled_code_depends_on(gen):
@@ -130,11 +152,11 @@ def test_the_kernel_cache_lives_where_the_environment_says(monkeypatch, tmp_path
 def test_a_kernel_compiled_ahead_of_time_equals_the_eager_one_for_every_lane_count(monkeypatch, gen, tmp_path):
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
     monkeypatch.setattr(lanes, "_COMPILED", {})
-    for C in (1, 7, 5000):
+    for C in (1, 7, lanes.PARALLEL_MIN_LANES - 1, lanes.PARALLEL_MIN_LANES, 5000):
         x, y = torch.randn(C, 3, generator=gen, dtype=F64), torch.randn(C, 2, generator=gen, dtype=F64)
         out = run_in_chunks(_kernel, (x, y), compile=True)
         assert all(torch.equal(a, b) for a, b in zip(out, _kernel(x, y)))
-    assert len(list(tmp_path.glob("_kernel-*.pt2"))) == 1  # one package for every lane count
+    assert len(list(tmp_path.glob("_kernel-*.pt2"))) == 2  # a serial and a threaded package for every lane count
 
 
 def test_structural_zeros_and_ones_emit_no_arithmetic(gen):
