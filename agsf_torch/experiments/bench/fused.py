@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from .harness import attitude_mixture, side_by_side
+from .harness import PROJECT_ROOT, attitude_mixture, side_by_side
 
 __all__ = ["bench_propagation", "bench_update", "bench_spacecraft", "bench_compile", "propagation_kernel_flops"]
 
@@ -143,7 +143,7 @@ def bench_compile() -> dict[str, float]:
     B = 256): with torch's inductor cache and the kernel cache empty, then filled by that run."""
     import os
 
-    root = str(Path(__file__).resolve().parents[3])
+    root = str(PROJECT_ROOT)
     script = _FIRST_FUSED_STEP.format(root=root)
     with tempfile.TemporaryDirectory(prefix="agsf-inductor-") as cache:
         env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache, "AGSF_TORCH_KERNEL_CACHE": str(Path(cache) / "kernels")}

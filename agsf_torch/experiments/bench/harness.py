@@ -5,17 +5,20 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
 
 from ...mixture import GaussianMixture
 
-__all__ = ["median_time", "side_by_side", "attitude_mixture", "WEIGHT_UPDATE_FILTERS"]
+__all__ = ["median_time", "side_by_side", "attitude_mixture", "WEIGHT_UPDATE_FILTERS", "PROJECT_ROOT"]
 
 F64 = torch.float64
 #: The registered filter of each weight update.
 WEIGHT_UPDATE_FILTERS = {"galerkin": "AGSF-galerkin", "penalty": "AGSF"}
+#: The checkout this package is imported from: the benchmark's subprocesses import the same code.
+PROJECT_ROOT = Path(__file__).resolve().parents[3]
 
 
 def median_time(fn: Callable[[], Any], repeats: int, budget: float = 60.0) -> float:

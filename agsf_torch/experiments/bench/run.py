@@ -35,7 +35,7 @@ import torch
 
 from ...storage.files import write_json
 from .fused import bench_compile, bench_propagation, bench_spacecraft, bench_update
-from .harness import WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
+from .harness import PROJECT_ROOT, WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
 from .report import format_table, targets
 
 __all__ = ["run_bench", "format_table", "targets"]
@@ -107,9 +107,14 @@ print(time.perf_counter() - t0)
 """
 
 
+def _source_env() -> dict[str, str]:
+    """The environment of a subprocess that imports this checkout's package first."""
+    return {**os.environ, "PYTHONPATH": str(PROJECT_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
 def bench_first_step(cases: tuple[tuple[str, bool], ...]) -> list[dict[str, Any]]:
     """Seconds from a new process's start to its first adaptive predict (6-state, N = 5, B = 256), twice per case."""
-    root = str(Path(__file__).resolve().parents[2])
+    root = str(PROJECT_ROOT)
     rows = []
     for update, compile in cases:
         secs = []
@@ -157,41 +162,38 @@ def bench_matmul_peak(size: int = 2048) -> float:
 
 def _peak_rss(module_args: list[str]) -> dict[str, Any]:
     """Run ``python -m agsf_torch.experiments.bench.memory ARGS`` and return its JSON line with the wall time."""
-    root = str(Path(__file__).resolve().parents[2])
     t = time.perf_counter()
-    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
     out = subprocess.run(
         [sys.executable, "-m", "agsf_torch.experiments.bench.memory", *module_args],
         capture_output=True,
         text=True,
         check=True,
-        env=env,
+        env=_source_env(),
     )
     return {**json.loads(out.stdout.strip().splitlines()[-1]), "seconds": time.perf_counter() - t}
 
 
-#: The main job's wall time before the fused kernels (the issue that set the target: 48 s on 2 idle cores).
-MAIN_JOB_BEFORE_S = 48.0
-
-
 def bench_main_job() -> dict[str, Any]:
     """Wall seconds of the main job, ``agsf reproduce --case all`` (100 runs × 30 s per case, every figure and
-    event file), in a new process into a temporary folder."""
+    event file), each in a new process into a temporary folder: on the generic path (``--set fused=false``:
+    every filter and weight update as before the fused kernels) and as shipped (the fused paths where they
+    pay), one after the other in the same run."""
     import tempfile
 
-    root = str(Path(__file__).resolve().parents[2])
-    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    with tempfile.TemporaryDirectory() as tmp:
-        t = time.perf_counter()
-        subprocess.run(
-            [sys.executable, "-c", "from agsf_torch.experiments.cli import main; main()", "reproduce"]
-            + ["--case", "all", "--out", str(Path(tmp) / "reproduce"), "--quiet"],
-            capture_output=True,
-            text=True,
-            check=True,
-            env=env,
-        )
-        return {"seconds": time.perf_counter() - t, "before_seconds": MAIN_JOB_BEFORE_S}
+    seconds = {}
+    for name, extra in (("generic", ["--set", "fused=false"]), ("fused", [])):
+        with tempfile.TemporaryDirectory() as tmp:
+            t = time.perf_counter()
+            subprocess.run(
+                [sys.executable, "-c", "from agsf_torch.experiments.cli import main; main()", "reproduce"]
+                + ["--case", "all", "--out", str(Path(tmp) / "reproduce"), "--quiet", *extra],
+                capture_output=True,
+                text=True,
+                check=True,
+                env=_source_env(),
+            )
+            seconds[name] = time.perf_counter() - t
+    return {"seconds": seconds["fused"], "generic_seconds": seconds["generic"]}
 
 
 def run_bench(out: Path | None = None, *, compile: bool = True, quick: bool = False) -> dict[str, Any]:
