@@ -38,7 +38,6 @@ stars, which is why gaps must inflate the covariance honestly
 from __future__ import annotations
 
 import torch
-from scipy.stats import chi2
 from torch import Tensor
 
 from .models.base import MeasurementModel
@@ -63,6 +62,8 @@ def chi2_threshold(probability: float, dof: int) -> float:
         raise ValueError(f"gate probability must lie in (0, 1), got {probability}")
     if int(dof) != dof or dof < 1:
         raise ValueError(f"gate degrees of freedom must be a positive integer, got {dof}")
+    from scipy.stats import chi2  # here, not at import: scipy.stats is a second of every process's start
+
     return float(chi2.ppf(float(probability), int(dof)))
 
 
