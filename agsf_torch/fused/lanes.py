@@ -60,11 +60,12 @@ def worth_fusing(lanes: int, compile: bool) -> bool:
 logger = logging.getLogger(__name__)
 
 #: Lanes per call of a large call's compiled kernel, which is compiled for exactly this many (a tail is
-#: padded with copies of its first lane, valid data whose results are dropped): with every shape known the
-#: compiler vectorises and unrolls what a dynamic lane count leaves generic (measured on 2 cores: the 6-state
-#: propagation at 1.6 M lanes/s against 0.75 M/s for the same code with a dynamic lane count), and chunks of
-#: this size keep the working set in cache (2.3 M lanes/s in chunks of 4096, 1.6 M in one call of 40,960).
-COMPILED_CHUNK = 4096
+#: padded with copies of its first lane, valid data whose results are dropped: at most this many lanes of
+#: waste per call): with every shape known the compiler vectorises and unrolls what a dynamic lane count
+#: leaves generic (measured on 2 cores: the 6-state propagation at 1.6 M lanes/s against 0.75 M/s for the
+#: same code with a dynamic lane count); the chunk size itself matters little (2.0, 2.2 and 2.1 M lanes/s
+#: for 40,960 lanes in chunks of 1024, 2048 and 4096), so it is the smallest, to bound the padding.
+COMPILED_CHUNK = 1024
 #: Lanes per eager call: each of a kernel's thousands of lane operations is one torch call, whose
 #: overhead (~3 µs) is paid once per chunk, so eager chunks are large (measured on 2 cores: the Galerkin
 #: pairs of 4096 six-state mixtures 228 ms in chunks of 4096, 125 ms of 16384, ~100 ms of 65536); the
@@ -122,13 +123,13 @@ _COMPILED: dict[tuple, Callable] = {}
 _FAILED: set[tuple] = set()
 
 
-#: Below this many lanes a call takes the kernel's *serial* variant, compiled without OpenMP threads for any
-#: lane count (on first use, like the threaded one): padding to a full chunk would multiply the work, and the
-#: threaded code's parallel loop would wake the other threads for microseconds of work, whose spin-wait
-#: afterwards slows the LAPACK calls that follow (measured on 2 cores: one spacecraft's star update 24 ms
-#: instead of 0.8 ms).  At least two lanes are passed to it (a single one is padded with a copy): sizes 0 and 1
-#: are special cases of an exported dimension.
-PARALLEL_MIN_LANES = 1024
+#: Below this many lanes (one chunk) a call takes the kernel's *serial* variant, compiled without OpenMP
+#: threads for any lane count (on first use, like the threaded one): padding to a full chunk would multiply
+#: the work, and the threaded code's parallel loop would wake the other threads for microseconds of work,
+#: whose spin-wait afterwards slows the LAPACK calls that follow (measured on 2 cores: one spacecraft's star
+#: update 24 ms instead of 0.8 ms).  At least two lanes are passed to it (a single one is padded with a
+#: copy): sizes 0 and 1 are special cases of an exported dimension.
+PARALLEL_MIN_LANES = COMPILED_CHUNK
 
 
 def kernel_cache_dir() -> Path:
