@@ -2,7 +2,7 @@
 # Set up .venv (pinned) and run the main job: the paper's three cases (star frames
 # at 1, 0.5 and 0.2 Hz), 100 Monte Carlo runs each, EKF / GSF / adaptive GSF with the
 # paper's and with the Galerkin weight update on identical truth and measurements
-# (about 1 minute on 2 idle cores, 2.5–3 minutes when they are shared).  Progress bars on stderr; at the end, the tables and
+# (35–85 s on 2 idle cores depending on the CPU, 2.5–3.5 minutes when they are shared).  Progress bars on stderr; at the end, the tables and
 # where the outputs are (folder, results.md, figures, the TensorBoard command).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -12,7 +12,7 @@ out="${1:-runs/reproduce}"
 if [ -e "$out/experiment.json" ]; then
     out="$out-$(date +%Y%m%d-%H%M%S)"   # never overwrite an earlier result
 fi
-echo "reproducing the paper's three cases into $out (about 1 minute on 2 idle cores)..." >&2
+echo "reproducing the paper's three cases into $out (35–85 s on 2 idle cores)..." >&2
 start=$SECONDS
 .venv/bin/agsf reproduce --case all --out "$out"
 echo "main job done in $((SECONDS - start)) s; outputs in $(cd "$out" && pwd)/"
