@@ -14,11 +14,10 @@ each on first use: for large calls, threaded code for a fixed chunk of :data:`CO
 :data:`PARALLEL_MIN_LANES`) serial code for any lane count (a dynamic dimension).  Both are stored in
 an on-disk cache (:func:`kernel_cache_dir`) keyed by the kernel, its static configuration, the
 variant, the input dtypes and trailing shapes, the torch version and the source of this package's
-fused kernels; a later process loads them in about a second instead of tracing the kernel again, and
+fused kernels; a later process loads them in milliseconds instead of tracing the kernel again, and
 each call skips dynamo's guards (~75 µs a call instead of ~300 µs).  Each compilation is announced on
 the ``agsf_torch`` logger (INFO) when it starts and ends.  A compilation or compiled-run failure falls
-back to the eager
-kernel with one warning; the numbers are the eager ones.
+back to the eager kernel with one warning; the numbers are the eager ones.
 """
 
 from __future__ import annotations
@@ -259,7 +258,7 @@ def run_in_chunks(
             :data:`COMPILED_CHUNK` lanes (the tail padded), or in one serial call below
             :data:`PARALLEL_MIN_LANES`; ``False`` runs the same code eagerly.
         chunk: lanes per eager call.
-        key: identifies the kernel's static configuration in the compile cache (with ``chunk``).
+        key: identifies the kernel's static configuration in the compile cache.
 
     Returns:
         The outputs ``[C, …]``.
@@ -276,23 +275,16 @@ def run_in_chunks(
     try:
         if cache_key in _FAILED:
             raise _Declined
-        if cache_key not in _COMPILED:
-            # contiguous, as every call is (the compiled code assumes the strides it was exported with)
-            _COMPILED[cache_key] = _load(
-                kernel,
-                key,
-                [_padded(t[:64], 2) if serial else _padded(t[:COMPILED_CHUNK], COMPILED_CHUNK) for t in inputs],
-                shared,
-                serial,
-            )
-        fn = _COMPILED[cache_key]
+        floor = 2 if serial else COMPILED_CHUNK  # the lanes a compiled call takes at least
         step = C if serial else COMPILED_CHUNK
         outs = []
         for a in range(0, C, step):
-            part = [t[a : a + step] for t in inputs]
-            c = part[0].shape[0]
-            padded = [_padded(t, 2 if serial else COMPILED_CHUNK) for t in part]
-            outs.append(tuple(o[:c] for o in fn(*padded, *shared)))
+            # contiguous, as the compiled code assumes the strides it was exported with
+            part = [_padded(t[a : a + step], floor) for t in inputs]
+            if cache_key not in _COMPILED:  # the first chunk is the export's sample
+                _COMPILED[cache_key] = _load(kernel, key, part, shared, serial)
+            c = min(step, C - a)
+            outs.append(tuple(o[:c] for o in _COMPILED[cache_key](*part, *shared)))
     except _Declined:
         return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
     except Exception as exc:  # noqa: BLE001 - any compiler or runtime failure: the eager path, never a wrong number
