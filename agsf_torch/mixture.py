@@ -160,7 +160,8 @@ class GaussianMixture:
         The result is validated as by the constructor (shapes, finite means, symmetric
         positive definite covariances, log-weights without NaN or +inf and not all −inf);
         ``validate=False`` skips that for the filters' own outputs, whose covariances they
-        have already checked (a Cholesky factorisation per component saved per step).
+        have already checked (a Cholesky factorisation per component saved per step), and then
+        keeps the weights as they are when they are not replaced (normalised already).
 
         Raises:
             ValueError: an unknown field, or (with ``validate``) a malformed one, named.
@@ -170,6 +171,13 @@ class GaussianMixture:
             raise ValueError(f"replace() takes log_weights, means and covs, got {', '.join(unknown)}")
         fields = {"log_weights": self.log_weights, "means": self.means, "covs": self.covs}
         fields.update(kwargs)
+        if not validate and "log_weights" not in kwargs:  # the weights are normalised already: kept as they are
+            out = object.__new__(GaussianMixture)
+            means = as_real_tensor("means", fields["means"])
+            object.__setattr__(out, "means", means)
+            for name in ("covs", "log_weights"):
+                object.__setattr__(out, name, as_real_tensor(name, fields[name], means.dtype, means.device))
+            return out
         return GaussianMixture(validate=validate, **fields)
 
     # ------------------------------------------------------------ statistics

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from .models.base import ContinuousModel
+from .shapes import broadcast_shapes
 
 __all__ = ["moment_derivatives", "propagate_moments", "MomentRates"]
 
@@ -86,7 +87,7 @@ def propagate_moments(
     Batches of more than :data:`PROPAGATION_CHUNK` components are propagated in chunks of
     that many (the same arithmetic per component).
     """
-    lead = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], *(() if u is None else (u.shape[:-1],)))
+    lead = broadcast_shapes(mean.shape[:-1], cov.shape[:-2], *(() if u is None else (u.shape[:-1],)))
     count = math.prod(lead)
     if count > PROPAGATION_CHUNK:
         n = mean.shape[-1]

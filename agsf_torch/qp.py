@@ -42,6 +42,7 @@ import torch
 from torch import Tensor
 
 from .fpke.matrices import check_chunk_size
+from .shapes import broadcast_shapes
 
 __all__ = [
     "MAX_COMPONENTS",
@@ -176,7 +177,7 @@ def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int | No
     _check_inputs(H, c)
     chunk_size = check_chunk_size(chunk_size)
     try:
-        batch = torch.broadcast_shapes(H.shape[:-2], c.shape[:-1])
+        batch = broadcast_shapes(H.shape[:-2], c.shape[:-1])
     except RuntimeError:
         raise ValueError(f"the batch dims of H {tuple(H.shape)} and c {tuple(c.shape)} do not broadcast") from None
     N = H.shape[-1]

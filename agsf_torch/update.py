@@ -55,6 +55,7 @@ import torch
 from torch import Tensor
 
 from .models.base import MeasurementModel
+from .shapes import broadcast_shapes
 
 __all__ = [
     "COVARIANCE_FORM_MAX_CONDITION",
@@ -143,7 +144,7 @@ def gram_factor(A: Tensor) -> Tensor:
     return (sign[..., :, None] * U).transpose(-1, -2)
 
 
-def covariance_form_usable(L: Tensor, info: Tensor, valid: Tensor, S: Tensor) -> Tensor:
+def covariance_form_usable(L: Tensor, info: Tensor, valid: Tensor | None, S: Tensor) -> Tensor:
     """Whether the Cholesky factor ``L`` of ``S`` (from ``torch.linalg.cholesky_ex``) is fit for solves:
     the factorisation succeeded and ``(max ℓᵢ / min ℓᵢ)² ≤ COVARIANCE_FORM_MAX_CONDITION·ε₆₄/ε`` with
     ``ℓᵢ = Lᵢᵢ / √Sᵢᵢ`` (the pivots of the correlation matrix ``D^{-½} S D^{-½}``, so entries in
@@ -151,15 +152,19 @@ def covariance_form_usable(L: Tensor, info: Tensor, valid: Tensor, S: Tensor) ->
     decoupled unit pivots and are left out).
 
     Args:
-        L: ``[..., d, d]``; info: ``[...]``; valid: ``[..., d]`` (bool or 0/1); S: ``[..., d, d]``.
+        L: ``[..., d, d]``; info: ``[...]``; valid: ``[..., d]`` (bool or 0/1), or ``None`` (every entry);
+            S: ``[..., d, d]``.
 
     Returns:
         ``[...]`` bool.
     """
     piv = L.diagonal(dim1=-2, dim2=-1) / S.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(S.dtype).tiny).sqrt()
-    v = valid.to(torch.bool)
-    big = torch.where(v, piv, torch.zeros_like(piv)).amax(-1)
-    small = torch.where(v, piv, torch.full_like(piv, math.inf)).amin(-1)
+    if valid is None:
+        big, small = piv.amax(-1), piv.amin(-1)
+    else:
+        v = valid.to(torch.bool)
+        big = torch.where(v, piv, torch.zeros_like(piv)).amax(-1)
+        small = torch.where(v, piv, torch.full_like(piv, math.inf)).amin(-1)
     limit = COVARIANCE_FORM_MAX_CONDITION * torch.finfo(torch.float64).eps / torch.finfo(S.dtype).eps
     return (info == 0) & (big <= small * math.sqrt(limit))
 
@@ -187,7 +192,7 @@ def moment_matched_factor(log_weights: Tensor, nu: Tensor, HL: Tensor, L_R: Tens
     spread = (sw[..., None, None] * HL).movedim(-3, -2)  # [..., k, N, n]
     spread = spread.reshape(*spread.shape[:-2], -1)  # [..., k, N n]
     rn = w.sum(-1).sqrt()[..., None, None] * L_R
-    batch = torch.broadcast_shapes(spread.shape[:-2], dn.shape[:-2], rn.shape[:-2])
+    batch = broadcast_shapes(spread.shape[:-2], dn.shape[:-2], rn.shape[:-2])
     k = nu.shape[-1]
     A = torch.cat([t.expand(*batch, k, t.shape[-1]) for t in (spread, dn, rn)], -1)
     return nu_bar, gram_factor(A)

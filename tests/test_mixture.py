@@ -160,7 +160,11 @@ def test_replace_validates_by_default():
         mix.replace(covs=torch.eye(3, dtype=torch.float64).expand(2, 3, 3, 3))
     with pytest.raises(ValueError, match="replace\\(\\) takes log_weights, means and covs, got weights"):
         mix.replace(weights=torch.ones(2, 3))
-    # the filters' own outputs skip the check explicitly
+    # the filters' own outputs skip the check explicitly, and keep weights they do not replace as they are
     assert bool(torch.isnan(mix.replace(means=nan_means, validate=False).means).any())
+    kept = mix.replace(means=mix.means.float(), covs=mix.covs, validate=False)
+    assert kept.log_weights.dtype == kept.covs.dtype == torch.float32
+    assert torch.equal(kept.log_weights, mix.log_weights.float())
+    assert mix.replace(covs=2 * mix.covs, validate=False).log_weights is mix.log_weights
     ok = mix.replace(means=mix.means + 1.0)
     assert torch.equal(ok.means, mix.means + 1.0) and torch.equal(ok.covs, mix.covs)

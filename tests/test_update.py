@@ -312,3 +312,16 @@ def test_the_covariance_form_test_ignores_units_and_follows_the_dtype():
     for dtype, usable in ((torch.float64, True), (torch.float32, False)):
         L, info = torch.linalg.cholesky_ex(C.to(dtype))
         assert bool(covariance_form_usable(L, info, torch.ones(2), C.to(dtype))) is usable
+
+
+def test_the_covariance_form_test_without_a_mask_counts_every_entry():
+    from agsf_torch.update import covariance_form_usable
+
+    gen = torch.Generator().manual_seed(5)
+    v = torch.randn(4, 3, 1, generator=gen, dtype=torch.float64)
+    floor = torch.tensor([1.0, 1.0, 1e-15, 1e-15], dtype=torch.float64)[:, None, None]
+    S = v @ v.mT + floor * torch.eye(3, dtype=torch.float64)  # the last two near rank one: not usable
+    L, info = torch.linalg.cholesky_ex(S)
+    every = covariance_form_usable(L, info, torch.ones(4, 3), S)
+    assert torch.equal(covariance_form_usable(L, info, None, S), every)
+    assert every.tolist() == [True, True, False, False]

@@ -29,6 +29,7 @@ from torch import Tensor
 from ..gating import chi2_threshold, innovation_gate
 from ..mixture import GaussianMixture, as_real_tensor
 from ..models.base import ContinuousModel, MeasurementModel
+from ..shapes import broadcast_shapes
 from ..update import ComponentUpdate, kalman_update
 from .options import FilterOptions
 from .step_diagnostics import StepDiagnostics
@@ -91,7 +92,7 @@ def check_batched(name: str, value: Tensor, batch_shape: torch.Size, last: int |
         idx = (~torch.isfinite(value)).nonzero()[0].tolist()
         raise ValueError(f"{name} must be finite; non-finite value at index {tuple(idx)}")
     try:
-        torch.broadcast_shapes(value.shape[:-1], batch_shape)
+        broadcast_shapes(value.shape[:-1], batch_shape)
     except RuntimeError:
         raise ValueError(
             f"{name} has shape {tuple(value.shape)}, whose leading dims do not broadcast with "

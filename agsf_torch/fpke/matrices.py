@@ -17,6 +17,7 @@ from torch import Tensor
 
 from ..models.base import ContinuousModel
 from ..quadrature import ProductRule
+from ..shapes import broadcast_shapes
 from ..torch_internals import torch_internal_deprecations_hidden
 from .moments import residual_mean
 from .pairs import ProductGaussians, product_gaussians
@@ -388,7 +389,7 @@ def fused_galerkin_matrices(
     ``E[ℓ]`` in one pass), compiled ahead of time if ``compile``; ``None`` if the model has no such kernel or
     declines this many pairs (then the generic route applies)."""
     N, n = means.shape[-2:]
-    lead = torch.broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])
+    lead = broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])
     T = math.prod(lead)
     uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(T, u.shape[-1])
     out = model.fused_galerkin_pairs(

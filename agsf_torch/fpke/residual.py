@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from ..models.base import ContinuousModel, FokkerPlanckTerms, sum_last
+from ..shapes import broadcast_shapes
 
 __all__ = ["ComponentRates", "residual_factor", "fpke_residual", "log_normal"]
 
@@ -144,7 +145,7 @@ def fpke_residual(
 def log_normal(x: Tensor, mean: Tensor, chol: Tensor) -> Tensor:
     """``log N(x; μ, LLᵀ)`` with broadcasting: x ``[..., n]``, mean ``[..., n]``, chol ``[..., n, n]``."""
     d = x - mean
-    shape = torch.broadcast_shapes(d.shape[:-1], chol.shape[:-2])
+    shape = broadcast_shapes(d.shape[:-1], chol.shape[:-2])
     Lb = chol.expand(*shape, *chol.shape[-2:])
     z = torch.linalg.solve_triangular(Lb, d.expand(*shape, d.shape[-1]).unsqueeze(-1), upper=False).squeeze(-1)
     logdet = torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)

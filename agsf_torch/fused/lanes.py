@@ -284,7 +284,7 @@ def run_in_chunks(
             if cache_key not in _COMPILED:  # the first chunk is the export's sample
                 _COMPILED[cache_key] = _load(kernel, key, part, shared, serial)
             c = min(step, C - a)
-            outs.append(tuple(o[:c] for o in _COMPILED[cache_key](*part, *shared)))
+            outs.append(tuple(o if o.shape[0] == c else o[:c] for o in _COMPILED[cache_key](*part, *shared)))
     except _Declined:
         return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
     except Exception as exc:  # noqa: BLE001 - any compiler or runtime failure: the eager path, never a wrong number

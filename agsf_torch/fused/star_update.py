@@ -47,6 +47,7 @@ from torch import Tensor
 
 from ..models.base import MeasurementModel
 from ..models.star_vectors import StarVectorMeasurement
+from ..shapes import broadcast_shapes
 from ..update import ComponentUpdate, check_innovation, covariance_form_usable
 from .lanes import entries, run_in_chunks, stack_entries
 from .propagation import positive_pivots
@@ -327,15 +328,19 @@ def fused_star_update(
     wrong number.
     """
     n, N, M = means.shape[-1], means.shape[-2], measurement.num_stars
-    lead = torch.broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,))
+    lead = broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,))
     C = math.prod(lead)
     if mask is not None:
         star_valid = mask.reshape(*mask.shape[:-1], M, 3)[..., 0]
     elif measurement.star_mask is not None:
         star_valid = measurement.star_mask
     else:
-        star_valid = torch.ones(M, dtype=torch.bool, device=means.device)
-    m = star_valid.to(means.dtype).unsqueeze(-2).expand(*lead, M).reshape(C, M)
+        star_valid = None  # every star
+    m = (
+        means.new_ones(C, M)
+        if star_valid is None
+        else star_valid.to(means.dtype).unsqueeze(-2).expand(*lead, M).reshape(C, M)
+    )
     r = measurement.r_inertial.to(means).unsqueeze(-3).expand(*lead, M, 3).reshape(C, M, 3)
     y3 = y.reshape(*y.shape[:-1], 1, M, 3).expand(*lead, M, 3).reshape(C, M, 3)
     mu = means.expand(*lead, n).reshape(C, n)
@@ -343,9 +348,9 @@ def fused_star_update(
     sigma2 = (measurement.sigma.to(means) ** 2).expand(C).contiguous()
     out = run_in_chunks(star_kernel, (mu, P, r, y3, m, sigma2), compile=compile, key=("star", n, M))
     # the innovation at the prior mean, checked before anything is returned (the kernel changed nothing):
-    # ε|ν| ≤ σ ≤ √Sⱼⱼ suffices; where it fails, the exact check names the cause
+    # ε|ν| ≤ σ ≤ √Sⱼⱼ suffices (false for a NaN or infinite ν); where it fails, the exact check names the cause
     nu0, sigma = out[5], measurement.sigma.to(means)
-    if not bool((torch.isfinite(nu0) & (torch.finfo(nu0.dtype).eps * nu0.abs() <= sigma)).all()):
+    if not bool((torch.finfo(nu0.dtype).eps * nu0.abs() <= sigma).all()):
         _check_innovation(y, means, covs, measurement, star_valid)
     x_last = mu  # the linearisation point of the last iteration (H, ν and S are taken there)
     for _ in range(int(iterations) - 1):
@@ -355,9 +360,9 @@ def fused_star_update(
         )
     new_means, new_covs = out[0].reshape(*lead, n), out[1].reshape(*lead, n, n)
     log_beta, nis, dof = (t.reshape(lead) for t in out[2:5])
-    finite = torch.isfinite(new_covs).flatten(-2).all(-1) & torch.isfinite(new_means).all(-1)
-    finite = finite & torch.isfinite(log_beta) & torch.isfinite(nis)
-    if not bool(finite.all()):  # beyond the kernel's range (a pivot clamped to overflow): the generic update
+    if not bool(
+        torch.isfinite(torch.cat([t.reshape(-1) for t in (new_covs, new_means, log_beta, nis)])).all()
+    ):  # beyond the kernel's range (a pivot clamped to overflow): the generic update
         from ..update import kalman_update
 
         generic = kalman_update(log_weights, means, covs, y, measurement, iterations, mask, mixture_nis)
@@ -370,7 +375,11 @@ def fused_star_update(
     new_log_weights = joint - log_lik.unsqueeze(-1)
     nis_mixture = None
     if mixture_nis:
-        entry_valid = star_valid.to(means.dtype).repeat_interleave(3, dim=-1).expand(*lead[:-1], 3 * M)
+        entry_valid = (
+            None
+            if star_valid is None
+            else star_valid.to(means.dtype).repeat_interleave(3, dim=-1).expand(*lead[:-1], 3 * M)
+        )
         nis_mixture = (
             nis[..., 0]
             if N == 1
@@ -389,13 +398,15 @@ def fused_star_update(
 
 
 def _check_innovation(
-    y: Tensor, means: Tensor, covs: Tensor, measurement: MeasurementModel, star_valid: Tensor
+    y: Tensor, means: Tensor, covs: Tensor, measurement: MeasurementModel, star_valid: Tensor | None
 ) -> None:
     """:func:`~agsf_torch.update.check_innovation` with the exact innovation variances (called where the
     sufficient test ``ε|νⱼ| ≤ σ ≤ √Sⱼⱼ`` on the kernel's innovations failed; it names the cause or passes)."""
     x = means.movedim(-2, 0)
     h = measurement.predict(x).movedim(0, -2)  # [..., N, d]
     nu = y.unsqueeze(-2) - h
+    if star_valid is None:  # every star
+        star_valid = torch.ones(measurement.num_stars, dtype=torch.bool, device=nu.device)
     valid = star_valid.repeat_interleave(3, dim=-1).unsqueeze(-2).expand(nu.shape)
     sigma = measurement.sigma.to(means)
     eps = torch.finfo(nu.dtype).eps
@@ -406,9 +417,12 @@ def _check_innovation(
     check_innovation(y.unsqueeze(-2), means, h, S_diag, valid)
 
 
-def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2: Tensor, valid: Tensor) -> Tensor:
+def mixture_information_nis(
+    log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2: Tensor, valid: Tensor | None = None
+) -> Tensor:
     r"""The moment-matched mixture NIS ``ν̄ᵀS̄⁻¹ν̄`` (:func:`~agsf_torch.update.moment_matched_innovation`) from
-    square roots: ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ Hᵢ Lᵢ, √wᵢ (νᵢ − ν̄)]ᵢ`` (``[..., d, (k+1)N]``).
+    square roots: ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ [Hᵢ Lᵢ, νᵢ − ν̄]]ᵢ`` (``[..., d, (k+1)N]``; the order of the
+    columns does not change ``AAᵀ``).
 
     Where the Cholesky factor of ``S̄`` is fit for solves (:func:`~agsf_torch.update.covariance_form_usable`,
     the generic update's rule), with it; elsewhere (a precise sensor after a wide prior) in information form,
@@ -424,20 +438,19 @@ def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2:
         nu: ``[..., N, d]`` (zero at masked entries).
         HL: ``Hᵢ Lᵢ`` ``[..., N, d, k]`` (zero rows at masked entries).
         sigma2: ``σ²``.
-        valid: ``[..., d]`` entry validity.
+        valid: ``[..., d]`` entry validity (a masked entry's row of ``S̄`` is that of the identity);
+            ``None``: every entry.
 
     Returns:
         ``[...]``.
     """
-    w = log_weights.exp()
-    sw = w.sqrt()
-    nu_bar = (w[..., None] * nu).sum(-2)
-    dn = sw[..., None] * (nu - nu_bar.unsqueeze(-2))  # [..., N, d]
-    spread = (sw[..., None, None] * HL).movedim(-3, -2).flatten(-2)  # [..., d, N k]
-    A = torch.cat((spread, dn.transpose(-1, -2)), -1)
-    d = A.shape[-2]
-    valid = valid.to(A.dtype).expand(A.shape[:-1])
-    S = A @ A.transpose(-1, -2) + torch.diag_embed(valid * sigma2 + (1.0 - valid))
+    sw = (0.5 * log_weights).exp()  # √wᵢ
+    nu_bar = ((sw * sw).unsqueeze(-2) @ nu).squeeze(-2)  # Σ wᵢ νᵢ
+    X = torch.cat((HL, (nu - nu_bar.unsqueeze(-2)).unsqueeze(-1)), -1)  # [..., N, d, k+1]
+    A = (sw[..., None, None] * X).movedim(-3, -2).flatten(-2)  # [..., d, N(k+1)]
+    S = A @ A.transpose(-1, -2)
+    diagonal = sigma2 if valid is None else valid.to(A.dtype) * sigma2 + (1.0 - valid.to(A.dtype))
+    S.diagonal(dim1=-2, dim2=-1).add_(diagonal)
     L, info = torch.linalg.cholesky_ex(S)
     usable = covariance_form_usable(L, info, valid, S)
     z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False)
@@ -454,5 +467,4 @@ def mixture_information_nis(log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2:
         R, torch.linalg.solve_triangular(R.transpose(-1, -2), rhs, upper=False), upper=True
     )
     e = nf - (Af @ zf).squeeze(-1)
-    del d
     return nis.index_put((~usable).nonzero(as_tuple=True), (e * e).sum(-1) / sigma2 + (zf * zf).sum((-2, -1)))

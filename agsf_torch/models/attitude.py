@@ -20,6 +20,7 @@ from torch import Tensor
 
 from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
+from ..shapes import broadcast_shapes
 from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative, sum_last
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
@@ -351,7 +352,7 @@ class AttitudeModel(ContinuousModel):
 
         self.check_input(u)
         n = self.state_dim
-        lead = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], u.shape[:-1])
+        lead = broadcast_shapes(mean.shape[:-1], cov.shape[:-2], u.shape[:-1])
         count = math.prod(lead)
         if not worth_fusing(count, compile):
             return None

@@ -23,6 +23,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..shapes import broadcast_shapes
+
 __all__ = [
     "FokkerPlanckTerms",
     "FokkerPlanckMoments",
@@ -409,7 +411,7 @@ class FunctionMeasurement(MeasurementModel):
             if mask.dim() < 1 or mask.shape[-1] != d:
                 raise ValueError(f"mask must have shape [..., {d}] (d = noise_cov's size), got {tuple(mask.shape)}")
             try:
-                torch.broadcast_shapes(mask.shape[:-1], R.shape[:-2])
+                broadcast_shapes(mask.shape[:-1], R.shape[:-2])
             except RuntimeError:
                 raise ValueError(
                     f"mask {tuple(mask.shape)} and noise_cov {tuple(R.shape)} have leading dims that do not broadcast"

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_to_dcm
+from ..shapes import broadcast_shapes
 from .base import MeasurementModel, check_finite, check_nonnegative
 
 __all__ = ["StarVectorMeasurement", "UNIT_TOLERANCE", "UNIT_ROUNDING", "unit_vectors"]
@@ -249,7 +250,7 @@ class StarVectorMeasurement(MeasurementModel):
         from ..fused.lanes import worth_fusing
         from ..fused.star_update import fused_star_update
 
-        lanes = math.prod(torch.broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,)))
+        lanes = math.prod(broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,)))
         if self.noise_model != "isotropic" or means.shape[-1] < 3 or not worth_fusing(lanes, compile):
             return None
         return fused_star_update(
