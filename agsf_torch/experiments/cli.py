@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..allocator import set_mmap_threshold
 from .cli_terminal import (
     FORCE_HELP,
     Parser,
@@ -458,6 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     :data:`EXIT_IO_FAILURE`; Ctrl-C prints one line and returns 130.  Long steps
     (the FPKE kernel's compilation) are announced on stderr unless ``--quiet``."""
     args = build_parser().parse_args(argv)
+    set_mmap_threshold()  # a step's buffers reused from the heap, not mapped afresh (agsf_torch.allocator)
     with messages(quiet=getattr(args, "quiet", False)):
         try:
             return args.func(args)

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ...allocator import set_mmap_threshold
 from ..config import ExperimentConfig
 from .rows import config_metrics
 
@@ -62,6 +63,7 @@ def _config_on_worker(runner: Callable[..., dict[str, Any]], cfg: ExperimentConf
     from ..outputs import release_outputs
 
     torch.set_num_threads(threads)  # the task's CPUs: no oversubscription by parallel tasks
+    set_mmap_threshold()  # as the agsf command does: a step's buffers reused from the heap
     with tempfile.TemporaryDirectory(prefix="agsf-sweep-") as tmp:
         folder = Path(tmp) / cfg.digest()
         try:
