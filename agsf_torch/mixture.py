@@ -225,8 +225,7 @@ class GaussianMixture:
 
     def entropy_of_weights(self) -> Tensor:
         """Shannon entropy of the weights, ``−Σ wᵢ log wᵢ`` (nats), ``[...]``."""
-        lw = self.log_weights
-        return -(lw.exp() * torch.where(torch.isneginf(lw), torch.zeros_like(lw), lw)).sum(-1)
+        return torch.special.entr(self.log_weights.exp()).sum(-1)  # entr(w) = −w log w, 0 at w = 0
 
     # ---------------------------------------------------------- construction
     @classmethod

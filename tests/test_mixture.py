@@ -168,3 +168,17 @@ def test_replace_validates_by_default():
     assert mix.replace(covs=2 * mix.covs, validate=False).log_weights is mix.log_weights
     ok = mix.replace(means=mix.means + 1.0)
     assert torch.equal(ok.means, mix.means + 1.0) and torch.equal(ok.covs, mix.covs)
+
+
+def test_entropy_of_weights_is_shannons_in_nats(gen):
+    from scipy.stats import entropy
+
+    w = torch.rand(3, 6, generator=gen, dtype=torch.float64)
+    w[1, 2] = 0.0
+    mix = GaussianMixture(
+        weights=w,
+        means=torch.zeros(3, 6, 1, dtype=torch.float64),
+        covs=torch.ones(3, 6, 1, 1, dtype=torch.float64),
+    )
+    want = entropy(w.numpy(), axis=-1)  # normalises the rows itself
+    np.testing.assert_allclose(mix.entropy_of_weights().numpy(), want, rtol=1e-14)

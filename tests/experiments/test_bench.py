@@ -163,3 +163,15 @@ def test_table_marks_targets():
     for k, line in enumerate(lines[1:], 1):  # every Markdown table: a rule with one cell per header cell
         if set(line.replace("|", "").split()) == {"---"}:
             assert line.count("|") == lines[k - 1].count("|"), lines[k - 1]
+
+
+def test_peak_memory_is_the_processs_own_not_its_parents_at_the_fork():
+    """A process started by a large one: getrusage's max RSS would report the parent's resident memory."""
+    import subprocess
+    import sys
+
+    code = "from agsf_torch.experiments.resources import peak_resident_memory; print(peak_resident_memory())"
+    ballast = torch.ones(2**27, dtype=torch.float64)  # 1 GiB resident in this process
+    ballast.add_(1.0)
+    child = int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
+    assert 2**20 < child < 2**29  # torch's import: tens to a few hundred MiB, far below the parent's GiB

@@ -195,9 +195,9 @@ def test_the_memory_estimate_bounds_a_measured_peak(tmp_path):
     resident memory of the process, by less than a factor of two."""
     cfg = load_config("case1", ["runs=1024"])
     code = (
-        "import resource, sys; from agsf_torch.experiments import cli; "
+        "from agsf_torch.experiments import cli; from agsf_torch.experiments.resources import peak_resident_memory; "
         f"cli.main(['run', 'case1', '--set', 'runs=1024', '--quiet', '--out', {str(tmp_path / 'run')!r}]); "
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+        "print(peak_resident_memory() // 1024)"
     )
     peak_kb = int(
         subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout.split()[-1]

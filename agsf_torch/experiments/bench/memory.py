@@ -2,19 +2,22 @@
 
 ``gsf --batch B --chunk C``: a B × N = 5 6-state GSF sweep of 100 predict steps, in chunks of C trajectories.
 ``adaptive --update NAME --batch B``: one adaptive predict step (6-state, N = 5) with the weight update NAME.
-Prints one JSON line: the workload and ``peak_rss_mib`` (``getrusage`` max RSS).
+The allocator is set up as the ``agsf`` command sets it (:func:`agsf_torch.allocator.set_mmap_threshold`) unless
+``--default-allocator``.  Prints one JSON line: the workload and ``peak_rss_mib``, this process's own peak
+(:func:`~agsf_torch.experiments.resources.peak_resident_memory`).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import resource
 
 import torch
 
+from ...allocator import set_mmap_threshold
 from ...filters.registry import make_filter
 from ...models import AttitudeModel
+from ..resources import peak_resident_memory
 from .harness import WEIGHT_UPDATE_FILTERS, attitude_mixture
 
 
@@ -24,7 +27,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch", type=int, required=True)
     parser.add_argument("--chunk", type=int, default=16384)
     parser.add_argument("--update", choices=tuple(WEIGHT_UPDATE_FILTERS), default="galerkin")
+    parser.add_argument("--default-allocator", action="store_true", help="leave glibc's mmap threshold as it is")
     args = parser.parse_args(argv)
+    if not args.default_allocator:
+        set_mmap_threshold()
     gen = torch.Generator().manual_seed(4)
     model = AttitudeModel(estimate_bias=True)
     if args.workload == "gsf":
@@ -47,7 +53,7 @@ def main(argv: list[str] | None = None) -> None:
             "batch": args.batch,
             "update": args.update,
         }
-    print(json.dumps({**row, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+    print(json.dumps({**row, "peak_rss_mib": peak_resident_memory() / 2**20}))
 
 
 if __name__ == "__main__":
