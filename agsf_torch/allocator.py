@@ -6,8 +6,8 @@ grows as such blocks are freed.  A batched filter step allocates and frees the s
 every step (the penalty update's pair products, the Galerkin matrices, the update's gains), so each step
 maps them again and faults every page back in: measured on the penalty-adaptive predict (6 states,
 B = 256, N = 5, 2 cores, glibc 2.36), 170–280 ms per step with the default threshold against 97–129 ms with
-it fixed at 32 MiB (1.4–2.0× in paired runs), at the same peak memory (345–354 MB either way); at B = 8192 the
-step's peak was 1,112 MiB with the threshold fixed and 1,767 MiB without.
+it fixed at 32 MiB (1.4–2.0× in paired runs), at the same peak memory (345–354 MB either way; at B = 8192,
+1.07–1.11 GB in most runs with either setting and 1.6–1.75 GB in some runs of both).
 
 :func:`set_mmap_threshold` fixes the threshold (``mallopt(M_MMAP_THRESHOLD, …)``); the ``agsf`` command and
 the sweep's Ray tasks call it at their start.  A script of your own calls it once before its filter loop, or
