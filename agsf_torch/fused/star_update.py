@@ -48,8 +48,9 @@ from torch import Tensor
 from ..models.base import MeasurementModel
 from ..models.star_vectors import StarVectorMeasurement
 from ..shapes import broadcast_shapes
-from ..update import ComponentUpdate, check_innovation, covariance_form_usable
+from ..update import ComponentUpdate, check_innovation
 from .lanes import entries, run_in_chunks, stack_entries
+from .mixture_nis import mixture_information_nis
 from .propagation import positive_pivots
 
 __all__ = [
@@ -59,7 +60,6 @@ __all__ = [
     "mrp_chart",
     "star_kernel",
     "fused_star_update",
-    "mixture_information_nis",
 ]
 
 Mat = list[list[Tensor]]
@@ -415,56 +415,3 @@ def _check_innovation(
     H = measurement.jacobian(x).movedim(0, -3)
     S_diag = (H @ covs @ H.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1) + sigma**2
     check_innovation(y.unsqueeze(-2), means, h, S_diag, valid)
-
-
-def mixture_information_nis(
-    log_weights: Tensor, nu: Tensor, HL: Tensor, sigma2: Tensor, valid: Tensor | None = None
-) -> Tensor:
-    r"""The moment-matched mixture NIS ``ν̄ᵀS̄⁻¹ν̄`` (:func:`~agsf_torch.update.moment_matched_innovation`) from
-    square roots: ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ [Hᵢ Lᵢ, νᵢ − ν̄]]ᵢ`` (``[..., d, (k+1)N]``; the order of the
-    columns does not change ``AAᵀ``).
-
-    Where the Cholesky factor of ``S̄`` is fit for solves (:func:`~agsf_torch.update.covariance_form_usable`,
-    the generic update's rule), with it; elsewhere (a precise sensor after a wide prior) in information form,
-
-    .. math:: \bar ν^T \bar S^{-1} \bar ν = |\bar ν - A z|^2/σ^2 + |z|^2,\quad
-              z = (I + A^T A/σ^2)^{-1} A^T \bar ν / σ^2,
-
-    with the factor of ``I + AᵀA/σ² ⪰ I`` from a QR of ``[A/σ; I]``: accurate whatever the
-    conditioning of ``S̄``.
-
-    Args:
-        log_weights: ``[..., N]``.
-        nu: ``[..., N, d]`` (zero at masked entries).
-        HL: ``Hᵢ Lᵢ`` ``[..., N, d, k]`` (zero rows at masked entries).
-        sigma2: ``σ²``.
-        valid: ``[..., d]`` entry validity (a masked entry's row of ``S̄`` is that of the identity);
-            ``None``: every entry.
-
-    Returns:
-        ``[...]``.
-    """
-    sw = (0.5 * log_weights).exp()  # √wᵢ
-    nu_bar = ((sw * sw).unsqueeze(-2) @ nu).squeeze(-2)  # Σ wᵢ νᵢ
-    X = torch.cat((HL, (nu - nu_bar.unsqueeze(-2)).unsqueeze(-1)), -1)  # [..., N, d, k+1]
-    A = (sw[..., None, None] * X).movedim(-3, -2).flatten(-2)  # [..., d, N(k+1)]
-    S = A @ A.transpose(-1, -2)
-    diagonal = sigma2 if valid is None else valid.to(A.dtype) * sigma2 + (1.0 - valid.to(A.dtype))
-    S.diagonal(dim1=-2, dim2=-1).add_(diagonal)
-    L, info = torch.linalg.cholesky_ex(S)
-    usable = covariance_form_usable(L, info, valid, S)
-    z = torch.linalg.solve_triangular(L, nu_bar.unsqueeze(-1), upper=False)
-    nis = (z * z).sum((-2, -1))
-    if bool(usable.all()):
-        return nis
-    # information form where the covariance form is not accurate
-    Af, nf = A[~usable], nu_bar[~usable]
-    k = A.shape[-1]
-    eye = torch.eye(k, dtype=A.dtype, device=A.device).expand(Af.shape[0], k, k)
-    R = torch.linalg.qr(torch.cat((Af / sigma2.sqrt(), eye), -2)).R  # RᵀR = I + AᵀA/σ²
-    rhs = Af.transpose(-1, -2) @ nf.unsqueeze(-1) / sigma2
-    zf = torch.linalg.solve_triangular(
-        R, torch.linalg.solve_triangular(R.transpose(-1, -2), rhs, upper=False), upper=True
-    )
-    e = nf - (Af @ zf).squeeze(-1)
-    return nis.index_put((~usable).nonzero(as_tuple=True), (e * e).sum(-1) / sigma2 + (zf * zf).sum((-2, -1)))
