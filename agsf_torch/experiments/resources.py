@@ -28,6 +28,7 @@ __all__ = [
     "simulation_memory",
     "available_memory",
     "peak_resident_memory",
+    "resident_memory",
     "check_memory",
     "refuse_if_too_large",
     "TooLarge",
@@ -115,17 +116,27 @@ def _read_int(path: str, prefix: str = "", scale: int = 1) -> int | None:
     return None
 
 
+def _own_memory(field: str) -> int:
+    """``field`` of ``/proc/self/status`` (bytes), else ``getrusage``'s max RSS (where there is no ``/proc``)."""
+    value = _read_int("/proc/self/status", field, 1024)
+    if value is not None:
+        return value
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
+
+
+def resident_memory() -> int:
+    """This process's resident memory now (bytes): ``VmRSS``; its peak where there is no ``/proc``."""
+    return _own_memory("VmRSS:")
+
+
 def peak_resident_memory() -> int:
     """This process's own peak resident memory (bytes): ``VmHWM`` of ``/proc/self/status`` where there is one
     (Linux), else ``getrusage``'s max RSS.  Not ``getrusage`` on Linux: its max RSS survives ``exec``, so a
     process started by a large one reports the parent's resident memory at the fork (measured: 1,455 MiB for a
     child whose own peak was 9 MiB)."""
-    peak = _read_int("/proc/self/status", "VmHWM:", 1024)
-    if peak is not None:
-        return peak
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
+    return _own_memory("VmHWM:")
 
 
 def available_memory() -> int:

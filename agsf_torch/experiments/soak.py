@@ -23,7 +23,6 @@ warm-up to the last below ``max_rss_growth_mb``.
 from __future__ import annotations
 
 import math
-import resource
 import time
 from pathlib import Path
 from typing import Any
@@ -37,21 +36,15 @@ from ..filters.registry import ADAPTIVE_FILTERS
 from ..storage.files import append_line, json_text, write_text
 from .config import ExperimentConfig, load_preset
 from .experiment import make_env, make_filters, prepare_output, prior_covariance
-from .resources import check_memory
+from .resources import check_memory, resident_memory
 from .runner import monte_carlo_steps
 
 __all__ = ["soak_config", "run_soak", "soak_verdict", "rss_mb"]
 
 
 def rss_mb() -> float:
-    """Current resident set size of this process (MB); peak RSS where ``/proc`` is missing."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """Current resident set size of this process (MiB; :func:`~.resources.resident_memory`)."""
+    return resident_memory() / 2**20
 
 
 def soak_config(filter_name: str = "GSF", **changes: Any) -> ExperimentConfig:
