@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .finite import all_finite
+
 __all__ = ["GaussianMixture", "split_gaussian", "check_covariance", "as_real_tensor"]
 
 
@@ -56,7 +58,7 @@ def check_covariance(name: str, P: Tensor, rtol: float = 1e-9) -> None:
         raise ValueError(f"{name} must be a floating-point tensor, got {_describe(P)}")
     if P.dim() < 2 or P.shape[-1] != P.shape[-2]:
         raise ValueError(f"{name} must have shape [..., n, n], got {tuple(P.shape)}")
-    if not bool(torch.isfinite(P).all()):
+    if not all_finite(P):
         idx = (~torch.isfinite(P)).flatten(-2).any(-1).nonzero()[0].tolist()
         raise ValueError(f"{name} has non-finite entries at batch index {tuple(idx)}")
     scale = P.diagonal(dim1=-2, dim2=-1).abs().amax(-1, keepdim=True)[..., None]
@@ -125,7 +127,7 @@ class GaussianMixture:
                 raise ValueError(f"covs must have shape {tuple(means.shape) + (n,)}, got {tuple(covs.shape)}")
             if log_weights.shape != means.shape[:-1]:
                 raise ValueError(f"weights must have shape {tuple(means.shape[:-1])}, got {tuple(log_weights.shape)}")
-            if not bool(torch.isfinite(means).all()):
+            if not all_finite(means):
                 idx = (~torch.isfinite(means)).any(-1).nonzero()[0].tolist()
                 raise ValueError(f"means must be finite; non-finite entry at batch index {tuple(idx)}")
             check_covariance("covs", covs)

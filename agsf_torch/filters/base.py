@@ -26,6 +26,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from ..finite import all_finite
 from ..gating import chi2_threshold, innovation_gate
 from ..mixture import GaussianMixture, as_real_tensor
 from ..models.base import ContinuousModel, MeasurementModel
@@ -88,7 +89,7 @@ def check_batched(name: str, value: Tensor, batch_shape: torch.Size, last: int |
     dims broadcast with the mixture's ``batch_shape`` (``last``: the required size of the last dim, if any)."""
     if last is not None and (value.dim() < 1 or value.shape[-1] != last):
         raise ValueError(f"{name} must have shape [..., {last}], got {tuple(value.shape)}")
-    if not bool(torch.isfinite(value).all()):
+    if not all_finite(value):
         idx = (~torch.isfinite(value)).nonzero()[0].tolist()
         raise ValueError(f"{name} must be finite; non-finite value at index {tuple(idx)}")
     try:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..shapes import broadcast_shapes
 from ..update import covariance_form_usable
 
 __all__ = ["mixture_information_nis"]
@@ -21,7 +22,9 @@ def mixture_information_nis(
 ) -> Tensor:
     r"""The moment-matched mixture NIS ``ν̄ᵀS̄⁻¹ν̄`` (:func:`~agsf_torch.update.moment_matched_innovation`) from
     square roots: ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ [Hᵢ Lᵢ, νᵢ − ν̄]]ᵢ`` (``[..., d, (k+1)N]``; the order of the
-    columns does not change ``AAᵀ``).
+    columns does not change ``AAᵀ``), written once, by the products that scale its columns, straight
+    into the layout the Gram product reads (measured on 2 cores, 4096 trajectories of 5 components and
+    5 stars: 11 ms against 20 ms for concatenating the blocks, scaling them and transposing the result).
 
     Where the Cholesky factor of ``S̄`` is fit for solves (:func:`~agsf_torch.update.covariance_form_usable`,
     the generic update's rule), with it; elsewhere (a precise sensor after a wide prior) in information form,
@@ -43,10 +46,19 @@ def mixture_information_nis(
     Returns:
         ``[...]``.
     """
+    N, d, k = HL.shape[-3:]
+    batch = broadcast_shapes(log_weights.shape[:-1], nu.shape[:-2], HL.shape[:-3])
     sw = (0.5 * log_weights).exp()  # √wᵢ
     nu_bar = ((sw * sw).unsqueeze(-2) @ nu).squeeze(-2)  # Σ wᵢ νᵢ
-    X = torch.cat((HL, (nu - nu_bar.unsqueeze(-2)).unsqueeze(-1)), -1)  # [..., N, d, k+1]
-    A = (sw[..., None, None] * X).movedim(-3, -2).flatten(-2)  # [..., d, N(k+1)]
+    spread = (nu - nu_bar.unsqueeze(-2)).transpose(-1, -2)  # [..., d, N]
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (log_weights, nu, HL)):
+        # autograd records no product with out=: the same entries through a concatenation
+        A = (torch.cat((HL.transpose(-3, -2), spread.unsqueeze(-1)), -1) * sw[..., None, :, None]).flatten(-2)
+    else:
+        A = HL.new_empty(*batch, d, N * (k + 1))
+        X = A.unflatten(-1, (N, k + 1))  # [..., d, N, k+1], a view of A
+        torch.mul(HL.transpose(-3, -2), sw[..., None, :, None], out=X[..., :k])
+        torch.mul(spread, sw[..., None, :], out=X[..., k])
     S = A @ A.transpose(-1, -2)
     diagonal = sigma2 if valid is None else valid.to(A.dtype) * sigma2 + (1.0 - valid.to(A.dtype))
     S.diagonal(dim1=-2, dim2=-1).add_(diagonal)
@@ -58,8 +70,8 @@ def mixture_information_nis(
         return nis
     # information form where the covariance form is not accurate
     Af, nf = A[~usable], nu_bar[~usable]
-    k = A.shape[-1]
-    eye = torch.eye(k, dtype=A.dtype, device=A.device).expand(Af.shape[0], k, k)
+    cols = A.shape[-1]
+    eye = torch.eye(cols, dtype=A.dtype, device=A.device).expand(Af.shape[0], cols, cols)
     R = torch.linalg.qr(torch.cat((Af / sigma2.sqrt(), eye), -2)).R  # RᵀR = I + AᵀA/σ²
     rhs = Af.transpose(-1, -2) @ nf.unsqueeze(-1) / sigma2
     zf = torch.linalg.solve_triangular(

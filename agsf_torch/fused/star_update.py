@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..finite import all_finite
 from ..models.base import MeasurementModel
 from ..models.star_vectors import StarVectorMeasurement
 from ..shapes import broadcast_shapes
@@ -360,8 +361,8 @@ def fused_star_update(
         )
     new_means, new_covs = out[0].reshape(*lead, n), out[1].reshape(*lead, n, n)
     log_beta, nis, dof = (t.reshape(lead) for t in out[2:5])
-    if not bool(
-        torch.isfinite(torch.cat([t.reshape(-1) for t in (new_covs, new_means, log_beta, nis)])).all()
+    if not all_finite(
+        new_covs, new_means, log_beta, nis
     ):  # beyond the kernel's range (a pivot clamped to overflow): the generic update
         from ..update import kalman_update
 

@@ -23,6 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..finite import check_finite
 from ..shapes import broadcast_shapes
 
 __all__ = [
@@ -43,13 +44,6 @@ def sum_last(x: Tensor, keepdim: bool = False) -> Tensor:
     a short last dimension (torch's reduction kernel is slow over 3–6 contiguous entries)."""
     out = x @ x.new_ones(x.shape[-1])
     return out.unsqueeze(-1) if keepdim else out
-
-
-def check_finite(name: str, value: Tensor) -> None:
-    """Raise ``ValueError`` naming ``name`` if ``value`` holds a NaN or ±inf."""
-    if not bool(torch.isfinite(value).all()):
-        bad = (~torch.isfinite(value)).nonzero()
-        raise ValueError(f"{name} must be finite; non-finite entry at index {tuple(bad[0].tolist())}")
 
 
 def check_nonnegative(name: str, value) -> Tensor:
