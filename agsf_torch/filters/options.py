@@ -101,7 +101,8 @@ class FilterOptions:
         compile_fused: run the fused kernels compiled ahead of time (:mod:`agsf_torch.fused.lanes`:
             per kernel a threaded variant for calls of 1,024 lanes or more and a serial one below,
             each compiled on first use, about 30–100 s the first time on a machine and about a
-            second to load in a later process); ``False`` runs the same code eagerly
+            second to load in a later process; the filter loop compiles a first step's kernels side
+            by side, :func:`agsf_torch.filter_loop.prepare_fused_kernels`); ``False`` runs the same code eagerly
             (from :data:`~agsf_torch.fused.lanes.EAGER_MIN_LANES` components on; fewer take the
             generic path, which is faster there).  The adaptive filters' FPKE kernels are
             compiled by their weight update's own ``compile``.

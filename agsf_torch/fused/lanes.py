@@ -22,6 +22,7 @@ back to the eager kernel with one warning; the numbers are the eager ones.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import math
@@ -47,6 +48,7 @@ __all__ = [
     "DEFAULT_CHUNK",
     "EAGER_MIN_LANES",
     "kernel_cache_dir",
+    "compiling_in_parallel",
 ]
 
 
@@ -120,6 +122,8 @@ class _Declined(Exception):
 
 _COMPILED: dict[tuple, Callable] = {}
 _FAILED: set[tuple] = set()
+#: The kernels a :func:`compiling_in_parallel` block has deferred (cache path → export job), or ``None``.
+_PENDING: dict[Path, tuple] | None = None
 
 
 #: Below this many lanes (one chunk) a call takes the kernel's *serial* variant, compiled without OpenMP
@@ -185,13 +189,20 @@ def _compile_ahead_of_time(
             os.unlink(tmp)
 
 
+def _package_path(
+    kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor], serial: bool
+) -> Path:
+    """Where the compiled kernel of this call is kept (``inputs``: its export sample)."""
+    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0])
+    return kernel_cache_dir() / _package_name(kernel, key + variant, inputs, shared)
+
+
 def _load(
     kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor], serial: bool = False
 ) -> Callable:
     """The compiled kernel (``serial``: its variant without threads): loaded from the cache, or compiled into it
     first (announced)."""
-    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0])
-    path = kernel_cache_dir() / _package_name(kernel, key + variant, inputs, shared)
+    path = _package_path(kernel, key, inputs, shared, serial)
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
     if not path.is_file():
         logger.info(
@@ -282,6 +293,8 @@ def run_in_chunks(
             # contiguous, as the compiled code assumes the strides it was exported with
             part = [_padded(t[a : a + step], floor) for t in inputs]
             if cache_key not in _COMPILED:  # the first chunk is the export's sample
+                if _PENDING is not None and _defer(kernel, key, part, shared, serial):
+                    return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
                 _COMPILED[cache_key] = _load(kernel, key, part, shared, serial)
             c = min(step, C - a)
             outs.append(tuple(o if o.shape[0] == c else o[:c] for o in _COMPILED[cache_key](*part, *shared)))
@@ -296,3 +309,96 @@ def run_in_chunks(
         )
         return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
     return outs[0] if len(outs) == 1 else tuple(torch.cat(p) for p in zip(*outs))
+
+
+def _defer(kernel: Callable, key: tuple, part: Sequence[Tensor], shared: Sequence[Tensor], serial: bool) -> bool:
+    """Inside :func:`compiling_in_parallel`: note a kernel that is not compiled yet (``True``: run it eagerly now)."""
+    path = _package_path(kernel, key, part, shared, serial)
+    if path.is_file():
+        return False
+    name = _kernel_name(kernel) + (" (serial)" if serial else "")
+    _PENDING.setdefault(path, (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial))
+    return True
+
+
+@contextlib.contextmanager
+def compiling_in_parallel(processes: int | None = None):
+    """Compile the fused kernels a block of code needs side by side, in worker processes, instead of one
+    after another as each is first called.
+
+    Inside the block every compiled :func:`run_in_chunks` call whose kernel is not in the cache runs its
+    eager kernel instead and is noted (its numbers agree with the compiled kernel's to rounding, not
+    bit for bit: the compiler may reorder a division or fuse a multiply-add); when the block ends, the
+    noted kernels are compiled into the cache, up to ``processes`` at once (default: one per CPU the
+    process may use), each in a new interpreter, announced on the ``agsf_torch`` logger, and later calls
+    load them.  The block is meant for a *rehearsal* of a first step whose results are dropped
+    (:func:`agsf_torch.filter_loop.prepare_fused_kernels`): the real step then runs compiled, with the
+    numbers of a process whose cache was warm, and the wait is the longest compilation, not their sum.
+    A kernel whose compilation fails is left to its first later call, which compiles it again or falls
+    back to the eager kernel with one warning.  Nested blocks compile at the end of the outermost; an
+    exception leaving the block compiles nothing.
+    """
+    global _PENDING
+    if _PENDING is not None:  # the outer block compiles
+        yield
+        return
+    _PENDING = {}
+    try:
+        yield
+        jobs = _PENDING
+    finally:
+        _PENDING = None
+    if jobs:
+        _compile_pending(jobs, processes)
+
+
+def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
+    """Compile ``jobs`` (cache path → (name, kernel, inputs, shared, serial)) into the cache, up to ``processes``
+    at once, each in a new interpreter (:mod:`agsf_torch.fused.compile_worker`: the caller's ``__main__`` is not
+    imported again, as a multiprocessing worker would)."""
+    import pickle
+    import subprocess
+    import sys
+
+    available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    workers = max(1, min(len(jobs), processes or available))
+    logger.info(
+        "compiling the fused kernels %s ahead of time, %d at once (once per machine and torch version: about "
+        "30–100 s each; later processes load them from %s in about a second)",
+        ", ".join(repr(job[0]) for job in jobs.values()),
+        workers,
+        kernel_cache_dir(),
+    )
+    t0 = time.perf_counter()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    queue, running = list(jobs.items()), []
+    with tempfile.TemporaryDirectory(prefix="agsf-kernels-") as scratch:
+        while queue or running:
+            while queue and len(running) < workers:
+                path, (name, kernel, inputs, shared, serial) = queue.pop(0)
+                job = Path(scratch) / f"{len(queue)}.pkl"
+                try:
+                    job.write_bytes(pickle.dumps((kernel, inputs, shared, str(path), serial)))
+                except (pickle.PicklingError, AttributeError, TypeError) as exc:  # e.g. a local function
+                    _compile_failed(name, exc)
+                    continue
+                cmd = [sys.executable, "-m", "agsf_torch.fused.compile_worker", str(job)]
+                proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                running.append((name, proc))
+            name, proc = running.pop(0)
+            out, err = proc.communicate()
+            if proc.returncode == 0:
+                logger.info("compiled the fused kernel %r in %s s", name, out.strip().splitlines()[-1])
+            else:
+                last = (err.strip().splitlines() or ["no message"])[-1]
+                _compile_failed(name, RuntimeError(f"worker exit code {proc.returncode}: {last}"))
+    logger.info("compiled %d fused kernels in %.1f s", len(jobs), time.perf_counter() - t0)
+
+
+def _compile_failed(name: str, exc: BaseException) -> None:
+    logger.warning(
+        "compiling the fused kernel %r ahead of time failed (%s: %s); its first call compiles it again",
+        name,
+        type(exc).__name__,
+        exc,
+    )

@@ -1,0 +1,127 @@
+"""Compiling the fused kernels a block needs side by side (agsf_torch.fused.lanes.compiling_in_parallel and its
+worker, agsf_torch.fused.compile_worker)."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+import torch
+
+from agsf_torch.fused import lanes
+from agsf_torch.fused.lanes import compiling_in_parallel, run_in_chunks
+from tests.helpers import F64
+
+
+def _kernel(x, y):
+    return (x * 2.0 + y.sum(-1, keepdim=True), (x * x).sum(-1))
+
+
+def _other_kernel(x, y):
+    return (x - y.sum(-1, keepdim=True),)
+
+
+def _failing_kernel(x, y):
+    raise RuntimeError("this kernel cannot be traced")
+
+
+@pytest.fixture
+def empty_cache(monkeypatch, tmp_path):
+    """An empty kernel cache and no kernel loaded in this process; compilations recorded, not run."""
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    monkeypatch.setattr(lanes, "_FAILED", set())
+    batches = []
+    monkeypatch.setattr(lanes, "_compile_pending", lambda jobs, processes: batches.append(dict(jobs)))
+    return batches
+
+
+def _inputs(gen, C=70):
+    return torch.randn(C, 3, generator=gen, dtype=F64), torch.randn(C, 2, generator=gen, dtype=F64)
+
+
+def test_inside_the_block_missing_kernels_run_eagerly_and_are_compiled_together_at_its_end(gen, empty_cache):
+    x, y = _inputs(gen)
+    big = _inputs(gen, lanes.PARALLEL_MIN_LANES + 3)
+    with compiling_in_parallel():
+        out = run_in_chunks(_kernel, (x, y), compile=True)
+        run_in_chunks(_kernel, (x, y), compile=True)  # the same kernel again: noted once
+        run_in_chunks(_other_kernel, big, compile=True)
+        assert empty_cache == []  # nothing compiles before the block ends
+    assert all(torch.equal(a, b) for a, b in zip(out, _kernel(x, y)))
+    (jobs,) = empty_cache
+    assert sorted((job[0], job[4]) for job in jobs.values()) == [("_kernel (serial)", True), ("_other_kernel", False)]
+    for path, (name, kernel, inputs, shared, serial) in jobs.items():
+        assert path.parent == lanes.kernel_cache_dir() and path.name.startswith(kernel.__name__ + "-")
+        # the export sample is what a first call would have compiled: a full chunk for the threaded variant
+        assert inputs[0].shape[0] == (x.shape[0] if serial else lanes.COMPILED_CHUNK)
+
+
+def test_a_kernel_already_in_the_cache_is_not_noted(gen, empty_cache, monkeypatch):
+    x, y = _inputs(gen)
+    path = lanes._package_path(_kernel, (), [x, y], [], True)
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"package")
+    monkeypatch.setattr(lanes, "_load_package", lambda p: _kernel)
+    with compiling_in_parallel():
+        run_in_chunks(_kernel, (x, y), compile=True)
+    assert empty_cache == []
+
+
+def test_nested_blocks_compile_once_at_the_outermost_end_and_an_exception_compiles_nothing(gen, empty_cache):
+    x, y = _inputs(gen)
+    with compiling_in_parallel():
+        with compiling_in_parallel():
+            run_in_chunks(_kernel, (x, y), compile=True)
+        assert empty_cache == []
+    assert len(empty_cache) == 1
+    with pytest.raises(ValueError, match="the step failed"):
+        with compiling_in_parallel():
+            run_in_chunks(_other_kernel, (x, y), compile=True)
+            raise ValueError("the step failed")
+    assert len(empty_cache) == 1 and lanes._PENDING is None
+
+
+def test_outside_a_block_a_kernel_compiles_on_first_call_as_before(gen, empty_cache, monkeypatch):
+    loaded = []
+    monkeypatch.setattr(lanes, "_load", lambda kernel, key, part, shared, serial: loaded.append(kernel) or kernel)
+    x, y = _inputs(gen)
+    run_in_chunks(_kernel, (x, y), compile=True)
+    assert loaded == [_kernel] and empty_cache == []
+
+
+def test_a_kernel_a_worker_cannot_compile_is_announced_and_left_to_its_first_call(gen, monkeypatch, tmp_path, caplog):
+    """Two jobs in two worker processes: one kernel whose export fails (the worker exits with its message) and
+    a local function, which cannot be sent to a worker; neither raises, each is announced as a warning."""
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
+    caplog.set_level(logging.INFO, logger="agsf_torch")
+    x, y = _inputs(gen, 4)
+
+    def local_kernel(a, b):
+        return (a,)
+
+    jobs = {
+        tmp_path / "a.pt2": ("_failing_kernel (serial)", _failing_kernel, [x, y], [], True),
+        tmp_path / "b.pt2": ("local_kernel (serial)", local_kernel, [x, y], [], True),
+    }
+    lanes._compile_pending(jobs, processes=2)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 2
+    assert any("'_failing_kernel (serial)'" in w and "this kernel cannot be traced" in w for w in warnings)
+    assert any("'local_kernel (serial)'" in w for w in warnings)
+    assert not list(tmp_path.glob("*.pt2"))
+
+
+@pytest.mark.slow
+def test_kernels_compiled_side_by_side_are_loaded_by_later_calls_and_equal_the_eager_ones(gen, monkeypatch, tmp_path):
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    x, y = _inputs(gen)
+    with compiling_in_parallel(processes=2):
+        run_in_chunks(_kernel, (x, y), compile=True)
+        run_in_chunks(_other_kernel, (x, y), compile=True)
+    assert len(list(tmp_path.glob("*.pt2"))) == 2
+    monkeypatch.setattr(lanes, "_compile_ahead_of_time", lambda *a: pytest.fail("compiled again"))
+    for kernel in (_kernel, _other_kernel):
+        out = run_in_chunks(kernel, (x, y), compile=True)
+        assert all(torch.equal(a, b) for a, b in zip(out, kernel(x, y)))
