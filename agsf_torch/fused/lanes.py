@@ -376,21 +376,26 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
         while queue or running:
             while queue and len(running) < workers:
                 path, (name, kernel, inputs, shared, serial) = queue.pop(0)
-                job = Path(scratch) / f"{len(queue)}.pkl"
+                job = Path(scratch) / f"job{len(queue)}"
                 try:
-                    job.write_bytes(pickle.dumps((kernel, inputs, shared, str(path), serial)))
+                    job.with_suffix(".pkl").write_bytes(pickle.dumps((kernel, inputs, shared, str(path), serial)))
                 except (pickle.PicklingError, AttributeError, TypeError) as exc:  # e.g. a local function
                     _compile_failed(name, exc)
                     continue
-                cmd = [sys.executable, "-m", "agsf_torch.fused.compile_worker", str(job)]
-                proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-                running.append((name, proc))
-            name, proc = running.pop(0)
-            out, err = proc.communicate()
-            if proc.returncode == 0:
-                logger.info("compiled the fused kernel %r in %s s", name, out.strip().splitlines()[-1])
+                cmd = [sys.executable, "-m", "agsf_torch.fused.compile_worker", str(job.with_suffix(".pkl"))]
+                # output to files, not pipes: a worker never waits for the parent to read it
+                with open(job.with_suffix(".out"), "w") as out, open(job.with_suffix(".err"), "w") as err:
+                    proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=err)
+                running.append((name, proc, job))
+            if not running:
+                continue
+            name, proc, job = running.pop(0)
+            proc.wait()
+            said = job.with_suffix(".out").read_text().split()
+            if proc.returncode == 0 and said:
+                logger.info("compiled the fused kernel %r in %s s", name, said[-1])
             else:
-                last = (err.strip().splitlines() or ["no message"])[-1]
+                last = (job.with_suffix(".err").read_text().strip().splitlines() or ["no message"])[-1]
                 _compile_failed(name, RuntimeError(f"worker exit code {proc.returncode}: {last}"))
     logger.info("compiled %d fused kernels in %.1f s", len(jobs), time.perf_counter() - t0)
 

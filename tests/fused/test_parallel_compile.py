@@ -125,3 +125,14 @@ def test_kernels_compiled_side_by_side_are_loaded_by_later_calls_and_equal_the_e
     for kernel in (_kernel, _other_kernel):
         out = run_in_chunks(kernel, (x, y), compile=True)
         assert all(torch.equal(a, b) for a, b in zip(out, kernel(x, y)))
+
+
+def test_a_batch_of_kernels_none_of_which_can_be_sent_ends_without_a_worker(gen, monkeypatch, tmp_path, caplog):
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
+    caplog.set_level(logging.INFO, logger="agsf_torch")
+    x, y = _inputs(gen, 4)
+    jobs = {tmp_path / "a.pt2": ("lambda (serial)", lambda a, b: (a,), [x, y], [], True)}
+    lanes._compile_pending(jobs, processes=1)
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING][0].startswith(
+        "compiling the fused kernel 'lambda (serial)' ahead of time failed"
+    )
