@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import itertools
+import logging
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -32,12 +33,15 @@ from .filters.base import Filter
 from .fused.lanes import compiling_in_parallel
 from .mixture import GaussianMixture
 
+logger = logging.getLogger(__name__)
+
 __all__ = [
     "FilterSetup",
     "StepInput",
     "FilterStep",
     "LoopStep",
     "filter_steps",
+    "prepare_fused_kernels",
     "initial_mixtures",
     "sample_prior",
     "PRIOR_SEED_OFFSET",
@@ -176,19 +180,29 @@ def prepare_fused_kernels(
     :func:`~agsf_torch.fused.lanes.compiling_in_parallel` (kernels not in the cache run eagerly; the results
     are dropped, the filters themselves untouched), which then compiles them in parallel processes; the
     real step loads them and runs compiled, with the same numbers as a process whose cache was warm.  The
-    rehearsal costs one step (eager where a kernel is missing) and nothing where no filter compiles;
+    rehearsal costs one step (eager where a kernel is missing) and nothing where no filter compiles; one
+    that fails (a filter that cannot be copied, an input the real step will refuse) is announced as a
+    warning and the loop goes on, each kernel compiling when first called;
     :func:`filter_steps` calls it before its first step, and a loop of one's own can call it the same way.
     """
     if not any(_compiles(filt) for filt in filters.values()):
         return
-    with compiling_in_parallel():
-        for name, filt in filters.items():
-            if not _compiles(filt):
-                continue
-            rehearsal = copy.deepcopy(filt)
-            mix = rehearsal.predict(mixtures[name], step.u, step.dt)
-            if step.measurement is not None:
-                rehearsal.update(mix, *step.measurement)
+    try:
+        with compiling_in_parallel():
+            for name, filt in filters.items():
+                if not _compiles(filt):
+                    continue
+                rehearsal = copy.deepcopy(filt)
+                mix = rehearsal.predict(mixtures[name], step.u, step.dt)
+                if step.measurement is not None:  # (the step's correct() is left out: it may keep state,
+                    rehearsal.update(mix, *step.measurement)  # and it changes no kernel's shapes)
+    except Exception as exc:  # noqa: BLE001 - a preparation only: the real step compiles on first call, or raises
+        logger.warning(
+            "could not rehearse the first step to compile its fused kernels side by side (%s: %s); each compiles "
+            "when first called",
+            type(exc).__name__,
+            exc,
+        )
 
 
 def _compiles(filt: Filter) -> bool:

@@ -60,3 +60,20 @@ def test_the_loop_prepares_before_its_first_step_only(gen, monkeypatch):
     out = list(filter_steps({"GSF": make_filter("GSF", model)}, {"GSF": mixture}, iter(steps)))
     assert calls == [step] and len(out) == 2
     assert list(filter_steps({"GSF": make_filter("GSF", model)}, {"GSF": mixture}, [])) == []
+
+
+def test_a_rehearsal_that_fails_is_announced_and_the_loop_goes_on(gen, monkeypatch, caplog):
+    """A filter that cannot be copied (e.g. holding tensors of an autograd graph): one warning, then the real
+    steps run (their kernels compile when first called; here the eager path of a filter that compiles nothing
+    is forced to look like one that does)."""
+    import copy
+    import logging
+
+    monkeypatch.setattr(copy, "deepcopy", lambda x: (_ for _ in ()).throw(RuntimeError("cannot copy")))
+    monkeypatch.setattr(filter_loop, "_compiles", lambda filt: True)
+    caplog.set_level(logging.WARNING, logger="agsf_torch")
+    model, mixture, step = _first_step(gen, B=4)
+    out = list(filter_steps({"GSF": make_filter("GSF", model)}, {"GSF": mixture}, [step]))
+    assert len(out) == 1 and bool(torch.isfinite(out[0].filters["GSF"].mixture.means).all())
+    (warning,) = [r.getMessage() for r in caplog.records]
+    assert warning.startswith("could not rehearse the first step") and "RuntimeError: cannot copy" in warning

@@ -23,6 +23,7 @@ back to the eager kernel with one warning; the numbers are the eager ones.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import hashlib
 import logging
 import math
@@ -122,8 +123,11 @@ class _Declined(Exception):
 
 _COMPILED: dict[tuple, Callable] = {}
 _FAILED: set[tuple] = set()
-#: The kernels a :func:`compiling_in_parallel` block has deferred (cache path → export job), or ``None``.
-_PENDING: dict[Path, tuple] | None = None
+#: The kernels the open :func:`compiling_in_parallel` block of this thread (or task) has deferred (cache path →
+#: export job), or ``None``: other threads compile on first call as before.
+_PENDING: contextvars.ContextVar[dict[Path, tuple] | None] = contextvars.ContextVar(
+    "agsf_pending_kernels", default=None
+)
 
 
 #: Below this many lanes (one chunk) a call takes the kernel's *serial* variant, compiled without OpenMP
@@ -293,7 +297,7 @@ def run_in_chunks(
             # contiguous, as the compiled code assumes the strides it was exported with
             part = [_padded(t[a : a + step], floor) for t in inputs]
             if cache_key not in _COMPILED:  # the first chunk is the export's sample
-                if _PENDING is not None and _defer(kernel, key, part, shared, serial):
+                if _PENDING.get() is not None and _defer(kernel, key, part, shared, serial):
                     return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
                 _COMPILED[cache_key] = _load(kernel, key, part, shared, serial)
             c = min(step, C - a)
@@ -317,7 +321,7 @@ def _defer(kernel: Callable, key: tuple, part: Sequence[Tensor], shared: Sequenc
     if path.is_file():
         return False
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
-    _PENDING.setdefault(path, (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial))
+    _PENDING.get().setdefault(path, (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial))
     return True
 
 
@@ -338,16 +342,15 @@ def compiling_in_parallel(processes: int | None = None):
     back to the eager kernel with one warning.  Nested blocks compile at the end of the outermost; an
     exception leaving the block compiles nothing.
     """
-    global _PENDING
-    if _PENDING is not None:  # the outer block compiles
+    if _PENDING.get() is not None:  # the outer block compiles
         yield
         return
-    _PENDING = {}
+    jobs: dict[Path, tuple] = {}
+    token = _PENDING.set(jobs)
     try:
         yield
-        jobs = _PENDING
     finally:
-        _PENDING = None
+        _PENDING.reset(token)
     if jobs:
         _compile_pending(jobs, processes)
 
@@ -370,34 +373,41 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
         kernel_cache_dir(),
     )
     t0 = time.perf_counter()
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-    queue, running = list(jobs.items()), []
+    paths = [os.fspath(p) for p in sys.path if isinstance(p, (str, os.PathLike)) and os.fspath(p)]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}  # the caller's imports, in a new interpreter
+    queue, running, done = list(jobs.items()), [], 0
     with tempfile.TemporaryDirectory(prefix="agsf-kernels-") as scratch:
-        while queue or running:
-            while queue and len(running) < workers:
-                path, (name, kernel, inputs, shared, serial) = queue.pop(0)
-                job = Path(scratch) / f"job{len(queue)}"
-                try:
-                    job.with_suffix(".pkl").write_bytes(pickle.dumps((kernel, inputs, shared, str(path), serial)))
-                except (pickle.PicklingError, AttributeError, TypeError) as exc:  # e.g. a local function
-                    _compile_failed(name, exc)
+        try:
+            while queue or running:
+                while queue and len(running) < workers:
+                    path, (name, kernel, inputs, shared, serial) = queue.pop(0)
+                    job = Path(scratch) / f"job{len(queue)}"
+                    try:
+                        job.with_suffix(".pkl").write_bytes(pickle.dumps((kernel, inputs, shared, str(path), serial)))
+                        cmd = [sys.executable, "-m", "agsf_torch.fused.compile_worker", str(job.with_suffix(".pkl"))]
+                        # output to files, not pipes: a worker never waits for the parent to read it
+                        with open(job.with_suffix(".out"), "w") as out, open(job.with_suffix(".err"), "w") as err:
+                            running.append((name, subprocess.Popen(cmd, env=env, stdout=out, stderr=err), job))
+                    except Exception as exc:  # noqa: BLE001 - e.g. a local function, which cannot be sent
+                        _compile_failed(name, exc)
+                finished = [r for r in running if r[1].poll() is not None]
+                if not finished:
+                    time.sleep(0.05)
                     continue
-                cmd = [sys.executable, "-m", "agsf_torch.fused.compile_worker", str(job.with_suffix(".pkl"))]
-                # output to files, not pipes: a worker never waits for the parent to read it
-                with open(job.with_suffix(".out"), "w") as out, open(job.with_suffix(".err"), "w") as err:
-                    proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=err)
-                running.append((name, proc, job))
-            if not running:
-                continue
-            name, proc, job = running.pop(0)
-            proc.wait()
-            said = job.with_suffix(".out").read_text().split()
-            if proc.returncode == 0 and said:
-                logger.info("compiled the fused kernel %r in %s s", name, said[-1])
-            else:
-                last = (job.with_suffix(".err").read_text().strip().splitlines() or ["no message"])[-1]
-                _compile_failed(name, RuntimeError(f"worker exit code {proc.returncode}: {last}"))
-    logger.info("compiled %d fused kernels in %.1f s", len(jobs), time.perf_counter() - t0)
+                for name, proc, job in finished:  # a free slot for the next job as soon as any worker ends
+                    running.remove((name, proc, job))
+                    said = job.with_suffix(".out").read_text().split()
+                    if proc.returncode == 0 and said:
+                        done += 1
+                        logger.info("compiled the fused kernel %r in %s s", name, said[-1])
+                    else:
+                        last = (job.with_suffix(".err").read_text().strip().splitlines() or ["no message"])[-1]
+                        _compile_failed(name, RuntimeError(f"worker exit code {proc.returncode}: {last}"))
+        finally:  # interrupted: no worker outlives the call
+            for _, proc, _ in running:
+                proc.kill()
+                proc.wait()
+    logger.info("compiled %d of %d fused kernels in %.1f s", done, len(jobs), time.perf_counter() - t0)
 
 
 def _compile_failed(name: str, exc: BaseException) -> None:

@@ -48,6 +48,8 @@ def mixture_information_nis(
     """
     N, d, k = HL.shape[-3:]
     batch = broadcast_shapes(log_weights.shape[:-1], nu.shape[:-2], HL.shape[:-3])
+    # every input at the full batch (views): the products below write whole slices of A
+    log_weights, nu, HL = log_weights.expand(*batch, N), nu.expand(*batch, N, d), HL.expand(*batch, N, d, k)
     sw = (0.5 * log_weights).exp()  # √wᵢ
     nu_bar = ((sw * sw).unsqueeze(-2) @ nu).squeeze(-2)  # Σ wᵢ νᵢ
     spread = (nu - nu_bar.unsqueeze(-2)).transpose(-1, -2)  # [..., d, N]

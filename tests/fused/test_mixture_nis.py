@@ -116,3 +116,14 @@ def test_weights_shared_by_a_batch_broadcast(gen):
         mixture_information_nis(shared, nu, HL, sigma2),
         mixture_information_nis(shared.expand(7, -1).contiguous(), nu, HL, sigma2),
     )
+
+
+def test_innovations_and_weights_shared_by_a_batch_broadcast_against_the_square_roots(gen):
+    """``ν`` and the weights of one mixture with a batch of square roots: every entry of ``A`` is written
+    (the same NIS as with the shared inputs repeated, and a dense solve's to ``8d·κ(S̄)·ε``)."""
+    log_w, nu, HL, sigma2, _ = _inputs(gen, 7)
+    got = mixture_information_nis(log_w[0], nu[0], HL, sigma2)
+    repeated = (log_w[0].expand(7, -1), nu[0].expand(7, -1, -1), HL, sigma2, None)
+    assert got.shape == (7,) and torch.equal(got, mixture_information_nis(*repeated))
+    want, kappa = _dense(*repeated)
+    assert bool((((got - want).abs() / want) <= 8 * 15 * kappa * EPS).all())

@@ -79,7 +79,7 @@ def test_nested_blocks_compile_once_at_the_outermost_end_and_an_exception_compil
         with compiling_in_parallel():
             run_in_chunks(_other_kernel, (x, y), compile=True)
             raise ValueError("the step failed")
-    assert len(empty_cache) == 1 and lanes._PENDING is None
+    assert len(empty_cache) == 1 and lanes._PENDING.get() is None
 
 
 def test_outside_a_block_a_kernel_compiles_on_first_call_as_before(gen, empty_cache, monkeypatch):
@@ -132,6 +132,7 @@ def test_a_batch_of_kernels_none_of_which_can_be_sent_ends_without_a_worker(gen,
     caplog.set_level(logging.INFO, logger="agsf_torch")
     x, y = _inputs(gen, 4)
     jobs = {tmp_path / "a.pt2": ("lambda (serial)", lambda a, b: (a,), [x, y], [], True)}
+    monkeypatch.setattr("subprocess.Popen", lambda *a, **k: pytest.fail("a worker was started"))
     lanes._compile_pending(jobs, processes=1)
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING][0].startswith(
         "compiling the fused kernel 'lambda (serial)' ahead of time failed"
