@@ -175,8 +175,8 @@ def prepare_fused_kernels(
     """Compile the fused kernels the filters' first ``step`` needs side by side, before it runs.
 
     A first step with compiled fused kernels (``compile_fused=True``) would otherwise compile each kernel
-    when it is first called, one after another (the propagation's, then the update's: 90–100 s on a
-    2-core machine with empty caches).  Here a copy of each such filter rehearses the step inside
+    when it is first called, one after another (the propagation's, then the update's: 69–102 s measured
+    on a 2-core machine with empty caches).  Here a copy of each such filter rehearses the step inside
     :func:`~agsf_torch.fused.lanes.compiling_in_parallel` (kernels not in the cache run eagerly; the results
     are dropped, the filters themselves untouched), which then compiles them in parallel processes; the
     real step loads them and runs compiled, with the same numbers as a process whose cache was warm.  The
@@ -185,14 +185,13 @@ def prepare_fused_kernels(
     warning and the loop goes on, each kernel compiling when first called;
     :func:`filter_steps` calls it before its first step, and a loop of one's own can call it the same way.
     """
-    if not any(_compiles(filt) for filt in filters.values()):
+    compiling = [name for name, filt in filters.items() if _compiles(filt)]
+    if not compiling:
         return
     try:
         with compiling_in_parallel():
-            for name, filt in filters.items():
-                if not _compiles(filt):
-                    continue
-                rehearsal = copy.deepcopy(filt)
+            for name in compiling:
+                rehearsal = copy.deepcopy(filters[name])
                 mix = rehearsal.predict(mixtures[name], step.u, step.dt)
                 if step.measurement is not None:  # (the step's correct() is left out: it may keep state,
                     rehearsal.update(mix, *step.measurement)  # and it changes no kernel's shapes)
