@@ -130,7 +130,8 @@ _PENDING: contextvars.ContextVar[dict[Path, tuple] | None] = contextvars.Context
 )
 
 
-#: Below this many lanes (one chunk) a call takes the kernel's *serial* variant, compiled without OpenMP
+#: Below this many lanes (one chunk of :data:`COMPILED_CHUNK`; of a kernel's own ``compiled_chunk`` where it
+#: passes one to :func:`run_in_chunks`) a call takes the kernel's *serial* variant, compiled without OpenMP
 #: threads for any lane count (on first use, like the threaded one): padding to a full chunk would multiply
 #: the work, and the threaded code's parallel loop would wake the other threads for microseconds of work,
 #: whose spin-wait afterwards slows the LAPACK calls that follow (measured on 2 cores: one spacecraft's star
@@ -260,6 +261,7 @@ def run_in_chunks(
     compile: bool = False,
     chunk: int = DEFAULT_CHUNK,
     key: tuple = (),
+    compiled_chunk: int | None = None,
 ) -> tuple[Tensor, ...]:
     """``kernel(*inputs)`` over the leading (lane) dim of ``inputs`` in chunks of ``chunk`` lanes.
 
@@ -270,14 +272,21 @@ def run_in_chunks(
         shared: tensors passed whole to every call after ``inputs`` (0-d parameters such as
             ``dt`` or a noise density: inputs of the compiled kernel, not constants of it).
         compile: run the kernel compiled ahead of time (module docstring): in chunks of
-            :data:`COMPILED_CHUNK` lanes (the tail padded), or in one serial call below
-            :data:`PARALLEL_MIN_LANES`; ``False`` runs the same code eagerly.
+            ``compiled_chunk`` lanes (the tail padded), or in one serial call below that many;
+            ``False`` runs the same code eagerly.
         chunk: lanes per eager call.
         key: identifies the kernel's static configuration in the compile cache.
+        compiled_chunk: lanes per call of the threaded compiled variant, a positive integer (``None``:
+            :data:`COMPILED_CHUNK`); a kernel whose lanes each carry many temporaries (a row of quadrature
+            nodes, say) takes fewer, so that its temporaries stay in cache.
 
     Returns:
         The outputs ``[C, …]``.
     """
+    if compiled_chunk is None:
+        compiled_chunk = COMPILED_CHUNK
+    elif isinstance(compiled_chunk, bool) or not isinstance(compiled_chunk, int) or compiled_chunk < 1:
+        raise ValueError(f"compiled_chunk must be a positive integer, got {compiled_chunk!r}")
     C = inputs[0].shape[0]
     shared = tuple(shared)
     if not compile or C == 0:
@@ -285,13 +294,14 @@ def run_in_chunks(
             return kernel(*inputs, *shared)
         parts = [kernel(*(t[a : a + chunk] for t in inputs), *shared) for a in range(0, C, chunk)]
         return tuple(torch.cat(p) for p in zip(*parts))
-    serial = C < PARALLEL_MIN_LANES
-    cache_key = (kernel, serial, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
+    serial = C < compiled_chunk  # below one chunk: the serial variant (PARALLEL_MIN_LANES for the default)
+    chunk_lanes = None if serial else compiled_chunk  # the threaded variant is compiled for its chunk
+    cache_key = (kernel, chunk_lanes, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
     try:
         if cache_key in _FAILED:
             raise _Declined
-        floor = 2 if serial else COMPILED_CHUNK  # the lanes a compiled call takes at least
-        step = C if serial else COMPILED_CHUNK
+        floor = 2 if serial else compiled_chunk  # the lanes a compiled call takes at least
+        step = C if serial else compiled_chunk
         outs = []
         for a in range(0, C, step):
             # contiguous, as the compiled code assumes the strides it was exported with

@@ -166,3 +166,42 @@ def test_structural_zeros_and_ones_emit_no_arithmetic(gen):
     assert algebra.matmul(algebra.zeros(6), X) == algebra.zeros(6) and algebra.count() == 0
     algebra.matmul(X, X)
     assert algebra.count() == 6 * 6 * (6 + 5)  # 6 products and 5 sums per entry of a dense product
+
+
+def test_a_kernel_can_take_its_own_compiled_chunk(monkeypatch, gen):
+    """``compiled_chunk``: the threaded variant is compiled for that many lanes and sees only full chunks of it
+    (the tail padded), below it one serial call; the same kernel with the default chunk is another variant."""
+    seen = []
+
+    def recording(kernel, key, inputs, shared, serial):
+        size = None if serial else inputs[0].shape[0]
+
+        def compiled(*args):
+            assert serial or args[0].shape[0] == size  # a threaded variant only ever sees its own chunk
+            seen.append((args[0].shape[0], serial))
+            return kernel(*args)
+
+        return compiled
+
+    monkeypatch.setattr(lanes, "_load", recording)
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    for C, chunk, calls in (
+        (4, 5, [(4, True)]),
+        (5, 5, [(5, False)]),
+        (12, 5, [(5, False)] * 3),
+        (12, None, [(12, True)]),
+        (lanes.COMPILED_CHUNK + 1, None, [(lanes.COMPILED_CHUNK, False)] * 2),
+        (11, 5, [(5, False)] * 3),
+    ):
+        seen.clear()
+        x, y = torch.randn(C, 3, generator=gen, dtype=F64), torch.randn(C, 2, generator=gen, dtype=F64)
+        out = run_in_chunks(_kernel, (x, y), compile=True, compiled_chunk=chunk)
+        assert all(torch.equal(a, b) for a, b in zip(out, _kernel(x, y)))
+        assert seen == calls
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, True, "128"])
+def test_a_bad_compiled_chunk_is_refused(gen, bad):
+    x = torch.randn(4, 3, generator=gen, dtype=F64)
+    with pytest.raises(ValueError, match="compiled_chunk must be a positive integer"):
+        run_in_chunks(_kernel, (x, x[:, :2]), compile=True, compiled_chunk=bad)

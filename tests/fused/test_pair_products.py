@@ -165,8 +165,33 @@ def test_the_penalty_filter_chooses_the_same_weights_on_either_route(gen, monkey
     assert bool(((out[0] - out[10**12]).norm(dim=-1) <= bound).all())
 
 
+@pytest.mark.parametrize("n", [3, 6])
+def test_compiled_calls_take_chunks_of_compiled_pairs(gen, monkeypatch, n):
+    """The compiled kernel's threaded variant sees only chunks of ``COMPILED_PAIRS`` pairs (the tail padded; its
+    temporaries ``[pairs, 84]`` kept small), fewer pairs one serial call; the numbers are the eager kernel's."""
+    from agsf_torch.fused import lanes
+
+    seen = []
+
+    def recording(kernel, key, inputs, shared, serial):
+        def run(*args):
+            seen.append((args[0].shape[0], serial))
+            return kernel(*args)
+
+        return run
+
+    monkeypatch.setattr(lanes, "_load", recording)
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    chunk = pair_products.COMPILED_PAIRS
+    for B, calls in ((2, [(30, True)]), (20, [(chunk, False)] * -(-300 // chunk))):
+        seen.clear()
+        model, u, comp = _components(gen, B, 5, n, 1e3)  # 15 pairs per trajectory
+        _assert_agree(_on_lanes(model, u, comp, compile=True), _on_lanes(model, u, comp), model, u, comp)
+        assert seen == calls
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("n", [3, 6])
 def test_the_compiled_kernel_equals_the_eager_one(gen, n):
-    model, u, comp = _components(gen, 300, 5, n, 1e6)  # 4500 pairs: one chunk of 4096 and a padded one
+    model, u, comp = _components(gen, 300, 5, n, 1e6)  # 4500 pairs: 35 chunks of COMPILED_PAIRS = 128, a padded one
     _assert_agree(_on_lanes(model, u, comp, compile=True), _on_lanes(model, u, comp), model, u, comp)
