@@ -7,7 +7,14 @@
 * :mod:`.rules` — which quadrature rule.
 """
 
-from .matrices import FPKEMatrix, GalerkinMatrices, fpke_matrix, fused_galerkin_matrices, galerkin_matrices
+from .matrices import (
+    FPKEMatrix,
+    GalerkinMatrices,
+    fpke_matrix,
+    fused_fpke_matrix,
+    fused_galerkin_matrices,
+    galerkin_matrices,
+)
 from .pairs import ProductGaussians, product_gaussians
 from .residual import ComponentRates, fpke_residual, log_normal, residual_factor
 from .rules import residual_rule
@@ -23,6 +30,7 @@ __all__ = [
     "FPKEMatrix",
     "galerkin_matrices",
     "fused_galerkin_matrices",
+    "fused_fpke_matrix",
     "GalerkinMatrices",
     "residual_rule",
 ]

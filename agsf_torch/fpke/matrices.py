@@ -26,6 +26,7 @@ from .residual import ComponentRates, residual_factor
 __all__ = [
     "FPKEMatrix",
     "fpke_matrix",
+    "fused_fpke_matrix",
     "GalerkinMatrices",
     "galerkin_matrices",
     "fused_galerkin_matrices",
@@ -378,6 +379,29 @@ def _galerkin_from_pairs(index: Tensor, log_z: Tensor, log_scale: Tensor, acc: T
     drift[..., j, i] = z * acc[0]  # K_ji = z_ij E[ℓᵢ]
     drift[..., i, j] = z * acc[1]  # K_ij = z_ij E[ℓⱼ] (on the diagonal both are E[ℓᵢ])
     return GalerkinMatrices(mass, drift, log_scale)
+
+
+def fused_fpke_matrix(
+    model: ContinuousModel, u: Tensor | None, means: Tensor, covs: Tensor, compile: bool = False
+) -> FPKEMatrix | None:
+    """:func:`fpke_matrix` on the model's exact rule for the components ``means [..., N, n]``,
+    ``covs [..., N, n, n]`` with their moment rates (at ``u [..., m]``) by the model's fused kernel
+    (:meth:`~agsf_torch.models.base.ContinuousModel.fused_penalty_pairs`: product Gaussians, rates and
+    ``E[ℓᵢℓⱼ]`` on lanes), compiled ahead of time if ``compile``; ``None`` if the model has no such kernel or
+    declines this batch (then :func:`fpke_matrix` applies)."""
+    N, n = means.shape[-2:]
+    lead = broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])
+    T = math.prod(lead)
+    uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(T, u.shape[-1])
+    out = model.fused_penalty_pairs(
+        means.expand(*lead, N, n).reshape(T, N, n), covs.expand(*lead, N, n, n).reshape(T, N, n, n), uf, compile=compile
+    )
+    if out is None:
+        return None
+    log_z, acc = (t.reshape(*lead, -1) for t in out)
+    log_scale = log_z.amax(-1)
+    vals = torch.exp(log_z - log_scale[..., None]) * acc
+    return FPKEMatrix(_symmetric_from_pairs(vals, torch.triu_indices(N, N, device=means.device), N), log_scale)
 
 
 def fused_galerkin_matrices(

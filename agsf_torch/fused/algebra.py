@@ -28,6 +28,7 @@ __all__ = [
     "identity",
     "zeros",
     "axpy",
+    "symmetric_part",
     "cholesky",
     "cholesky_solve",
     "count",
@@ -150,6 +151,12 @@ def identity(n: int) -> list[list[Entry]]:
 def zeros(n: int, m: int | None = None) -> list[list[Entry]]:
     """A structural zero ``n×m`` matrix."""
     return [[None] * (n if m is None else m) for _ in range(n)]
+
+
+def symmetric_part(A: list[list[Entry]]) -> list[list[Entry]]:
+    """``½(A + Aᵀ)`` (the diagonal as it is)."""
+    n = len(A)
+    return [[A[i][j] if i == j else mul(0.5, add(A[i][j], A[j][i])) for j in range(n)] for i in range(n)]
 
 
 def cholesky(P: list[list[Entry]]) -> tuple[list[list[Entry]], list[Entry], Tensor]:

@@ -24,19 +24,13 @@ import math
 
 from torch import Tensor
 
-from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub, zeros
+from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub, symmetric_part, zeros
 from .lanes import entries
 from .propagation import attitude_rates
 
-__all__ = ["attitude_pair_kernel", "attitude_moments", "residual_mean", "pair_index"]
+__all__ = ["attitude_pair_kernel", "attitude_moments", "residual_mean", "pair_index", "product_gaussian"]
 
 Mat = list[list[Entry]]
-
-
-def _sym(A: Mat) -> Mat:
-    """``½(A + Aᵀ)``."""
-    n = len(A)
-    return [[A[i][j] if i == j else mul(0.5, add(A[i][j], A[j][i])) for j in range(n)] for i in range(n)]
 
 
 def attitude_moments(m: list[Entry], S: Mat, u: list[Entry], c: Tensor, n: int) -> dict:
@@ -164,6 +158,28 @@ def residual_mean(
     return sub(add(rate_terms, mom["scalar"]), add(transport, diffusion))
 
 
+def product_gaussian(mi: list[Entry], Pi: Mat, mj: list[Entry], Pj: Mat) -> dict:
+    """``pᵢpⱼ = z N(m, S)`` on entries (:func:`~agsf_torch.fpke.pairs.product_gaussians`, module docstring):
+    ``mean`` ``m``, ``cov`` ``S`` (symmetrised), ``log_z``, ``gain`` ``Kᵀ = Σ⁻¹Pᵢ``, ``y = Σ⁻¹(μᵢ − μⱼ)``,
+    ``sum_precision`` ``Σ⁻¹`` (symmetrised) and ``ok`` (``[C]`` bool: every pivot of ``Σ = Pᵢ + Pⱼ`` positive)."""
+    n = len(mi)
+    Sigma = [[add(Pi[a][b], Pj[a][b]) for b in range(n)] for a in range(n)]
+    L, inv, ok = cholesky(Sigma)
+    d = [sub(mi[k], mj[k]) for k in range(n)]
+    Kt_cols = [cholesky_solve(L, inv, [Pi[a][b] for a in range(n)]) for b in range(n)]  # column b of Σ⁻¹Pᵢ
+    Kt = [[Kt_cols[b][a] for b in range(n)] for a in range(n)]
+    y = cholesky_solve(L, inv, d)
+    inv_cols = [cholesky_solve(L, inv, [1.0 if a == b else None for a in range(n)]) for b in range(n)]
+    Sinv = symmetric_part([[inv_cols[b][a] for b in range(n)] for a in range(n)])
+    mean = [sub(mi[a], dot((Pi[a][k], y[k]) for k in range(n))) for a in range(n)]
+    S = symmetric_part(
+        [[sub(Pi[a][b], dot((Pi[a][k], Kt[k][b]) for k in range(n))) for b in range(n)] for a in range(n)]
+    )
+    log_det = 2.0 * sum(L[k][k].log() for k in range(n))
+    log_z = mul(-0.5, add(add(dot((d[k], y[k]) for k in range(n)), log_det), n * math.log(2.0 * math.pi)))
+    return {"mean": mean, "cov": S, "log_z": log_z, "gain": Kt, "y": y, "sum_precision": Sinv, "ok": ok}
+
+
 def pair_index(N: int) -> tuple[list[int], list[int]]:
     """The pairs ``i ≤ j`` of ``N`` components in the order of ``torch.triu_indices(N, N)``."""
     pairs = [(i, j) for i in range(N) for j in range(i, N)]
@@ -215,18 +231,8 @@ def attitude_pair_kernel(
         for index in (first, second)
     )
     ue = [_gather(v, T, N, first) for v in u_c]
-    Sigma = [[add(Pi[a][b], Pj[a][b]) for b in range(n)] for a in range(n)]
-    L, inv, _ = cholesky(Sigma)
-    d = [sub(mi[k], mj[k]) for k in range(n)]
-    Kt_cols = [cholesky_solve(L, inv, [Pi[a][b] for a in range(n)]) for b in range(n)]  # column b of Σ⁻¹Pᵢ
-    Kt = [[Kt_cols[b][a] for b in range(n)] for a in range(n)]
-    y = cholesky_solve(L, inv, d)
-    inv_cols = [cholesky_solve(L, inv, [1.0 if a == b else None for a in range(n)]) for b in range(n)]
-    Sinv = _sym([[inv_cols[b][a] for b in range(n)] for a in range(n)])
-    mean = [sub(mi[a], dot((Pi[a][k], y[k]) for k in range(n))) for a in range(n)]
-    S = _sym([[sub(Pi[a][b], dot((Pi[a][k], Kt[k][b]) for k in range(n))) for b in range(n)] for a in range(n)])
-    log_det = 2.0 * sum(L[k][k].log() for k in range(n))
-    log_z = mul(-0.5, add(add(dot((d[k], y[k]) for k in range(n)), log_det), n * math.log(2.0 * math.pi)))
+    g = product_gaussian(mi, Pi, mj, Pj)
+    Kt, y, Sinv, mean, S, log_z = (g[k] for k in ("gain", "y", "sum_precision", "mean", "cov", "log_z"))
     mom = attitude_moments(mean, S, ue, c, n)
     D1 = [c] * 3 + [None] * (n - 3)
     D0 = [None] * 3 + [mul(0.5, su2)] * (n - 3)

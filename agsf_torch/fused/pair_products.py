@@ -16,6 +16,13 @@ coefficients).  Per node the kernel is ~700 floating-point operations for both s
 pair.  ``E[ℓᵢℓⱼ]`` is then ``Σ_c vᵢ,cᵀ W vⱼ,c`` over the channels ``c`` with ``W = TᵀT`` (``T`` the
 rule's map from values at the nodes to orthonormal Hermite coefficients): exactly the dot product of
 the two sides' coefficients.
+
+Two entry points: :func:`attitude_pair_products` takes the pairs' product Gaussians from
+:func:`~agsf_torch.fpke.pairs.product_gaussians` (the model's ``fpke_pair_products`` hook);
+:func:`attitude_penalty_pairs` starts from the components and forms the product Gaussians and the moment
+rates on lanes too (:func:`attitude_pair_moments_kernel`, a kernel of its own: inside the node kernel the
+compiler would recompute these per-pair values at every node), which the penalty update takes
+(``fused_penalty_pairs``).  Compiled, the node kernel runs in chunks of :data:`COMPILED_PAIRS` pairs.
 """
 
 from __future__ import annotations
@@ -26,9 +33,16 @@ import torch
 from torch import Tensor
 
 from .algebra import Entry, add, dot, mul, sub
-from .lanes import entries
+from .lanes import entries, stack_entries
 
-__all__ = ["COMPILED_PAIRS", "attitude_pair_values_kernel", "pair_product_weights", "attitude_pair_products"]
+__all__ = [
+    "COMPILED_PAIRS",
+    "attitude_pair_values_kernel",
+    "attitude_pair_moments_kernel",
+    "attitude_penalty_pairs",
+    "pair_product_weights",
+    "attitude_pair_products",
+]
 
 Mat = list[list[Entry]]
 
@@ -189,18 +203,38 @@ def attitude_pair_values_kernel(
         c: ``σ_v²/32``; d_b: ``σ_u²/2`` (0-d tensors; unused with 3 states).
     """
     n = m.shape[-1]
+    sides = [
+        tuple(_column(entries(t, shape)) for t, shape in zip(side, ((n,), (n, n), (n,), (n, n))))
+        for side in ((mu_i, Pi_i, rate_i, Pdot_i), (mu_j, Pi_j, rate_j, Pdot_j))
+    ]
+    mE, LE = _column(entries(m, (n,))), _lower(_column(entries(L, (n, n))))
+    return (_expected_products(mE, LE, _column(entries(u, (3,))), sides, nodes, W, c, d_b, m.shape[0]),)
 
-    def col(t: Tensor, shape) -> list:
-        def nest(x):
-            return [nest(v) for v in x] if isinstance(x, list) else x.unsqueeze(-1)
 
-        return nest(entries(t, shape))
+def _column(x):
+    """Entries of pairs ``[Q]`` (nested lists) as ``[Q, 1]`` columns, to broadcast against the nodes ``[K]``;
+    numbers, structural zeros and 0-d parameters pass through."""
+    if isinstance(x, list):
+        return [_column(v) for v in x]
+    return x.unsqueeze(-1) if isinstance(x, Tensor) and x.dim() > 0 else x
 
-    mE = col(m, (n,))
-    LE = _lower(col(L, (n, n)))
+
+def _expected_products(
+    mE: list[Entry],
+    LE: Mat,
+    uE: list[Entry],
+    sides: list[tuple],
+    nodes: Tensor,
+    W: Tensor,
+    c: Tensor,
+    d_b: Tensor,
+    Q: int,
+) -> Tensor:
+    """``E[ℓᵢℓⱼ]`` ``[Q]`` from the pairs' ``m``, lower ``L`` and gyro rate and each side's ``(μ, Π, μ̇, Ṗ)``, all
+    entries of ``[Q, 1]`` columns (module docstring)."""
+    n = len(mE)
     xi = list(nodes.unbind(-1))
     p = _affine_at_nodes(mE[:3], LE[:3], xi)
-    uE = col(u, (3,))
     if n == 6:
         beta = _affine_at_nodes(mE[3:], [row[:3] for row in LE[3:]], xi)
         w = [sub(uE[k], beta[k]) for k in range(3)]
@@ -210,14 +244,50 @@ def attitude_pair_values_kernel(
         w, lb = uE, None
     terms = _node_terms(p, w, c)
     K = nodes.shape[0]
-    sides = []
-    for mu, Pi, rate, Pdot in ((mu_i, Pi_i, rate_i, Pdot_i), (mu_j, Pi_j, rate_j, Pdot_j)):
-        vals = _side_values(
-            n, mE, LE, xi, p, lb, terms, col(mu, (n,)), col(Pi, (n, n)), col(rate, (n,)), col(Pdot, (n, n)), d_b
-        )
-        sides.append(torch.stack([v.expand(m.shape[0], K) for v in vals], 1))  # [Q, channels, K]
-    vi, vj = sides
-    return (((vi @ W) * vj).sum((-2, -1)),)
+    values = []
+    for mu, Pi, rate, Pdot in sides:
+        vals = _side_values(n, mE, LE, xi, p, lb, terms, mu, Pi, rate, Pdot, d_b)
+        values.append(torch.stack([v.expand(Q, K) for v in vals], 1))  # [Q, channels, K]
+    vi, vj = values
+    return ((vi @ W) * vj).sum((-2, -1))
+
+
+def attitude_pair_moments_kernel(
+    mu_i: Tensor, P_i: Tensor, mu_j: Tensor, P_j: Tensor, u: Tensor, sv2: Tensor, su2: Tensor
+) -> tuple[Tensor, ...]:
+    """What :func:`attitude_pair_values_kernel` reads of ``Q`` pairs, from their components alone: the product
+    Gaussian (:func:`~agsf_torch.fused.galerkin.product_gaussian`) as ``m`` ``[Q, n]``, the lower Cholesky factor
+    ``L`` ``[Q, n, n]`` of its ``S`` and ``log z`` ``[Q]`` (NaN on a lane where a factorisation met a non-positive
+    pivot), and each side's moment rates ``μ̇`` ``[Q, n]``, ``Ṗ`` ``[Q, n, n]``
+    (:func:`~agsf_torch.fused.propagation.attitude_rates`).
+
+    Args:
+        mu_*, P_*: each side's ``μ`` ``[Q, n]`` and ``P`` ``[Q, n, n]``; u: the gyro rate ``[Q, 3]`` (rad/s; the
+            3-state model's known bias removed); sv2, su2: ``σ_v²``, ``σ_u²`` (0-d tensors).
+    """
+    from .algebra import cholesky, zeros
+    from .galerkin import product_gaussian
+    from .propagation import attitude_rates
+
+    Q, n = mu_i.shape
+    uE = entries(u, (3,))
+    comps, rates = [], []
+    for mu, P in ((mu_i, P_i), (mu_j, P_j)):
+        mE, PE = entries(mu, (n,)), entries(P, (n, n))
+        rate, _, Pdot = attitude_rates(mE, zeros(n), PE, uE, sv2, su2, n)
+        comps.append((mE, PE))
+        rates += [rate, Pdot]
+    g = product_gaussian(*comps[0], *comps[1])
+    L, _, good = cholesky(g["cov"])
+    log_z = torch.where(g["ok"] & good, g["log_z"], torch.nan)
+
+    def batch_first(x) -> Tensor:  # structural zeros written as zeros
+        def filled(v):
+            return [filled(e) for e in v] if isinstance(v, list) else 0.0 if v is None else v
+
+        return stack_entries(filled(x), Q)
+
+    return (batch_first(g["mean"]), batch_first(L), *(batch_first(r) for r in rates), log_z)
 
 
 #: Pairs per call of the compiled kernel (its threaded variant; fewer pairs take the serial one).  Each pair
@@ -282,3 +352,54 @@ def attitude_pair_products(
         compiled_chunk=COMPILED_PAIRS,
     )
     return acc.reshape(lead)
+
+
+def attitude_penalty_pairs(
+    means: Tensor, covs: Tensor, rate: Tensor, sigma_v: Tensor, sigma_u: Tensor, *, compile: bool = False
+) -> tuple[Tensor, Tensor]:
+    """``(log z_ij, E_{N(m_ij, S_ij)}[ℓᵢℓⱼ])`` ``[T, P]`` of the pairs ``i ≤ j`` (``torch.triu_indices`` order) of ``T``
+    attitude mixtures from the components alone, on lanes: the pairs' product Gaussians and the components'
+    moment rates (:func:`attitude_pair_moments_kernel`), then ``E[ℓᵢℓⱼ]`` (:func:`attitude_pair_values_kernel`,
+    in chunks of :data:`COMPILED_PAIRS` pairs when compiled); compiled ahead of time if ``compile``.  The
+    precisions ``Πᵢ`` are formed once per component, as :class:`~agsf_torch.fpke.residual.ComponentRates` does.
+
+    Args:
+        means: ``μ`` ``[T, N, n]``; covs: ``P`` ``[T, N, n, n]``; rate: the gyro rate ``[T, 3]`` (rad/s; the
+            3-state model's known bias removed).
+        sigma_v, sigma_u: the gyro's rate and bias noise densities.
+    """
+    from .lanes import DEFAULT_CHUNK, run_in_chunks
+
+    T, N, n = means.shape
+    first, second = torch.triu_indices(N, N, device=means.device)
+    P = first.shape[0]
+    if T * P == 0:
+        return means.new_zeros(T, P), means.new_zeros(T, P)
+    prec = torch.cholesky_inverse(torch.linalg.cholesky(covs))
+    prec = 0.5 * (prec + prec.transpose(-1, -2))
+
+    def side(t: Tensor, index: Tensor) -> Tensor:
+        return t[:, index].reshape(T * P, *t.shape[2:])
+
+    u = rate.unsqueeze(1).expand(T, P, 3).reshape(T * P, 3)
+    sv2, su2 = (sigma_v**2).to(means), (sigma_u**2).to(means)
+    m, L, rate_i, Pdot_i, rate_j, Pdot_j, log_z = run_in_chunks(
+        attitude_pair_moments_kernel,
+        (side(means, first), side(covs, first), side(means, second), side(covs, second), u),
+        shared=(sv2, su2),
+        compile=compile,
+        key=("attitude pair moments", n),
+    )
+    nodes, W = _mrp_nodes_and_weights(means.dtype, means.device)
+    inputs = (m, L, side(means, first), side(prec, first), rate_i, Pdot_i)
+    inputs += (side(means, second), side(prec, second), rate_j, Pdot_j, u)
+    (acc,) = run_in_chunks(
+        attitude_pair_values_kernel,
+        inputs,
+        shared=(nodes, W, sv2 / 32.0, 0.5 * su2),
+        compile=compile,
+        chunk=max(1, DEFAULT_CHUNK // nodes.shape[0]),
+        key=("attitude pair products", n),
+        compiled_chunk=COMPILED_PAIRS,
+    )
+    return log_z.reshape(T, P), acc.reshape(T, P)

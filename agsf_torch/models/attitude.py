@@ -312,6 +312,27 @@ class AttitudeModel(ContinuousModel):
 
         return attitude_pair_products(self, u, pairs)
 
+    def fused_penalty_pairs(
+        self, means: Tensor, covs: Tensor, u: Tensor | None, *, compile: bool = False
+    ) -> tuple[Tensor, Tensor] | None:
+        """``(log z_ij, E[ℓᵢℓⱼ])`` ``[T, P]`` with the pairs' product Gaussians and the components' moment rates
+        formed on lanes too (:func:`~agsf_torch.fused.pair_products.attitude_penalty_pairs`), where
+        :meth:`fpke_pair_products` takes its lanes route (compiled, or from :attr:`EAGER_MIN_PAIRS` pairs on);
+        ``None`` below, or without a gyro rate."""
+        from ..fused.pair_products import attitude_penalty_pairs
+
+        if u is None:
+            return None
+        self.check_input(u)
+        T, N = means.shape[:2]
+        if not compile and T * N * (N + 1) // 2 < self.EAGER_MIN_PAIRS[self.state_dim]:
+            return None
+        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (u, means, covs))
+        rate = u if self.estimate_bias else u - self.bias.to(u)
+        return attitude_penalty_pairs(
+            means, covs, rate.expand(T, 3), self.sigma_v, self.sigma_u, compile=compile and not differentiable
+        )
+
     #: The largest rotation (rad) the moment equations are asked to follow over one interval: the MRP chart
     #: is switched between intervals only (``canonicalize``), and within one the MRP runs to ``tan(θ/4)``,
     #: singular at θ = 2π; a radian keeps ``|p| ≤ tan((π + 1)/4) ≈ 1.7`` and RK4's error small.

@@ -240,6 +240,16 @@ class ContinuousModel(nn.Module):
         route compiled ahead of time where the model has one."""
         return None
 
+    def fused_penalty_pairs(
+        self, means: Tensor, covs: Tensor, u: Tensor | None, *, compile: bool = False
+    ) -> tuple[Tensor, Tensor] | None:
+        """The pair products of :meth:`fpke_pair_products` from the components alone, by a fused kernel
+        (:mod:`agsf_torch.fused`) that also forms their product Gaussians and moment rates, if the model has
+        one: ``(log z_ij, E_{N(m_ij, S_ij)}[ℓᵢℓⱼ])``, each ``[T, P]`` for the ``P = N(N+1)/2`` pairs ``i ≤ j``
+        (``torch.triu_indices`` order) of ``T`` mixtures given as ``means [T, N, n]``, ``covs [T, N, n, n]`` and
+        ``u [T, m]``; ``None`` (default, or a batch the model declines): the route of :func:`~agsf_torch.fpke.fpke_matrix`."""
+        return None
+
     def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor | None) -> FokkerPlanckMoments | None:
         """Closed-form Gaussian expectations of the Fokker–Planck terms under ``N(mean, cov)``
         (``mean [..., n]``, ``cov [..., n, n]``, ``u [..., m]``), or ``None`` (default): then

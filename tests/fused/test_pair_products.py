@@ -13,11 +13,13 @@ covariance conditions of 10¹² ``ℓ``'s terms are 10¹² times ``L̃``'s entri
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 import agsf_torch.fused.pair_products as pair_products
-from agsf_torch.fpke import fpke_matrix
+from agsf_torch.fpke import fpke_matrix, fused_fpke_matrix
 from agsf_torch.fpke.pairs import product_gaussians
 from agsf_torch.fpke.rules import residual_rule
 from agsf_torch.models import AttitudeModel
@@ -64,6 +66,34 @@ def _assert_agree(got, want, model, u, comp):
     bound = ((4 * k + 84) * EPS * channels * ((T[0] @ W.abs()) * T[1]).sum(-1)) * z + 16 * 2.0**-1074  # [B, P]
     i, j = torch.triu_indices(comp.means.shape[-2], comp.means.shape[-2])
     torch.testing.assert_close(got.log_scale, want.log_scale, rtol=0, atol=0)  # the same product Gaussians
+    assert bool(((got.scaled - want.scaled)[..., i, j].abs() <= bound).all())
+
+
+def _assert_agree_from_components(got, want, model, u, comp):
+    """``L̃`` of :func:`fused_fpke_matrix` (product Gaussians, rates and precisions formed on lanes) and of a route
+    given the batched product Gaussians agree to the bound of the module docstring widened by the conditioning of
+    what the first forms itself: the solves with ``Σ = Pᵢ + Pⱼ`` and the factorisations of ``Pᵢ``, ``Pⱼ`` and ``S``
+    are backward stable, so ``m``, ``S`` and its factor, the rates and ``Π`` agree to ``O(κε)`` relative and every
+    term of ``ℓ`` at a node to ``O(κε)`` of the terms' magnitudes ``T``; ``log z`` as in :mod:`tests.fused.test_galerkin`
+    (``dᵀΣ⁻¹d`` to ``κ(Σ)ε`` of itself, ``log det Σ`` to ``nκ(Σ)ε``), which scales ``L̃`` by ``z̃ = exp(log z − max)``."""
+    n = model.state_dim
+    T, z = _node_term_scale(model, u, comp)
+    _, W = pair_products._mrp_nodes_and_weights(torch.float64, torch.device("cpu"))
+    prod = product_gaussians(comp.with_precision())
+    Sigma = prod.first.covs + prod.second.covs
+    kappa = torch.linalg.cond(Sigma) + torch.linalg.cond(prod.first.covs) + torch.linalg.cond(prod.second.covs)
+    kappa = kappa + torch.linalg.cond(prod.cov)
+    maha = (prod.y * (prod.first.means - prod.second.means)).sum(-1).abs()
+    log_det = torch.linalg.slogdet(Sigma)[1].abs()
+    tol_log_z = 64 * EPS * (n * kappa + log_det + kappa * maha + n * math.log(2 * math.pi))  # [B, P]
+    tol_scale = tol_log_z.amax(-1)
+    assert bool(((got.log_scale - want.log_scale).abs() <= tol_scale).all())
+    channels = 10 if n == 6 else 1
+    k = 2 * n * n + 4 * n + 8
+    terms = (4 * k + 84 + 64 * kappa) * EPS * channels * ((T[0] @ W.abs()) * T[1]).sum(-1)
+    i, j = torch.triu_indices(comp.means.shape[-2], comp.means.shape[-2])
+    ref = want.scaled[..., i, j]
+    bound = terms * z + 2 * ref.abs() * (tol_log_z + tol_scale[..., None]) + 16 * 2.0**-1074
     assert bool(((got.scaled - want.scaled)[..., i, j].abs() <= bound).all())
 
 
@@ -165,6 +195,80 @@ def test_the_penalty_filter_chooses_the_same_weights_on_either_route(gen, monkey
     assert bool(((out[0] - out[10**12]).norm(dim=-1) <= bound).all())
 
 
+def _from_components(model, u, comp, compile: bool = False):
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(model, "EAGER_MIN_PAIRS", {3: 0, 6: 0})
+        return fused_fpke_matrix(model, u, comp.means, comp.covs, compile=compile)
+
+
+@pytest.mark.parametrize(("n", "B", "N", "condition"), _CASES)
+def test_the_pairs_formed_on_lanes_give_the_batched_route(gen, n, B, N, condition):
+    """:func:`fused_fpke_matrix` (product Gaussians, moment rates and ``E[ℓᵢℓⱼ]`` on lanes) against the batched
+    route of :func:`fpke_matrix` on the generic product Gaussians and rates."""
+    model, u, comp = _components(gen, B, N, n, condition)
+    _assert_agree_from_components(_from_components(model, u, comp), _batched(model, u, comp), model, u, comp)
+
+
+def test_the_model_declines_small_eager_batches_of_components(gen):
+    """Below :attr:`EAGER_MIN_PAIRS` eagerly (and without a gyro rate) the model has no fused route: the penalty
+    update then takes :func:`fpke_matrix`'s."""
+    model, u, comp = _components(gen, 3, 5, 6, 1e3)  # 45 pairs
+    assert model.fused_penalty_pairs(comp.means, comp.covs, u) is None
+    assert fused_fpke_matrix(model, u, comp.means, comp.covs) is None
+    assert model.fused_penalty_pairs(comp.means, comp.covs, None, compile=True) is None
+
+
+def test_a_pair_whose_factorisation_fails_gives_a_non_finite_log_z(gen):
+    """A factorisation on lanes that meets a non-positive pivot (``Σ = Pᵢ + Pⱼ`` not positive definite) makes
+    ``log z`` NaN on that pair, never a finite wrong number: the penalty update then refuses ``L`` as not finite."""
+    model, u, comp = _components(gen, 4, 1, 6, 1e3)
+    mu, P = comp.means[:, 0], comp.covs[:, 0]
+    Pj = P.clone()
+    Pj[2] = -2.0 * P[2]  # pair 2: Σ = −P
+    sv2, su2 = model.sigma_v**2, model.sigma_u**2
+    out = pair_products.attitude_pair_moments_kernel(mu, P, mu, Pj, u, sv2, su2)
+    log_z = out[-1]
+    assert bool(torch.isnan(log_z[2])) and bool(torch.isfinite(log_z[[0, 1, 3]]).all())
+
+
+def test_the_penalty_update_takes_the_fused_route_with_the_same_weights(gen, monkeypatch):
+    """The penalty update forms its pairs on lanes when the model offers it; the weights agree with those of
+    :func:`fpke_matrix`'s route (the model's hook declined) to the QP's sensitivity, bounded as in
+    :func:`test_the_penalty_filter_chooses_the_same_weights_on_either_route` from the two ``L̃`` of the
+    propagated mixture (the same propagation on both sides)."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+    from agsf_torch.filters.weight_updates.base import component_rates
+
+    N, lam = 5, 0.1
+    model, u, comp = _components(gen, 40, N, 6, 1e4)  # 600 pairs: the eager lanes routes
+    log_w = torch.log_softmax(torch.randn(40, N, generator=gen, dtype=torch.float64), -1)
+    mix = GaussianMixture(log_weights=log_w, means=comp.means, covs=comp.covs)
+    prop = GaussianSumFilter(model).predict(mix, u, 1.0)
+    calls, out = [], {}
+    real = pair_products.attitude_penalty_pairs
+    monkeypatch.setattr(pair_products, "attitude_penalty_pairs", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for fused in (True, False):
+        calls.clear()
+        with pytest.MonkeyPatch.context() as mp:
+            if not fused:
+                mp.setattr(AttitudeModel, "fused_penalty_pairs", lambda self, *a, **k: None)
+            out[fused] = AdaptiveGaussianSumFilter(model, weight_update="penalty").predict(mix, u, 1.0).weights
+        assert bool(calls) == fused
+    rule = residual_rule(model, None, 2)[0]
+    H = {}
+    for fused, L in (
+        (True, fused_fpke_matrix(model, u, prop.means, prop.covs)),
+        (False, fpke_matrix(model, u, component_rates(model, prop, u), rule, None)),
+    ):
+        trace = L.scaled.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+        H[fused] = N * L.scaled / trace + lam * torch.eye(N, dtype=torch.float64)
+    dH = torch.linalg.matrix_norm(H[True] - H[False], ord=2)
+    eig = torch.linalg.eigvalsh(H[False])
+    bound = 8 * (dH * out[True].norm(dim=-1) / eig[..., 0] + eig[..., -1] / eig[..., 0] * EPS)
+    assert bool(((out[True] - out[False]).norm(dim=-1) <= bound).all())
+
+
 @pytest.mark.parametrize("n", [3, 6])
 def test_compiled_calls_take_chunks_of_compiled_pairs(gen, monkeypatch, n):
     """The compiled kernel's threaded variant sees only chunks of ``COMPILED_PAIRS`` pairs (the tail padded; its
@@ -195,3 +299,11 @@ def test_compiled_calls_take_chunks_of_compiled_pairs(gen, monkeypatch, n):
 def test_the_compiled_kernel_equals_the_eager_one(gen, n):
     model, u, comp = _components(gen, 300, 5, n, 1e6)  # 4500 pairs: 35 chunks of COMPILED_PAIRS = 128, a padded one
     _assert_agree(_on_lanes(model, u, comp, compile=True), _on_lanes(model, u, comp), model, u, comp)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n", [3, 6])
+def test_the_compiled_pairs_from_components_equal_the_eager_ones(gen, n):
+    model, u, comp = _components(gen, 300, 5, n, 1e6)
+    eager = _from_components(model, u, comp)
+    _assert_agree_from_components(_from_components(model, u, comp, compile=True), eager, model, u, comp)

@@ -8,7 +8,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from ...fpke import fpke_matrix
+from ...fpke import fpke_matrix, fused_fpke_matrix
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...qp import solve_simplex_qp
@@ -128,10 +128,14 @@ class PenaltyWeightUpdate(QuadratureUpdate):
                 f"reference weights {tuple(ref.shape)} are from a run with another batch shape than the "
                 f"mixture's {tuple(propagated.log_weights.shape)}; call reset() before a new run"
             )
-        comp = component_rates(model, propagated, u)
-        Lmat = fpke_matrix(
-            model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
-        )
+        Lmat = None
+        if self.quadrature is None and self.rule["fused"]:  # the model's exact rule: rates and pairs on lanes
+            Lmat = fused_fpke_matrix(model, u, propagated.means, propagated.covs, self.compile)
+        if Lmat is None:
+            comp = component_rates(model, propagated, u)
+            Lmat = fpke_matrix(
+                model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
+            )
         bad = ~torch.isfinite(Lmat.scaled).flatten(-2).all(-1) | ~torch.isfinite(Lmat.log_scale)
         if bool(bad.any()):
             idx = bad.nonzero()[0].tolist()
