@@ -295,8 +295,7 @@ def fpke_matrix(
         prod, log_scale, acc = _integrate_pairs(
             _kernel("pair", compile), model, u, rates, nodes, node_weights, chunk_size, max_chunk_elements, ()
         )
-    vals = torch.exp(prod.log_z - log_scale[..., None]) * acc
-    return FPKEMatrix(_symmetric_from_pairs(vals, prod.index, N), log_scale)
+    return _fpke_from_pairs(prod.log_z, log_scale, acc, prod.index, N)
 
 
 @dataclass(frozen=True)
@@ -381,6 +380,26 @@ def _galerkin_from_pairs(index: Tensor, log_z: Tensor, log_scale: Tensor, acc: T
     return GalerkinMatrices(mass, drift, log_scale)
 
 
+def _fused_pairs(hook, u: Tensor | None, means: Tensor, covs: Tensor, compile: bool) -> tuple[Tensor, ...] | None:
+    """A model's fused pair kernel (``hook``: ``fused_penalty_pairs`` or ``fused_galerkin_pairs``) on the
+    components ``means [..., N, n]``, ``covs [..., N, n, n]`` and ``u [..., m]`` broadcast to their trajectory
+    dims: its outputs ``[..., P]`` (``P = N(N+1)/2``), or ``None`` where the model declines."""
+    N, n = means.shape[-2:]
+    lead = broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])
+    T = math.prod(lead)
+    uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(T, u.shape[-1])
+    out = hook(
+        means.expand(*lead, N, n).reshape(T, N, n), covs.expand(*lead, N, n, n).reshape(T, N, n, n), uf, compile=compile
+    )
+    return None if out is None else tuple(t.reshape(*lead, N * (N + 1) // 2) for t in out)
+
+
+def _fpke_from_pairs(log_z: Tensor, log_scale: Tensor, acc: Tensor, index: Tensor, N: int) -> FPKEMatrix:
+    """``L̃`` from the pairs' ``log z_ij`` and ``E[ℓᵢℓⱼ]`` ``[..., P]``, scaled by ``exp(−log_scale)``."""
+    vals = torch.exp(log_z - log_scale[..., None]) * acc
+    return FPKEMatrix(_symmetric_from_pairs(vals, index, N), log_scale)
+
+
 def fused_fpke_matrix(
     model: ContinuousModel, u: Tensor | None, means: Tensor, covs: Tensor, compile: bool = False
 ) -> FPKEMatrix | None:
@@ -389,19 +408,12 @@ def fused_fpke_matrix(
     (:meth:`~agsf_torch.models.base.ContinuousModel.fused_penalty_pairs`: product Gaussians, rates and
     ``E[ℓᵢℓⱼ]`` on lanes), compiled ahead of time if ``compile``; ``None`` if the model has no such kernel or
     declines this batch (then :func:`fpke_matrix` applies)."""
-    N, n = means.shape[-2:]
-    lead = broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])
-    T = math.prod(lead)
-    uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(T, u.shape[-1])
-    out = model.fused_penalty_pairs(
-        means.expand(*lead, N, n).reshape(T, N, n), covs.expand(*lead, N, n, n).reshape(T, N, n, n), uf, compile=compile
-    )
+    out = _fused_pairs(model.fused_penalty_pairs, u, means, covs, compile)
     if out is None:
         return None
-    log_z, acc = (t.reshape(*lead, -1) for t in out)
-    log_scale = log_z.amax(-1)
-    vals = torch.exp(log_z - log_scale[..., None]) * acc
-    return FPKEMatrix(_symmetric_from_pairs(vals, torch.triu_indices(N, N, device=means.device), N), log_scale)
+    log_z, acc = out
+    N = means.shape[-2]
+    return _fpke_from_pairs(log_z, log_z.amax(-1), acc, torch.triu_indices(N, N, device=means.device), N)
 
 
 def fused_galerkin_matrices(
@@ -412,15 +424,10 @@ def fused_galerkin_matrices(
     kernel (:meth:`~agsf_torch.models.base.ContinuousModel.fused_galerkin_pairs`: rates, product Gaussians and
     ``E[ℓ]`` in one pass), compiled ahead of time if ``compile``; ``None`` if the model has no such kernel or
     declines this many pairs (then the generic route applies)."""
-    N, n = means.shape[-2:]
-    lead = broadcast_shapes(means.shape[:-2], covs.shape[:-3], () if u is None else u.shape[:-1])
-    T = math.prod(lead)
-    uf = None if u is None else u.expand(*lead, u.shape[-1]).reshape(T, u.shape[-1])
-    out = model.fused_galerkin_pairs(
-        means.expand(*lead, N, n).reshape(T, N, n), covs.expand(*lead, N, n, n).reshape(T, N, n, n), uf, compile=compile
-    )
+    out = _fused_pairs(model.fused_galerkin_pairs, u, means, covs, compile)
     if out is None:
         return None
-    log_z, e_i, e_j = (t.reshape(*lead, -1) for t in out)
+    log_z, e_i, e_j = out
+    N = means.shape[-2]
     index = torch.triu_indices(N, N, device=means.device)
     return _galerkin_from_pairs(index, log_z, log_z.amax(-1), torch.stack((e_i, e_j)), N)

@@ -9,9 +9,9 @@ elementwise operation, and a compiler fuses the whole kernel into one pass over 
 :func:`run_in_chunks` runs such a kernel over ``C`` lanes in chunks, eagerly or compiled.  Compiled
 means *ahead of time*: the kernel is exported (:func:`torch.export.export`) and compiled by inductor
 into a shared library (AOTInductor, :func:`torch._inductor.aoti_compile_and_package`) in two variants,
-each on first use: for large calls, threaded code for a fixed chunk of :data:`COMPILED_CHUNK` lanes
-(every shape known to the compiler; the tail padded), and for small calls (fewer than
-:data:`PARALLEL_MIN_LANES`) serial code for any lane count (a dynamic dimension).  Both are stored in
+each on first use: for large calls, threaded code for a fixed chunk of :data:`COMPILED_CHUNK` lanes (or
+the kernel's own ``compiled_chunk``; every shape known to the compiler; the tail padded), and for smaller
+calls serial code for any lane count (a dynamic dimension).  Both are stored in
 an on-disk cache (:func:`kernel_cache_dir`) keyed by the kernel, its static configuration, the
 variant, the input dtypes and trailing shapes, the torch version and the source of this package's
 fused kernels; a later process loads them in milliseconds instead of tracing the kernel again, and
@@ -98,7 +98,7 @@ def entries(t: Tensor, shape: Sequence[int]) -> list:
 
 
 def stack_entries(nested, lanes: int) -> Tensor:
-    """Nested lists of lanes (or numbers) back to batch-first ``[lanes, *shape]``."""
+    """Nested lists of lanes (or numbers, or ``None``: a structural zero) back to batch-first ``[lanes, *shape]``."""
 
     def flatten(x) -> list:
         if isinstance(x, (list, tuple)):
@@ -111,7 +111,9 @@ def stack_entries(nested, lanes: int) -> Tensor:
     flat = flatten(nested)
     ref = next(v for v in flat if torch.is_tensor(v))
     cols = [
-        v.expand(lanes) if torch.is_tensor(v) else torch.full((lanes,), float(v), dtype=ref.dtype, device=ref.device)
+        v.expand(lanes)
+        if torch.is_tensor(v)
+        else torch.full((lanes,), 0.0 if v is None else float(v), dtype=ref.dtype, device=ref.device)
         for v in flat
     ]
     return torch.stack(cols, -1).reshape(lanes, *shape_of(nested))

@@ -281,13 +281,7 @@ def attitude_pair_moments_kernel(
     L, _, good = cholesky(g["cov"])
     log_z = torch.where(g["ok"] & good, g["log_z"], torch.nan)
 
-    def batch_first(x) -> Tensor:  # structural zeros written as zeros
-        def filled(v):
-            return [filled(e) for e in v] if isinstance(v, list) else 0.0 if v is None else v
-
-        return stack_entries(filled(x), Q)
-
-    return (batch_first(g["mean"]), batch_first(L), *(batch_first(r) for r in rates), log_z)
+    return (stack_entries(g["mean"], Q), stack_entries(L, Q), *(stack_entries(r, Q) for r in rates), log_z)
 
 
 #: Pairs per call of the compiled kernel (its threaded variant; fewer pairs take the serial one).  Each pair
@@ -324,10 +318,7 @@ def attitude_pair_products(
         compile: run the kernel compiled ahead of time (:func:`~.lanes.run_in_chunks`).
         chunk: pairs per eager call (default: as many as keep ``DEFAULT_CHUNK`` node lanes).
     """
-    from .lanes import DEFAULT_CHUNK, run_in_chunks
-
     lead = prod.mean.shape[:-1]
-    n = prod.mean.shape[-1]
 
     def flat(t: Tensor, event: int) -> Tensor:
         tail = t.shape[t.dim() - event :]
@@ -337,21 +328,29 @@ def attitude_pair_products(
     for r in (prod.first, prod.second):
         sides += [flat(r.means, 1), flat(r.precision, 2), flat(r.mean_rates, 1), flat(r.cov_rates, 2)]
     m = flat(prod.mean, 1)
-    inputs = (m, flat(prod.chol, 2), *sides, flat(rate.unsqueeze(-2), 1))
-    nodes, W = _mrp_nodes_and_weights(m.dtype, m.device)
-    shared = (nodes, W, (sigma_v**2 / 32.0).to(m), (0.5 * sigma_u**2).to(m))
     if m.shape[0] == 0:
         return m.new_zeros(lead)
+    inputs = (m, flat(prod.chol, 2), *sides, flat(rate.unsqueeze(-2), 1))
+    return _pair_values(inputs, sigma_v, sigma_u, compile, chunk).reshape(lead)
+
+
+def _pair_values(inputs: tuple, sigma_v: Tensor, sigma_u: Tensor, compile: bool, chunk: int | None = None) -> Tensor:
+    """:func:`attitude_pair_values_kernel` over its batch-first ``inputs`` in chunks (eagerly ``chunk`` pairs, by
+    default as many as keep ``DEFAULT_CHUNK`` node lanes; compiled :data:`COMPILED_PAIRS`): ``[Q]``."""
+    from .lanes import DEFAULT_CHUNK, run_in_chunks
+
+    m = inputs[0]
+    nodes, W = _mrp_nodes_and_weights(m.dtype, m.device)
     (acc,) = run_in_chunks(
         attitude_pair_values_kernel,
         inputs,
-        shared=shared,
+        shared=(nodes, W, (sigma_v**2 / 32.0).to(m), (0.5 * sigma_u**2).to(m)),
         compile=compile,
         chunk=chunk or max(1, DEFAULT_CHUNK // nodes.shape[0]),
-        key=("attitude pair products", n),
+        key=("attitude pair products", m.shape[-1]),
         compiled_chunk=COMPILED_PAIRS,
     )
-    return acc.reshape(lead)
+    return acc
 
 
 def attitude_penalty_pairs(
@@ -368,7 +367,7 @@ def attitude_penalty_pairs(
             3-state model's known bias removed).
         sigma_v, sigma_u: the gyro's rate and bias noise densities.
     """
-    from .lanes import DEFAULT_CHUNK, run_in_chunks
+    from .lanes import run_in_chunks
 
     T, N, n = means.shape
     first, second = torch.triu_indices(N, N, device=means.device)
@@ -390,16 +389,6 @@ def attitude_penalty_pairs(
         compile=compile,
         key=("attitude pair moments", n),
     )
-    nodes, W = _mrp_nodes_and_weights(means.dtype, means.device)
     inputs = (m, L, side(means, first), side(prec, first), rate_i, Pdot_i)
     inputs += (side(means, second), side(prec, second), rate_j, Pdot_j, u)
-    (acc,) = run_in_chunks(
-        attitude_pair_values_kernel,
-        inputs,
-        shared=(nodes, W, sv2 / 32.0, 0.5 * su2),
-        compile=compile,
-        chunk=max(1, DEFAULT_CHUNK // nodes.shape[0]),
-        key=("attitude pair products", n),
-        compiled_chunk=COMPILED_PAIRS,
-    )
-    return log_z.reshape(T, P), acc.reshape(T, P)
+    return log_z.reshape(T, P), _pair_values(inputs, sigma_v, sigma_u, compile).reshape(T, P)

@@ -316,22 +316,23 @@ class AttitudeModel(ContinuousModel):
         self, means: Tensor, covs: Tensor, u: Tensor | None, *, compile: bool = False
     ) -> tuple[Tensor, Tensor] | None:
         """``(log z_ij, E[ℓᵢℓⱼ])`` ``[T, P]`` with the pairs' product Gaussians and the components' moment rates
-        formed on lanes too (:func:`~agsf_torch.fused.pair_products.attitude_penalty_pairs`), where
-        :meth:`fpke_pair_products` takes its lanes route (compiled, or from :attr:`EAGER_MIN_PAIRS` pairs on);
-        ``None`` below, or without a gyro rate."""
+        formed on lanes too (:func:`~agsf_torch.fused.pair_products.attitude_penalty_pairs`), when compiled and
+        nothing asks for gradients (eagerly its kernel of product Gaussians is slower than the batched LAPACK
+        route below ~1,500 pairs: :meth:`fpke_pair_products` then applies); ``None`` otherwise, or without a gyro
+        rate.  Like :meth:`fpke_pair_products`, it evaluates this class's own equations: a subclass that changes
+        the dynamics or the noise must override both."""
         from ..fused.pair_products import attitude_penalty_pairs
 
-        if u is None:
+        if u is None or not compile:
             return None
         self.check_input(u)
-        T, N = means.shape[:2]
-        if not compile and T * N * (N + 1) // 2 < self.EAGER_MIN_PAIRS[self.state_dim]:
-            return None
-        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (u, means, covs))
+        if torch.is_grad_enabled() and any(
+            t.requires_grad for t in (u, means, covs, self.sigma_v, self.sigma_u, self.bias)
+        ):
+            return None  # the compiled kernel records no gradients: the eager routes do
+        T = means.shape[0]
         rate = u if self.estimate_bias else u - self.bias.to(u)
-        return attitude_penalty_pairs(
-            means, covs, rate.expand(T, 3), self.sigma_v, self.sigma_u, compile=compile and not differentiable
-        )
+        return attitude_penalty_pairs(means, covs, rate.expand(T, 3), self.sigma_v, self.sigma_u, compile=True)
 
     #: The largest rotation (rad) the moment equations are asked to follow over one interval: the MRP chart
     #: is switched between intervals only (``canonicalize``), and within one the MRP runs to ``tan(θ/4)``,

@@ -240,13 +240,21 @@ def test_counter_does_not_move_when_the_fpke_matrix_is_not_finite(gen):
 
 @pytest.mark.parametrize("estimate_bias", [False, True])
 @pytest.mark.parametrize("kind", ["penalty", "galerkin"])
-def test_an_empty_batch_gives_an_empty_mixture(estimate_bias, kind):
+@pytest.mark.parametrize("compiled", [False, True])
+def test_an_empty_batch_gives_an_empty_mixture(estimate_bias, kind, compiled):
     """B = 0 trajectories: both adaptive filters return an empty mixture, as the GSF does (the paper's update
-    failed in torch.cat on no pairs)."""
+    failed in torch.cat on no pairs), also on their compiled fused routes (which failed reshaping no pairs)."""
+    from agsf_torch.filters.registry import make_filter
+
     n = 6 if estimate_bias else 3
     model = AttitudeModel(estimate_bias=estimate_bias)
     mix = GaussianMixture.from_gaussian(torch.zeros(0, n, dtype=F64), 1e-4 * torch.eye(n, dtype=F64).expand(0, n, n), 3)
-    out = AdaptiveGaussianSumFilter(model, weight_update=kind).predict(mix, torch.zeros(0, 3, dtype=F64), 0.1)
+    if compiled:  # nothing is compiled for no lanes
+        filt = make_filter("AGSF", model, compile=True) if kind == "penalty" else None
+        filt = filt or make_filter("AGSF-galerkin", model, compile_fused=True)
+    else:
+        filt = AdaptiveGaussianSumFilter(model, weight_update=kind)
+    out = filt.predict(mix, torch.zeros(0, 3, dtype=F64), 0.1)
     assert out.means.shape == (0, 3, n) and out.log_weights.shape == (0, 3)
 
 

@@ -55,8 +55,9 @@ def _node_term_scale(model, u, comp) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.stack(out), torch.exp(prod.log_z - prod.log_z.amax(-1, keepdim=True))
 
 
-def _assert_agree(got, want, model, u, comp):
-    """``L̃`` of two routes agree entry by entry to the bound of the module docstring."""
+def _assert_agree(got, want, model, u, comp, log_z_ulps: int = 0):
+    """``L̃`` of two routes agree entry by entry to the bound of the module docstring (with ``log_z_ulps``: their
+    ``log z`` may differ by that many units in the last place, which moves ``z̃`` by as much relative)."""
     n = model.state_dim
     T, z = _node_term_scale(model, u, comp)
     _, W = pair_products._mrp_nodes_and_weights(torch.float64, torch.device("cpu"))
@@ -65,7 +66,12 @@ def _assert_agree(got, want, model, u, comp):
     # z̃ last (it may be subnormal), and the subnormals' absolute spacing 2⁻¹⁰⁷⁴ for the product z̃·E itself
     bound = ((4 * k + 84) * EPS * channels * ((T[0] @ W.abs()) * T[1]).sum(-1)) * z + 16 * 2.0**-1074  # [B, P]
     i, j = torch.triu_indices(comp.means.shape[-2], comp.means.shape[-2])
-    torch.testing.assert_close(got.log_scale, want.log_scale, rtol=0, atol=0)  # the same product Gaussians
+    # [B]: ulps of log z's terms (the largest log z, and log det Σ's n terms 2 log L_kk, |…| ≤ 128 here)
+    ulps = log_z_ulps * EPS * (want.log_scale.abs() + 128.0)
+    assert bool(((got.log_scale - want.log_scale).abs() <= ulps).all())  # 0: the same product Gaussians
+    if log_z_ulps:  # z̃ = exp(log z − log_scale), each of the two to that many ulps of itself
+        log_z = z.log().clamp_min(-745.0)  # an underflowed z̃ has no digits to lose
+        bound = bound + 2 * want.scaled[..., i, j].abs() * (2 * ulps[..., None] + log_z_ulps * EPS * log_z.abs())
     assert bool(((got.scaled - want.scaled)[..., i, j].abs() <= bound).all())
 
 
@@ -86,7 +92,7 @@ def _assert_agree_from_components(got, want, model, u, comp):
     maha = (prod.y * (prod.first.means - prod.second.means)).sum(-1).abs()
     log_det = torch.linalg.slogdet(Sigma)[1].abs()
     tol_log_z = 64 * EPS * (n * kappa + log_det + kappa * maha + n * math.log(2 * math.pi))  # [B, P]
-    tol_scale = tol_log_z.amax(-1)
+    tol_scale = tol_log_z.gather(-1, prod.log_z.argmax(-1, keepdim=True)).squeeze(-1)  # the largest z's own
     assert bool(((got.log_scale - want.log_scale).abs() <= tol_scale).all())
     channels = 10 if n == 6 else 1
     k = 2 * n * n + 4 * n + 8
@@ -196,26 +202,149 @@ def test_the_penalty_filter_chooses_the_same_weights_on_either_route(gen, monkey
 
 
 def _from_components(model, u, comp, compile: bool = False):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(model, "EAGER_MIN_PAIRS", {3: 0, 6: 0})
-        return fused_fpke_matrix(model, u, comp.means, comp.covs, compile=compile)
+    """``L̃`` from :func:`~agsf_torch.fused.pair_products.attitude_penalty_pairs` (eager, or compiled)."""
+    from agsf_torch.fpke.matrices import _fpke_from_pairs
+
+    rate = u if model.estimate_bias else u - model.bias.to(u)
+    log_z, acc = pair_products.attitude_penalty_pairs(
+        comp.means, comp.covs, rate, model.sigma_v, model.sigma_u, compile=compile
+    )
+    N = comp.means.shape[-2]
+    return _fpke_from_pairs(log_z, log_z.amax(-1), acc, torch.triu_indices(N, N), N)
 
 
-@pytest.mark.parametrize(("n", "B", "N", "condition"), _CASES)
+def _eager_as_compiled(monkeypatch, seen=None):
+    """Compiled calls of :func:`~agsf_torch.fused.lanes.run_in_chunks` run the eager kernel (nothing compiles),
+    each call's lanes and variant noted in ``seen``."""
+    from agsf_torch.fused import lanes
+
+    def load(kernel, key, inputs, shared, serial):
+        def run(*args):
+            if seen is not None:
+                seen.append((kernel.__name__, args[0].shape[0], serial))
+            return kernel(*args)
+
+        return run
+
+    monkeypatch.setattr(lanes, "_load", load)
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+
+
+def _assert_moments_agree(model, u, comp, run=None):
+    """The moments kernel's outputs (run by ``run(inputs, shared)``; default: eagerly) against
+    :func:`product_gaussians` and :func:`moment_derivatives`, each to its own conditioning: the solves with
+    ``Σ = Pᵢ + Pⱼ`` are backward stable, so ``m = μᵢ − Pᵢy`` and ``S = Pᵢ − PᵢΣ⁻¹Pᵢ`` agree to ``O(nκ(Σ)ε)`` of their
+    terms, ``LLᵀ`` is ``S`` to ``O(nε‖S‖)`` (Cholesky), ``log z`` as in :mod:`tests.fused.test_galerkin`; the rates
+    ``f(μ)``, ``AP + PAᵀ + gQgᵀ`` are short sums of products, ``O(nε)`` of their terms' magnitudes."""
+    from agsf_torch.propagation import moment_derivatives
+
+    n = model.state_dim
+    B = comp.means.shape[0]
+    rate = u if model.estimate_bias else u - model.bias.to(u)
+    prod = product_gaussians(comp.with_precision())
+    i, j = prod.index
+    P = i.shape[0]
+    flat = lambda t: t.reshape(B * P, *t.shape[2:])  # noqa: E731
+    sides = [(flat(comp.means[:, k]), flat(comp.covs[:, k])) for k in (i, j)]
+    u_p = rate.unsqueeze(1).expand(B, P, 3).reshape(-1, 3)  # the kernel's rate: the known bias removed
+    gyro = u.unsqueeze(1).expand(B, P, 3).reshape(-1, 3)  # the model's input
+    inputs, shared = (*sides[0], *sides[1], u_p), (model.sigma_v**2, model.sigma_u**2)
+    run = run or (lambda inputs, shared: pair_products.attitude_pair_moments_kernel(*inputs, *shared))
+    m, L, rate_i, Pdot_i, rate_j, Pdot_j, log_z = run(inputs, shared)
+    norm = lambda t: torch.linalg.matrix_norm(t, ord=2) if t.dim() > 2 else t.norm(dim=-1)  # noqa: E731
+    Sigma = flat(prod.first.covs + prod.second.covs)
+    kappa = torch.linalg.cond(Sigma)
+    Pi, y = flat(prod.first.covs), flat(prod.y)
+    tol_m = 64 * n * kappa * EPS * (norm(sides[0][0]) + norm(Pi) * norm(y))
+    assert bool((norm(m - flat(prod.mean)) <= tol_m).all())
+    tol_S = 64 * n * kappa * EPS * norm(Pi) * (1 + norm(flat(prod.gain)))
+    S = flat(prod.cov)
+    assert bool((norm(L @ L.transpose(-1, -2) - S) <= tol_S + 64 * n * EPS * norm(S)).all())
+    assert bool((L.triu(1) == 0).all())
+    d = sides[0][0] - sides[1][0]
+    maha = (y * d).sum(-1).abs()
+    log_det = torch.linalg.slogdet(Sigma)[1].abs()
+    tol_z = 64 * EPS * (n * kappa + log_det + kappa * maha + n * math.log(2 * math.pi))
+    assert bool(((log_z - flat(prod.log_z)).abs() <= tol_z).all())
+    for (mu, cov), mean_rate, cov_rate in ((sides[0], rate_i, Pdot_i), (sides[1], rate_j, Pdot_j)):
+        want = moment_derivatives(model, mu, cov, gyro)
+        A = model.drift_jacobian(mu, gyro)
+        scale_P = 2 * (A.abs() @ cov.abs()).abs() + model.process_noise(mu).abs()
+        assert bool(((cov_rate - want.cov_rate).abs() <= 64 * n * EPS * scale_P).all())
+        p = mu[:, :3]
+        w = (u_p - mu[:, 3:]) if n == 6 else u_p
+        scale_f = (1 + (p * p).sum(-1, keepdim=True)) * w.abs().sum(-1, keepdim=True)
+        assert bool(((mean_rate - want.mean_rate).abs() <= 64 * EPS * scale_f).all())
+
+
+@pytest.mark.parametrize(
+    ("n", "condition", "bias"), [(6, 1e3, 0.0), (6, 1e9, 0.0), (6, 1e12, 0.0), (3, 1e6, 0.02), (3, 1e12, 0.0)]
+)
+def test_the_moments_kernel_gives_the_generic_product_gaussians_and_rates(gen, n, condition, bias):
+    """:func:`attitude_pair_moments_kernel` against the generic product Gaussians and rates
+    (:func:`_assert_moments_agree`), the 3-state model with a known bias of 0.02 rad/s once."""
+    model, u, comp = _components(gen, 30, 5, n, condition)
+    if bias:
+        model = AttitudeModel(estimate_bias=False, bias=torch.tensor([bias, -bias, 0.5 * bias]))
+    _assert_moments_agree(model, u, comp)
+
+
+@pytest.mark.parametrize(
+    ("n", "B", "N", "condition"), [(3, 1, 1, 10.0), (3, 7, 5, 1e3), (6, 1, 1, 10.0), (6, 7, 5, 1e3)]
+)
 def test_the_pairs_formed_on_lanes_give_the_batched_route(gen, n, B, N, condition):
-    """:func:`fused_fpke_matrix` (product Gaussians, moment rates and ``E[ℓᵢℓⱼ]`` on lanes) against the batched
-    route of :func:`fpke_matrix` on the generic product Gaussians and rates."""
+    """:func:`attitude_penalty_pairs` (product Gaussians, moment rates and ``E[ℓᵢℓⱼ]`` on lanes) against the
+    batched route of :func:`fpke_matrix` on the generic product Gaussians and rates, end to end where the bound
+    is tight enough to see a wrong entry (conditions ≤ 10³; above, the two kernels are checked one by one: the
+    moments kernel above, the node kernel in :func:`test_lanes_equal_the_batched_route`)."""
     model, u, comp = _components(gen, B, N, n, condition)
     _assert_agree_from_components(_from_components(model, u, comp), _batched(model, u, comp), model, u, comp)
 
 
-def test_the_model_declines_small_eager_batches_of_components(gen):
-    """Below :attr:`EAGER_MIN_PAIRS` eagerly (and without a gyro rate) the model has no fused route: the penalty
-    update then takes :func:`fpke_matrix`'s."""
-    model, u, comp = _components(gen, 3, 5, 6, 1e3)  # 45 pairs
+@pytest.mark.parametrize("n", [3, 6])
+def test_the_end_to_end_bound_sees_a_wrong_entry(gen, n):
+    """The bound of :func:`_assert_agree_from_components` is not empty: at condition 10 an off-diagonal entry 1 %
+    off fails it.  (It is loose: the terms of ``ℓ`` at the nodes are far larger than ``L̃``'s entries, and at
+    condition 10³ the 6-state bound admits errors of that size; the kernels are therefore also checked one by
+    one, the moments kernel in :func:`test_the_moments_kernel_gives_the_generic_product_gaussians_and_rates`,
+    the node kernel in :func:`test_lanes_equal_the_batched_route`.)"""
+    model, u, comp = _components(gen, 3, 5, n, 10.0)
+    got, want = _from_components(model, u, comp), _batched(model, u, comp)
+    _assert_agree_from_components(got, want, model, u, comp)
+    wrong = got.scaled.clone()
+    wrong[..., 0, 1] *= 1.01
+    wrong[..., 1, 0] = wrong[..., 0, 1]
+    with pytest.raises(AssertionError):
+        _assert_agree_from_components(type(got)(wrong, got.log_scale), want, model, u, comp)
+
+
+def test_the_known_bias_reaches_the_pairs(gen):
+    """The 3-state model's known gyro bias is removed from the rate: with a bias of 0.02 rad/s the lanes route agrees
+    with the batched one, which it would not if the bias were dropped (L̃ moves far beyond the bound)."""
+    _, u, comp = _components(gen, 4, 5, 3, 10.0)
+    model = AttitudeModel(estimate_bias=False, bias=torch.tensor([0.02, -0.01, 0.015]))
+    from agsf_torch.fpke.residual import ComponentRates
+    from agsf_torch.propagation import moment_derivatives
+
+    rates = moment_derivatives(model, comp.means, comp.covs, u.unsqueeze(-2))
+    comp = ComponentRates(comp.means, comp.chol, rates.mean_rate, rates.cov_rate, covs=comp.covs)
+    got, want = _from_components(model, u, comp), _batched(model, u, comp)
+    _assert_agree_from_components(got, want, model, u, comp)
+    unbiased = AttitudeModel(estimate_bias=False, bias=torch.zeros(3))
+    with pytest.raises(AssertionError):
+        _assert_agree_from_components(_from_components(unbiased, u, comp), want, model, u, comp)
+
+
+def test_the_model_offers_the_route_only_compiled_and_without_gradients(gen):
+    """Eagerly (its kernel of product Gaussians is slower than the batched LAPACK route below ~1,500 pairs), without
+    a gyro rate or with gradients asked for, the model has no fused route: the penalty update then takes
+    :func:`fpke_matrix`'s."""
+    model, u, comp = _components(gen, 300, 5, 6, 1e3)  # 4,500 pairs
     assert model.fused_penalty_pairs(comp.means, comp.covs, u) is None
     assert fused_fpke_matrix(model, u, comp.means, comp.covs) is None
     assert model.fused_penalty_pairs(comp.means, comp.covs, None, compile=True) is None
+    means = comp.means.clone().requires_grad_()
+    assert model.fused_penalty_pairs(means, comp.covs, u, compile=True) is None
 
 
 def test_a_pair_whose_factorisation_fails_gives_a_non_finite_log_z(gen):
@@ -229,6 +358,36 @@ def test_a_pair_whose_factorisation_fails_gives_a_non_finite_log_z(gen):
     out = pair_products.attitude_pair_moments_kernel(mu, P, mu, Pj, u, sv2, su2)
     log_z = out[-1]
     assert bool(torch.isnan(log_z[2])) and bool(torch.isfinite(log_z[[0, 1, 3]]).all())
+    Pj[2] = -0.5 * P[2]  # Σ = ½P is positive definite, S = P − 2P = −P is not: its own factor's pivots fail
+    log_z = pair_products.attitude_pair_moments_kernel(mu, P, mu, Pj, u, sv2, su2)[-1]
+    assert bool(torch.isnan(log_z[2])) and bool(torch.isfinite(log_z[[0, 1, 3]]).all())
+
+
+def test_the_penalty_update_refuses_a_pair_that_could_not_be_factorised(gen, monkeypatch):
+    """A NaN ``log z`` from the lanes route (a failed factorisation) makes the penalty update refuse ``L`` as not
+    finite, naming the trajectory, before its state changes."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import AdaptiveGaussianSumFilter
+    from agsf_torch.filters.weight_updates import PenaltyWeightUpdate
+
+    _eager_as_compiled(monkeypatch)
+    model, u, comp = _components(gen, 3, 5, 6, 1e3)
+    real = pair_products.attitude_penalty_pairs
+
+    def failing(*args, **kwargs):
+        log_z, acc = real(*args, **kwargs)
+        log_z = log_z.clone()
+        log_z[1, 4] = torch.nan
+        return log_z, acc
+
+    monkeypatch.setattr(pair_products, "attitude_penalty_pairs", failing)
+    log_w = torch.log_softmax(torch.randn(3, 5, generator=gen, dtype=torch.float64), -1)
+    mix = GaussianMixture(log_weights=log_w, means=comp.means, covs=comp.covs)
+    agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(compile=True))
+    before = agsf.state_dict()
+    with pytest.raises(ValueError, match=r"FPKE matrix L is not finite at trajectory index \(1,\)"):
+        agsf.predict(mix, u, 1.0)
+    assert agsf.state_dict()["weight_update"] == before["weight_update"]
 
 
 def test_the_penalty_update_takes_the_fused_route_with_the_same_weights(gen, monkeypatch):
@@ -238,10 +397,12 @@ def test_the_penalty_update_takes_the_fused_route_with_the_same_weights(gen, mon
     propagated mixture (the same propagation on both sides)."""
     from agsf_torch import GaussianMixture
     from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+    from agsf_torch.filters.weight_updates import PenaltyWeightUpdate
     from agsf_torch.filters.weight_updates.base import component_rates
 
+    _eager_as_compiled(monkeypatch)  # the compiled routes, run eagerly: nothing is compiled here
     N, lam = 5, 0.1
-    model, u, comp = _components(gen, 40, N, 6, 1e4)  # 600 pairs: the eager lanes routes
+    model, u, comp = _components(gen, 40, N, 6, 1e4)  # 600 pairs: the lanes routes
     log_w = torch.log_softmax(torch.randn(40, N, generator=gen, dtype=torch.float64), -1)
     mix = GaussianMixture(log_weights=log_w, means=comp.means, covs=comp.covs)
     prop = GaussianSumFilter(model).predict(mix, u, 1.0)
@@ -253,13 +414,14 @@ def test_the_penalty_update_takes_the_fused_route_with_the_same_weights(gen, mon
         with pytest.MonkeyPatch.context() as mp:
             if not fused:
                 mp.setattr(AttitudeModel, "fused_penalty_pairs", lambda self, *a, **k: None)
-            out[fused] = AdaptiveGaussianSumFilter(model, weight_update="penalty").predict(mix, u, 1.0).weights
+            agsf = AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(compile=True))
+            out[fused] = agsf.predict(mix, u, 1.0).weights
         assert bool(calls) == fused
     rule = residual_rule(model, None, 2)[0]
     H = {}
     for fused, L in (
-        (True, fused_fpke_matrix(model, u, prop.means, prop.covs)),
-        (False, fpke_matrix(model, u, component_rates(model, prop, u), rule, None)),
+        (True, fused_fpke_matrix(model, u, prop.means, prop.covs, compile=True)),
+        (False, fpke_matrix(model, u, component_rates(model, prop, u), rule, None, compile=True)),
     ):
         trace = L.scaled.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
         H[fused] = N * L.scaled / trace + lam * torch.eye(N, dtype=torch.float64)
@@ -294,6 +456,28 @@ def test_compiled_calls_take_chunks_of_compiled_pairs(gen, monkeypatch, n):
         assert seen == calls
 
 
+@pytest.mark.parametrize("n", [3, 6])
+def test_compiled_pairs_from_components_take_their_chunks(gen, monkeypatch, n):
+    """Compiled, the moments kernel takes chunks of the default 1,024 lanes and the node kernel chunks of
+    ``COMPILED_PAIRS`` (both tails padded, the padding dropped before the next kernel); the numbers are those of
+    the eager route."""
+    from agsf_torch.fused import lanes
+
+    seen = []
+    _eager_as_compiled(monkeypatch, seen)
+    model, u, comp = _components(gen, 80, 5, n, 1e3)  # 1,200 pairs
+    got = _from_components(model, u, comp, compile=True)
+    eager = _from_components(model, u, comp)
+    # the same eager code on every lane, in other chunks: elementwise the same operations (a vectorised log may round
+    # a tail lane differently, by an ulp of log z), and the node kernel's product with W in other blocks
+    _assert_agree(got, eager, model, u, comp, log_z_ulps=16)
+    chunk = pair_products.COMPILED_PAIRS
+    moments = [c for c in seen if c[0] == "attitude_pair_moments_kernel"]
+    values = [c for c in seen if c[0] == "attitude_pair_values_kernel"]
+    assert moments == [("attitude_pair_moments_kernel", lanes.COMPILED_CHUNK, False)] * 2
+    assert values == [("attitude_pair_values_kernel", chunk, False)] * -(-1200 // chunk)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("n", [3, 6])
 def test_the_compiled_kernel_equals_the_eager_one(gen, n):
@@ -304,6 +488,22 @@ def test_the_compiled_kernel_equals_the_eager_one(gen, n):
 @pytest.mark.slow
 @pytest.mark.parametrize("n", [3, 6])
 def test_the_compiled_pairs_from_components_equal_the_eager_ones(gen, n):
+    """Compiled, the moments kernel meets the bounds of the eager one (:func:`_assert_moments_agree`; the node
+    kernel compiled: :func:`test_the_compiled_kernel_equals_the_eager_one`), and the whole route agrees with the
+    eager one end to end."""
+    from agsf_torch.fused.lanes import run_in_chunks
+
     model, u, comp = _components(gen, 300, 5, n, 1e6)
+
+    def compiled(inputs, shared):
+        return run_in_chunks(
+            pair_products.attitude_pair_moments_kernel,
+            inputs,
+            shared=shared,
+            compile=True,
+            key=("attitude pair moments", n),
+        )
+
+    _assert_moments_agree(model, u, comp, compiled)
     eager = _from_components(model, u, comp)
     _assert_agree_from_components(_from_components(model, u, comp, compile=True), eager, model, u, comp)
