@@ -507,3 +507,26 @@ def test_the_compiled_pairs_from_components_equal_the_eager_ones(gen, n):
     _assert_moments_agree(model, u, comp, compiled)
     eager = _from_components(model, u, comp)
     _assert_agree_from_components(_from_components(model, u, comp, compile=True), eager, model, u, comp)
+
+
+@pytest.mark.parametrize("N", [1, 3])
+def test_fused_fpke_matrix_takes_any_batch_shape_and_a_shared_rate(gen, monkeypatch, N):
+    """:func:`fused_fpke_matrix` on components ``[2, 3, N, n]`` with one gyro rate ``[3]`` for all equals the route
+    on the flattened batch with the rate repeated, reshaped (the same lanes: the same numbers), and agrees with the
+    batched route; ``N = 1`` has its single diagonal pair."""
+    _eager_as_compiled(monkeypatch)
+    model, u, comp = _components(gen, 6, N, 6, 10.0)
+    rate = u[0]
+    means, covs = comp.means.reshape(2, 3, N, 6), comp.covs.reshape(2, 3, N, 6, 6)
+    got = fused_fpke_matrix(model, rate, means, covs, compile=True)
+    flat = fused_fpke_matrix(model, rate.expand(6, 3), comp.means, comp.covs, compile=True)
+    assert got.scaled.shape == (2, 3, N, N) and got.log_scale.shape == (2, 3)
+    assert torch.equal(got.scaled.reshape(6, N, N), flat.scaled) and torch.equal(
+        got.log_scale.reshape(6), flat.log_scale
+    )
+    from agsf_torch.fpke.residual import ComponentRates
+    from agsf_torch.propagation import moment_derivatives
+
+    rates = moment_derivatives(model, comp.means, comp.covs, rate.expand(6, 1, 3))
+    comp = ComponentRates(comp.means, comp.chol, rates.mean_rate, rates.cov_rate, covs=comp.covs)
+    _assert_agree_from_components(flat, _batched(model, rate.expand(6, 3), comp), model, rate.expand(6, 3), comp)
