@@ -39,6 +39,7 @@ __all__ = [
     "COMPILED_PAIRS",
     "attitude_pair_values_kernel",
     "attitude_pair_moments_kernel",
+    "attitude_diagonal_pair_values_kernel",
     "attitude_penalty_pairs",
     "pair_product_weights",
     "attitude_pair_products",
@@ -211,6 +212,27 @@ def attitude_pair_values_kernel(
     return (_expected_products(mE, LE, _column(entries(u, (3,))), sides, nodes, W, c, d_b, m.shape[0]),)
 
 
+def attitude_diagonal_pair_values_kernel(
+    m: Tensor,
+    L: Tensor,
+    mu: Tensor,
+    Pi: Tensor,
+    rate: Tensor,
+    Pdot: Tensor,
+    u: Tensor,
+    nodes: Tensor,
+    W: Tensor,
+    c: Tensor,
+    d_b: Tensor,
+) -> tuple[Tensor]:
+    """``E[ℓᵢ²]`` ``[Q]`` of ``Q`` pairs ``(i, i)``: :func:`attitude_pair_values_kernel` with both sides one
+    component, evaluated once (``vᵢᵀWvᵢ`` per channel)."""
+    n = m.shape[-1]
+    side = tuple(_column(entries(t, shape)) for t, shape in zip((mu, Pi, rate, Pdot), ((n,), (n, n), (n,), (n, n))))
+    mE, LE = _column(entries(m, (n,))), _lower(_column(entries(L, (n, n))))
+    return (_expected_products(mE, LE, _column(entries(u, (3,))), [side], nodes, W, c, d_b, m.shape[0]),)
+
+
 def _column(x):
     """Entries of pairs ``[Q]`` (nested lists) as ``[Q, 1]`` columns, to broadcast against the nodes ``[K]``;
     numbers, structural zeros and 0-d parameters pass through."""
@@ -231,7 +253,7 @@ def _expected_products(
     Q: int,
 ) -> Tensor:
     """``E[ℓᵢℓⱼ]`` ``[Q]`` from the pairs' ``m``, lower ``L`` and gyro rate and each side's ``(μ, Π, μ̇, Ṗ)``, all
-    entries of ``[Q, 1]`` columns (module docstring)."""
+    entries of ``[Q, 1]`` columns (module docstring); one side only: ``E[ℓᵢ²]``."""
     n = len(mE)
     xi = list(nodes.unbind(-1))
     p = _affine_at_nodes(mE[:3], LE[:3], xi)
@@ -248,7 +270,7 @@ def _expected_products(
     for mu, Pi, rate, Pdot in sides:
         vals = _side_values(n, mE, LE, xi, p, lb, terms, mu, Pi, rate, Pdot, d_b)
         values.append(torch.stack([v.expand(Q, K) for v in vals], 1))  # [Q, channels, K]
-    vi, vj = values
+    vi, vj = values if len(values) == 2 else values * 2
     return ((vi @ W) * vj).sum((-2, -1))
 
 
@@ -334,15 +356,18 @@ def attitude_pair_products(
     return _pair_values(inputs, sigma_v, sigma_u, compile, chunk).reshape(lead)
 
 
-def _pair_values(inputs: tuple, sigma_v: Tensor, sigma_u: Tensor, compile: bool, chunk: int | None = None) -> Tensor:
-    """:func:`attitude_pair_values_kernel` over its batch-first ``inputs`` in chunks (eagerly ``chunk`` pairs, by
-    default as many as keep ``DEFAULT_CHUNK`` node lanes; compiled :data:`COMPILED_PAIRS`): ``[Q]``."""
+def _pair_values(
+    inputs: tuple, sigma_v: Tensor, sigma_u: Tensor, compile: bool, chunk: int | None = None, kernel=None
+) -> Tensor:
+    """``kernel`` (:func:`attitude_pair_values_kernel`, or its diagonal variant) over its batch-first ``inputs`` in
+    chunks (eagerly ``chunk`` pairs, by default as many as keep ``DEFAULT_CHUNK`` node lanes; compiled
+    :data:`COMPILED_PAIRS`): ``[Q]``."""
     from .lanes import DEFAULT_CHUNK, run_in_chunks
 
     m = inputs[0]
     nodes, W = _mrp_nodes_and_weights(m.dtype, m.device)
     (acc,) = run_in_chunks(
-        attitude_pair_values_kernel,
+        kernel or attitude_pair_values_kernel,
         inputs,
         shared=(nodes, W, (sigma_v**2 / 32.0).to(m), (0.5 * sigma_u**2).to(m)),
         compile=compile,
@@ -389,6 +414,13 @@ def attitude_penalty_pairs(
         compile=compile,
         key=("attitude pair moments", n),
     )
-    inputs = (m, L, side(means, first), side(prec, first), rate_i, Pdot_i)
-    inputs += (side(means, second), side(prec, second), rate_j, Pdot_j, u)
-    return log_z.reshape(T, P), _pair_values(inputs, sigma_v, sigma_u, compile).reshape(T, P)
+    # the pairs (i, j), i < j, with both sides; the pairs (i, i) with one (the two are the same component)
+    off = (first != second).repeat(T)
+    mu_i, Pi_i, mu_j, Pi_j = side(means, first), side(prec, first), side(means, second), side(prec, second)
+    acc = m.new_empty(T * P)
+    both = (m, L, mu_i, Pi_i, rate_i, Pdot_i, mu_j, Pi_j, rate_j, Pdot_j, u)
+    acc[off] = _pair_values(tuple(t[off] for t in both), sigma_v, sigma_u, compile)
+    one = (m, L, mu_i, Pi_i, rate_i, Pdot_i, u)
+    diagonal = attitude_diagonal_pair_values_kernel
+    acc[~off] = _pair_values(tuple(t[~off] for t in one), sigma_v, sigma_u, compile, kernel=diagonal)
+    return log_z.reshape(T, P), acc.reshape(T, P)

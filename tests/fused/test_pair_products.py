@@ -458,9 +458,9 @@ def test_compiled_calls_take_chunks_of_compiled_pairs(gen, monkeypatch, n):
 
 @pytest.mark.parametrize("n", [3, 6])
 def test_compiled_pairs_from_components_take_their_chunks(gen, monkeypatch, n):
-    """Compiled, the moments kernel takes chunks of the default 1,024 lanes and the node kernel chunks of
-    ``COMPILED_PAIRS`` (both tails padded, the padding dropped before the next kernel); the numbers are those of
-    the eager route."""
+    """Compiled, the moments kernel takes chunks of the default 1,024 lanes and the node kernels (both sides for the
+    pairs i < j, one for the pairs i = i) chunks of ``COMPILED_PAIRS`` (the tails padded, the padding dropped before
+    the next kernel); the numbers are those of the eager route."""
     from agsf_torch.fused import lanes
 
     seen = []
@@ -474,8 +474,10 @@ def test_compiled_pairs_from_components_take_their_chunks(gen, monkeypatch, n):
     chunk = pair_products.COMPILED_PAIRS
     moments = [c for c in seen if c[0] == "attitude_pair_moments_kernel"]
     values = [c for c in seen if c[0] == "attitude_pair_values_kernel"]
+    diagonal = [c for c in seen if c[0] == "attitude_diagonal_pair_values_kernel"]
     assert moments == [("attitude_pair_moments_kernel", lanes.COMPILED_CHUNK, False)] * 2
-    assert values == [("attitude_pair_values_kernel", chunk, False)] * -(-1200 // chunk)
+    assert values == [("attitude_pair_values_kernel", chunk, False)] * -(-800 // chunk)  # 80 · 10 pairs i < j
+    assert diagonal == [("attitude_diagonal_pair_values_kernel", chunk, False)] * -(-400 // chunk)  # 80 · 5
 
 
 @pytest.mark.slow
