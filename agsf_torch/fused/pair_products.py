@@ -22,7 +22,9 @@ Two entry points: :func:`attitude_pair_products` takes the pairs' product Gaussi
 :func:`attitude_penalty_pairs` starts from the components and forms the product Gaussians and the moment
 rates on lanes too (:func:`attitude_pair_moments_kernel`, a kernel of its own: inside the node kernel the
 compiler would recompute these per-pair values at every node), which the penalty update takes
-(``fused_penalty_pairs``).  Compiled, the node kernel runs in chunks of :data:`COMPILED_PAIRS` pairs.
+(``fused_penalty_pairs``); there the pairs ``(i, i)`` take :func:`attitude_diagonal_pair_values_kernel`,
+which evaluates their one component once.  Compiled, the node kernels run in chunks of
+:data:`COMPILED_PAIRS` pairs.
 """
 
 from __future__ import annotations

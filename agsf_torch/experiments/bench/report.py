@@ -60,10 +60,10 @@ def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
         f"penalty AGSF predict ÷ fused GSF, 6-state N=5 B={six['B']}",
         six["penalty_ratio"],
         20.0,
-        limit="the FPKE matrix L's two compiled kernels, ~14.6 of ~17.5 ms per step (profiled at B = 256, 2 cores: "
-        "3,840 pairs × 84 MRP nodes, ~700 lane operations per node and a [10, 84] × [84, 84] product per side, in 30 "
-        "chunks of 128 pairs, plus the pairs' product Gaussians and rates); the propagation, the precisions and the "
-        "weight QP are the rest",
+        limit="the FPKE matrix L's compiled kernels, ~80 % of the step (profiled at B = 256, 2 cores: 3,840 pairs × 84 "
+        "MRP nodes, ~700 lane operations per node and side and a [10, 84] × [84, 84] product per pair, in chunks of "
+        "128 pairs, the 1,280 pairs (i, i) with one side; the pairs' product Gaussians and rates); the propagation, "
+        "the precisions and the weight QP are the rest",
     )
     if "compile" in r:
         c = r["compile"]
