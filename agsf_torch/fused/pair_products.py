@@ -403,11 +403,16 @@ def attitude_penalty_pairs(
         return means.new_zeros(T, P), means.new_zeros(T, P)
     prec = torch.cholesky_inverse(torch.linalg.cholesky(covs))
     prec = 0.5 * (prec + prec.transpose(-1, -2))
+    # lanes pair-major, the pairs i < j first: those take both sides, the pairs (i, i) (the same component on
+    # both sides) one, each set a contiguous slice of the lanes (no copies)
+    order = torch.cat(((first != second).nonzero()[:, 0], (first == second).nonzero()[:, 0]))
+    first, second = first[order], second[order]
+    split = T * (P - N)
 
     def side(t: Tensor, index: Tensor) -> Tensor:
-        return t[:, index].reshape(T * P, *t.shape[2:])
+        return t[:, index].transpose(0, 1).reshape(P * T, *t.shape[2:])
 
-    u = rate.unsqueeze(1).expand(T, P, 3).reshape(T * P, 3)
+    u = rate.unsqueeze(0).expand(P, T, 3).reshape(P * T, 3)
     sv2, su2 = (sigma_v**2).to(means), (sigma_u**2).to(means)
     m, L, rate_i, Pdot_i, rate_j, Pdot_j, log_z = run_in_chunks(
         attitude_pair_moments_kernel,
@@ -416,13 +421,16 @@ def attitude_penalty_pairs(
         compile=compile,
         key=("attitude pair moments", n),
     )
-    # the pairs (i, j), i < j, with both sides; the pairs (i, i) with one (the two are the same component)
-    off = (first != second).repeat(T)
     mu_i, Pi_i, mu_j, Pi_j = side(means, first), side(prec, first), side(means, second), side(prec, second)
-    acc = m.new_empty(T * P)
     both = (m, L, mu_i, Pi_i, rate_i, Pdot_i, mu_j, Pi_j, rate_j, Pdot_j, u)
-    acc[off] = _pair_values(tuple(t[off] for t in both), sigma_v, sigma_u, compile)
+    acc_off = _pair_values(tuple(t[:split] for t in both), sigma_v, sigma_u, compile)
     one = (m, L, mu_i, Pi_i, rate_i, Pdot_i, u)
     diagonal = attitude_diagonal_pair_values_kernel
-    acc[~off] = _pair_values(tuple(t[~off] for t in one), sigma_v, sigma_u, compile, kernel=diagonal)
-    return log_z.reshape(T, P), acc.reshape(T, P)
+    acc_diag = _pair_values(tuple(t[split:] for t in one), sigma_v, sigma_u, compile, kernel=diagonal)
+    back = torch.empty_like(order)
+    back[order] = torch.arange(P, device=order.device)  # lane order → triu order
+
+    def triu(t: Tensor) -> Tensor:
+        return t.reshape(P, T).t()[:, back]
+
+    return triu(log_z), triu(torch.cat((acc_off, acc_diag)))
