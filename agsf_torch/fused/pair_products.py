@@ -205,13 +205,8 @@ def attitude_pair_values_kernel(
         nodes: the MRP nodes ``ξ`` ``[K, 3]``; W: ``TᵀT`` ``[K, K]`` (:func:`pair_product_weights`).
         c: ``σ_v²/32``; d_b: ``σ_u²/2`` (0-d tensors; unused with 3 states).
     """
-    n = m.shape[-1]
-    sides = [
-        tuple(_column(entries(t, shape)) for t, shape in zip(side, ((n,), (n, n), (n,), (n, n))))
-        for side in ((mu_i, Pi_i, rate_i, Pdot_i), (mu_j, Pi_j, rate_j, Pdot_j))
-    ]
-    mE, LE = _column(entries(m, (n,))), _lower(_column(entries(L, (n, n))))
-    return (_expected_products(mE, LE, _column(entries(u, (3,))), sides, nodes, W, c, d_b, m.shape[0]),)
+    sides = ((mu_i, Pi_i, rate_i, Pdot_i), (mu_j, Pi_j, rate_j, Pdot_j))
+    return (_products_of_tensors(m, L, u, sides, nodes, W, c, d_b),)
 
 
 def attitude_diagonal_pair_values_kernel(
@@ -229,10 +224,19 @@ def attitude_diagonal_pair_values_kernel(
 ) -> tuple[Tensor]:
     """``E[ℓᵢ²]`` ``[Q]`` of ``Q`` pairs ``(i, i)``: :func:`attitude_pair_values_kernel` with both sides one
     component, evaluated once (``vᵢᵀWvᵢ`` per channel)."""
+    return (_products_of_tensors(m, L, u, ((mu, Pi, rate, Pdot),), nodes, W, c, d_b),)
+
+
+def _products_of_tensors(
+    m: Tensor, L: Tensor, u: Tensor, sides: tuple, nodes: Tensor, W: Tensor, c: Tensor, d_b: Tensor
+) -> Tensor:
+    """:func:`_expected_products` of batch-first tensors: ``m``, ``L``, ``u`` and each side's ``(μ, Π, μ̇, Ṗ)``
+    taken as entries of ``[Q, 1]`` columns (``L``'s upper triangle as structural zeros)."""
     n = m.shape[-1]
-    side = tuple(_column(entries(t, shape)) for t, shape in zip((mu, Pi, rate, Pdot), ((n,), (n, n), (n,), (n, n))))
+    shapes = ((n,), (n, n), (n,), (n, n))
+    columns = [tuple(_column(entries(t, shape)) for t, shape in zip(side, shapes)) for side in sides]
     mE, LE = _column(entries(m, (n,))), _lower(_column(entries(L, (n, n))))
-    return (_expected_products(mE, LE, _column(entries(u, (3,))), [side], nodes, W, c, d_b, m.shape[0]),)
+    return _expected_products(mE, LE, _column(entries(u, (3,))), columns, nodes, W, c, d_b, m.shape[0])
 
 
 def _column(x):

@@ -435,21 +435,11 @@ def test_the_penalty_update_takes_the_fused_route_with_the_same_weights(gen, mon
 def test_compiled_calls_take_chunks_of_compiled_pairs(gen, monkeypatch, n):
     """The compiled kernel's threaded variant sees only chunks of ``COMPILED_PAIRS`` pairs (the tail padded; its
     temporaries ``[pairs, 84]`` kept small), fewer pairs one serial call; the numbers are the eager kernel's."""
-    from agsf_torch.fused import lanes
-
     seen = []
-
-    def recording(kernel, key, inputs, shared, serial):
-        def run(*args):
-            seen.append((args[0].shape[0], serial))
-            return kernel(*args)
-
-        return run
-
-    monkeypatch.setattr(lanes, "_load", recording)
-    monkeypatch.setattr(lanes, "_COMPILED", {})
+    _eager_as_compiled(monkeypatch, seen)
     chunk = pair_products.COMPILED_PAIRS
-    for B, calls in ((2, [(30, True)]), (20, [(chunk, False)] * -(-300 // chunk))):
+    name = "attitude_pair_values_kernel"
+    for B, calls in ((2, [(name, 30, True)]), (20, [(name, chunk, False)] * -(-300 // chunk))):
         seen.clear()
         model, u, comp = _components(gen, B, 5, n, 1e3)  # 15 pairs per trajectory
         _assert_agree(_on_lanes(model, u, comp, compile=True), _on_lanes(model, u, comp), model, u, comp)
