@@ -6,7 +6,7 @@ import json
 
 from agsf_torch.experiments import cli
 
-SMALL = ["runs=48", "duration=20.0", "update_iterations=3", 'filters=["EKF"]', "compile=false"]
+SMALL = ["runs=48", "duration=20.0", "update_iterations=3", 'filters=["EKF"]', "compile=false", "compile_fused=false"]
 
 
 def test_diagnose_passes_the_matched_and_flags_the_mis_modelled(tmp_path, capsys):

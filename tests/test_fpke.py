@@ -281,6 +281,7 @@ def test_galerkin_rule_is_exact_for_attitude(gen, estimate_bias):
     assert torch.equal(K["exact"].mass, closed.mass)  # closed form, no quadrature
 
 
+@pytest.mark.slow  # compiles with torch.compile
 def test_galerkin_matrices_compiled_equal_eager(gen):
     model, u, rates = _six_state_rates(gen)
     rule = gauss_hermite(model.fpke_quadrature_points(1))

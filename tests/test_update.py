@@ -270,6 +270,7 @@ def test_case1_runs_with_a_precise_sensor(iterations, noise_model):
             "duration=2.0",
             "sigma_s=1e-9",
             "compile=false",
+            "compile_fused=false",
             "components=3",
             f"update_iterations={iterations}",
             f"star_noise_model={noise_model!r}".replace("'", '"'),

@@ -57,6 +57,7 @@ def soak_config(filter_name: str = "GSF", **changes: Any) -> ExperimentConfig:
         update_iterations=3,
         filters=[filter_name],
         compile=filter_name in ADAPTIVE_FILTERS,
+        compile_fused=False,
     )
     return base.replace(**changes) if changes else base
 

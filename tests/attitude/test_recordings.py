@@ -94,10 +94,18 @@ def test_cli_simulate_then_run_on_the_file(tmp_path):
     from agsf_torch.experiments.config import load_config
     from agsf_torch.experiments.experiment import make_env, run_experiment
 
-    cfg = load_config("case1", ["runs=6", "duration=3.0", "compile=false", 'filters=["EKF", "GSF"]'])
+    cfg = load_config(
+        "case1", ["runs=6", "duration=3.0", "compile=false", "compile_fused=false", 'filters=["EKF", "GSF"]']
+    )
     path = record_environment(make_env(cfg), cfg.num_steps, cfg.seed).save(tmp_path / "rec.npz")
     args = ["run", "case1", "--recording", str(path), "--quiet", "--out", str(tmp_path / "replay")]
-    args += sum([["--set", s] for s in ("runs=6", "duration=3.0", "compile=false", 'filters=["EKF", "GSF"]')], [])
+    args += sum(
+        [
+            ["--set", s]
+            for s in ("runs=6", "duration=3.0", "compile=false", "compile_fused=false", 'filters=["EKF", "GSF"]')
+        ],
+        [],
+    )
     assert cli.main(args) == 0
     live = run_experiment(cfg, tmp_path / "live", progress=False)
     replay = json.loads((tmp_path / "replay" / "summary.json").read_text())

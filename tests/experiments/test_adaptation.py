@@ -15,7 +15,12 @@ from agsf_torch.experiments.cli import main
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("adaptation") / "study"
     summaries = run_adaptation_study(
-        ["case1", "ambiguous"], out, runs=4, samples=128, overrides=["duration=2.5", "compile=false"], progress=False
+        ["case1", "ambiguous"],
+        out,
+        runs=4,
+        samples=128,
+        overrides=["duration=2.5", "compile=false", "compile_fused=false"],
+        progress=False,
     )
     return out, summaries
 

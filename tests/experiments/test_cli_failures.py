@@ -24,7 +24,17 @@ from agsf_torch.attitude.recordings import Recording
 from agsf_torch.experiments import cli
 from agsf_torch.experiments.config import MAX_SEED
 
-TINY = ["--set", "runs=2", "--set", "duration=0.3", "--set", 'filters=["EKF"]', "--quiet"]
+TINY = [
+    "--set",
+    "runs=2",
+    "--set",
+    "duration=0.3",
+    "--set",
+    'filters=["EKF"]',
+    "--set",
+    "compile_fused=false",
+    "--quiet",
+]
 
 
 def _tree(root: Path) -> dict[str, str]:

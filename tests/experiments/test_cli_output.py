@@ -19,7 +19,19 @@ from agsf_torch.experiments import cli
 from agsf_torch.experiments.sweep import results_table
 from agsf_torch.storage.files import read_json_lines
 
-TINY = ["--set", "runs=2", "--set", "duration=0.3", "--set", 'filters=["EKF"]', "--quiet"]
+TINY = [
+    "--set",
+    "runs=2",
+    "--set",
+    "duration=0.3",
+    "--set",
+    'filters=["EKF"]',
+    "--set",
+    "compile=false",
+    "--set",
+    "compile_fused=false",
+    "--quiet",
+]
 
 
 def _agsf(argv: list[str]) -> tuple[int, str, str]:

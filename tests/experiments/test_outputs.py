@@ -23,7 +23,7 @@ from agsf_torch.experiments.resources import (
 )
 from agsf_torch.experiments.sweep import SweepBusy, parse_grid, run_sweep
 
-TINY = ["runs=2", "duration=0.3", 'filters=["EKF"]']
+TINY = ["runs=2", "duration=0.3", 'filters=["EKF"]', "compile_fused=false"]
 
 
 def _tiny(*more):

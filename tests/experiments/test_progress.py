@@ -37,7 +37,7 @@ def test_piped_progress_also_writes_a_line_after_the_interval(monkeypatch):
 
 
 def test_sweep_progress_names_each_configuration(tmp_path):
-    base = load_config("case1", ["runs=2", "duration=0.3", 'filters=["EKF"]'])
+    base = load_config("case1", ["runs=2", "duration=0.3", 'filters=["EKF"]', "compile_fused=false"])
     err = io.StringIO()
     with redirect_stderr(err):
         run_sweep(base, parse_grid(["seed=3,5"], base), tmp_path / "sweep", progress=True)

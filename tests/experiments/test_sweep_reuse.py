@@ -16,7 +16,7 @@ from agsf_torch.experiments.experiment import run_experiment
 from agsf_torch.experiments.sweep import run_sweep
 from agsf_torch.experiments.sweep.rows import results_table
 
-TINY = ["runs=2", "duration=0.5", "components=2"]
+TINY = ["runs=2", "duration=0.5", "components=2", "compile=false", "compile_fused=false"]
 FILTERS = 'filters=["EKF","GSF","AGSF"]'
 
 

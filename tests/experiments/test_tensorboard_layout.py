@@ -230,7 +230,7 @@ def test_reproduce_makes_each_case_an_hparams_session(tmp_path):
     reproduce(
         [1, 2],
         out,
-        ["runs=2", "duration=2.0", 'filters=["EKF","GSF"]', "components=2", "compile=false"],
+        ["runs=2", "duration=2.0", 'filters=["EKF","GSF"]', "components=2", "compile=false", "compile_fused=false"],
         progress=False,
     )
     combined = json.loads((out / "summary.json").read_text())

@@ -12,6 +12,10 @@ from agsf_torch.fused import lanes
 from agsf_torch.fused.lanes import compiling_in_parallel, run_in_chunks
 from tests.helpers import F64
 
+#: The real side-by-side compiler (conftest's guard replaces it in every test not marked slow): the two tests that
+#: run it give it kernels that cannot compile, so nothing is compiled.
+_COMPILE_PENDING = lanes._compile_pending
+
 
 def _kernel(x, y):
     return (x * 2.0 + y.sum(-1, keepdim=True), (x * x).sum(-1))
@@ -100,6 +104,7 @@ def test_a_kernel_a_worker_cannot_compile_is_announced_and_left_to_its_first_cal
     def local_kernel(a, b):
         return (a,)
 
+    monkeypatch.setattr(lanes, "_compile_pending", _COMPILE_PENDING)
     jobs = {
         tmp_path / "a.pt2": ("_failing_kernel (serial)", _failing_kernel, [x, y], [], True),
         tmp_path / "b.pt2": ("local_kernel (serial)", local_kernel, [x, y], [], True),
@@ -133,6 +138,7 @@ def test_a_batch_of_kernels_none_of_which_can_be_sent_ends_without_a_worker(gen,
     x, y = _inputs(gen, 4)
     jobs = {tmp_path / "a.pt2": ("lambda (serial)", lambda a, b: (a,), [x, y], [], True)}
     monkeypatch.setattr("subprocess.Popen", lambda *a, **k: pytest.fail("a worker was started"))
+    monkeypatch.setattr(lanes, "_compile_pending", _COMPILE_PENDING)
     lanes._compile_pending(jobs, processes=1)
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING][0].startswith(
         "compiling the fused kernel 'lambda (serial)' ahead of time failed"
