@@ -71,8 +71,8 @@ def run_experiment(
         from .recorded import RecordingEnv, check_recording
 
         rec = Recording.load(recording)
-        env = RecordingEnv(rec)
         check_recording(rec, cfg, str(recording))
+        env = RecordingEnv(rec)
         digest = f"{cfg.digest()}:recording={rec.content_digest()}"
         check_memory(cfg, force=force)
     else:

@@ -67,8 +67,8 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
     """The one check of a recording against a configuration, for ``agsf run --recording`` and ``agsf learn``:
     uniformly spaced samples (:func:`sample_spacing`) at the configuration's ``dt`` (to the timestamps'
     precision), gyro rates that turn less than half a turn per sample (``|ω̃|·Δt < π``: beyond, a sampled
-    rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, ``cfg.runs`` trajectories
-    of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
+    rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, the truth and ``cfg.runs``
+    trajectories of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
     dt, tol = sample_spacing(recording)
     if recording.num_samples > 1 and abs(dt - cfg.dt) > tol + 1e-9 * cfg.dt:
         raise ValueError(f"recording {name} is sampled every {dt:g} s; the configuration's dt is {cfg.dt:g} s")
@@ -80,6 +80,11 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
                 f"recording {name}: a gyro rate of {rate:g} rad/s turns {rate * dt:g} rad per sample of {dt:g} s, "
                 "half a turn or more: not a sampled rotation (are the rates in rad/s?)"
             )
+    if whole_run and (recording.truth_mrp is None or recording.truth_bias is None):
+        raise ValueError(
+            f"recording {name} has no truth (truth_mrp and truth_bias): replaying it through the Monte Carlo runner "
+            "scores the filters against the truth"
+        )
     if whole_run and (recording.num_trajectories != cfg.runs or recording.num_samples - 1 < cfg.num_steps):
         raise ValueError(
             f"recording {name} has {recording.num_trajectories} trajectories × {recording.num_samples - 1} steps of "

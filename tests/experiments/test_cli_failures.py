@@ -95,7 +95,7 @@ def _bad_recording_file(path: Path, good: Path, data) -> str:
     raw = good.read_bytes()
     kind = data.draw(
         st.sampled_from(
-            ["missing", "directory", "text", "empty", "truncated", "flipped", "complex", "non-unit", "runs"]
+            ["missing", "directory", "text", "empty", "truncated", "flipped", "complex", "non-unit", "runs", "no-truth"]
         )
     )
     if kind == "missing":
@@ -124,6 +124,8 @@ def _bad_recording_file(path: Path, good: Path, data) -> str:
         }
         if kind == "complex":
             arrays["gyro"] = arrays["gyro"].astype(np.complex128)
+        elif kind == "no-truth":  # a recording of flight data: nothing to score the filters against
+            del arrays["truth_mrp"], arrays["truth_bias"]
         elif kind == "non-unit":
             arrays["star_mask"] = np.ones_like(arrays["star_mask"])
             arrays["star_body"] = np.full_like(arrays["star_body"], data.draw(st.floats(0.0, 0.5)))
@@ -278,6 +280,20 @@ def _rewrite(recording: Path, path: Path, **changes) -> Path:
     keys = ("time", "gyro", "star_body", "star_inertial", "star_mask", "truth_mrp", "truth_bias")
     np.savez(path, **{k: changes.get(k, getattr(rec, k)) for k in keys})
     return path
+
+
+def test_a_recording_without_the_truth_is_refused_naming_it(recording, tmp_path):
+    """Flight data has no truth to score the filters against: ``agsf run --recording`` refuses it in one line
+    naming the file, before the output folder exists."""
+    rec = Recording.load(recording)
+    keys = ("time", "gyro", "star_body", "star_inertial", "star_mask")
+    bad = tmp_path / "flight.npz"
+    np.savez(bad, **{k: getattr(rec, k) for k in keys})
+    _assert_refused(
+        ["run", "case1", *TINY, "--recording", str(bad), "--out", str(tmp_path / "out")], tmp_path, "flight.npz"
+    )
+    code, err = _agsf(["run", "case1", *TINY, "--recording", str(bad), "--out", str(tmp_path / "out")])
+    assert "no truth" in err, err
 
 
 @pytest.mark.parametrize("stamps", ["epoch_float64", "float32"])
