@@ -16,6 +16,7 @@ from ..storage.files import write_json
 from .config import ExperimentConfig
 from .factories import make_env, make_filters, prior_covariance
 from .figures import write_figures
+from .file_writer import FileWriter
 from .outputs import OutputConflict, load_filter_runs, prepare_output, save_runs
 from .resources import check_memory
 from .runner import run_monte_carlo
@@ -45,8 +46,12 @@ def run_experiment(
     force: bool = False,
     label: str | None = None,
     reuse: Mapping[str, Path] | None = None,
+    writer: FileWriter | None = None,
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
+
+    ``writer`` (a :class:`~.file_writer.FileWriter`) writes ``runs.npz`` and the figures, in worker processes if it
+    has them: the call then returns before they are written, and they are complete when the writer is closed.
 
     ``label`` names the run on its progress bar (default: the configuration's ``name``; a sweep passes
     the configuration's parameters).
@@ -90,8 +95,8 @@ def run_experiment(
     filters = {name: setup for name, setup in make_filters(cfg).items() if name not in reuse}
     out = prepare_output(Path(out), kind, digest, cfg.to_dict())
     if not filters:
-        data = save_runs(out / "runs.npz", None, reused)
-        return _write_results(out, data, cfg, reuse)
+        data = save_runs(out / "runs.npz", None, reused, writer=writer)
+        return _write_results(out, data, cfg, reuse, writer)
     res = run_monte_carlo(
         env,
         filters,
@@ -104,8 +109,8 @@ def run_experiment(
         noise_model=cfg.star_noise_model,
         label=cfg.name if label is None else label,
     )
-    data = save_runs(out / "runs.npz", res, reused)
-    return _write_results(out, data, cfg, reuse)
+    data = save_runs(out / "runs.npz", res, reused, writer=writer)
+    return _write_results(out, data, cfg, reuse, writer)
 
 
 def _check_reusable(cfg: ExperimentConfig, name: str, folder: Path) -> None:
@@ -125,12 +130,14 @@ def _check_reusable(cfg: ExperimentConfig, name: str, folder: Path) -> None:
         )
 
 
-def _write_results(out: Path, data: dict, cfg: ExperimentConfig, reuse: dict[str, Path]) -> dict[str, Any]:
-    """The summary, figures and TensorBoard events of an experiment's data."""
+def _write_results(
+    out: Path, data: dict, cfg: ExperimentConfig, reuse: dict[str, Path], writer: FileWriter | None
+) -> dict[str, Any]:
+    """The summary, figures (through ``writer``) and TensorBoard events of an experiment's data."""
     summary = summarize(data, cfg)
     if reuse:
         summary["reused"] = {name: Path(folder).name for name, folder in reuse.items()}
     write_json(out / "summary.json", summary)
-    write_figures(out, summary)
+    write_figures(out, summary, writer)
     write_tensorboard(out, data, summary)
     return summary

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..storage.files import save_figure
+from .file_writer import FileWriter
 
 __all__ = [
     "ARCSEC_PER_RAD",
@@ -37,6 +38,7 @@ __all__ = [
     "fpke_figure",
     "rms_figure",
     "weights_figure",
+    "write_figure",
     "write_figures",
 ]
 
@@ -378,10 +380,20 @@ FIGURES = {"rms.png": rms_figure, "axes.png": axes_figure, "weights.png": weight
 _DPI = {"rms.png": 110, "axes.png": 100, "weights.png": 100, "fpke.png": 110}
 
 
-def write_figures(out: Path, summary: dict[str, Any]) -> list[Path]:
-    """Write ``rms.png``, ``axes.png``, ``weights.png`` and ``fpke.png`` into ``out``; returns their paths."""
-    out = Path(out)
-    paths = []
-    for fname, build in FIGURES.items():
-        paths.append(save_figure(build(summary), out / fname, dpi=_DPI[fname]))
+def write_figure(path: Path, summary: dict[str, Any]) -> Path:
+    """Draw the figure named by ``path``'s file name (a key of :data:`FIGURES`) from ``summary`` and save it there."""
+    path = Path(path)
+    return save_figure(FIGURES[path.name](summary), path, dpi=_DPI[path.name])
+
+
+def write_figures(out: Path, summary: dict[str, Any], writer: FileWriter | None = None) -> list[Path]:
+    """Write ``rms.png``, ``axes.png``, ``weights.png`` and ``fpke.png`` into ``out`` (each through ``writer``, a
+    :class:`~.file_writer.FileWriter`, if given: then they may still be being drawn when this returns); returns
+    their paths."""
+    paths = [Path(out) / fname for fname in FIGURES]
+    for path in paths:
+        if writer is None:
+            write_figure(path, summary)
+        else:
+            writer.submit(write_figure, path, summary, path=path)
     return paths

@@ -37,6 +37,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from ..processes import available_cpus, interpreter_env
 from ..torch_internals import torch_internal_deprecations_hidden
 
 __all__ = [
@@ -375,8 +376,7 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
     import subprocess
     import sys
 
-    available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    workers = max(1, min(len(jobs), processes or available))
+    workers = max(1, min(len(jobs), processes or available_cpus()))
     logger.info(
         "compiling the fused kernels %s ahead of time, %d at once (once per machine and torch version: about "
         "30–100 s each; later processes load them from %s in about a second)",
@@ -385,8 +385,7 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
         kernel_cache_dir(),
     )
     t0 = time.perf_counter()
-    paths = [os.fspath(p) for p in sys.path if isinstance(p, (str, os.PathLike)) and os.fspath(p)]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}  # the caller's imports, in a new interpreter
+    env = interpreter_env()  # the caller's imports, in a new interpreter
     queue, running, done = list(jobs.items()), [], 0
     with tempfile.TemporaryDirectory(prefix="agsf-kernels-") as scratch:
         try:
