@@ -55,6 +55,7 @@ class FileWriter:
         self._errors: list[tuple[Path, str]] = []
         self._workers: list[tuple[subprocess.Popen, threading.Thread]] = []
         self._count = itertools.count()
+        self._closed = False
         self._scratch = Path(tempfile.mkdtemp(prefix="agsf-writer-")) if workers else None
         if workers:
             env = interpreter_env(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")  # one thread each, beside the caller's
@@ -79,6 +80,8 @@ class FileWriter:
         """Run ``write(*args)``, which writes the file ``path`` (named in a failure's message): now, in the caller,
         without workers; else in the worker with the fewest tasks in hand."""
         path = Path(path)
+        if self._closed:
+            raise ValueError(f"cannot write {path}: this FileWriter is closed")
         if not self._workers:
             write(*args)
             return
@@ -145,6 +148,7 @@ class FileWriter:
             raise RuntimeError(f"could not write {path}: {error}{more}")
 
     def _shutdown(self) -> None:
+        self._closed = True
         for proc, _ in self._workers:
             if proc.poll() is None:
                 proc.kill()

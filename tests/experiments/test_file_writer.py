@@ -82,6 +82,15 @@ def test_an_exception_in_the_block_stops_the_workers(tmp_path):
     assert not scratch.exists()
 
 
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_closed_writer_refuses_tasks(tmp_path, workers):
+    writer = FileWriter(workers, preload=())
+    writer.close()
+    with pytest.raises(ValueError, match=r"cannot write .*f\.txt: this FileWriter is closed"):
+        writer.submit(write_text, tmp_path / "f.txt", "zeta", path=tmp_path / "f.txt")
+    assert not (tmp_path / "f.txt").exists()
+
+
 @pytest.mark.parametrize("workers", [-1, 1.5, True, "2"])
 def test_bad_worker_counts_are_refused(workers):
     with pytest.raises(ValueError, match="workers must be a non-negative integer"):
