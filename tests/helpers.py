@@ -35,3 +35,9 @@ def random_mrps(num: int, gen: torch.Generator, max_norm: float = 1.0) -> torch.
     q = q / q.norm(dim=-1, keepdim=True)
     q = q * torch.where(q[:, 3:] < 0, -1.0, 1.0)
     return max_norm * q[:, :3] / (1.0 + q[:, 3:])
+
+
+#: Configuration overrides that run a preset eagerly: no kernel compiled (a test compiles nothing: conftest's guard).
+EAGER = ["compile=false", "compile_fused=false"]
+#: ``agsf`` arguments of the smallest run of a preset: 2 runs of 0.3 s, the EKF alone, eager, no progress output.
+TINY_CLI = [*(a for s in ("runs=2", "duration=0.3", 'filters=["EKF"]', *EAGER) for a in ("--set", s)), "--quiet"]

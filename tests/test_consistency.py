@@ -5,8 +5,9 @@ from __future__ import annotations
 import json
 
 from agsf_torch.experiments import cli
+from tests.helpers import EAGER
 
-SMALL = ["runs=48", "duration=20.0", "update_iterations=3", 'filters=["EKF"]', "compile=false", "compile_fused=false"]
+SMALL = ["runs=48", "duration=20.0", "update_iterations=3", 'filters=["EKF"]', *EAGER]
 
 
 def test_diagnose_passes_the_matched_and_flags_the_mis_modelled(tmp_path, capsys):

@@ -26,7 +26,7 @@ from agsf_torch.gating import innovation_gate
 from agsf_torch.mixture import GaussianMixture
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
 from agsf_torch.update import evaluate_measurement, kalman_update
-from tests.helpers import F64, random_mrps
+from tests.helpers import EAGER, F64, random_mrps
 
 PRIOR_VAR = 1e-3  # MRP² per axis: ≈ 7° per axis, the paper's prior
 
@@ -269,8 +269,7 @@ def test_case1_runs_with_a_precise_sensor(iterations, noise_model):
             "runs=3",
             "duration=2.0",
             "sigma_s=1e-9",
-            "compile=false",
-            "compile_fused=false",
+            *EAGER,
             "components=3",
             f"update_iterations={iterations}",
             f"star_noise_model={noise_model!r}".replace("'", '"'),

@@ -15,7 +15,7 @@ from agsf_torch.experiments.recorded import RecordingEnv, record_environment
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import GaussianSumFilter
 from agsf_torch.models import AttitudeModel
-from tests.helpers import F64
+from tests.helpers import EAGER, F64
 
 
 @pytest.fixture(scope="module")
@@ -94,16 +94,11 @@ def test_cli_simulate_then_run_on_the_file(tmp_path):
     from agsf_torch.experiments.config import load_config
     from agsf_torch.experiments.experiment import make_env, run_experiment
 
-    cfg = load_config(
-        "case1", ["runs=6", "duration=3.0", "compile=false", "compile_fused=false", 'filters=["EKF", "GSF"]']
-    )
+    cfg = load_config("case1", ["runs=6", "duration=3.0", *EAGER, 'filters=["EKF", "GSF"]'])
     path = record_environment(make_env(cfg), cfg.num_steps, cfg.seed).save(tmp_path / "rec.npz")
     args = ["run", "case1", "--recording", str(path), "--quiet", "--out", str(tmp_path / "replay")]
     args += sum(
-        [
-            ["--set", s]
-            for s in ("runs=6", "duration=3.0", "compile=false", "compile_fused=false", 'filters=["EKF", "GSF"]')
-        ],
+        [["--set", s] for s in ("runs=6", "duration=3.0", *EAGER, 'filters=["EKF", "GSF"]')],
         [],
     )
     assert cli.main(args) == 0

@@ -9,6 +9,7 @@ import pytest
 
 from agsf_torch.experiments.adaptation import STUDY_FILTERS, run_adaptation_study, scenario_config
 from agsf_torch.experiments.cli import main
+from tests.helpers import EAGER
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +20,7 @@ def study(tmp_path_factory):
         out,
         runs=4,
         samples=128,
-        overrides=["duration=2.5", "compile=false", "compile_fused=false"],
+        overrides=["duration=2.5", *EAGER],
         progress=False,
     )
     return out, summaries

@@ -23,18 +23,9 @@ from agsf_torch.attitude.learning import PARAMETERS
 from agsf_torch.attitude.recordings import Recording
 from agsf_torch.experiments import cli
 from agsf_torch.experiments.config import MAX_SEED
+from tests.helpers import TINY_CLI
 
-TINY = [
-    "--set",
-    "runs=2",
-    "--set",
-    "duration=0.3",
-    "--set",
-    'filters=["EKF"]',
-    "--set",
-    "compile_fused=false",
-    "--quiet",
-]
+TINY = TINY_CLI
 
 
 def _tree(root: Path) -> dict[str, str]:

@@ -18,20 +18,9 @@ import pytest
 from agsf_torch.experiments import cli
 from agsf_torch.experiments.sweep import results_table
 from agsf_torch.storage.files import read_json_lines
+from tests.helpers import TINY_CLI
 
-TINY = [
-    "--set",
-    "runs=2",
-    "--set",
-    "duration=0.3",
-    "--set",
-    'filters=["EKF"]',
-    "--set",
-    "compile=false",
-    "--set",
-    "compile_fused=false",
-    "--quiet",
-]
+TINY = TINY_CLI
 
 
 def _agsf(argv: list[str]) -> tuple[int, str, str]:

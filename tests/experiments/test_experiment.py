@@ -13,8 +13,9 @@ from agsf_torch.experiments import cli
 from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.experiment import OutputConflict, run_experiment
 from agsf_torch.experiments.sweep import parse_grid, run_sweep
+from tests.helpers import EAGER
 
-SMALL = ["runs=12", "duration=3.0", "star_period=1.0", "compile=false", "compile_fused=false", "components=3"]
+SMALL = ["runs=12", "duration=3.0", "star_period=1.0", *EAGER, "components=3"]
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +124,7 @@ def test_output_folder_is_not_overwritten(experiment, tmp_path):
 def test_sweep_resumes_after_interruption(tmp_path):
     base = load_config(
         "case1",
-        ["runs=4", "duration=1.0", "compile=false", "compile_fused=false", "components=2", 'filters=["GSF", "AGSF"]'],
+        ["runs=4", "duration=1.0", *EAGER, "components=2", 'filters=["GSF", "AGSF"]'],
     )
     grid = parse_grid(["reg=0.1,1.0", "scaling=trace,none"])
     calls = []

@@ -12,6 +12,7 @@ import torch
 from agsf_torch.experiments.file_writer import FileWriter
 from agsf_torch.experiments.reproduce import reproduce
 from agsf_torch.storage.files import write_text
+from tests.helpers import EAGER
 
 
 def _digests(root: Path) -> dict[str, str]:
@@ -98,7 +99,7 @@ def test_bad_worker_counts_are_refused(workers):
 
 
 def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_the_threads(tmp_path):
-    overrides = ["runs=3", "duration=2.0", "components=2", "compile=false", "compile_fused=false"]
+    overrides = ["runs=3", "duration=2.0", "components=2", *EAGER]
     threads = torch.get_num_threads()
     tables = {}
     for writers in (0, 1):

@@ -25,8 +25,9 @@ from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.experiment import run_experiment
 from agsf_torch.experiments.sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
 from agsf_torch.experiments.tensorboard_log import run_name
+from tests.helpers import EAGER
 
-BASE = ["runs=4", "duration=1.0", "compile=false", "compile_fused=false", "components=2", 'filters=["GSF", "AGSF"]']
+BASE = ["runs=4", "duration=1.0", *EAGER, "components=2", 'filters=["GSF", "AGSF"]']
 GRID = ["reg=0.1,1.0", "scaling=trace,none"]
 
 

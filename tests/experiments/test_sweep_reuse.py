@@ -15,8 +15,9 @@ from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.experiment import run_experiment
 from agsf_torch.experiments.sweep import run_sweep
 from agsf_torch.experiments.sweep.rows import results_table
+from tests.helpers import EAGER
 
-TINY = ["runs=2", "duration=0.5", "components=2", "compile=false", "compile_fused=false"]
+TINY = ["runs=2", "duration=0.5", "components=2", *EAGER]
 FILTERS = 'filters=["EKF","GSF","AGSF"]'
 
 

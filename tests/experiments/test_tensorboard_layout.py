@@ -28,6 +28,7 @@ from agsf_torch.experiments.tensorboard_log import (
     run_names,
     time_steps,
 )
+from tests.helpers import EAGER
 
 BASE = ["runs=2", "duration=0.5", 'filters=["EKF","GSF"]', "components=2"]
 GRID = {"reg": [0.5, 1.0]}
@@ -230,7 +231,7 @@ def test_reproduce_makes_each_case_an_hparams_session(tmp_path):
     reproduce(
         [1, 2],
         out,
-        ["runs=2", "duration=2.0", 'filters=["EKF","GSF"]', "components=2", "compile=false", "compile_fused=false"],
+        ["runs=2", "duration=2.0", 'filters=["EKF","GSF"]', "components=2", *EAGER],
         progress=False,
     )
     combined = json.loads((out / "summary.json").read_text())
