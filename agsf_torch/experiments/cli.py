@@ -54,6 +54,7 @@ from .cli_terminal import (
     key_value,
     messages,
     nonnegative_float,
+    nonnegative_int,
     one_line,
     positive_float,
     positive_int,
@@ -133,7 +134,15 @@ def _reproduce(args: argparse.Namespace) -> int:
         overrides.append(f"runs={args.runs}")
     if args.duration is not None:
         overrides.append(f"duration={args.duration}")
-    table = reproduce(cases, Path(args.out), overrides, progress=not args.quiet, force=args.force)
+    table = reproduce(
+        cases,
+        Path(args.out),
+        overrides,
+        progress=not args.quiet,
+        force=args.force,
+        writers=args.writers,
+        threads=args.threads,
+    )
     print(table)
     print(f"results: {args.out}/ — tables {args.out}/results.md, numbers {args.out}/summary.json")
     print(f"per case: {args.out}/case*/ — figures rms.png, axes.png, weights.png, fpke.png; every run's data runs.npz")
@@ -346,6 +355,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=positive_float, default=None, help="simulated seconds per run (preset: 30)")
     p.add_argument(
         "--out", default="runs/reproduce", help="output folder (default: runs/reproduce; one subfolder per case)"
+    )
+    p.add_argument(
+        "--writers",
+        type=nonnegative_int,
+        default=None,
+        help="worker processes drawing each case's figures while the next runs (default: 1 on 2 CPUs or more, "
+        "else 0; 0: drawn in this process)",
     )
     common(p)
     p.set_defaults(func=_reproduce)

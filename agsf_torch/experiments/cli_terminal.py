@@ -55,6 +55,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def nonnegative_int(text: str) -> int:
+    """An integer argument ≥ 0."""
+    value = integer(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer ≥ 0, got {text}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """A finite number argument > 0."""
     value = _parse(text, float, "a number")

@@ -50,8 +50,9 @@ def run_experiment(
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
 
-    ``writer`` (a :class:`~.file_writer.FileWriter`) writes ``runs.npz`` and the figures, in worker processes if it
-    has them: the call then returns before they are written, and they are complete when the writer is closed.
+    ``writer`` (a :class:`~.file_writer.FileWriter`) draws the figures, in worker processes if it has them: the call
+    then returns before they are written, and they are complete when the writer is closed.  ``runs.npz`` is written
+    here either way (handing its arrays to a worker would copy them: gigabytes for a large run).
 
     ``label`` names the run on its progress bar (default: the configuration's ``name``; a sweep passes
     the configuration's parameters).
@@ -95,7 +96,7 @@ def run_experiment(
     filters = {name: setup for name, setup in make_filters(cfg).items() if name not in reuse}
     out = prepare_output(Path(out), kind, digest, cfg.to_dict())
     if not filters:
-        data = save_runs(out / "runs.npz", None, reused, writer=writer)
+        data = save_runs(out / "runs.npz", None, reused)
         return _write_results(out, data, cfg, reuse, writer)
     res = run_monte_carlo(
         env,
@@ -109,7 +110,7 @@ def run_experiment(
         noise_model=cfg.star_noise_model,
         label=cfg.name if label is None else label,
     )
-    data = save_runs(out / "runs.npz", res, reused, writer=writer)
+    data = save_runs(out / "runs.npz", res, reused)
     return _write_results(out, data, cfg, reuse, writer)
 
 

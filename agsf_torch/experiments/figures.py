@@ -38,6 +38,7 @@ __all__ = [
     "fpke_figure",
     "rms_figure",
     "weights_figure",
+    "runtime_rc_params",
     "write_figure",
     "write_figures",
 ]
@@ -380,20 +381,46 @@ FIGURES = {"rms.png": rms_figure, "axes.png": axes_figure, "weights.png": weight
 _DPI = {"rms.png": 110, "axes.png": 100, "weights.png": 100, "fpke.png": 110}
 
 
-def write_figure(path: Path, summary: dict[str, Any]) -> Path:
-    """Draw the figure named by ``path``'s file name (a key of :data:`FIGURES`) from ``summary`` and save it there."""
+def write_figure(path: Path, summary: dict[str, Any], rc: dict[str, Any] | None = None) -> Path:
+    """Draw the figure named by ``path``'s file name (a key of :data:`FIGURES`) from ``summary`` and save it there,
+    with matplotlib's settings ``rc`` (:func:`runtime_rc_params`) applied over this process's."""
+    import matplotlib
+
     path = Path(path)
-    return save_figure(FIGURES[path.name](summary), path, dpi=_DPI[path.name])
+    with matplotlib.rc_context(rc or {}):
+        return save_figure(FIGURES[path.name](summary), path, dpi=_DPI[path.name])
+
+
+def runtime_rc_params() -> dict[str, Any]:
+    """The matplotlib settings this process changed since matplotlib read its ``matplotlibrc`` (none if it has not
+    imported matplotlib), the backend left out: what a worker process, which reads the same file, needs to draw a
+    figure as this process would."""
+    import sys
+
+    if "matplotlib" not in sys.modules:
+        return {}
+    import matplotlib
+
+    changed = {}
+    for key, value in matplotlib.rcParams.items():
+        try:
+            same = bool(value == matplotlib.rcParamsOrig[key])
+        except (KeyError, ValueError, TypeError):
+            same = False
+        if key != "backend" and not same:
+            changed[key] = value
+    return changed
 
 
 def write_figures(out: Path, summary: dict[str, Any], writer: FileWriter | None = None) -> list[Path]:
     """Write ``rms.png``, ``axes.png``, ``weights.png`` and ``fpke.png`` into ``out`` (each through ``writer``, a
-    :class:`~.file_writer.FileWriter`, if given: then they may still be being drawn when this returns); returns
-    their paths."""
+    :class:`~.file_writer.FileWriter`, if given: then they may still be being drawn when this returns, by a process
+    given this one's matplotlib settings); returns their paths."""
     paths = [Path(out) / fname for fname in FIGURES]
+    rc = runtime_rc_params() if writer is not None else None
     for path in paths:
         if writer is None:
             write_figure(path, summary)
         else:
-            writer.submit(write_figure, path, summary, path=path)
+            writer.submit(write_figure, path, summary, rc, path=path)
     return paths

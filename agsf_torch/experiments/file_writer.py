@@ -1,9 +1,10 @@
-"""Writing an experiment's slow files — ``runs.npz`` and the figures — in worker processes while the caller goes on.
+"""Writing files — an experiment's figures — in worker processes while the caller goes on.
 
 Half of ``agsf reproduce``'s wall time on 2 cores went to writing each case's files before the next case could
 start (measured on an AMD EPYC VM: 8.8 of 17 s, of which the 12 figures 6.0 s, ``runs.npz`` 1.4 s, the event
 files 1.3 s).  Drawing a figure is Python (matplotlib holds the interpreter lock), so a thread cannot overlap it
-with the next case's filters; another process can.
+with the next case's filters; another process can.  The figures are drawn from a case's summary, which is small;
+``runs.npz`` stays with the caller, as handing its arrays over would copy them (gigabytes for a large run).
 
 :class:`FileWriter` takes *tasks*: a module-level function that writes one file (atomically, as every writer of
 the package does) and its arguments.  With ``workers=0`` each task runs when it is submitted, in the caller.  With
@@ -13,14 +14,19 @@ which import matplotlib while the caller works): a new interpreter, not a multip
 to the worker with the fewest tasks in hand.  :meth:`FileWriter.close` (leaving the ``with`` block) waits for every
 task and raises ``RuntimeError`` naming the file of the first that failed.  Nothing is lost: a task that cannot be
 handed over (arguments that cannot be pickled, no worker alive) and a task whose worker died before it reported
-run in the caller instead.  An exception leaving the ``with`` block stops the workers; files they finished are
-complete, the others absent (each is renamed into place when whole).
+run in the caller instead.  An error leaving the ``with`` block still lets the workers finish what they were
+handed (then it propagates: an earlier case's files are complete whatever a later case does); an interruption
+(Ctrl-C) stops them at once, and a file they had not finished is absent, its temporary file removed (each file
+is renamed into place only when whole).  A worker that exits abnormally is announced as a warning with the last
+line it wrote to stderr.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import logging
+import os
 import pickle
 import shutil
 import subprocess
@@ -33,10 +39,15 @@ from typing import Any
 
 from ..processes import interpreter_env
 
-__all__ = ["FileWriter", "FIGURE_MODULES"]
+__all__ = ["FileWriter", "FIGURE_MODULES", "WORKER_MEMORY"]
+
+logger = logging.getLogger(__name__)
 
 #: What a worker imports before its first task (what drawing a figure needs), while the caller works.
 FIGURE_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "agsf_torch.experiments.figures")
+#: A worker's resident memory, bytes: an interpreter with torch and matplotlib imported (~260 MB measured), with
+#: room for a figure's summary and drawing.
+WORKER_MEMORY = 320 * 2**20
 
 
 class FileWriter:
@@ -58,23 +69,31 @@ class FileWriter:
         self._closed = False
         self._scratch = Path(tempfile.mkdtemp(prefix="agsf-writer-")) if workers else None
         if workers:
-            env = interpreter_env(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")  # one thread each, beside the caller's
-            for index in range(workers):
-                err = open(self._scratch / f"worker{index}.err", "w")  # noqa: SIM115 - the worker's, kept open by it
-                try:
-                    proc = subprocess.Popen(
-                        [sys.executable, "-m", __name__, *preload],
-                        stdin=subprocess.PIPE,
-                        stdout=subprocess.PIPE,
-                        stderr=err,
-                        text=True,
-                        env=env,
-                    )
-                finally:
-                    err.close()
-                reader = threading.Thread(target=self._read, args=(index, proc), daemon=True)
-                reader.start()
-                self._workers.append((proc, reader))
+            try:
+                self._start(workers, preload)
+            except BaseException:
+                self._shutdown()
+                raise
+
+    def _start(self, workers: int, preload: Sequence[str]) -> None:
+        """Start the workers and their reply readers."""
+        env = interpreter_env(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")  # one thread each, beside the caller's
+        for index in range(workers):
+            err = open(self._scratch / f"worker{index}.err", "w")  # noqa: SIM115 - the worker's, kept open by it
+            try:
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", __name__, *preload],
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    stderr=err,
+                    text=True,
+                    env=env,
+                )
+            finally:
+                err.close()
+            reader = threading.Thread(target=self._read, args=(index, proc), daemon=True)
+            reader.start()
+            self._workers.append((proc, reader))
 
     def submit(self, write: Callable[..., Any], *args: Any, path: str | Path) -> None:
         """Run ``write(*args)``, which writes the file ``path`` (named in a failure's message): now, in the caller,
@@ -112,15 +131,25 @@ class FileWriter:
 
     def _read(self, index: int, proc: subprocess.Popen) -> None:
         """A worker's replies (one JSON line per task), until it exits."""
-        for line in proc.stdout:
-            try:
-                reply = json.loads(line)
-            except ValueError:
-                continue  # not a reply (the worker's own output goes to its error file)
-            with self._lock:
-                path, _ = self._jobs.pop(reply["job"], (None, None))
-                if path is not None and reply["error"] is not None:
-                    self._errors.append((path, reply["error"]))
+        try:
+            for line in proc.stdout:
+                self._take(line)
+        except (OSError, ValueError):  # the pipe closed under the reader (the writer shut down)
+            pass
+
+    def _take(self, line: str) -> None:
+        """Note one reply of a worker: the job done, and its error if it failed."""
+        try:
+            reply = json.loads(line)
+            job, error = reply["job"], reply["error"]
+            if not isinstance(job, str) or not (error is None or isinstance(error, str)):
+                return
+        except Exception:  # noqa: BLE001 - not a reply: ignored, the task is then written by the caller
+            return
+        with self._lock:
+            path, _ = self._jobs.pop(job, (None, None))
+            if path is not None and error is not None:
+                self._errors.append((path, error))
 
     def _run_here(self, job: str) -> None:
         write, args = pickle.loads(Path(job).read_bytes())
@@ -134,12 +163,22 @@ class FileWriter:
                     proc.stdin.close()
                 except OSError:
                     pass
-            for proc, reader in self._workers:
+            for index, (proc, reader) in enumerate(self._workers):
                 proc.wait()
                 reader.join()
-            for job in list(self._jobs):  # a worker died before it answered: written here, nothing lost
-                self._run_here(job)
-                self._jobs.pop(job)
+                if proc.returncode != 0:
+                    lines = (self._scratch / f"worker{index}.err").read_text(errors="replace").strip().splitlines()
+                    logger.warning(
+                        "a file-writing worker exited with code %s (%s); the caller writes what it had not",
+                        proc.returncode,
+                        lines[-1] if lines else "no message",
+                    )
+            for job, (path, _) in list(self._jobs.items()):  # a worker died before it answered: written here
+                try:
+                    self._run_here(job)
+                except Exception as exc:  # noqa: BLE001 - recorded with its file, raised below
+                    self._errors.append((path, f"{type(exc).__name__}: {exc}"))
+                del self._jobs[job]
         finally:
             self._shutdown()
         if self._errors:
@@ -148,17 +187,24 @@ class FileWriter:
             raise RuntimeError(f"could not write {path}: {error}{more}")
 
     def _shutdown(self) -> None:
+        """Stop the workers (killed if still running), remove the temporary files of the tasks they had not finished
+        and the scratch folder."""
         self._closed = True
-        for proc, _ in self._workers:
+        for proc, reader in self._workers:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+            reader.join(timeout=5.0)  # at the dead worker's end of file
             for stream in (proc.stdin, proc.stdout):
                 try:
                     stream.close()
                 except OSError:
                     pass
         self._workers = []
+        for path, _ in self._jobs.values():  # a killed writer's temporary file (storage.files.atomic_open's name)
+            for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+                tmp.unlink(missing_ok=True)
+        self._jobs.clear()
         if self._scratch is not None:
             shutil.rmtree(self._scratch, ignore_errors=True)
             self._scratch = None
@@ -169,7 +215,12 @@ class FileWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
             self.close()
-        else:  # the caller failed: stop, without waiting for files nobody will look at
+        elif issubclass(exc_type, Exception):  # the caller failed: what it handed over is still written
+            try:
+                self.close()
+            except Exception as failed:  # noqa: BLE001 - the caller's error is the one raised
+                logger.warning("%s (while handling %s: %s)", failed, exc_type.__name__, exc)
+        else:  # interrupted: stop now
             self._shutdown()
 
 
@@ -179,10 +230,11 @@ def _serve(preload: Sequence[str]) -> None:
     stderr."""
     import importlib
 
+    replies = os.fdopen(os.dup(1), "w")  # the reply channel; file descriptor 1 (anything a library or a child
+    os.dup2(2, 1)  # process writes there) and Python's stdout go to stderr
+    sys.stdout = sys.stderr
     for module in preload:
         importlib.import_module(module)
-    replies = sys.stdout
-    sys.stdout = sys.stderr
     for line in sys.stdin:
         job = line.strip()
         if not job:

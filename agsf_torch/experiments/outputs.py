@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from ..storage.files import atomic_open, read_json, write_json
-from .file_writer import FileWriter
 from .runner import MonteCarloResult
 
 __all__ = [
@@ -158,14 +157,9 @@ SHARED_KEYS = ("time", "star_frame", "prior_error_angle")
 
 
 def save_runs(
-    path: Path,
-    res: MonteCarloResult | None,
-    reused: dict[str, tuple[dict, dict]] | None = None,
-    *,
-    writer: FileWriter | None = None,
+    path: Path, res: MonteCarloResult | None, reused: dict[str, tuple[dict, dict]] | None = None
 ) -> dict[str, np.ndarray]:
-    """Write ``runs.npz`` (through ``writer``, a :class:`~.file_writer.FileWriter`, if given: then it may still be
-    being written when this returns) and return what it writes.
+    """Write ``runs.npz`` and return what it wrote.
 
     Layout (batch first, as everywhere in the package): ``time [T]`` (s), ``star_frame [T]``,
     ``prior_error_angle [B]`` (rad: the prior mean's attitude error at ``t = 0``), and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
@@ -206,11 +200,7 @@ def save_runs(
                 )
         data.update({k: v for k, v in arrays.items() if k.startswith(f"{name}/")})
         units.update(their_units)
-    arrays = {**data, "units": np.array(json.dumps(units, sort_keys=True))}
-    if writer is None:
-        save_npz(path, arrays)
-    else:
-        writer.submit(save_npz, path, arrays, path=path)
+    save_npz(path, {**data, "units": np.array(json.dumps(units, sort_keys=True))})
     return data
 
 

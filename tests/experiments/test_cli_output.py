@@ -205,7 +205,7 @@ def test_torch_internal_deprecation_is_hidden_and_nothing_else():
 def test_reproduce_names_its_outputs(tmp_path, monkeypatch):
     from agsf_torch.experiments import reproduce
 
-    monkeypatch.setattr(reproduce, "reproduce", lambda cases, out, overrides, progress, force: "TABLE")
+    monkeypatch.setattr(reproduce, "reproduce", lambda cases, out, overrides, progress, force, **_: "TABLE")
     out = tmp_path / "repro"
     code, stdout, _ = _agsf(["reproduce", "--case", "1", "--out", str(out)])
     assert code == 0

@@ -227,3 +227,20 @@ def test_write_figures_writes_the_four_pngs_and_leaves_no_pyplot_figure_open(sum
     for p in paths:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert plt.get_fignums() == before
+
+
+def test_a_figure_drawn_by_a_worker_follows_the_callers_matplotlib_settings(summary3, tmp_path):
+    """Settings changed at run time (a notebook's, say) reach the worker: its PNG is the caller's byte for byte."""
+    from agsf_torch.experiments.file_writer import FileWriter
+
+    plain, here, worker = tmp_path / "plain", tmp_path / "here", tmp_path / "worker"
+    for folder in (plain, here, worker):
+        folder.mkdir()
+    write_figures(plain, summary3)
+    with matplotlib.rc_context({"lines.linewidth": 4.0, "axes.facecolor": "#eeeeff"}):
+        write_figures(here, summary3)
+        with FileWriter(1) as writer:
+            write_figures(worker, summary3, writer)
+    for name in ("rms.png", "axes.png", "weights.png", "fpke.png"):
+        assert (worker / name).read_bytes() == (here / name).read_bytes(), name
+    assert (here / "rms.png").read_bytes() != (plain / "rms.png").read_bytes()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,22 @@ def write_unless_in_a_worker(path: Path, text: str, caller: int) -> None:
     write_text(path, text)
 
 
+def write_pid(path: Path, stray: bytes = b"") -> None:
+    """Write the writing process's id to ``path``, after writing ``stray`` to file descriptor 1 (as a C library
+    or a child process might)."""
+    if stray:
+        os.write(1, stray)
+    write_text(path, str(os.getpid()))
+
+
+def write_slowly(path: Path, seconds: float) -> None:
+    """Leave ``path``'s temporary file, wait ``seconds``, then write ``path`` (a writer killed meanwhile leaves the
+    temporary file behind)."""
+    Path(path).with_name(f".{Path(path).name}.0123456789ab.tmp").write_text("partial")
+    time.sleep(seconds)
+    write_text(path, "slow")
+
+
 def test_without_workers_a_task_runs_when_submitted(tmp_path):
     with FileWriter(0) as writer:
         writer.submit(write_text, tmp_path / "a.txt", "alpha", path=tmp_path / "a.txt")
@@ -46,6 +63,48 @@ def test_workers_write_every_file_by_close_and_leave_no_scratch(tmp_path):
     writer.close()
     assert {p: p.read_text() for p in files} == files
     assert not scratch.exists()
+
+
+def test_the_tasks_run_in_the_workers_whatever_they_write_to_file_descriptor_1(tmp_path):
+    paths = [tmp_path / f"p{i}.txt" for i in range(4)]
+    with FileWriter(2, preload=()) as writer:
+        for k, path in enumerate(paths):
+            writer.submit(write_pid, path, [b"", b"3\n", b'{"job": 1}\n', b"not json\n"][k], path=path)
+    pids = {int(p.read_text()) for p in paths}
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2  # written by the workers, none again by the caller
+
+
+def test_an_error_in_the_block_lets_the_workers_finish_what_they_were_handed(tmp_path):
+    path = tmp_path / "g.txt"
+    with pytest.raises(ZeroDivisionError):
+        with FileWriter(1, preload=()) as writer:
+            writer.submit(write_slowly, path, 0.5, path=path)
+            1 / 0
+    assert path.read_text() == "slow"  # an earlier case's files are complete whatever a later case does
+
+
+def test_an_interruption_stops_the_workers_and_leaves_no_temporary_file(tmp_path):
+    path = tmp_path / "h.txt"
+    with pytest.raises(KeyboardInterrupt):
+        with FileWriter(1, preload=()) as writer:
+            writer.submit(write_slowly, path, 30.0, path=path)
+            deadline = time.monotonic() + 30.0
+            while not list(tmp_path.glob(".h.txt.*.tmp")) and time.monotonic() < deadline:
+                time.sleep(0.01)  # until the worker has started the file
+            assert list(tmp_path.glob(".h.txt.*.tmp"))
+            raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_tasks_of_a_dead_worker_are_written_by_the_caller_and_each_failure_named(tmp_path):
+    good = [tmp_path / "i.txt", tmp_path / "k.txt"]
+    bad = tmp_path / "missing-folder" / "j.txt"
+    writer = FileWriter(1, preload=())
+    for path in (good[0], bad, good[1]):
+        writer.submit(write_unless_in_a_worker, path, path.stem, os.getpid(), path=path)
+    with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/j\.txt: FileNotFoundError"):
+        writer.close()
+    assert [p.read_text() for p in good] == ["i", "k"]
 
 
 def test_a_failed_task_is_an_error_naming_its_file_after_the_others_are_written(tmp_path):
@@ -73,7 +132,7 @@ def test_a_task_whose_worker_died_is_written_by_the_caller(tmp_path):
     assert path.read_text() == "epsilon"  # nothing lost
 
 
-def test_an_exception_in_the_block_stops_the_workers(tmp_path):
+def test_an_interruption_in_the_block_stops_the_workers_and_removes_the_scratch_folder(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         with FileWriter(2, preload=()) as writer:
             procs = [proc for proc, _ in writer._workers]
@@ -103,7 +162,9 @@ def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_t
     threads = torch.get_num_threads()
     tables = {}
     for writers in (0, 1):
-        tables[writers] = reproduce([1, 3], tmp_path / str(writers), overrides, progress=False, writers=writers)
+        tables[writers] = reproduce(
+            [1, 3], tmp_path / str(writers), overrides, progress=False, writers=writers, threads=threads + 1
+        )
         assert torch.get_num_threads() == threads
     assert tables[0] == tables[1]
     inline, written = _digests(tmp_path / "0"), _digests(tmp_path / "1")
@@ -112,3 +173,10 @@ def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_t
             inline
         )
     assert written == inline
+
+
+@pytest.mark.parametrize(("option", "value"), [("writers", -1), ("writers", True), ("threads", 0), ("threads", 1.5)])
+def test_reproduce_refuses_bad_writer_and_thread_counts_before_creating_anything(tmp_path, option, value):
+    with pytest.raises(ValueError, match=f"{option} must be"):
+        reproduce([1], tmp_path / "out", list(EAGER), progress=False, **{option: value})
+    assert not (tmp_path / "out").exists()

@@ -89,7 +89,7 @@ def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
             mj["generic_seconds"] / mj["seconds"],
             5.0,
             lower=False,
-            limit="both sides write their files in a worker while the next case runs; what is left is the imports, "
+            limit="both sides draw their figures in a worker while the next case runs; what is left is the imports, "
             "3,600 filter steps at 100 trajectories (the penalty update's 1,500 pairs × 84 nodes a step, the QPs, "
             "per-call overhead), the event files and the last case's figures",
         )
