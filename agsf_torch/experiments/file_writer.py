@@ -23,6 +23,7 @@ line it wrote to stderr.
 
 from __future__ import annotations
 
+import glob
 import itertools
 import json
 import logging
@@ -33,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import weakref
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -45,6 +47,19 @@ logger = logging.getLogger(__name__)
 
 #: What a worker imports before its first task (what drawing a figure needs), while the caller works.
 FIGURE_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "agsf_torch.experiments.figures")
+#: The writers with workers running, for the fork hook below.
+_OPEN: weakref.WeakSet = weakref.WeakSet()
+
+
+def _after_fork_in_child() -> None:
+    for writer in list(_OPEN):
+        writer._close_in_forked_child()
+    _OPEN.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
 #: A worker's resident memory, bytes: an interpreter with torch and matplotlib imported (~260 MB measured), with
 #: room for a figure's summary and drawing.
 WORKER_MEMORY = 320 * 2**20
@@ -88,12 +103,14 @@ class FileWriter:
                     stderr=err,
                     text=True,
                     env=env,
+                    start_new_session=True,  # Ctrl-C at a terminal reaches the caller, which decides for its workers
                 )
             finally:
                 err.close()
             reader = threading.Thread(target=self._read, args=(index, proc), daemon=True)
             reader.start()
             self._workers.append((proc, reader))
+        _OPEN.add(self)
 
     def submit(self, write: Callable[..., Any], *args: Any, path: str | Path) -> None:
         """Run ``write(*args)``, which writes the file ``path`` (named in a failure's message): now, in the caller,
@@ -109,7 +126,7 @@ class FileWriter:
             job.write_bytes(pickle.dumps((write, args), protocol=pickle.HIGHEST_PROTOCOL))
         except Exception:  # noqa: BLE001 - not picklable (a local function, say): written here instead
             job.unlink(missing_ok=True)
-            write(*args)
+            self._write_here(path, write, *args)
             return
         with self._lock:
             load = {i: 0 for i, (proc, _) in enumerate(self._workers) if proc.poll() is None}
@@ -121,13 +138,21 @@ class FileWriter:
             with self._lock:
                 self._jobs[str(job)] = (path, index)
             try:
-                proc.stdin.write(f"{job}\n")
+                proc.stdin.write(json.dumps(str(job)) + "\n")
                 proc.stdin.flush()
                 return
             except OSError:  # the worker has died: the next one
                 with self._lock:
                     self._jobs.pop(str(job), None)
-        self._run_here(str(job))
+        self._write_here(path, self._run_here, str(job))  # no worker alive
+
+    def _write_here(self, path: Path, write: Callable[..., Any], *args: Any) -> None:
+        """Run a task in the caller; its failure is recorded with its file and raised by :meth:`close`."""
+        try:
+            write(*args)
+        except Exception as exc:  # noqa: BLE001 - recorded with its file, raised by close()
+            with self._lock:
+                self._errors.append((path, f"{type(exc).__name__}: {exc}"))
 
     def _read(self, index: int, proc: subprocess.Popen) -> None:
         """A worker's replies (one JSON line per task), until it exits."""
@@ -165,7 +190,7 @@ class FileWriter:
                     pass
             for index, (proc, reader) in enumerate(self._workers):
                 proc.wait()
-                reader.join()
+                reader.join(timeout=5.0)  # a process the task forked may hold the reply pipe: not waited for
                 if proc.returncode != 0:
                     lines = (self._scratch / f"worker{index}.err").read_text(errors="replace").strip().splitlines()
                     logger.warning(
@@ -173,36 +198,49 @@ class FileWriter:
                         proc.returncode,
                         lines[-1] if lines else "no message",
                     )
-            for job, (path, _) in list(self._jobs.items()):  # a worker died before it answered: written here
-                try:
-                    self._run_here(job)
-                except Exception as exc:  # noqa: BLE001 - recorded with its file, raised below
-                    self._errors.append((path, f"{type(exc).__name__}: {exc}"))
-                del self._jobs[job]
+            with self._lock:
+                unanswered = list(self._jobs.items())
+            for job, (path, _) in unanswered:  # a worker died before it answered: written here, nothing lost
+                self._write_here(path, self._run_here, job)
+                with self._lock:
+                    self._jobs.pop(job, None)
         finally:
             self._shutdown()
-        if self._errors:
-            path, error = self._errors[0]
-            more = f" ({len(self._errors) - 1} more files failed)" if len(self._errors) > 1 else ""
+        errors, self._errors = self._errors, []
+        if errors:
+            path, error = errors[0]
+            more = f" ({len(errors) - 1} more files failed)" if len(errors) > 1 else ""
             raise RuntimeError(f"could not write {path}: {error}{more}")
+
+    def _close_in_forked_child(self) -> None:
+        """In a child forked by the caller: drop the workers' input pipes, which would otherwise keep the workers
+        waiting for input after the caller closes its ends."""
+        for proc, _ in self._workers:
+            try:
+                os.close(proc.stdin.fileno())
+            except (OSError, ValueError):
+                pass
 
     def _shutdown(self) -> None:
         """Stop the workers (killed if still running), remove the temporary files of the tasks they had not finished
         and the scratch folder."""
         self._closed = True
+        _OPEN.discard(self)
         for proc, reader in self._workers:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
             reader.join(timeout=5.0)  # at the dead worker's end of file
-            for stream in (proc.stdin, proc.stdout):
+            # a reader still inside a read (a process the task forked holds the pipe) keeps its stream: closing it
+            # would block until that process exits; the daemon reader ends with it
+            for stream in (proc.stdin,) if reader.is_alive() else (proc.stdin, proc.stdout):
                 try:
                     stream.close()
                 except OSError:
                     pass
         self._workers = []
         for path, _ in self._jobs.values():  # a killed writer's temporary file (storage.files.atomic_open's name)
-            for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+            for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
                 tmp.unlink(missing_ok=True)
         self._jobs.clear()
         if self._scratch is not None:
@@ -225,7 +263,8 @@ class FileWriter:
 
 
 def _serve(preload: Sequence[str]) -> None:
-    """A worker: import ``preload``, then run the task of every job file named on stdin, one JSON reply per line
+    """A worker: import ``preload``, then run the task of every job file named on stdin (a JSON string per line),
+    one JSON reply per line
     (``{"job": file, "error": null | "Type: message"}``) on the original stdout; anything a task prints goes to
     stderr."""
     import importlib
@@ -233,11 +272,14 @@ def _serve(preload: Sequence[str]) -> None:
     replies = os.fdopen(os.dup(1), "w")  # the reply channel; file descriptor 1 (anything a library or a child
     os.dup2(2, 1)  # process writes there) and Python's stdout go to stderr
     sys.stdout = sys.stderr
+    if hasattr(os, "register_at_fork"):  # a process a task forks does not hold the reply channel open
+        os.register_at_fork(after_in_child=replies.close)
     for module in preload:
         importlib.import_module(module)
     for line in sys.stdin:
-        job = line.strip()
-        if not job:
+        try:
+            job = json.loads(line)
+        except ValueError:
             continue
         try:
             write, args = pickle.loads(Path(job).read_bytes())

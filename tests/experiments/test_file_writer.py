@@ -66,10 +66,11 @@ def test_workers_write_every_file_by_close_and_leave_no_scratch(tmp_path):
 
 
 def test_the_tasks_run_in_the_workers_whatever_they_write_to_file_descriptor_1(tmp_path):
-    paths = [tmp_path / f"p{i}.txt" for i in range(4)]
+    strays = [b"", b"3\n", b'{"job": 1}\n', b"not json\n", b"partial, without a newline"]
+    paths = [tmp_path / f"p{i}.txt" for i in range(len(strays))]
     with FileWriter(2, preload=()) as writer:
-        for k, path in enumerate(paths):
-            writer.submit(write_pid, path, [b"", b"3\n", b'{"job": 1}\n', b"not json\n"][k], path=path)
+        for path, stray in zip(paths, strays):
+            writer.submit(write_pid, path, stray, path=path)
     pids = {int(p.read_text()) for p in paths}
     assert os.getpid() not in pids and 1 <= len(pids) <= 2  # written by the workers, none again by the caller
 
@@ -116,6 +117,16 @@ def test_a_failed_task_is_an_error_naming_its_file_after_the_others_are_written(
     with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/b\.txt: FileNotFoundError"):
         writer.close()
     assert good.read_text() == "gamma"
+
+
+def test_a_task_written_by_the_caller_that_fails_is_named_when_the_writer_closes(tmp_path):
+    bad = tmp_path / "missing-folder" / "l.txt"
+    writer = FileWriter(1, preload=())
+    writer.submit(lambda p: write_text(p, "lambda"), bad, path=bad)  # cannot be pickled: run here, and fails
+    writer.submit(write_text, tmp_path / "m.txt", "mu", path=tmp_path / "m.txt")
+    with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/l\.txt: FileNotFoundError"):
+        writer.close()
+    assert (tmp_path / "m.txt").read_text() == "mu"
 
 
 def test_a_task_that_cannot_be_sent_runs_in_the_caller(tmp_path):
