@@ -186,18 +186,18 @@ def rotation_error(mean: Tensor, cov: Tensor, x_true: Tensor) -> tuple[Tensor, T
     """The estimate's error as a rotation and its 1σ (:class:`FilterTrace` ``error``, ``sigma``).
 
     Args:
-        mean: ``[B, n]`` (MRP, then the bias in rad/s if ``n = 6``); cov: ``[B, n, n]`` in the
-            MRP chart; x_true: ``[B, n]``.
+        mean: ``[..., n]`` (MRP, then the bias in rad/s if ``n = 6``); cov: ``[..., n, n]`` in the
+            MRP chart; x_true: ``[..., n]``.
 
     Returns:
-        ``(error [B, n], sigma [B, n])``: attitude part ``δθ`` of ``q_est ⊗ q_true⁻¹`` (rad)
+        ``(error [..., n], sigma [..., n])``: attitude part ``δθ`` of ``q_est ⊗ q_true⁻¹`` (rad)
         and ``sqrt(diag(J P Jᵀ))`` with ``J = ∂δθ/∂p`` at the estimate; bias part
         ``b̂ − b`` and ``sqrt(diag P)`` (rad/s).
     """
     n = mean.shape[-1]
     J = torch.eye(n, dtype=cov.dtype, device=cov.device).expand(cov.shape).clone()
-    J[:, :3, :3] = attitude_error_jacobian(mean[:, :3])
-    error = torch.cat((attitude_error_vector(mean[:, :3], x_true[:, :3]), mean[:, 3:] - x_true[:, 3:]), -1)
+    J[..., :3, :3] = attitude_error_jacobian(mean[..., :3])
+    error = torch.cat((attitude_error_vector(mean[..., :3], x_true[..., :3]), mean[..., 3:] - x_true[..., 3:]), -1)
     sigma = (J @ cov @ J.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sqrt()
     return error, sigma
 
@@ -240,8 +240,10 @@ def run_monte_carlo(
     ``gate_rejected [B, T]`` (star blocks rejected by the filter's innovation gate;
     0 without gating) and ``gyro_held [B, T]`` (1 where the gyro sample was bridged).
     """
-    records: dict[str, dict[str, list]] = {name: {k: [] for k in FilterTrace.__dataclass_fields__} for name in filters}
-    times, frames = [], []
+    # per step the filters' own outputs; the scores against the truth are computed once, at the end, over [B, T]
+    raw = ("mean", "cov", "chart_error", "nis", "nis_dof", "weights", "weight_entropy", "extra")
+    records: dict[str, dict[str, list]] = {name: {k: [] for k in raw} for name in filters}
+    times, frames, truths, truth_mrps = [], [], [], []
     steps = monte_carlo_steps(
         env,
         filters,
@@ -263,14 +265,13 @@ def run_monte_carlo(
             prior_error = attitude_error_angle(step.prior_mean[:, :3], step.prior_truth_mrp).numpy()
         times.append(step.time)
         frames.append(step.star_frame)
+        truths.append(step.x_true)
+        truth_mrps.append(step.truth_mrp)
         for name, fs in step.filters.items():
             rec = records[name]
-            error, sigma = rotation_error(fs.mean, fs.cov, step.x_true)
-            rec["error_angle"].append(attitude_error_angle(fs.mean[:, :3], step.truth_mrp))
-            rec["error"].append(error)
-            rec["sigma"].append(sigma)
+            rec["mean"].append(fs.mean)
             rec["cov"].append(fs.cov)
-            rec["nees"].append(nees(step.chart_error[name], fs.cov))
+            rec["chart_error"].append(step.chart_error[name])
             rec["nis"].append(fs.nis)
             rec["nis_dof"].append(fs.dof)
             rec["weights"].append(fs.mixture.weights)
@@ -280,10 +281,18 @@ def run_monte_carlo(
                 callback(step.index, name, filters[name].filter, fs.mixture)
 
     traces = {}
+    x_true, truth_mrp = (torch.stack(t, 1) if t else None for t in (truths, truth_mrps))
     for name, rec in records.items():
-        stacked = {k: torch.stack(v, 1).numpy() for k, v in rec.items() if k != "extra"}
-        extra_keys = rec["extra"][0].keys() if rec["extra"] else []
-        stacked["extra"] = {k: torch.stack([e[k] for e in rec["extra"]], 1).numpy() for k in extra_keys}
-        traces[name] = FilterTrace(**stacked)
+        extra = rec.pop("extra")
+        stacked = {k: torch.stack(v, 1) for k, v in rec.items()}
+        mean, cov, chart_error = stacked.pop("mean"), stacked["cov"], stacked.pop("chart_error")
+        stacked["error"], stacked["sigma"] = rotation_error(mean, cov, x_true)
+        stacked["error_angle"] = attitude_error_angle(mean[..., :3], truth_mrp)
+        stacked["nees"] = nees(chart_error, cov)
+        extra_keys = extra[0].keys() if extra else []
+        traces[name] = FilterTrace(
+            **{k: v.numpy() for k, v in stacked.items()},
+            extra={k: torch.stack([e[k] for e in extra], 1).numpy() for k in extra_keys},
+        )
     state_dim = next(iter(filters.values())).filter.model.state_dim
     return MonteCarloResult(np.array(times), np.array(frames), traces, state_dim, prior_error)

@@ -87,3 +87,33 @@ def test_refuses_a_model_that_does_not_match_estimate_bias():
     filters = {"ekf": FilterSetup(ExtendedKalmanFilter(AttitudeModel(estimate_bias=False)), 1)}
     with pytest.raises(ValueError, match="the filters' model has 3 states, but estimate_bias=True"):
         run_monte_carlo(env, filters, num_steps=3, prior_cov=torch.eye(6, dtype=F64), sigma_s=1e-5, estimate_bias=True)
+
+
+@pytest.mark.parametrize("n", [3, 6])
+def test_the_scores_over_every_step_at_once_equal_those_of_each_step(gen, n):
+    """The runner scores a run once, over ``[B, T]``: the same numbers as step by step over ``[B]`` (to rounding:
+    a batched 3×3 product may take another kernel at another batch size)."""
+    from agsf_torch.consistency import nees
+    from agsf_torch.experiments.runner import rotation_error
+    from agsf_torch.rotations import attitude_error_angle
+    from tests.helpers import random_mrps, random_spd
+
+    B, T = 7, 5
+    mean = torch.cat((random_mrps(B * T, gen), 1e-5 * torch.randn(B * T, n - 3, generator=gen, dtype=F64)), -1)
+    truth = torch.cat((random_mrps(B * T, gen), 1e-5 * torch.randn(B * T, n - 3, generator=gen, dtype=F64)), -1)
+    cov = random_spd(gen, B * T, n=n, scale=1e-3)
+    mean, truth, cov = mean.reshape(B, T, n), truth.reshape(B, T, n), cov.reshape(B, T, n, n)
+    # another summation order of a quadratic form moves it by ~n·κ(P)·ε relative (κ ≤ ~40 here)
+    rtol = 10 * n * float(torch.linalg.cond(cov).max()) * torch.finfo(F64).eps
+    error, sigma = rotation_error(mean, cov, truth)
+    for t in range(T):
+        e, s = rotation_error(mean[:, t], cov[:, t], truth[:, t])
+        torch.testing.assert_close(error[:, t], e, rtol=rtol, atol=0.0)
+        torch.testing.assert_close(sigma[:, t], s, rtol=rtol, atol=0.0)
+        torch.testing.assert_close(nees(error, cov)[:, t], nees(error[:, t], cov[:, t]), rtol=rtol, atol=0.0)
+        torch.testing.assert_close(
+            attitude_error_angle(mean[..., :3], truth[..., :3])[:, t],
+            attitude_error_angle(mean[:, t, :3], truth[:, t, :3]),
+            rtol=0.0,
+            atol=0.0,  # written to be the same bits at any batch size (its docstring)
+        )
