@@ -33,21 +33,27 @@ TensorBoard events (see :mod:`agsf_torch.experiments.experiment`); each command 
 by printing where they are and the TensorBoard command of this environment.  Progress
 bars and the package's INFO messages (the FPKE kernel's compilation) go to stderr unless
 ``--quiet``.
+The parser and the entry point live here; what each subcommand does, in :mod:`.cli_commands`.
 """
 
 from __future__ import annotations
 
 import argparse
 import errno
-import json
 import sys
-import time
-from pathlib import Path
-
-import numpy as np
-import torch
 
 from ..allocator import set_mmap_threshold
+from .cli_commands import (
+    _adaptation,
+    _bench,
+    _diagnose,
+    _learn,
+    _reproduce,
+    _run,
+    _simulate,
+    _soak,
+    _sweep,
+)
 from .cli_terminal import (
     FORCE_HELP,
     Parser,
@@ -63,236 +69,6 @@ from .cli_terminal import (
 )
 
 __all__ = ["main", "tensorboard_command"]
-
-
-def _simulate(args: argparse.Namespace) -> int:
-    import envs
-
-    from ..attitude.recordings import FORMAT
-    from ..storage.files import write_json
-    from .experiment import prepare_output
-    from .recorded import record_environment
-    from .resources import refuse_if_too_large, simulation_memory
-
-    if args.seed > envs.random.SEED_MASK - (args.runs - 1):
-        raise ValueError(
-            f"--seed must be ≤ {envs.random.SEED_MASK - (args.runs - 1)} with --runs {args.runs}, got {args.seed}"
-        )
-    params = {"runs": args.runs, "steps": args.steps, "star_period": args.star_period, "seed": args.seed}
-    config = envs.StarTrackerConfig(
-        max_steps=args.steps, star_period=args.star_period
-    )  # validates before anything is created
-    refuse_if_too_large(
-        simulation_memory(args.runs, args.steps, config.max_stars),
-        f"simulating --runs {args.runs} × --steps {args.steps}",
-        force=args.force,
-    )
-    env = envs.StarTrackerAttitudeVectorEnv(num_envs=args.runs, config=config)
-    _threads(args)
-    out = prepare_output(Path(args.out), "simulate", json.dumps(params, sort_keys=True), params)
-    t0 = time.perf_counter()
-    rec = record_environment(env, args.steps, args.seed, progress=not args.quiet)
-    path = rec.save(out / "recording.npz")
-    elapsed = time.perf_counter() - t0
-    counts = np.bincount(rec.star_mask[:, rec.star_frames()].sum(-1).ravel(), minlength=env.config.max_stars + 1)
-    summary = {
-        **params,
-        "command": "simulate",
-        "format": FORMAT,
-        "recording_digest": rec.content_digest(),
-        "seconds": elapsed,
-        "stars_per_frame_histogram": counts.tolist(),
-    }
-    write_json(out / "summary.json", summary, indent=2)
-    print(f"simulated {args.runs} trajectories × {args.steps} steps in {elapsed:.1f} s → {path} ({FORMAT})")
-    print(f"stars per frame (0..{env.config.max_stars}): {counts.tolist()}")
-    return 0
-
-
-def _run(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .experiment import run_experiment
-
-    cfg = load_config(args.config, args.set)
-    _threads(args)
-    summary = run_experiment(
-        cfg, Path(args.out), progress=not args.quiet, kind="run", recording=args.recording, force=args.force
-    )
-    _print_summary(cfg.name, summary)
-    print(f"results: {args.out}/summary.json, figures {args.out}/*.png")
-    print(f"TensorBoard: {tensorboard_command(args.out)}")
-    return 0
-
-
-def _reproduce(args: argparse.Namespace) -> int:
-    from .reproduce import reproduce
-
-    _threads(args)
-    cases = [1, 2, 3] if args.case == "all" else [int(args.case)]
-    overrides = list(args.set)
-    if args.runs is not None:
-        overrides.append(f"runs={args.runs}")
-    if args.duration is not None:
-        overrides.append(f"duration={args.duration}")
-    table = reproduce(
-        cases,
-        Path(args.out),
-        overrides,
-        progress=not args.quiet,
-        force=args.force,
-        writers=args.writers,
-        threads=args.threads,
-    )
-    print(table)
-    print(f"results: {args.out}/ — tables {args.out}/results.md, numbers {args.out}/summary.json")
-    print(f"per case: {args.out}/case*/ — figures rms.png, axes.png, weights.png, fpke.png; every run's data runs.npz")
-    print(f"TensorBoard: {tensorboard_command(args.out)}")
-    return 0
-
-
-def _adaptation(args: argparse.Namespace) -> int:
-    from .adaptation import SCENARIOS, run_adaptation_study, study_table
-
-    _threads(args)
-    names = list(SCENARIOS) if "all" in args.scenario else list(dict.fromkeys(args.scenario))
-    summaries = run_adaptation_study(
-        names,
-        Path(args.out),
-        runs=args.runs,
-        samples=args.samples,
-        overrides=list(args.set),
-        progress=not args.quiet,
-        force=args.force,
-    )
-    for window in ("before_first_frame", "between_frames", "all"):
-        print(f"\n{window.replace('_', ' ')}:\n{study_table(summaries, window)}")
-    print(f"results: {args.out}/summary.json, {args.out}/results.md, {args.out}/*.png")
-    print(f"TensorBoard: {tensorboard_command(args.out)}")
-    return 0
-
-
-def _sweep(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
-
-    if args.address is not None and args.backend != "ray":
-        raise ValueError("--address needs --backend ray")
-    base = load_config(args.config, args.set)
-    grid = parse_grid(args.grid, base)
-    if args.backend == "ray":
-        kw = {"address": args.address, "cpus_per_task": max(1, args.threads or 1)}
-    else:
-        _threads(args)
-        kw = {}
-    try:
-        rows = run_sweep(
-            base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, force=args.force, **kw
-        )
-    except (RayUnavailable, SweepFailed) as exc:
-        print(f"agsf: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        from ..storage.files import read_json_lines
-
-        results = Path(args.out) / "results.jsonl"
-        done = len(read_json_lines(results))
-        print(
-            f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume",
-            file=sys.stderr,
-        )
-        return 130
-    from ..storage.files import write_text
-    from .sweep import results_table
-
-    table = results_table(rows)
-    write_text(Path(args.out) / "results.md", table + "\n")
-    print(table)
-    print(
-        f"{len(rows)} configurations: {args.out}/results.md (this table), {args.out}/results.jsonl (the rows), "
-        f"{args.out}/configs/<config>/ (each one's figures and data)"
-    )
-    print(f"TensorBoard (hparams): {tensorboard_command(args.out)}")
-    return 0
-
-
-def _bench(args: argparse.Namespace) -> int:
-    from .bench import format_table, run_bench
-
-    _threads(args)
-    from ..storage.files import write_text
-
-    report = run_bench(Path(args.out), compile=not args.no_compile, quick=args.quick)
-    table = format_table(report)
-    write_text(Path(args.out) / "bench.md", table + "\n")
-    print(table)
-    print(f"report: {args.out}/bench.json, {args.out}/bench.md")
-    return 0
-
-
-def _soak(args: argparse.Namespace) -> int:
-    from ..storage.files import write_json
-    from .config import parse_override
-    from .soak import run_soak, soak_config, soak_verdict
-
-    changes = dict(parse_override(item) for item in args.set or [])
-    changes.update(runs=args.runs, duration=args.duration, seed=args.seed)
-    if args.no_compile:
-        changes["compile"] = False
-    cfg = soak_config(args.filter, **changes)
-    _threads(args)
-    out = Path(args.out)
-    rows = run_soak(cfg, out, report_every=args.report_every, progress=not args.quiet, force=args.force)
-    verdict = soak_verdict(rows, warmup=args.warmup)
-    write_json(out / "verdict.json", verdict, indent=2)
-    print(json.dumps(verdict, indent=2))
-    return 0 if verdict["passed"] else 1
-
-
-def _diagnose(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .diagnose import diagnose
-
-    cfg = load_config(args.config, args.set)
-    _threads(args)
-    report, passed = diagnose(cfg, Path(args.out), progress=not args.quiet, force=args.force)
-    print(report)
-    return 0 if passed else 1
-
-
-def _learn(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .learn import learn
-
-    cfg = load_config(args.config, args.set)
-    _threads(args)
-    names = [n.strip() for n in args.learn.split(",") if n.strip()]
-    report = learn(cfg, names, Path(args.out), recording=args.recording, max_iter=args.max_iter, force=args.force)
-    print(report)
-    return 0
-
-
-def _threads(args: argparse.Namespace) -> None:
-    if getattr(args, "threads", None):
-        torch.set_num_threads(max(1, args.threads))
-
-
-def _print_summary(name: str, summary: dict) -> None:
-    """The run's per-filter numbers and every adaptive filter's paired difference against the GSF, aligned."""
-    from .statistics import WINDOW_TEXT, minus_gsf_key
-
-    print(f"{name}: mean RMS between star frames (deg) and time-averaged NEES")
-    filters = summary["filters"]
-    width = max((len(f"{f} − GSF") for f in filters), default=0)
-    for fname, f in filters.items():
-        bu = f.get("between_frames", {}).get("mean_rms_deg", float("nan"))
-        print(f"  {fname:<{width}}  {bu:>11.6g}       NEES {f['time_averaged_nees']:.4g}")
-    for fname in filters:
-        d = (summary.get(minus_gsf_key(fname)) or {}).get("between_frames")
-        if d:
-            label = f"{fname} − GSF"
-            lo, hi = d["ci95_deg"]
-            print(f"  {label:<{width}}  {d['mean_deg']:>11.3g} deg,  95% CI [{lo:.3g}, {hi:.3g}]")
-    print(f"  (window — {WINDOW_TEXT['between_frames']})")
 
 
 def keys_epilog() -> str:
