@@ -20,13 +20,13 @@ from torch import Tensor
 
 from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
-from ..shapes import broadcast_shapes
+from .attitude_fused import FusedAttitudePaths
 from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative, sum_last
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
 
 
-class AttitudeModel(ContinuousModel):
+class AttitudeModel(FusedAttitudePaths, ContinuousModel):
     """MRP attitude driven by a rate gyro, with or without bias estimation.
 
     Args:
@@ -284,56 +284,6 @@ class AttitudeModel(ContinuousModel):
         p = ((0, 1, 2), 6)
         return (p, ((3, 4, 5), 2)) if self.estimate_bias else (p,)
 
-    #: Pairs from which the eager lanes route (:mod:`agsf_torch.fused.pair_products`) beats the batched one, by
-    #: state dimension (measured on 2 cores: at 6 states 25 against 47 ms for 480 pairs, 17 against 14 ms for
-    #: 240; at 3 states 2.0 against 2.5 ms for 120 pairs, 1.4 against 0.8 ms for 15).
-    EAGER_MIN_PAIRS = {3: 100, 6: 400}
-
-    def fpke_pair_products(self, u: Tensor | None, pairs, *, compile: bool = False) -> Tensor | None:
-        """``E[ℓᵢℓⱼ]`` of every pair at 84 MRP nodes, the bias block (6 states) integrated in closed form (``ℓ`` is
-        quadratic in it), a tenth of the 840 nodes of :meth:`fpke_polynomial_space`: on lanes
-        (:mod:`agsf_torch.fused.pair_products`, compiled ahead of time if ``compile``) from
-        :attr:`EAGER_MIN_PAIRS` pairs on or when compiled; below, batched (:mod:`agsf_torch.fpke.bias_block`),
-        or ``None`` for the 3-state model (its 84-node interpolatory rule is then the generic route)."""
-        from ..fused.pair_products import attitude_pair_products as on_lanes
-
-        if u is not None:
-            self.check_input(u)
-            count = math.prod(pairs.mean.shape[:-1])
-            differentiable = torch.is_grad_enabled() and any(
-                t.requires_grad for t in (u, pairs.mean, pairs.chol, pairs.first.means, pairs.first.cov_rates)
-            )
-            if compile or count >= self.EAGER_MIN_PAIRS[self.state_dim]:
-                rate = u if self.estimate_bias else u - self.bias.to(u)
-                return on_lanes(pairs, rate, self.sigma_v, self.sigma_u, compile=compile and not differentiable)
-        if not self.estimate_bias:
-            return None
-        from ..fpke.bias_block import attitude_pair_products
-
-        return attitude_pair_products(self, u, pairs)
-
-    def fused_penalty_pairs(
-        self, means: Tensor, covs: Tensor, u: Tensor | None, *, compile: bool = False
-    ) -> tuple[Tensor, Tensor] | None:
-        """``(log z_ij, E[ℓᵢℓⱼ])`` ``[T, P]`` with the pairs' product Gaussians and the components' moment rates
-        formed on lanes too (:func:`~agsf_torch.fused.pair_products.attitude_penalty_pairs`), when compiled and
-        nothing asks for gradients (eagerly its kernel of product Gaussians is slower than the batched LAPACK
-        route below ~1,500 pairs: :meth:`fpke_pair_products` then applies); ``None`` otherwise, or without a gyro
-        rate.  Like :meth:`fpke_pair_products`, it evaluates this class's own equations: a subclass that changes
-        the dynamics or the noise must override both."""
-        from ..fused.pair_products import attitude_penalty_pairs
-
-        if u is None or not compile:
-            return None
-        self.check_input(u)
-        if torch.is_grad_enabled() and any(
-            t.requires_grad for t in (u, means, covs, self.sigma_v, self.sigma_u, self.bias)
-        ):
-            return None  # the compiled kernel records no gradients: the eager routes do
-        T = means.shape[0]
-        rate = u if self.estimate_bias else u - self.bias.to(u)
-        return attitude_penalty_pairs(means, covs, rate.expand(T, 3), self.sigma_v, self.sigma_u, compile=True)
-
     #: The largest rotation (rad) the moment equations are asked to follow over one interval: the MRP chart
     #: is switched between intervals only (``canonicalize``), and within one the MRP runs to ``tan(θ/4)``,
     #: singular at θ = 2π; a radian keeps ``|p| ≤ tan((π + 1)/4) ≈ 1.7`` and RK4's error small.
@@ -361,74 +311,6 @@ class AttitudeModel(ContinuousModel):
                 f"{limit:g} rad the MRP moment equations follow in one interval (the chart is switched between "
                 f"intervals): {hint}"
             )
-
-    def fused_propagation(
-        self, mean: Tensor, cov: Tensor, u: Tensor, dt: float, substeps: int = 1, *, compile: bool = False
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """RK4 of ``(μ, Φ, S)`` and the congruence on lanes, unrolled with the model's structural zeros
-        (:mod:`agsf_torch.fused.propagation`): the arithmetic of :func:`~agsf_torch.propagation.propagate_moments`
-        in one pass over memory.  Returns ``(mean, cov, positive_definite [...] bool)``, or ``None`` (the
-        generic path) for an eager call on fewer lanes than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
-        from ..fused.lanes import run_in_chunks, worth_fusing
-        from ..fused.propagation import propagation_kernel
-
-        self.check_input(u)
-        n = self.state_dim
-        lead = broadcast_shapes(mean.shape[:-1], cov.shape[:-2], u.shape[:-1])
-        count = math.prod(lead)
-        if not worth_fusing(count, compile):
-            return None
-        rate = u if self.estimate_bias else u - self.bias.to(u)
-        inputs = (
-            mean.expand(*lead, n).reshape(count, n),
-            cov.expand(*lead, n, n).reshape(count, n, n),
-            rate.expand(*lead, 3).reshape(count, 3),
-        )
-        like = inputs[0]
-        shared = (
-            torch.as_tensor(dt, dtype=like.dtype, device=like.device),
-            (self.sigma_v**2).to(like),
-            (self.sigma_u**2).to(like),
-        )
-        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (*inputs, *shared))
-        m, P, ok = run_in_chunks(
-            propagation_kernel(substeps),
-            inputs,
-            shared=shared,
-            compile=compile and not differentiable,
-            key=("attitude", n, substeps),
-        )
-        return m.reshape(*lead, n), P.reshape(*lead, n, n), ok.reshape(lead)
-
-    def fused_galerkin_pairs(
-        self, means: Tensor, covs: Tensor, u: Tensor, *, compile: bool = False
-    ) -> tuple[Tensor, Tensor, Tensor] | None:
-        """``(log z_ij, E[ℓᵢ], E[ℓⱼ])`` ``[T, P]`` of the Galerkin update's pairs on lanes
-        (:mod:`agsf_torch.fused.galerkin`): the arithmetic of :func:`~agsf_torch.propagation.moment_derivatives`
-        and of the closed-form :func:`~agsf_torch.fpke.galerkin_matrices` route (product Gaussians,
-        :meth:`fokker_planck_moments`, ``E[ℓ]`` of both sides) in one pass over memory; ``None`` (the generic
-        path) for an eager call on fewer pairs than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
-        from ..fused.galerkin import attitude_pair_kernel
-        from ..fused.lanes import DEFAULT_CHUNK, run_in_chunks, worth_fusing
-
-        self.check_input(u)
-        T, N = means.shape[:2]
-        pairs = N * (N + 1) // 2
-        if not worth_fusing(T * pairs, compile):
-            return None
-        rate = (u if self.estimate_bias else u - self.bias.to(u)).expand(T, 3)
-        like = means
-        shared = ((self.sigma_v**2 / 32.0).to(like), (self.sigma_v**2).to(like), (self.sigma_u**2).to(like))
-        tensors = (means, covs, rate)
-        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (*tensors, *shared))
-        return run_in_chunks(
-            attitude_pair_kernel,
-            tensors,
-            shared=shared,
-            compile=compile and not differentiable,
-            chunk=max(1, DEFAULT_CHUNK // pairs),
-            key=("attitude-galerkin", self.state_dim),
-        )
 
     # ------------------------------------------------------- MRP manifold
     def _switch(self, mean: Tensor, cov: Tensor, switch: Tensor) -> tuple[Tensor, Tensor]:
