@@ -229,9 +229,11 @@ def test_write_figures_writes_the_four_pngs_and_leaves_no_pyplot_figure_open(sum
     assert plt.get_fignums() == before
 
 
-def test_a_figure_drawn_by_a_worker_follows_the_callers_matplotlib_settings(summary3, tmp_path):
+def test_a_figure_drawn_by_a_worker_follows_the_callers_matplotlib_settings(summary3, tmp_path, monkeypatch):
     """Settings changed at run time (a notebook's, say) reach the worker: its PNG is the caller's byte for byte."""
     from agsf_torch.experiments.file_writer import FileWriter
+
+    monkeypatch.setattr(FileWriter, "_write_here", lambda *a: pytest.fail("a figure was drawn in the caller"))
 
     plain, here, worker = tmp_path / "plain", tmp_path / "here", tmp_path / "worker"
     for folder in (plain, here, worker):
