@@ -50,9 +50,9 @@ def run_experiment(
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
 
-    ``writer`` (a :class:`~.file_writer.FileWriter`) draws the figures, in worker processes if it has them: the call
-    then returns before they are written, and they are complete when the writer is closed.  ``runs.npz`` is written
-    here either way (handing its arrays to a worker would copy them: gigabytes for a large run).
+    ``writer`` (a :class:`~.file_writer.FileWriter`) draws the figures, in worker processes if it has them, and
+    writes ``runs.npz`` in a thread of this process (handing its arrays to a worker would copy them: gigabytes for a
+    large run): the call then returns before they are written, and they are complete when the writer is closed.
 
     ``label`` names the run on its progress bar (default: the configuration's ``name``; a sweep passes
     the configuration's parameters).
@@ -96,7 +96,7 @@ def run_experiment(
     filters = {name: setup for name, setup in make_filters(cfg).items() if name not in reuse}
     out = prepare_output(Path(out), kind, digest, cfg.to_dict())
     if not filters:
-        data = save_runs(out / "runs.npz", None, reused)
+        data = save_runs(out / "runs.npz", None, reused, writer)
         return _write_results(out, data, cfg, reuse, writer)
     res = run_monte_carlo(
         env,
@@ -110,7 +110,7 @@ def run_experiment(
         noise_model=cfg.star_noise_model,
         label=cfg.name if label is None else label,
     )
-    data = save_runs(out / "runs.npz", res, reused)
+    data = save_runs(out / "runs.npz", res, reused, writer)
     return _write_results(out, data, cfg, reuse, writer)
 
 
@@ -140,5 +140,5 @@ def _write_results(
         summary["reused"] = {name: Path(folder).name for name, folder in reuse.items()}
     write_json(out / "summary.json", summary)
     write_figures(out, summary, writer)
-    write_tensorboard(out, data, summary)
+    write_tensorboard(out, data, summary, writer)
     return summary

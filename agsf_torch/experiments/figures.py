@@ -376,8 +376,8 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
     return fig
 
 
-#: file name → the function that builds it.
-FIGURES = {"rms.png": rms_figure, "axes.png": axes_figure, "weights.png": weights_figure, "fpke.png": fpke_figure}
+#: file name → the function that builds it, the longest to draw first (the order a writer's workers take them in).
+FIGURES = {"axes.png": axes_figure, "rms.png": rms_figure, "weights.png": weights_figure, "fpke.png": fpke_figure}
 _DPI = {"rms.png": 110, "axes.png": 100, "weights.png": 100, "fpke.png": 110}
 
 
@@ -413,7 +413,7 @@ def runtime_rc_params() -> dict[str, Any]:
 
 
 def write_figures(out: Path, summary: dict[str, Any], writer: FileWriter | None = None) -> list[Path]:
-    """Write ``rms.png``, ``axes.png``, ``weights.png`` and ``fpke.png`` into ``out`` (each through ``writer``, a
+    """Write ``axes.png``, ``rms.png``, ``weights.png`` and ``fpke.png`` into ``out`` (each through ``writer``, a
     :class:`~.file_writer.FileWriter`, if given: then they may still be being drawn when this returns, by a process
     given this one's matplotlib settings); returns their paths."""
     paths = [Path(out) / fname for fname in FIGURES]

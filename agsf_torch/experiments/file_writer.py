@@ -1,24 +1,31 @@
-"""Writing files — an experiment's figures — in worker processes while the caller goes on.
+"""Writing files — an experiment's figures, event files and ``runs.npz`` — beside the caller while it goes on.
 
 Half of ``agsf reproduce``'s wall time on 2 cores went to writing each case's files before the next case could
 start (measured on an AMD EPYC VM: 8.8 of 17 s, of which the 12 figures 6.0 s, ``runs.npz`` 1.4 s, the event
-files 1.3 s).  Drawing a figure is Python (matplotlib holds the interpreter lock), so a thread cannot overlap it
-with the next case's filters; another process can.  The figures are drawn from a case's summary, which is small;
-``runs.npz`` stays with the caller, as handing its arrays over would copy them (gigabytes for a large run).
+files 1.3 s).  Drawing a figure and encoding events are Python (they hold the interpreter lock), so a thread
+cannot overlap them with the next case's filters; another process can.  Both are made from small inputs (a case's
+summary, each filter's few event series).
 
 :class:`FileWriter` takes *tasks*: a module-level function that writes one file (atomically, as every writer of
-the package does) and its arguments.  With ``workers=0`` each task runs when it is submitted, in the caller.  With
+the package does, or one TensorBoard run) and its arguments.  With ``workers=0`` each task runs when it is submitted, in the caller.  With
 ``workers=k`` they go to ``k`` worker interpreters started at once (``python -m agsf_torch.experiments.file_writer``,
-which import matplotlib while the caller works): a new interpreter, not a multiprocessing child, so the caller's
-``__main__`` is not run again.  A task's function and arguments travel as a pickle file in a scratch folder, each
-to the worker with the fewest tasks in hand.  :meth:`FileWriter.close` (leaving the ``with`` block) waits for every
-task and raises ``RuntimeError`` naming the file of the first that failed.  Nothing is lost: a task that cannot be
-handed over (arguments that cannot be pickled, no worker alive) and a task whose worker died before it reported
-run in the caller instead.  An error leaving the ``with`` block still lets the workers finish what they were
-handed (then it propagates: an earlier case's files are complete whatever a later case does); an interruption
-(Ctrl-C) stops them at once, and a file they had not finished is absent, its temporary file removed (each file
-is renamed into place only when whole).  A worker that exits abnormally is announced as a warning with the last
-line it wrote to stderr.
+which import matplotlib and TensorBoard's writer while the caller works): a new interpreter, not a multiprocessing child, so the caller's
+``__main__`` is not run again.  A task's function and arguments travel as a pickle file in a scratch folder.  Each
+worker holds one task at a time; the others wait in the caller's queue, and a worker that finishes takes the next.
+:meth:`FileWriter.close` (leaving the ``with`` block) first *helps*: the caller, whose own work is done, runs the
+queued tasks itself beside the workers (the last case's figures no longer wait for one worker to draw them in
+turn); then it waits for every task and raises ``RuntimeError`` naming the file of the first that failed.
+
+A task submitted with ``thread=True`` runs in a thread of the caller instead: for a task whose arguments are too
+large to hand over (``runs.npz``'s arrays: a copy, gigabytes for a large run) and which spends its time outside the
+interpreter lock (compression), so that it overlaps the caller's next work.
+
+Nothing is lost: a task that cannot be handed over (arguments that cannot be pickled, no worker alive) and a task
+whose worker died before it reported run in the caller instead.  An error leaving the ``with`` block still lets
+the tasks finish (then it propagates: an earlier case's files are complete whatever a later case does); an
+interruption (Ctrl-C) stops the workers at once, and a file they had not finished is absent, its temporary file
+removed (each file is renamed into place only when whole); a thread's file is completed before the interpreter
+exits.  A worker that exits abnormally is announced as a warning with the last line it wrote to stderr.
 """
 
 from __future__ import annotations
@@ -34,19 +41,27 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 import weakref
+from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from ..processes import interpreter_env
 
-__all__ = ["FileWriter", "FIGURE_MODULES", "WORKER_MEMORY"]
+__all__ = ["FileWriter", "PRELOAD_MODULES", "WORKER_MEMORY"]
 
 logger = logging.getLogger(__name__)
 
-#: What a worker imports before its first task (what drawing a figure needs), while the caller works.
-FIGURE_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "agsf_torch.experiments.figures")
+#: What a worker imports before its first task (what drawing a figure and writing TensorBoard events need), while
+#: the caller works.
+PRELOAD_MODULES = (
+    "matplotlib.figure",
+    "matplotlib.backends.backend_agg",
+    "agsf_torch.experiments.figures",
+    "torch.utils.tensorboard",
+)
 #: The writers with workers running, for the fork hook below.
 _OPEN: weakref.WeakSet = weakref.WeakSet()
 
@@ -70,16 +85,24 @@ class FileWriter:
 
     Args:
         workers: worker processes (0: every task runs in the caller when submitted).
-        preload: modules each worker imports when it starts (default :data:`FIGURE_MODULES`).
+        preload: modules each worker imports when it starts (default :data:`PRELOAD_MODULES`).
+        caller_helps: :meth:`close` runs the queued tasks in the caller beside the workers (``False``: it only waits,
+            and every task handed over runs in a worker while one is alive).
     """
 
-    def __init__(self, workers: int = 0, preload: Sequence[str] = FIGURE_MODULES) -> None:
+    def __init__(
+        self, workers: int = 0, preload: Sequence[str] = PRELOAD_MODULES, *, caller_helps: bool = True
+    ) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
             raise ValueError(f"workers must be a non-negative integer, got {workers!r}")
+        self._caller_helps = bool(caller_helps)
         self._lock = threading.Lock()
-        self._jobs: dict[str, tuple[Path, int]] = {}  # job file → (the file it writes, worker); unanswered
+        self._jobs: dict[str, tuple[Path, int | None]] = {}  # job file → (the file it writes, worker or None: queued)
+        self._queue: deque[str] = deque()  # job files no worker holds yet, in the order submitted
+        self._in_hand: dict[int, str | None] = {}  # worker → the job it holds
         self._errors: list[tuple[Path, str]] = []
         self._workers: list[tuple[subprocess.Popen, threading.Thread]] = []
+        self._threads: list[threading.Thread] = []
         self._count = itertools.count()
         self._closed = False
         self._scratch = Path(tempfile.mkdtemp(prefix="agsf-writer-")) if workers else None
@@ -108,18 +131,25 @@ class FileWriter:
             finally:
                 err.close()
             reader = threading.Thread(target=self._read, args=(index, proc), daemon=True)
-            reader.start()
             self._workers.append((proc, reader))
+            self._in_hand[index] = None
+            reader.start()
         _OPEN.add(self)
 
-    def submit(self, write: Callable[..., Any], *args: Any, path: str | Path) -> None:
+    def submit(self, write: Callable[..., Any], *args: Any, path: str | Path, thread: bool = False) -> None:
         """Run ``write(*args)``, which writes the file ``path`` (named in a failure's message): now, in the caller,
-        without workers; else in the worker with the fewest tasks in hand."""
+        without workers; else in a worker (the first free one, in the order submitted), or with ``thread`` in a
+        thread of the caller (module docstring)."""
         path = Path(path)
         if self._closed:
             raise ValueError(f"cannot write {path}: this FileWriter is closed")
         if not self._workers:
             write(*args)
+            return
+        if thread:
+            worker = threading.Thread(target=self._write_here, args=(path, write, *args), name=f"writing {path.name}")
+            worker.start()  # not a daemon: an interrupted caller's interpreter completes the file before it exits
+            self._threads.append(worker)
             return
         job = self._scratch / f"job{next(self._count)}.pkl"
         try:
@@ -129,22 +159,52 @@ class FileWriter:
             self._write_here(path, write, *args)
             return
         with self._lock:
-            load = {i: 0 for i, (proc, _) in enumerate(self._workers) if proc.poll() is None}
-            for _, worker in self._jobs.values():
-                if worker in load:
-                    load[worker] += 1
-        for index in sorted(load, key=load.get):
-            proc = self._workers[index][0]
-            with self._lock:
-                self._jobs[str(job)] = (path, index)
-            try:
-                proc.stdin.write(json.dumps(str(job)) + "\n")
-                proc.stdin.flush()
+            self._jobs[str(job)] = (path, None)
+            self._queue.append(str(job))
+            self._dispatch()
+            alive = any(proc.poll() is None for proc, _ in self._workers)
+        if not alive:  # no worker alive: written here, now
+            self._help()
+
+    def _dispatch(self) -> None:
+        """Hand queued jobs to the workers that hold none (the caller holds the lock)."""
+        for index, (proc, _) in enumerate(self._workers):
+            if not self._queue:
                 return
-            except OSError:  # the worker has died: the next one
-                with self._lock:
-                    self._jobs.pop(str(job), None)
-        self._write_here(path, self._run_here, str(job))  # no worker alive
+            if self._in_hand.get(index, "dead") is not None or proc.poll() is not None:
+                continue
+            job = self._queue.popleft()
+            try:
+                proc.stdin.write(json.dumps(job) + "\n")
+                proc.stdin.flush()
+            except (OSError, ValueError):  # the worker has died (or its pipe is closed): the next one
+                self._queue.appendleft(job)
+                self._in_hand.pop(index, None)
+                continue
+            self._in_hand[index] = job
+            self._jobs[job] = (self._jobs[job][0], index)
+
+    def _help(self) -> None:
+        """Run the queued jobs here, one at a time, while the workers run theirs."""
+        while True:
+            with self._lock:
+                if not self._queue:
+                    return
+                job = self._queue.popleft()
+                path, _ = self._jobs.pop(job)
+            self._write_here(path, self._run_here, job)
+
+    def _wait_for_queue(self) -> None:
+        """Until no job waits for a worker, or no worker is alive to take one (then the caller runs the rest)."""
+        while True:
+            with self._lock:
+                if not self._queue:
+                    return
+                alive = any(proc.poll() is None for proc, _ in self._workers)
+            if not alive:
+                self._help()
+                return
+            time.sleep(0.01)
 
     def _write_here(self, path: Path, write: Callable[..., Any], *args: Any) -> None:
         """Run a task in the caller; its failure is recorded with its file and raised by :meth:`close`."""
@@ -158,12 +218,12 @@ class FileWriter:
         """A worker's replies (one JSON line per task), until it exits."""
         try:
             for line in proc.stdout:
-                self._take(line)
+                self._take(index, line)
         except (OSError, ValueError):  # the pipe closed under the reader (the writer shut down)
             pass
 
-    def _take(self, line: str) -> None:
-        """Note one reply of a worker: the job done, and its error if it failed."""
+    def _take(self, index: int, line: str) -> None:
+        """Note one reply of worker ``index``: the job done, and its error if it failed; hand it the next."""
         try:
             reply = json.loads(line)
             job, error = reply["job"], reply["error"]
@@ -175,14 +235,26 @@ class FileWriter:
             path, _ = self._jobs.pop(job, (None, None))
             if path is not None and error is not None:
                 self._errors.append((path, error))
+            if self._in_hand.get(index) == job:
+                self._in_hand[index] = None
+                if not self._closed:
+                    self._dispatch()
 
     def _run_here(self, job: str) -> None:
         write, args = pickle.loads(Path(job).read_bytes())
         write(*args)
 
     def close(self) -> None:
-        """Wait for every task; then ``RuntimeError`` naming the file of the first that failed (and how many did)."""
+        """Run the queued tasks here beside the workers, wait for every task; then ``RuntimeError`` naming the file
+        of the first that failed (and how many did)."""
         try:
+            if self._caller_helps:
+                self._help()
+            for worker in self._threads:
+                worker.join()
+            self._wait_for_queue()
+            with self._lock:
+                self._closed = True  # no more jobs handed out
             for proc, _ in self._workers:
                 try:
                     proc.stdin.close()
@@ -289,6 +361,10 @@ def _serve(preload: Sequence[str]) -> None:
             error = f"{type(exc).__name__}: {exc}"
         replies.write(json.dumps({"job": job, "error": error}) + "\n")
         replies.flush()
+    # every task answered and its file complete: leave without the interpreter's teardown (half a second with torch
+    # and matplotlib loaded, which the caller's close() would wait for)
+    sys.stderr.flush()
+    os._exit(0)
 
 
 if __name__ == "__main__":

@@ -14,12 +14,15 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..storage.files import atomic_open, read_json, write_json
 from .runner import MonteCarloResult
+
+if TYPE_CHECKING:
+    from .file_writer import FileWriter
 
 __all__ = [
     "OutputConflict",
@@ -157,9 +160,13 @@ SHARED_KEYS = ("time", "star_frame", "prior_error_angle")
 
 
 def save_runs(
-    path: Path, res: MonteCarloResult | None, reused: dict[str, tuple[dict, dict]] | None = None
+    path: Path,
+    res: MonteCarloResult | None,
+    reused: dict[str, tuple[dict, dict]] | None = None,
+    writer: FileWriter | None = None,
 ) -> dict[str, np.ndarray]:
-    """Write ``runs.npz`` and return what it wrote.
+    """Write ``runs.npz`` and return what it writes (with ``writer``, a :class:`~.file_writer.FileWriter`, in a
+    thread of the caller: the file is complete when the writer is closed).
 
     Layout (batch first, as everywhere in the package): ``time [T]`` (s), ``star_frame [T]``,
     ``prior_error_angle [B]`` (rad: the prior mean's attitude error at ``t = 0``), and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
@@ -200,7 +207,11 @@ def save_runs(
                 )
         data.update({k: v for k, v in arrays.items() if k.startswith(f"{name}/")})
         units.update(their_units)
-    save_npz(path, {**data, "units": np.array(json.dumps(units, sort_keys=True))})
+    arrays = {**data, "units": np.array(json.dumps(units, sort_keys=True))}
+    if writer is None:
+        save_npz(path, arrays)
+    else:  # compression releases the interpreter lock: the thread overlaps the caller's next work
+        writer.submit(save_npz, path, arrays, path=path, thread=True)
     return data
 
 

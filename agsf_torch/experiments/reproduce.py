@@ -45,12 +45,12 @@ def reproduce(
     combined ``summary.json`` and ``results.md``; return the Markdown table.  Every case is
     validated (and its memory estimated, unless ``force``) before ``out`` is created.
 
-    A case's figures are drawn by ``writers`` worker processes (:class:`~.file_writer.FileWriter`; default
-    :func:`default_writers`: one where the process may use two CPUs or more) while the next case runs; the cases
-    run with ``threads`` torch threads (default: torch's, capped so that they and the writers fit the CPUs),
-    restored afterwards.  The memory check counts the writers (:data:`~.file_writer.WORKER_MEMORY` each).
-    Measured on a 2-core AMD EPYC VM, alternated: the three cases in 14.0–14.5 s with one writer, against
-    17.2–18.4 s without; the files are byte for byte the same."""
+    A case's figures and event files are written by ``writers`` worker processes (:class:`~.file_writer.FileWriter`;
+    default :func:`default_writers`: one where the process may use two CPUs or more) and its ``runs.npz`` by a
+    thread while the next case runs; after the last case this process helps with what is left.  The cases run with
+    ``threads`` torch threads (default: torch's, capped so that they and the writers fit the CPUs), restored
+    afterwards.  The memory check counts the writers (:data:`~.file_writer.WORKER_MEMORY` each).  The files are
+    the same with and without writers (byte for byte; the event files' records)."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
     writers = default_writers() if writers is None else writers
     if isinstance(writers, bool) or not isinstance(writers, int) or writers < 0:

@@ -49,12 +49,17 @@ import shutil
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from .file_writer import FileWriter
+
 __all__ = [
     "write_tensorboard",
+    "filter_events",
+    "write_filter_run",
     "time_steps",
     "run_name",
     "run_names",
@@ -104,18 +109,36 @@ def clear_runs(folder: Path) -> None:
                     sub.rmdir()
 
 
-def write_tensorboard(out: Path, data: dict[str, np.ndarray], summary: dict[str, Any]) -> None:
+def write_tensorboard(
+    out: Path, data: dict[str, np.ndarray], summary: dict[str, Any], writer: FileWriter | None = None
+) -> None:
     """Write the events of one experiment under ``out/tensorboard``, one run per filter (module docstring).
 
-    Events of an earlier writing of the same experiment folder are replaced, not added to.
+    Events of an earlier writing of the same experiment folder are replaced, not added to: they are removed here,
+    before the runs are written — by ``writer`` (a :class:`~.file_writer.FileWriter`, one task per filter) if given,
+    from :func:`filter_events`' few arrays, not ``data``.
     """
-    from torch.utils.tensorboard import SummaryWriter
-
     folder = out / "tensorboard"
     clear_runs(folder)
+    for name, events in filter_events(data, summary).items():
+        if writer is None:
+            write_filter_run(folder / name, events)
+        else:
+            writer.submit(write_filter_run, folder / name, events, path=folder / name)
+
+
+def filter_events(data: dict[str, np.ndarray], summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """What each filter's run holds, from the experiment's arrays and summary: per filter ``{"text": the time axis
+    text, "scalars": {tag: (steps [k], values [k])}, "histograms": (steps [h], values [h, B·N])}`` (histograms
+    ``None`` for one Gaussian); the steps are the simulated times of :func:`time_steps`."""
     frames = np.asarray(data["star_frame"], dtype=bool)
     t = np.asarray(data["time"], dtype=np.float64)
     steps, unit = time_steps(t)
+    text = (
+        f"step = simulated time in {unit} (t = {t[0]:g} s … {t[-1]:g} s); weights/component_<i> is the "
+        "first run's; every other curve is over all runs"
+    )
+    events = {}
     for name, f in summary["filters"].items():
         series: dict[str, np.ndarray] = {
             "rms_deg": np.asarray(f["rms_deg"], dtype=np.float64),
@@ -131,27 +154,36 @@ def write_tensorboard(out: Path, data: dict[str, np.ndarray], summary: dict[str,
             series["weights/entropy"] = np.asarray(data[f"{name}/weight_entropy"], dtype=np.float64).mean(0)
             for i in range(weights.shape[-1]):
                 series[f"weights/component_{i}"] = np.asarray(weights[0, :, i], dtype=np.float64)
-        writer = SummaryWriter(str(folder / name))
-        try:
-            writer.add_text(
-                "time_axis",
-                f"step = simulated time in {unit} (t = {t[0]:g} s … {t[-1]:g} s); weights/component_<i> is the "
-                "first run's; every other curve is over all runs",
-                0,
-            )
-            for key, values in series.items():
-                for k in range(len(values)):
-                    writer.add_scalar(key, float(values[k]), int(steps[k]))
-            nis = data.get(f"{name}/nis")
-            if nis is not None:
-                for k in np.flatnonzero(frames):
-                    writer.add_scalar("nis", float(np.nanmean(nis[:, k])), int(steps[k]))
-            if mixture:
-                for k in range(len(t)):
-                    if frames[k] or k % 10 == 0:
-                        writer.add_histogram("weights/all_runs", weights[:, k].reshape(-1), int(steps[k]))
-        finally:
-            writer.close()
+        scalars = {key: (steps, values) for key, values in series.items()}
+        nis = data.get(f"{name}/nis")
+        if nis is not None:
+            at = np.flatnonzero(frames)
+            scalars["nis"] = (steps[at], np.array([np.nanmean(nis[:, k]) for k in at], dtype=np.float64))
+        histograms = None
+        if mixture:
+            at = np.flatnonzero(frames | (np.arange(len(t)) % 10 == 0))
+            histograms = (steps[at], np.ascontiguousarray(weights[:, at].transpose(1, 0, 2).reshape(len(at), -1)))
+        events[name] = {"text": text, "scalars": scalars, "histograms": histograms}
+    return events
+
+
+def write_filter_run(run: Path, events: dict[str, Any]) -> None:
+    """Write one filter's run ``run`` (a folder) from its :func:`filter_events` entry: the ``time_axis`` text at step
+    0, each tag's scalars, then the weight histograms."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(str(run))
+    try:
+        writer.add_text("time_axis", events["text"], 0)
+        for key, (steps, values) in events["scalars"].items():
+            for k in range(len(values)):
+                writer.add_scalar(key, float(values[k]), int(steps[k]))
+        if events["histograms"] is not None:
+            steps, values = events["histograms"]
+            for k in range(len(steps)):
+                writer.add_histogram("weights/all_runs", values[k], int(steps[k]))
+    finally:
+        writer.close()
 
 
 # ----------------------------------------------------------------------------

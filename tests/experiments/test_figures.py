@@ -241,7 +241,7 @@ def test_a_figure_drawn_by_a_worker_follows_the_callers_matplotlib_settings(summ
     write_figures(plain, summary3)
     with matplotlib.rc_context({"lines.linewidth": 4.0, "axes.facecolor": "#eeeeff"}):
         write_figures(here, summary3)
-        with FileWriter(1) as writer:
+        with FileWriter(1, caller_helps=False) as writer:
             write_figures(worker, summary3, writer)
     for name in ("rms.png", "axes.png", "weights.png", "fpke.png"):
         assert (worker / name).read_bytes() == (here / name).read_bytes(), name

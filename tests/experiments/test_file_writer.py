@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -68,11 +69,54 @@ def test_workers_write_every_file_by_close_and_leave_no_scratch(tmp_path):
 def test_the_tasks_run_in_the_workers_whatever_they_write_to_file_descriptor_1(tmp_path):
     strays = [b"", b"3\n", b'{"job": 1}\n', b"not json\n", b"partial, without a newline"]
     paths = [tmp_path / f"p{i}.txt" for i in range(len(strays))]
-    with FileWriter(2, preload=()) as writer:
+    with FileWriter(2, preload=(), caller_helps=False) as writer:
         for path, stray in zip(paths, strays):
             writer.submit(write_pid, path, stray, path=path)
     pids = {int(p.read_text()) for p in paths}
     assert os.getpid() not in pids and 1 <= len(pids) <= 2  # written by the workers, none again by the caller
+
+
+def test_at_close_the_caller_runs_the_queued_tasks_beside_the_workers(tmp_path):
+    slow, quick = tmp_path / "slow.txt", [tmp_path / f"q{i}.txt" for i in range(3)]
+    with FileWriter(1, preload=()) as writer:
+        writer.submit(write_slowly, slow, 1.5, path=slow)  # the worker's one task in hand
+        for path in quick:
+            writer.submit(write_pid, path, path=path)  # queued in the caller
+    assert slow.read_text() == "slow"
+    assert [int(p.read_text()) for p in quick] == [os.getpid()] * 3
+
+
+def test_a_worker_takes_the_queued_tasks_one_at_a_time_in_order(tmp_path):
+    paths = [tmp_path / f"o{i}.txt" for i in range(5)]
+    with FileWriter(1, preload=(), caller_helps=False) as writer:
+        for path in paths:
+            writer.submit(write_pid, path, path=path)
+        assert len(writer._queue) >= 3 and writer._queue[0].endswith("job1.pkl")  # one in hand, the rest waiting
+    pids = {int(p.read_text()) for p in paths}
+    assert len(pids) == 1 and os.getpid() not in pids
+    times = [p.stat().st_mtime_ns for p in paths]
+    assert times == sorted(times)  # in the order submitted
+
+
+def write_in_thread(path: Path, main: int) -> None:
+    """Write whether this runs in the thread ``main`` (``"main"``) or another (``"thread"``), and the process id."""
+    write_text(path, f"{'main' if threading.get_ident() == main else 'thread'} {os.getpid()}")
+
+
+def test_a_thread_task_runs_in_a_thread_of_the_caller_and_is_complete_at_close(tmp_path):
+    path, bad = tmp_path / "t.txt", tmp_path / "missing-folder" / "u.txt"
+    writer = FileWriter(1, preload=())
+    writer.submit(write_in_thread, path, threading.get_ident(), path=path, thread=True)
+    writer.submit(write_in_thread, bad, threading.get_ident(), path=bad, thread=True)
+    with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/u\.txt: FileNotFoundError"):
+        writer.close()
+    assert path.read_text() == f"thread {os.getpid()}"
+
+
+def test_without_workers_a_thread_task_runs_when_submitted(tmp_path):
+    with FileWriter(0) as writer:
+        writer.submit(write_in_thread, tmp_path / "v.txt", threading.get_ident(), path=tmp_path / "v.txt", thread=True)
+        assert (tmp_path / "v.txt").read_text() == f"main {os.getpid()}"
 
 
 def test_an_error_in_the_block_lets_the_workers_finish_what_they_were_handed(tmp_path):
@@ -169,8 +213,9 @@ def test_bad_worker_counts_are_refused(workers):
 
 
 def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_the_threads(tmp_path, monkeypatch):
-    # with a writer every figure is drawn by its worker, none by the caller
-    monkeypatch.setattr(FileWriter, "_write_here", lambda *a: pytest.fail("a figure was drawn in the caller"))
+    here = []  # what the caller wrote itself: runs.npz (in a thread) and what it took of the last case's at close
+    write_here = FileWriter._write_here
+    monkeypatch.setattr(FileWriter, "_write_here", lambda self, path, *a: (here.append(path), write_here(self, path, *a)))
     overrides = ["runs=3", "duration=2.0", "components=2", *EAGER]
     threads = torch.get_num_threads()
     tables = {}
@@ -186,6 +231,28 @@ def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_t
             inline
         )
     assert written == inline
+    assert _events(tmp_path / "1") == _events(tmp_path / "0")
+    here = {str(p.relative_to(tmp_path / "1")) for p in here}
+    # runs.npz is written by the caller (a thread); case 1's first figure went to the idle worker when submitted
+    assert {"case1/runs.npz", "case3/runs.npz"} <= here and "case1/axes.png" not in here
+
+
+def _events(root: Path) -> dict[str, dict]:
+    """Every TensorBoard run under ``root`` (relative path) → its tags → ``[(step, value)]`` (histograms and the
+    text as their serialised protos)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    runs = {}
+    for run in sorted({p.parent for p in root.rglob("events.out.tfevents.*")}):
+        acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "histograms": 0, "tensors": 0})
+        acc.Reload()
+        tags = acc.Tags()
+        events = {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in tags["scalars"]}
+        events |= {t: [(e.step, str(e.histogram_value)) for e in acc.Histograms(t)] for t in tags["histograms"]}
+        events |= {t: [(e.step, e.tensor_proto.SerializeToString()) for e in acc.Tensors(t)] for t in tags["tensors"]}
+        runs[str(run.relative_to(root))] = events
+    assert runs
+    return runs
 
 
 @pytest.mark.parametrize(("option", "value"), [("writers", -1), ("writers", True), ("threads", 0), ("threads", 1.5)])
