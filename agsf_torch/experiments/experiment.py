@@ -50,9 +50,9 @@ def run_experiment(
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
 
-    ``writer`` (a :class:`~.file_writer.FileWriter`) draws the figures, in worker processes if it has them, and
-    writes ``runs.npz`` in a thread of this process (handing its arrays to a worker would copy them: gigabytes for a
-    large run): the call then returns before they are written, and they are complete when the writer is closed.
+    ``writer`` (a :class:`~.file_writer.FileWriter`) writes the figures, the event files and ``runs.npz``, in worker
+    processes if it has them (``runs.npz`` above :data:`~.file_writer.HANDOVER_BYTES` in a thread of this process):
+    the call then returns before they are written, and they are complete when the writer is closed.
 
     ``label`` names the run on its progress bar (default: the configuration's ``name``; a sweep passes
     the configuration's parameters).

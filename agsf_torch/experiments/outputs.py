@@ -14,15 +14,13 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..storage.files import atomic_open, read_json, write_json
+from .file_writer import HANDOVER_BYTES, FileWriter
 from .runner import MonteCarloResult
-
-if TYPE_CHECKING:
-    from .file_writer import FileWriter
 
 __all__ = [
     "OutputConflict",
@@ -165,8 +163,9 @@ def save_runs(
     reused: dict[str, tuple[dict, dict]] | None = None,
     writer: FileWriter | None = None,
 ) -> dict[str, np.ndarray]:
-    """Write ``runs.npz`` and return what it writes (with ``writer``, a :class:`~.file_writer.FileWriter`, in a
-    thread of the caller: the file is complete when the writer is closed).
+    """Write ``runs.npz`` and return what it writes (with ``writer``, a :class:`~.file_writer.FileWriter`, by one of
+    its workers, or by a thread of the caller if the arrays exceed :data:`~.file_writer.HANDOVER_BYTES`: the file is
+    complete when the writer is closed).
 
     Layout (batch first, as everywhere in the package): ``time [T]`` (s), ``star_frame [T]``,
     ``prior_error_angle [B]`` (rad: the prior mean's attitude error at ``t = 0``), and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
@@ -210,8 +209,9 @@ def save_runs(
     arrays = {**data, "units": np.array(json.dumps(units, sort_keys=True))}
     if writer is None:
         save_npz(path, arrays)
-    else:  # compression releases the interpreter lock: the thread overlaps the caller's next work
-        writer.submit(save_npz, path, arrays, path=path, thread=True)
+    else:  # handed to a worker, or too large to copy: a thread (compression releases the interpreter lock)
+        thread = sum(a.nbytes for a in arrays.values()) > HANDOVER_BYTES
+        writer.submit(save_npz, path, arrays, path=path, thread=thread)
     return data
 
 

@@ -213,7 +213,7 @@ def test_bad_worker_counts_are_refused(workers):
 
 
 def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_the_threads(tmp_path, monkeypatch):
-    here = []  # what the caller wrote itself: runs.npz (in a thread) and what it took of the last case's at close
+    here = []  # what the caller wrote itself: what it took of the queue at close
     write_here = FileWriter._write_here
     monkeypatch.setattr(FileWriter, "_write_here", lambda self, path, *a: (here.append(path), write_here(self, path, *a)))
     overrides = ["runs=3", "duration=2.0", "components=2", *EAGER]
@@ -233,8 +233,7 @@ def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_t
     assert written == inline
     assert _events(tmp_path / "1") == _events(tmp_path / "0")
     here = {str(p.relative_to(tmp_path / "1")) for p in here}
-    # runs.npz is written by the caller (a thread); case 1's first figure went to the idle worker when submitted
-    assert {"case1/runs.npz", "case3/runs.npz"} <= here and "case1/axes.png" not in here
+    assert "case1/runs.npz" not in here  # case 1's first file went to the idle worker when submitted
 
 
 def _events(root: Path) -> dict[str, dict]:
@@ -260,3 +259,38 @@ def test_reproduce_refuses_bad_writer_and_thread_counts_before_creating_anything
     with pytest.raises(ValueError, match=f"{option} must be"):
         reproduce([1], tmp_path / "out", list(EAGER), progress=False, **{option: value})
     assert not (tmp_path / "out").exists()
+
+
+def test_a_job_file_is_removed_once_its_task_has_written_its_file(tmp_path):
+    path = tmp_path / "w.txt"
+    with FileWriter(1, preload=()) as writer:
+        writer.submit(write_text, path, "omega", path=path)
+        deadline = time.monotonic() + 60.0
+        while (list(writer._scratch.glob("job*.pkl")) or writer._jobs) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert path.read_text() == "omega"
+        assert not list(writer._scratch.glob("job*.pkl"))  # its arguments no longer take room while the writer runs
+
+
+class _Submissions:
+    """A stand-in for a FileWriter that records how each task was submitted."""
+
+    def __init__(self):
+        self.calls = []
+
+    def submit(self, write, *args, path, thread=False):
+        self.calls.append((Path(path).name, thread))
+
+
+@pytest.mark.parametrize(("limit", "thread"), [(2**40, False), (1, True)])
+def test_runs_npz_goes_to_a_worker_unless_its_arrays_exceed_the_handover_limit(tmp_path, monkeypatch, limit, thread):
+    import numpy as np
+
+    from agsf_torch.experiments import outputs
+
+    reused = {"GSF": ({"time": np.arange(3.0), "star_frame": np.zeros(3, bool), "GSF/error_angle": np.ones((2, 3))}, {})}
+    monkeypatch.setattr(outputs, "HANDOVER_BYTES", limit)
+    writer = _Submissions()
+    data = outputs.save_runs(tmp_path / "runs.npz", None, reused, writer)
+    assert writer.calls == [("runs.npz", thread)] and set(data) == {"time", "star_frame", "GSF/error_angle"}
+    assert not (tmp_path / "runs.npz").exists()  # the writer's to write
