@@ -24,8 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.stats import chi2
 from torch import Tensor
+
+from .quantiles import chi2_quantile
 
 __all__ = ["nees", "rms", "chi2_band", "Check", "consistency_checks", "format_report"]
 
@@ -60,7 +61,7 @@ def chi2_band(dof: float, num_samples: int, confidence: float = 0.95) -> tuple[f
     """
     a = (1.0 - confidence) / 2.0
     k = dof * num_samples
-    return float(chi2.ppf(a, k) / num_samples), float(chi2.ppf(1.0 - a, k) / num_samples)
+    return chi2_quantile(a, k) / num_samples, chi2_quantile(1.0 - a, k) / num_samples
 
 
 @dataclass(frozen=True)

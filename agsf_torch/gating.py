@@ -41,6 +41,7 @@ import torch
 from torch import Tensor
 
 from .models.base import MeasurementModel
+from .quantiles import chi2_quantile
 from .update import (
     check_innovation,
     covariance_form_usable,
@@ -62,9 +63,7 @@ def chi2_threshold(probability: float, dof: int) -> float:
         raise ValueError(f"gate probability must lie in (0, 1), got {probability}")
     if int(dof) != dof or dof < 1:
         raise ValueError(f"gate degrees of freedom must be a positive integer, got {dof}")
-    from scipy.stats import chi2  # here, not at import: scipy.stats is a second of every process's start
-
-    return float(chi2.ppf(float(probability), int(dof)))
+    return chi2_quantile(float(probability), int(dof))
 
 
 def innovation_gate(

@@ -7,9 +7,9 @@ import warnings
 from typing import Any
 
 import numpy as np
-from scipy.stats import t as student_t
 
 from ..consistency import chi2_band, rms
+from ..quantiles import student_t_quantile
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 from .config import ExperimentConfig
 
@@ -139,7 +139,7 @@ def mean_ci95(values: np.ndarray) -> tuple[float, float, float]:
     m = float(values.mean())
     if values.size < 2:
         return m, float("nan"), float("nan")
-    half = float(student_t.ppf(0.975, values.size - 1) * values.std(ddof=1) / math.sqrt(values.size))
+    half = float(student_t_quantile(0.975, values.size - 1) * values.std(ddof=1) / math.sqrt(values.size))
     return m, m - half, m + half
 
 
