@@ -24,7 +24,7 @@ rates on lanes too (:func:`attitude_pair_moments_kernel`, a kernel of its own: i
 compiler would recompute these per-pair values at every node), which the penalty update takes
 (``fused_penalty_pairs``); there the pairs ``(i, i)`` take :func:`attitude_diagonal_pair_values_kernel`,
 which evaluates their one component once.  Compiled, the node kernels run in chunks of
-:data:`COMPILED_PAIRS` pairs.
+:data:`COMPILED_PAIRS` pairs (by the number of states).
 """
 
 from __future__ import annotations
@@ -312,12 +312,14 @@ def attitude_pair_moments_kernel(
     return (stack_entries(g["mean"], Q), stack_entries(L, Q), *(stack_entries(r, Q) for r in rates), log_z)
 
 
-#: Pairs per call of the compiled kernel (its threaded variant; fewer pairs take the serial one).  Each pair
-#: carries a row of ``K = 84`` nodes, so the kernel's temporaries are ``[pairs, 84]``: at 128 pairs ~86 KB each,
-#: which stay in the core's cache, where chunks of the default 1,024 lanes (688 KB each) went to memory.
-#: Measured on 2 cores (AMD EPYC VM), 3,840 pairs (6 states, B = 256, N = 5), in one step of the penalty
-#: update: 15.5–16.7 ms against 37.8–65.7 ms in chunks of 1,024; alone, 18 against 25 ms.
-COMPILED_PAIRS = 128
+#: Pairs per call of the compiled kernel (its threaded variant; fewer pairs take the serial one), by the number of
+#: states.  Each pair carries a row of ``K = 84`` nodes, so the kernel's temporaries are ``[pairs, 84]``: at 128
+#: pairs ~86 KB each, which stay in the core's cache, where chunks of the default 1,024 lanes (688 KB each) went to
+#: memory.  Measured on 2 cores (AMD EPYC VM), 3,840 pairs (6 states, B = 256, N = 5), in one step of the penalty
+#: update: 15.5–16.7 ms against 37.8–65.7 ms in chunks of 1,024; alone, 18 against 25 ms.  With 3 states a node
+#: carries one channel instead of ten, far fewer temporaries, and the calls dominate: the pairs of 100 trajectories
+#: (N = 5, one thread) took 1.66–1.68 ms a step in chunks of 512 or 1,024, 1.80 ms in 256 and 2.00 ms in 128.
+COMPILED_PAIRS = {3: 512, 6: 128}
 
 _WEIGHTS: dict[tuple, tuple[Tensor, Tensor]] = {}
 
@@ -379,7 +381,7 @@ def _pair_values(
         compile=compile,
         chunk=chunk or max(1, DEFAULT_CHUNK // nodes.shape[0]),
         key=("attitude pair products", m.shape[-1]),
-        compiled_chunk=COMPILED_PAIRS,
+        compiled_chunk=COMPILED_PAIRS.get(m.shape[-1], 128),
     )
     return acc
 

@@ -437,9 +437,10 @@ def test_compiled_calls_take_chunks_of_compiled_pairs(gen, monkeypatch, n):
     temporaries ``[pairs, 84]`` kept small), fewer pairs one serial call; the numbers are the eager kernel's."""
     seen = []
     _eager_as_compiled(monkeypatch, seen)
-    chunk = pair_products.COMPILED_PAIRS
+    chunk = pair_products.COMPILED_PAIRS[n]
     name = "attitude_pair_values_kernel"
-    for B, calls in ((2, [(name, 30, True)]), (20, [(name, chunk, False)] * -(-300 // chunk))):
+    big = 2 * chunk // 15 + 1  # trajectories whose 15 pairs each fill two chunks and part of a third
+    for B, calls in ((2, [(name, 30, True)]), (big, [(name, chunk, False)] * -(-15 * big // chunk))):
         seen.clear()
         model, u, comp = _components(gen, B, 5, n, 1e3)  # 15 pairs per trajectory
         _assert_agree(_on_lanes(model, u, comp, compile=True), _on_lanes(model, u, comp), model, u, comp)
@@ -455,25 +456,25 @@ def test_compiled_pairs_from_components_take_their_chunks(gen, monkeypatch, n):
 
     seen = []
     _eager_as_compiled(monkeypatch, seen)
-    model, u, comp = _components(gen, 80, 5, n, 1e3)  # 1,200 pairs
+    model, u, comp = _components(gen, 120, 5, n, 1e3)  # 1,800 pairs: more than a chunk of either kind
     got = _from_components(model, u, comp, compile=True)
     eager = _from_components(model, u, comp)
     # the same eager code on every lane, in other chunks: elementwise the same operations (a vectorised log may round
     # a tail lane differently, by an ulp of log z), and the node kernel's product with W in other blocks
     _assert_agree(got, eager, model, u, comp, log_z_ulps=16)
-    chunk = pair_products.COMPILED_PAIRS
+    chunk = pair_products.COMPILED_PAIRS[n]
     moments = [c for c in seen if c[0] == "attitude_pair_moments_kernel"]
     values = [c for c in seen if c[0] == "attitude_pair_values_kernel"]
     diagonal = [c for c in seen if c[0] == "attitude_diagonal_pair_values_kernel"]
     assert moments == [("attitude_pair_moments_kernel", lanes.COMPILED_CHUNK, False)] * 2
-    assert values == [("attitude_pair_values_kernel", chunk, False)] * -(-800 // chunk)  # 80 · 10 pairs i < j
-    assert diagonal == [("attitude_diagonal_pair_values_kernel", chunk, False)] * -(-400 // chunk)  # 80 · 5
+    assert values == [("attitude_pair_values_kernel", chunk, False)] * -(-1200 // chunk)  # 120 · 10 pairs i < j
+    assert diagonal == [("attitude_diagonal_pair_values_kernel", chunk, False)] * -(-600 // chunk)  # 120 · 5
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("n", [3, 6])
 def test_the_compiled_kernel_equals_the_eager_one(gen, n):
-    model, u, comp = _components(gen, 300, 5, n, 1e6)  # 4500 pairs: 35 chunks of COMPILED_PAIRS = 128, a padded one
+    model, u, comp = _components(gen, 300, 5, n, 1e6)  # 4500 pairs: chunks of COMPILED_PAIRS[n] (128 or 512), a padded one
     _assert_agree(_on_lanes(model, u, comp, compile=True), _on_lanes(model, u, comp), model, u, comp)
 
 
