@@ -161,7 +161,7 @@ def test_table_marks_targets():
     assert met["peak RSS, galerkin adaptive step at B=8192 (GB)"] == "no"
     assert met["first galerkin step in a new process (s)"] == "yes"
     main = "main job (agsf reproduce --case all): speed-up over the same job on the generic path (fused=false)"
-    assert met[main] == "no" and rows[main][1].startswith("both sides draw their figures")  # 48 / 12 = 4 < 5
+    assert met[main] == "no" and rows[main][1].startswith("both sides write each case's files")  # 48 / 12 = 4 < 5
     assert (
         "main job (agsf reproduce --case all) in a new process: 12.0 s; on the generic path (--set fused=false) 48.0 s"
         in table

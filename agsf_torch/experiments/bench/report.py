@@ -89,9 +89,9 @@ def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
             mj["generic_seconds"] / mj["seconds"],
             5.0,
             lower=False,
-            limit="both sides draw their figures in a worker while the next case runs; what is left is the imports, "
-            "3,600 filter steps at 100 trajectories (the penalty update's 1,500 pairs × 84 nodes a step, the QPs, "
-            "per-call overhead), the event files and the last case's figures",
+            limit="both sides write each case's files (figures, event files, runs.npz) in a worker while the next case "
+            "runs; what is left is the imports, the simulation, 3,600 filter steps at 100 trajectories (the penalty "
+            "update's 1,500 pairs × 84 nodes a step, the QPs, per-call overhead) and the last case's files",
         )
     for row in r["first_step"]:
         add(
