@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 
 from ..consistency import chi2_band, rms
-from ..quantiles import student_t_quantile
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
+from ..quantiles import student_t_quantile
 from .config import ExperimentConfig
 
 __all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key", "error_windows", "WINDOW_TEXT"]

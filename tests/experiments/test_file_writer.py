@@ -215,7 +215,9 @@ def test_bad_worker_counts_are_refused(workers):
 def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_the_threads(tmp_path, monkeypatch):
     here = []  # what the caller wrote itself: what it took of the queue at close
     write_here = FileWriter._write_here
-    monkeypatch.setattr(FileWriter, "_write_here", lambda self, path, *a: (here.append(path), write_here(self, path, *a)))
+    monkeypatch.setattr(
+        FileWriter, "_write_here", lambda self, path, *a: (here.append(path), write_here(self, path, *a))
+    )
     overrides = ["runs=3", "duration=2.0", "components=2", *EAGER]
     threads = torch.get_num_threads()
     tables = {}
@@ -288,7 +290,9 @@ def test_runs_npz_goes_to_a_worker_unless_its_arrays_exceed_the_handover_limit(t
 
     from agsf_torch.experiments import outputs
 
-    reused = {"GSF": ({"time": np.arange(3.0), "star_frame": np.zeros(3, bool), "GSF/error_angle": np.ones((2, 3))}, {})}
+    reused = {
+        "GSF": ({"time": np.arange(3.0), "star_frame": np.zeros(3, bool), "GSF/error_angle": np.ones((2, 3))}, {})
+    }
     monkeypatch.setattr(outputs, "HANDOVER_BYTES", limit)
     writer = _Submissions()
     data = outputs.save_runs(tmp_path / "runs.npz", None, reused, writer)

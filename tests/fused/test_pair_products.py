@@ -474,7 +474,7 @@ def test_compiled_pairs_from_components_take_their_chunks(gen, monkeypatch, n):
 @pytest.mark.slow
 @pytest.mark.parametrize("n", [3, 6])
 def test_the_compiled_kernel_equals_the_eager_one(gen, n):
-    model, u, comp = _components(gen, 300, 5, n, 1e6)  # 4500 pairs: chunks of COMPILED_PAIRS[n] (128 or 512), a padded one
+    model, u, comp = _components(gen, 300, 5, n, 1e6)  # 4500 pairs: chunks of COMPILED_PAIRS[n], a padded one
     _assert_agree(_on_lanes(model, u, comp, compile=True), _on_lanes(model, u, comp), model, u, comp)
 
 
