@@ -26,8 +26,8 @@ Nothing is lost: a task that cannot be handed over (arguments that cannot be pic
 whose worker died before it reported run in the caller instead.  An error leaving the ``with`` block still lets
 the tasks finish (then it propagates: an earlier case's files are complete whatever a later case does); an
 interruption (Ctrl-C) stops the workers at once, and a file they had not finished is absent, its temporary file
-removed (each file is renamed into place only when whole); a thread's file is completed before the interpreter
-exits.  A worker that exits abnormally is announced as a warning with the last line it wrote to stderr.
+removed (each file, and each TensorBoard run, is renamed into place only when whole); a thread's file (one at a
+time) is completed first.  A worker that exits abnormally is announced as a warning with the last line it wrote to stderr.
 """
 
 from __future__ import annotations
@@ -152,9 +152,11 @@ class FileWriter:
             write(*args)
             return
         if thread:
+            for worker in self._threads:  # one at a time: each holds its arguments (a large case's arrays) until done
+                worker.join()
             worker = threading.Thread(target=self._write_here, args=(path, write, *args), name=f"writing {path.name}")
-            worker.start()  # not a daemon: an interrupted caller's interpreter completes the file before it exits
-            self._threads.append(worker)
+            worker.start()
+            self._threads = [worker]
             return
         job = self._scratch / f"job{next(self._count)}.pkl"
         try:
@@ -193,7 +195,7 @@ class FileWriter:
         """Run the queued jobs here, one at a time, while the workers run theirs."""
         while True:
             with self._lock:
-                if not self._queue:
+                if not self._queue or self._scratch is None:  # nothing queued, or shut down
                     return
                 job = self._queue.popleft()
                 path, _ = self._jobs.pop(job)
@@ -244,9 +246,12 @@ class FileWriter:
                 self._in_hand[index] = None
                 if not self._closed:
                     self._dispatch()
+        if path is not None and error is None:  # written: its arguments no longer take room
+            Path(job).unlink(missing_ok=True)
 
     def _run_here(self, job: str) -> None:
         _run_job(job)
+        Path(job).unlink(missing_ok=True)
 
     def close(self) -> None:
         """Run the queued tasks here beside the workers, wait for every task; then ``RuntimeError`` naming the file
@@ -298,9 +303,10 @@ class FileWriter:
                 pass
 
     def _shutdown(self) -> None:
-        """Stop the workers (killed if still running), remove the temporary files of the tasks they had not finished
-        and the scratch folder."""
-        self._closed = True
+        """Stop the workers (killed if still running), wait for a thread's file, remove the temporary files of the
+        tasks the workers had not finished and the scratch folder."""
+        with self._lock:
+            self._closed = True
         _OPEN.discard(self)
         for proc, reader in self._workers:
             if proc.poll() is None:
@@ -314,14 +320,23 @@ class FileWriter:
                     stream.close()
                 except OSError:
                     pass
-        self._workers = []
-        for path, _ in self._jobs.values():  # a killed writer's temporary file (storage.files.atomic_open's name)
+        for worker in self._threads:  # at most one: a file begun by a thread is completed, not left half written
+            worker.join()
+        self._threads = []
+        with self._lock:
+            self._workers = []
+            unfinished = [path for path, _ in self._jobs.values()]
+            self._jobs.clear()
+            self._queue.clear()
+            scratch, self._scratch = self._scratch, None
+        for path in unfinished:  # a killed writer's temporary file or folder (storage.files.atomic_open's name)
             for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
-                tmp.unlink(missing_ok=True)
-        self._jobs.clear()
-        if self._scratch is not None:
-            shutil.rmtree(self._scratch, ignore_errors=True)
-            self._scratch = None
+                if tmp.is_dir():
+                    shutil.rmtree(tmp, ignore_errors=True)
+                else:
+                    tmp.unlink(missing_ok=True)
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
 
     def __enter__(self) -> FileWriter:
         return self
@@ -336,15 +351,17 @@ class FileWriter:
                 logger.warning("%s (while handling %s: %s)", failed, exc_type.__name__, exc)
         else:  # interrupted: stop now
             self._shutdown()
+            for path, error in self._errors:
+                logger.warning("could not write %s: %s (while interrupted)", path, error)
+            self._errors = []
 
 
 def _run_job(job: str) -> None:
-    """Run the task of a job file, then remove the file (kept if the task fails or its process dies: the caller may
-    run it again)."""
+    """Run the task of a job file (the caller removes the file once the task is known to have succeeded: until then
+    it may run it again)."""
     write, args = pickle.loads(Path(job).read_bytes())
     write(*args)
     del write, args  # a large task's arguments are freed before the next job is read
-    Path(job).unlink(missing_ok=True)
 
 
 def _serve(preload: Sequence[str]) -> None:
@@ -375,7 +392,8 @@ def _serve(preload: Sequence[str]) -> None:
         replies.flush()
     # every task answered and its file complete: leave without the interpreter's teardown (half a second with torch
     # and matplotlib loaded, which the caller's close() would wait for)
-    sys.stderr.flush()
+    for stream in (sys.stderr, sys.__stdout__):
+        stream.flush()
     os._exit(0)
 
 

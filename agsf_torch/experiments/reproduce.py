@@ -46,8 +46,9 @@ def reproduce(
     validated (and its memory estimated, unless ``force``) before ``out`` is created.
 
     A case's figures and event files are written by ``writers`` worker processes (:class:`~.file_writer.FileWriter`;
-    default :func:`default_writers`: one where the process may use two CPUs or more) and its ``runs.npz`` by a
-    thread while the next case runs; after the last case this process helps with what is left.  The cases run with
+    default :func:`default_writers`: one where the process may use two CPUs or more), with its ``runs.npz`` (by a
+    thread of this process above :data:`~.file_writer.HANDOVER_BYTES`), while the next case runs; after the last case
+    this process helps with what is left.  The cases run with
     ``threads`` torch threads (default: torch's, capped so that they and the writers fit the CPUs), restored
     afterwards.  The memory check counts the writers (:data:`~.file_writer.WORKER_MEMORY` each).  The files are
     the same with and without writers (byte for byte; the event files' records)."""

@@ -44,7 +44,9 @@ its curves.  :func:`run_name` names such a directory by its parameters.
 from __future__ import annotations
 
 import json
+import os
 import re
+import secrets
 import shutil
 import time
 from collections.abc import Iterable, Mapping
@@ -52,6 +54,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from .file_writer import HANDOVER_BYTES
 
 if TYPE_CHECKING:
     from .file_writer import FileWriter
@@ -116,12 +120,14 @@ def write_tensorboard(
 
     Events of an earlier writing of the same experiment folder are replaced, not added to: they are removed here,
     before the runs are written — by ``writer`` (a :class:`~.file_writer.FileWriter`, one task per filter) if given,
-    from :func:`filter_events`' few arrays, not ``data``.
+    from :func:`filter_events`' arrays, not ``data`` (here if they exceed :data:`~.file_writer.HANDOVER_BYTES`: the
+    weight histograms of a very large run).
     """
     folder = out / "tensorboard"
     clear_runs(folder)
     for name, events in filter_events(data, summary).items():
-        if writer is None:
+        arrays = [a for pair in events["scalars"].values() for a in pair] + list(events["histograms"] or ())
+        if writer is None or sum(a.nbytes for a in arrays) > HANDOVER_BYTES:
             write_filter_run(folder / name, events)
         else:
             writer.submit(write_filter_run, folder / name, events, path=folder / name)
@@ -169,21 +175,32 @@ def filter_events(data: dict[str, np.ndarray], summary: dict[str, Any]) -> dict[
 
 def write_filter_run(run: Path, events: dict[str, Any]) -> None:
     """Write one filter's run ``run`` (a folder) from its :func:`filter_events` entry: the ``time_axis`` text at step
-    0, each tag's scalars, then the weight histograms."""
+    0, each tag's scalars, then the weight histograms.  The event file is written in a hidden folder beside ``run``
+    (``.{name}.{hex}.tmp``) and moved into ``run`` when whole: an interrupted run leaves no truncated curves."""
     from torch.utils.tensorboard import SummaryWriter
 
-    writer = SummaryWriter(str(run))
+    run = Path(run)
+    tmp = run.with_name(f".{run.name}.{secrets.token_hex(6)}.tmp")
     try:
-        writer.add_text("time_axis", events["text"], 0)
-        for key, (steps, values) in events["scalars"].items():
-            for k in range(len(values)):
-                writer.add_scalar(key, float(values[k]), int(steps[k]))
-        if events["histograms"] is not None:
-            steps, values = events["histograms"]
-            for k in range(len(steps)):
-                writer.add_histogram("weights/all_runs", values[k], int(steps[k]))
-    finally:
-        writer.close()
+        writer = SummaryWriter(str(tmp))
+        try:
+            writer.add_text("time_axis", events["text"], 0)
+            for key, (steps, values) in events["scalars"].items():
+                for k in range(len(values)):
+                    writer.add_scalar(key, float(values[k]), int(steps[k]))
+            if events["histograms"] is not None:
+                steps, values = events["histograms"]
+                for k in range(len(steps)):
+                    writer.add_histogram("weights/all_runs", values[k], int(steps[k]))
+        finally:
+            writer.close()
+        run.mkdir(parents=True, exist_ok=True)
+        for event_file in sorted(tmp.iterdir()):
+            os.replace(event_file, run / event_file.name)
+        tmp.rmdir()
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 # ----------------------------------------------------------------------------

@@ -298,3 +298,53 @@ def test_runs_npz_goes_to_a_worker_unless_its_arrays_exceed_the_handover_limit(t
     data = outputs.save_runs(tmp_path / "runs.npz", None, reused, writer)
     assert writer.calls == [("runs.npz", thread)] and set(data) == {"time", "star_frame", "GSF/error_angle"}
     assert not (tmp_path / "runs.npz").exists()  # the writer's to write
+
+
+def write_then_die_in_a_worker(path: Path, text: str, caller: int) -> None:
+    """Write ``text`` to ``path``; then, in any process but ``caller``, die before replying."""
+    write_text(path, text)
+    if os.getpid() != caller:
+        os._exit(3)
+
+
+def test_a_task_whose_worker_died_after_writing_is_written_again_without_an_error(tmp_path):
+    path = tmp_path / "x.txt"
+    with FileWriter(1, preload=()) as writer:
+        writer.submit(write_then_die_in_a_worker, path, "xi", os.getpid(), path=path)
+    assert path.read_text() == "xi"  # the job file was kept until a reply: the caller could run it again
+
+
+def test_closing_again_after_an_interrupted_close_does_nothing(tmp_path, monkeypatch):
+    paths = [tmp_path / f"y{i}.txt" for i in range(3)]
+    writer = FileWriter(1, preload=())
+    writer.submit(write_slowly, paths[0], 1.0, path=paths[0])
+    for path in paths[1:]:
+        writer.submit(write_text, path, "queued", path=path)
+
+    def interrupted(self, job):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(FileWriter, "_run_here", interrupted)
+    procs = [proc for proc, _ in writer._workers]
+    with pytest.raises(KeyboardInterrupt):
+        writer.close()  # the caller is interrupted while it runs the queue
+    writer.close()
+    assert all(proc.poll() is not None for proc in procs)
+    assert not any(p.exists() for p in paths[1:]) and not list(tmp_path.glob(".*.tmp"))
+
+
+def write_slowly_here(path: Path, seconds: float) -> None:
+    """Wait ``seconds``, then write ``path``."""
+    time.sleep(seconds)
+    write_text(path, "slow")
+
+
+def test_thread_tasks_run_one_at_a_time_and_an_interruption_completes_the_one_running(tmp_path):
+    first, second = tmp_path / "z1.txt", tmp_path / "z2.txt"
+    with pytest.raises(KeyboardInterrupt):
+        with FileWriter(1, preload=()) as writer:
+            writer.submit(write_slowly_here, first, 0.5, path=first, thread=True)
+            writer.submit(write_slowly_here, second, 0.5, path=second, thread=True)
+            assert first.read_text() == "slow"  # the second waited for the first: one case's arrays held at a time
+            raise KeyboardInterrupt
+    assert second.read_text() == "slow"  # completed, not left half written

@@ -291,3 +291,47 @@ def test_time_steps_are_integer_milliseconds_or_microseconds_when_finer():
     assert unit == "µs" and steps.tolist() == [250, 500, 750]
     with pytest.raises(ValueError, match="1 µs"):
         time_steps(np.arange(1, 4) * 1e-7)
+
+
+def test_a_filter_run_that_fails_leaves_no_events_and_no_temporary_folder(tmp_path):
+    from agsf_torch.experiments.tensorboard_log import write_filter_run
+
+    steps = np.arange(3)
+    events = {
+        "text": "t",
+        "scalars": {"rms_deg": (steps, np.ones(3)), "nees": (steps, np.array(["1", "2", "not a number"]))},
+        "histograms": None,
+    }
+    with pytest.raises(ValueError):
+        write_filter_run(tmp_path / "tensorboard" / "GSF", events)
+    assert sorted(p.name for p in (tmp_path / "tensorboard").iterdir()) == []  # no run, no hidden folder
+
+
+class _Submissions:
+    def __init__(self):
+        self.calls = []
+
+    def submit(self, write, *args, path, thread=False):
+        self.calls.append(Path(path).name)
+
+
+@pytest.mark.parametrize(("limit", "handed"), [(2**40, ["EKF", "GSF"]), (1, [])])
+def test_event_series_go_to_the_writer_unless_they_exceed_the_handover_limit(tmp_path, monkeypatch, limit, handed):
+    from agsf_torch.experiments import tensorboard_log
+
+    T = 4
+    data = {
+        "time": np.arange(T) * 0.1,
+        "star_frame": np.array([False, True, False, True]),
+        "GSF/weights": np.full((2, T, 2), 0.5),
+        "GSF/weight_entropy": np.zeros((2, T)),
+    }
+    summary = {
+        "filters": {name: {"rms_deg": np.ones(T).tolist(), "nees_mean": np.ones(T).tolist()} for name in ("EKF", "GSF")}
+    }
+    monkeypatch.setattr(tensorboard_log, "HANDOVER_BYTES", limit)
+    writer = _Submissions()
+    tensorboard_log.write_tensorboard(tmp_path, data, summary, writer)
+    assert writer.calls == handed
+    written = sorted(p.parent.name for p in (tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
+    assert written == sorted({"EKF", "GSF"} - set(handed))  # what was not handed over is written here
