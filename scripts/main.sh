@@ -13,7 +13,7 @@ out="${1:-runs/reproduce}"
 if [ -e "$out/experiment.json" ]; then
     out="$out-$(date +%Y%m%d-%H%M%S)"   # never overwrite an earlier result
 fi
-echo "reproducing the paper's three cases into $out (15 s on 2 idle cores; ~1.5 min the first time, compiling)..." >&2
+echo "reproducing the paper's three cases into $out (10–11 s on 2 idle cores; ~1.5 min the first time, compiling)..." >&2
 start=$SECONDS
 .venv/bin/agsf reproduce --case all --out "$out"
 echo "main job done in $((SECONDS - start)) s; outputs in $(cd "$out" && pwd)/"
