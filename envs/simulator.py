@@ -46,6 +46,10 @@ from .random import (
 __all__ = ["StarTrackerSimulator"]
 
 _BLOCK_ELEMENTS = 1 << 20  # simulate(): steps × trajectories (and frames × B × M × 4) per block
+#: advance(): the elements of the steps it computes at once and serves one by one (~13 per trajectory and step, 7 per
+#: star); at B = 100 that is 54 steps, from B ≈ 5,000 one step at a time.
+_AHEAD_ELEMENTS = 1 << 18
+_AHEAD_STEPS = 64
 
 Stars = tuple[Tensor, Tensor, Tensor]  # (star_body [..., M, 3], star_inertial [..., M, 3], star_mask [..., M])
 
@@ -99,6 +103,7 @@ class StarTrackerSimulator:
         self.bias: Tensor | None = None
         self.rate: Tensor | None = None
         self.last_gyro: Tensor | None = None  # fault-free reading of the last step
+        self._ahead: list | None = None  # advance()'s block computed ahead: [block, its first step, row, frame]
 
     # --------------------------------------------------------------- checkpoints
     _STATE = ("seeds", "q", "bias", "rate", "last_gyro")
@@ -119,6 +124,7 @@ class StarTrackerSimulator:
             if value is not None and value.shape[0] != self.num_envs:
                 raise ValueError(f"state {key!r} has batch {value.shape[0]}, this simulator {self.num_envs}")
         self.step_index = int(state["step_index"])
+        self._ahead = None
         for key in self._STATE:
             value = state[key]
             setattr(self, key, None if value is None else value.to(self.device).clone())
@@ -246,6 +252,7 @@ class StarTrackerSimulator:
         # Everything computed: only now is the state replaced.
         self.seeds, self.step_index, self.q, self.bias, self.rate = seeds, 0, q, bias, rate
         self.last_gyro = self.gyro.read(self.rate, self.bias, n_v)
+        self._ahead = None
         return self._obs(self.last_gyro, self._no_stars()), self._info()
 
     def advance(self) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
@@ -254,10 +261,35 @@ class StarTrackerSimulator:
         ``obs``: ``gyro [B, 3]`` (rad/s), ``gyro_valid [B, 1]``, ``star_body / star_inertial
         [B, M, 3]``, ``star_mask [B, M]`` (all false between frames), ``time [B, 1]`` (s);
         ``info``: ``truth_mrp [B, 3]``, ``truth_bias [B, 3]``, ``truth_rate [B, 3]`` (rad/s).
+
+        With a constant rate the steps are computed ahead in blocks (:meth:`_advance_block`, up to ``_AHEAD_STEPS``
+        steps within ``_AHEAD_ELEMENTS`` elements, never past ``max_steps``) and served one by one: a step's random
+        numbers are keyed by its index, so the numbers are those of one step at a time, bit for bit, and the state
+        after each call is that step's (:meth:`state_dict`, :meth:`simulate` and :meth:`reset` see no block).  A
+        callable rate profile is called when its step is taken (it may refuse a rate then, or have effects of its
+        own): one step at a time.
         """
-        block = self._advance_block(1)
-        stars = self._no_stars() if block.stars is None else tuple(s[0] for s in block.stars)
-        return self._obs(block.gyro[0], stars), self._info()  # type: ignore[arg-type]
+        if self._ahead is None:
+            k0 = self.step_index
+            self._ahead = [self._advance_block(self._steps_ahead()), k0, 0, 0]
+        block, k0, j, f = self._ahead
+        k = k0 + j + 1
+        self.q, self.bias, self.rate, self.last_gyro = (x[j] if x.shape[0] == 1 else x[j].clone() for x in block[:4])
+        self.step_index = k
+        stars = self._no_stars()
+        if f < block.star_steps.numel() and int(block.star_steps[f]) == k:
+            stars = tuple(s[f] for s in block.stars)  # type: ignore[union-attr]
+            f += 1
+        self._ahead = None if j + 1 == block.q.shape[0] else [block, k0, j + 1, f]
+        return self._obs(self.last_gyro, stars), self._info()  # type: ignore[arg-type]
+
+    def _steps_ahead(self) -> int:
+        """How many steps :meth:`advance` computes at once from the current step."""
+        if self.dynamics.rate_fn is not None:
+            return 1
+        per_step = self.num_envs * (13 + 7 * self.config.max_stars)
+        left = self.config.max_steps - self.step_index
+        return max(1, min(_AHEAD_STEPS, _AHEAD_ELEMENTS // per_step, left))
 
     def reward(self, action: Tensor) -> Tensor:
         """``−θ(action, p_k)`` (rad) against the current truth; ``action [B, 3]`` (MRP) → ``[B]``.
@@ -297,6 +329,7 @@ class StarTrackerSimulator:
         assert self.rate is not None and self.last_gyro is not None
         if num_steps < 0:
             raise ValueError(f"num_steps must be ≥ 0, got {num_steps}")
+        self._ahead = None  # from the current step (advance()'s block computed ahead is dropped)
         k0, b, m = self.step_index, self.num_envs, self.config.max_stars
         opts: dict[str, Any] = {"dtype": self.dtype, "device": self.device}
         steps = torch.arange(k0, k0 + num_steps + 1, device=self.device)

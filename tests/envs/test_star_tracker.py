@@ -451,3 +451,64 @@ def test_every_integer_type_gives_the_same_episodes(seed):
         assert np.array_equal(one["gyro"], ref["gyro"][0].numpy())
     with pytest.raises(ValueError, match="seed must be an integer"):
         single.reset(seed=True)
+
+
+def _steps(venv, n: int, seed: int) -> list:
+    """``n`` steps of ``venv`` after a reset: every observation and info, and the simulator's state after each."""
+    venv.reset(seed=seed)
+    zero = torch.zeros(venv.num_envs, 3, dtype=torch.float64)
+    out = []
+    for _ in range(n):
+        obs, _, _, _, info = venv.step(zero)
+        out.append((obs, info, venv.sim.state_dict()))
+    return out
+
+
+def test_steps_computed_ahead_are_those_of_one_step_at_a_time(monkeypatch):
+    from envs import simulator
+
+    b, n = 3, 130  # past two blocks computed ahead, star frames inside and across their edges
+    ahead = _steps(StarTrackerAttitudeVectorEnv(b, max_steps=n, star_period=0.3), n, 11)
+    monkeypatch.setattr(simulator, "_AHEAD_STEPS", 1)
+    single = _steps(StarTrackerAttitudeVectorEnv(b, max_steps=n, star_period=0.3), n, 11)
+    assert StarTrackerAttitudeVectorEnv(b, max_steps=n).sim._steps_ahead() == 1
+    for (o1, i1, s1), (o2, i2, s2) in zip(ahead, single):
+        assert all(torch.equal(o1[k], o2[k]) for k in o1) and all(torch.equal(i1[k], i2[k]) for k in i1)
+        assert s1["step_index"] == s2["step_index"]
+        assert all(torch.equal(s1[k], s2[k]) for k in ("q", "bias", "rate", "seeds", "last_gyro"))
+
+
+def test_a_block_computed_ahead_is_dropped_by_simulate_reset_and_a_restored_state():
+    b = 2
+    venv = StarTrackerAttitudeVectorEnv(b, max_steps=100, star_period=0.3)
+    reference = _steps(StarTrackerAttitudeVectorEnv(b, max_steps=100, star_period=0.3), 60, 5)
+    zero = torch.zeros(b, 3, dtype=torch.float64)
+    venv.reset(seed=5)
+    for _ in range(10):
+        venv.step(zero)
+    assert venv.sim._ahead is not None  # in the middle of a block
+    saved = venv.sim.state_dict()
+    venv.sim.simulate(20)  # from step 10 to 30
+    obs, _, _, _, _ = venv.step(zero)
+    assert all(torch.equal(obs[k], reference[30][0][k]) for k in obs)  # step 31, not the block's step 11
+    venv.sim.load_state_dict(saved)
+    obs, _, _, _, _ = venv.step(zero)
+    assert all(torch.equal(obs[k], reference[10][0][k]) for k in obs)  # step 11 again
+    venv.reset(seed=5)
+    obs, _, _, _, _ = venv.step(zero)
+    assert all(torch.equal(obs[k], reference[0][0][k]) for k in obs)
+
+
+def test_a_callable_rate_profile_is_stepped_one_step_at_a_time():
+    calls = []
+
+    def rate(t):
+        calls.append(t.clone())
+        return torch.full((*t.shape, 3), 0.01, dtype=t.dtype)
+
+    venv = StarTrackerAttitudeVectorEnv(2, max_steps=50, rate=rate)
+    venv.reset(seed=0)
+    calls.clear()
+    venv.step(torch.zeros(2, 3, dtype=torch.float64))
+    assert venv.sim._steps_ahead() == 1 and venv.sim._ahead is None
+    assert len(calls) == 1 and torch.equal(calls[0], torch.full((2,), 0.05, dtype=torch.float64))  # t_k + Δt/2
