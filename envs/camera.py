@@ -35,8 +35,12 @@ tensor.  ``index="dense"`` tests every star (same results, bit for bit).
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+import tempfile
 from collections.abc import Sequence
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -46,7 +50,7 @@ from torch import Tensor
 from agsf_torch.rotations import quat_to_dcm
 
 from ._checks import MAX_STARS, check_camera_bounds, check_count, check_real, check_vector
-from .catalog import StarCatalog
+from .catalog import StarCatalog, cache_dir
 from .random import CounterKey, counter_normal
 
 __all__ = [
@@ -157,7 +161,7 @@ class StarCamera:
         key = (n, round(self.half_diagonal, 12), str(self.catalog.r.device))
         cache = self.catalog.__dict__.setdefault("_grid_cache", {})
         if key not in cache:
-            table = _build_grid(self.catalog.r, n, self.half_diagonal)
+            table = _stored_grid(self.catalog.r, n, self.half_diagonal)
             xyz = self._r_ext(self.catalog.r)[table].permute(2, 0, 1).contiguous()
             cache[key] = (table, xyz)
         table, xyz = cache[key]
@@ -333,6 +337,35 @@ def _cube_cell(d: Tensor, n: int) -> Tensor:
     i = ((u + 1.0) * (0.5 * n)).floor().long().clamp(0, n - 1)
     j = ((v + 1.0) * (0.5 * n)).floor().long().clamp(0, n - 1)
     return face * (n * n) + i * n + j
+
+
+def _stored_grid(r: Tensor, n: int, cap: float) -> Tensor:
+    """:func:`_build_grid`, kept on disk beside the parsed catalogue (:func:`~envs.catalog.cache_dir`) under a key
+    of the star directions' bytes, ``n`` and ``cap``: the first star frame of every process had rebuilt it (0.1–0.5 s
+    for the default catalogue).  An unreadable file is built again and replaced; a disk that cannot be written
+    leaves the table in memory only."""
+    digest = hashlib.sha256(r.detach().cpu().contiguous().numpy().tobytes())
+    digest.update(f"|{n}|{cap!r}|v1".encode())
+    path = cache_dir() / f"sky-grid-{digest.hexdigest()[:20]}.npy"
+    try:
+        table = np.load(path, allow_pickle=False)
+        if table.dtype == np.int64 and table.ndim == 2 and table.shape[0] == 6 * n * n:
+            return torch.from_numpy(table).to(r.device)
+    except (OSError, ValueError):
+        pass  # absent or unreadable: built and written below
+    table = _build_grid(r, n, cap)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npy")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.save(fh, table.cpu().numpy(), allow_pickle=False)
+            os.replace(tmp, path)  # a concurrent reader never sees a partial file
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    except OSError:
+        pass  # a read-only or full disk: the table lives in memory only
+    return table
 
 
 def _build_grid(r: Tensor, n: int, cap: float) -> Tensor:

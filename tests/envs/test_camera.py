@@ -257,3 +257,33 @@ def test_bad_camera_settings_raise(default_catalog, kwargs, message):
 def test_camera_requires_a_catalog():
     with pytest.raises(ValueError, match="catalog must be a StarCatalog"):
         StarCamera([[0.0, 0.0, 1.0]])  # type: ignore[arg-type]
+
+
+def test_the_sky_index_is_kept_on_disk_and_rebuilt_when_unreadable(default_catalog, tmp_path, monkeypatch):
+    from envs import camera
+
+    monkeypatch.setenv("AGSF_CACHE_DIR", str(tmp_path))
+    half = math.atan(math.hypot(math.tan(math.radians(4.0)), math.tan(math.radians(4.0))))
+    built = camera._build_grid(default_catalog.r, 32, half)
+    first = camera._stored_grid(default_catalog.r, 32, half)
+    (stored,) = tmp_path.glob("sky-grid-*.npy")
+    calls = []
+    monkeypatch.setattr(camera, "_build_grid", lambda *a: calls.append(a) or built)
+    again = camera._stored_grid(default_catalog.r, 32, half)
+    assert torch.equal(first, built) and torch.equal(again, built) and calls == []  # read back, not rebuilt
+    other = camera._stored_grid(default_catalog.r, 31, half)  # another grid: another key
+    assert len(calls) == 1 and len(list(tmp_path.glob("sky-grid-*.npy"))) == 2 and other is built
+    stored.write_bytes(b"torn")
+    assert torch.equal(camera._stored_grid(default_catalog.r, 32, half), built) and len(calls) == 2
+    assert np.load(stored).shape == tuple(built.shape)  # replaced whole
+
+
+def test_an_unwritable_cache_leaves_the_sky_index_in_memory(default_catalog, tmp_path, monkeypatch):
+    from envs import camera
+
+    monkeypatch.setattr(camera, "cache_dir", lambda: tmp_path / "missing")  # mkstemp there fails
+    half = math.atan(math.hypot(math.tan(math.radians(4.0)), math.tan(math.radians(4.0))))
+    assert torch.equal(
+        camera._stored_grid(default_catalog.r, 32, half), camera._build_grid(default_catalog.r, 32, half)
+    )
+    assert not (tmp_path / "missing").exists()
