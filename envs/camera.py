@@ -341,24 +341,39 @@ def _cube_cell(d: Tensor, n: int) -> Tensor:
 
 def _stored_grid(r: Tensor, n: int, cap: float) -> Tensor:
     """:func:`_build_grid`, kept on disk beside the parsed catalogue (:func:`~envs.catalog.cache_dir`) under a key
-    of the star directions' bytes, ``n`` and ``cap``: the first star frame of every process had rebuilt it (0.1–0.5 s
-    for the default catalogue).  An unreadable file is built again and replaced; a disk that cannot be written
-    leaves the table in memory only."""
-    digest = hashlib.sha256(r.detach().cpu().contiguous().numpy().tobytes())
-    digest.update(f"|{n}|{cap!r}|v1".encode())
-    path = cache_dir() / f"sky-grid-{digest.hexdigest()[:20]}.npy"
+    of the star directions (their bytes, dtype and shape), ``n`` and ``cap``: the first star frame of every process
+    had rebuilt it (0.1–0.5 s for the default catalogue).  The file holds the table and a digest of its bytes; a file
+    that cannot be read, or whose table does not match its digest or is not a candidate table of this catalogue
+    (indices in ``[0, K]``, rows ascending), is built again and replaced.  A disk that cannot be written leaves the
+    table in memory only."""
+    stars = r.detach().cpu().contiguous()
+    key = hashlib.sha256(stars.view(torch.uint8).numpy().tobytes())
+    key.update(f"|{stars.dtype}|{tuple(stars.shape)}|{n}|{cap!r}|v1".encode())
+    path = cache_dir() / f"sky-grid-{key.hexdigest()[:20]}.npz"
     try:
-        table = np.load(path, allow_pickle=False)
-        if table.dtype == np.int64 and table.ndim == 2 and table.shape[0] == 6 * n * n:
+        with np.load(path, allow_pickle=False) as stored:
+            table, digest = stored["table"], str(stored["digest"])
+        if (
+            table.dtype == np.int64
+            and table.ndim == 2
+            and table.shape[0] == 6 * n * n
+            and hashlib.sha256(table.tobytes()).hexdigest() == digest
+            and table.min() >= 0
+            and table.max() <= r.shape[0]
+            and bool((table[:, 1:] >= table[:, :-1]).all())
+        ):
             return torch.from_numpy(table).to(r.device)
-    except (OSError, ValueError):
-        pass  # absent or unreadable: built and written below
+    except Exception:  # noqa: BLE001 - absent, torn or not this format: built and written below
+        pass
     table = _build_grid(r, n, cap)
+    values = table.cpu().numpy()
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npy")
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")
         try:
             with os.fdopen(fd, "wb") as fh:
-                np.save(fh, table.cpu().numpy(), allow_pickle=False)
+                np.savez(fh, table=values, digest=np.array(hashlib.sha256(values.tobytes()).hexdigest()))
+                fh.flush()
+                os.fsync(fh.fileno())
             os.replace(tmp, path)  # a concurrent reader never sees a partial file
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

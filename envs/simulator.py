@@ -50,6 +50,7 @@ _BLOCK_ELEMENTS = 1 << 20  # simulate(): steps × trajectories (and frames × B 
 #: star); at B = 100 that is 54 steps, from B ≈ 5,000 one step at a time.
 _AHEAD_ELEMENTS = 1 << 18
 _AHEAD_STEPS = 64
+_FIRST_AHEAD = 4  # the first block after a reset: a short episode computes few steps it will not take
 
 Stars = tuple[Tensor, Tensor, Tensor]  # (star_body [..., M, 3], star_inertial [..., M, 3], star_mask [..., M])
 
@@ -103,7 +104,8 @@ class StarTrackerSimulator:
         self.bias: Tensor | None = None
         self.rate: Tensor | None = None
         self.last_gyro: Tensor | None = None  # fault-free reading of the last step
-        self._ahead: list | None = None  # advance()'s block computed ahead: [block, its first step, row, frame]
+        self._ahead: list | None = None  # advance()'s block: [block, its first step, row, frame, the frames' steps]
+        self._ahead_size = _FIRST_AHEAD  # the length of advance()'s next block: doubled each block, from a reset
 
     # --------------------------------------------------------------- checkpoints
     _STATE = ("seeds", "q", "bias", "rate", "last_gyro")
@@ -124,7 +126,7 @@ class StarTrackerSimulator:
             if value is not None and value.shape[0] != self.num_envs:
                 raise ValueError(f"state {key!r} has batch {value.shape[0]}, this simulator {self.num_envs}")
         self.step_index = int(state["step_index"])
-        self._ahead = None
+        self._ahead, self._ahead_size = None, _FIRST_AHEAD
         for key in self._STATE:
             value = state[key]
             setattr(self, key, None if value is None else value.to(self.device).clone())
@@ -221,16 +223,16 @@ class StarTrackerSimulator:
         n_u = counter_normal(seeds, nxt, STREAM_GYRO_BIAS_WALK, (3,), dtype=self.dtype)
         q = self.dynamics.step_block(self.q, omega)
         gyro, bias = self.gyro.step_block(omega, self.bias, n_v, n_u)
-        # The last rows (copied when the block is longer, so that the state does not pin its memory).
+        rows = [j for j in range(num_steps) if self.is_star_step(k0 + 1 + j)]
+        star_steps = steps[rows]
+        block = _Block(q, bias, omega, gyro, star_steps, self._star_frames(q[rows], star_steps) if rows else None)
+        # Everything computed: only now does the state move, to the last rows (copied when the block is longer, so
+        # that the state does not pin its memory); a failure above leaves it where it was.
         self.q, self.bias, self.rate, self.last_gyro = (
             x[-1] if num_steps == 1 else x[-1].clone() for x in (q, bias, omega, gyro)
         )
         self.step_index = k0 + num_steps
-        rows = [j for j in range(num_steps) if self.is_star_step(k0 + 1 + j)]
-        if not rows:
-            return _Block(q, bias, omega, gyro, steps[:0], None)
-        star_steps = steps[rows]
-        return _Block(q, bias, omega, gyro, star_steps, self._star_frames(q[rows], star_steps))
+        return block
 
     # ------------------------------------------------------------------ API
     def reset(self, seeds: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
@@ -252,7 +254,7 @@ class StarTrackerSimulator:
         # Everything computed: only now is the state replaced.
         self.seeds, self.step_index, self.q, self.bias, self.rate = seeds, 0, q, bias, rate
         self.last_gyro = self.gyro.read(self.rate, self.bias, n_v)
-        self._ahead = None
+        self._ahead, self._ahead_size = None, _FIRST_AHEAD
         return self._obs(self.last_gyro, self._no_stars()), self._info()
 
     def advance(self) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
@@ -262,25 +264,29 @@ class StarTrackerSimulator:
         [B, M, 3]``, ``star_mask [B, M]`` (all false between frames), ``time [B, 1]`` (s);
         ``info``: ``truth_mrp [B, 3]``, ``truth_bias [B, 3]``, ``truth_rate [B, 3]`` (rad/s).
 
-        With a constant rate the steps are computed ahead in blocks (:meth:`_advance_block`, up to ``_AHEAD_STEPS``
-        steps within ``_AHEAD_ELEMENTS`` elements, never past ``max_steps``) and served one by one: a step's random
-        numbers are keyed by its index, so the numbers are those of one step at a time, bit for bit, and the state
-        after each call is that step's (:meth:`state_dict`, :meth:`simulate` and :meth:`reset` see no block).  A
-        callable rate profile is called when its step is taken (it may refuse a rate then, or have effects of its
-        own): one step at a time.
+        With a constant rate the steps are computed ahead in blocks (:meth:`_advance_block`: 4 steps after a reset,
+        doubling to ``_AHEAD_STEPS``, within ``_AHEAD_ELEMENTS`` elements, never past ``max_steps``) and served one
+        by one: a step's random numbers are keyed by its index, so the numbers are those of one step at a time, bit
+        for bit, and the state after each call is that step's (:meth:`state_dict`, :meth:`simulate` and
+        :meth:`reset` see no block; change the state through :meth:`load_state_dict`, not by assigning its
+        attributes).  A failure while a block is computed leaves the state at the last step served.  A callable
+        rate profile is called when its step is taken (it may refuse a rate then, or have effects of its own): one
+        step at a time.
         """
         if self._ahead is None:
             k0 = self.step_index
-            self._ahead = [self._advance_block(self._steps_ahead()), k0, 0, 0]
-        block, k0, j, f = self._ahead
+            block = self._advance_block(self._steps_ahead())
+            self._ahead = [block, k0, 0, 0, block.star_steps.tolist()]
+            self._ahead_size = min(2 * self._ahead_size, _AHEAD_STEPS)
+        block, k0, j, f, frame_steps = self._ahead
         k = k0 + j + 1
-        self.q, self.bias, self.rate, self.last_gyro = (x[j] if x.shape[0] == 1 else x[j].clone() for x in block[:4])
-        self.step_index = k
         stars = self._no_stars()
-        if f < block.star_steps.numel() and int(block.star_steps[f]) == k:
+        if f < len(frame_steps) and frame_steps[f] == k:
             stars = tuple(s[f] for s in block.stars)  # type: ignore[union-attr]
             f += 1
-        self._ahead = None if j + 1 == block.q.shape[0] else [block, k0, j + 1, f]
+        self._ahead = None if j + 1 == block.q.shape[0] else [block, k0, j + 1, f, frame_steps]
+        self.q, self.bias, self.rate, self.last_gyro = (x[j] if x.shape[0] == 1 else x[j].clone() for x in block[:4])
+        self.step_index = k
         return self._obs(self.last_gyro, stars), self._info()  # type: ignore[arg-type]
 
     def _steps_ahead(self) -> int:
@@ -289,7 +295,7 @@ class StarTrackerSimulator:
             return 1
         per_step = self.num_envs * (13 + 7 * self.config.max_stars)
         left = self.config.max_steps - self.step_index
-        return max(1, min(_AHEAD_STEPS, _AHEAD_ELEMENTS // per_step, left))
+        return max(1, min(self._ahead_size, _AHEAD_STEPS, _AHEAD_ELEMENTS // per_step, left))
 
     def reward(self, action: Tensor) -> Tensor:
         """``−θ(action, p_k)`` (rad) against the current truth; ``action [B, 3]`` (MRP) → ``[B]``.

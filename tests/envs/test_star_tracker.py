@@ -512,3 +512,25 @@ def test_a_callable_rate_profile_is_stepped_one_step_at_a_time():
     venv.step(torch.zeros(2, 3, dtype=torch.float64))
     assert venv.sim._steps_ahead() == 1 and venv.sim._ahead is None
     assert len(calls) == 1 and torch.equal(calls[0], torch.full((2,), 0.05, dtype=torch.float64))  # t_k + Δt/2
+
+
+def test_a_failure_while_steps_are_computed_ahead_leaves_the_state_at_the_last_step_served(monkeypatch):
+    b = 2
+    reference = _steps(StarTrackerAttitudeVectorEnv(b, max_steps=100, star_period=0.3), 40, 9)
+    venv = StarTrackerAttitudeVectorEnv(b, max_steps=100, star_period=0.3)
+    zero = torch.zeros(b, 3, dtype=torch.float64)
+    venv.reset(seed=9)
+    for _ in range(12):  # to the end of the blocks of 4 and 8 steps: the next step computes a block of 16
+        venv.step(zero)
+    assert venv.sim._ahead is None
+    before = venv.sim.state_dict()
+    real = venv.sim.star_frame
+    monkeypatch.setattr(venv.sim, "star_frame", lambda *a: (_ for _ in ()).throw(MemoryError("no room")))
+    with pytest.raises(MemoryError):
+        venv.step(zero)
+    after = venv.sim.state_dict()
+    assert after["step_index"] == before["step_index"] == 12
+    assert all(torch.equal(after[k], before[k]) for k in ("q", "bias", "rate", "seeds", "last_gyro"))
+    monkeypatch.setattr(venv.sim, "star_frame", real)
+    obs, _, _, _, _ = venv.step(zero)
+    assert all(torch.equal(obs[k], reference[12][0][k]) for k in obs)  # step 13, as if nothing had failed
