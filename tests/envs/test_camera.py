@@ -260,22 +260,22 @@ def test_camera_requires_a_catalog():
 
 
 def test_the_sky_index_is_kept_on_disk_and_rebuilt_when_unreadable(default_catalog, tmp_path, monkeypatch):
-    from envs import camera
+    from envs import sky_index as camera
 
     monkeypatch.setenv("AGSF_CACHE_DIR", str(tmp_path))
     half = math.atan(math.hypot(math.tan(math.radians(4.0)), math.tan(math.radians(4.0))))
-    built = camera._build_grid(default_catalog.r, 32, half)
-    first = camera._stored_grid(default_catalog.r, 32, half)
+    built = camera.build_grid(default_catalog.r, 32, half)
+    first = camera.stored_grid(default_catalog.r, 32, half)
     (stored,) = tmp_path.glob("sky-grid-*.npz")
     calls = []
-    monkeypatch.setattr(camera, "_build_grid", lambda *a: calls.append(a) or built)
-    again = camera._stored_grid(default_catalog.r, 32, half)
+    monkeypatch.setattr(camera, "build_grid", lambda *a: calls.append(a) or built)
+    again = camera.stored_grid(default_catalog.r, 32, half)
     assert torch.equal(first, built) and torch.equal(again, built) and calls == []  # read back, not rebuilt
-    other = camera._stored_grid(default_catalog.r, 31, half)  # another grid: another key
+    other = camera.stored_grid(default_catalog.r, 31, half)  # another grid: another key
     assert len(calls) == 1 and len(list(tmp_path.glob("sky-grid-*.npz"))) == 2 and other is built
     for damage in (b"", b"torn", b"PK\x03\x04 not a zip"):  # empty, torn, not this format
         stored.write_bytes(damage)
-        assert torch.equal(camera._stored_grid(default_catalog.r, 32, half), built)
+        assert torch.equal(camera.stored_grid(default_catalog.r, 32, half), built)
         with np.load(stored) as replaced:  # replaced whole
             assert replaced["table"].shape == tuple(built.shape)
     assert len(calls) == 4
@@ -283,26 +283,24 @@ def test_the_sky_index_is_kept_on_disk_and_rebuilt_when_unreadable(default_catal
     with np.load(stored) as whole:
         table, digest = whole["table"], whole["digest"]
     np.savez(stored, table=np.zeros_like(table), digest=digest)
-    assert torch.equal(camera._stored_grid(default_catalog.r, 32, half), built) and len(calls) == 5
+    assert torch.equal(camera.stored_grid(default_catalog.r, 32, half), built) and len(calls) == 5
 
 
 def test_the_sky_index_key_holds_the_catalogue_dtype(tmp_path, monkeypatch):
-    from envs import camera
+    from envs import sky_index as camera
 
     monkeypatch.setenv("AGSF_CACHE_DIR", str(tmp_path))
     half = math.atan(math.hypot(math.tan(math.radians(4.0)), math.tan(math.radians(4.0))))
     r = torch.nn.functional.normalize(torch.randn(200, 3, generator=torch.Generator().manual_seed(3)), dim=-1)
     for dtype in (torch.float64, torch.float32, torch.bfloat16):  # bfloat16 has no NumPy type: hashed as bytes
-        assert torch.equal(camera._stored_grid(r.to(dtype), 8, half), camera._build_grid(r.to(dtype), 8, half))
+        assert torch.equal(camera.stored_grid(r.to(dtype), 8, half), camera.build_grid(r.to(dtype), 8, half))
     assert len(list(tmp_path.glob("sky-grid-*.npz"))) == 3
 
 
 def test_an_unwritable_cache_leaves_the_sky_index_in_memory(default_catalog, tmp_path, monkeypatch):
-    from envs import camera
+    from envs import sky_index as camera
 
     monkeypatch.setattr(camera, "cache_dir", lambda: tmp_path / "missing")  # mkstemp there fails
     half = math.atan(math.hypot(math.tan(math.radians(4.0)), math.tan(math.radians(4.0))))
-    assert torch.equal(
-        camera._stored_grid(default_catalog.r, 32, half), camera._build_grid(default_catalog.r, 32, half)
-    )
+    assert torch.equal(camera.stored_grid(default_catalog.r, 32, half), camera.build_grid(default_catalog.r, 32, half))
     assert not (tmp_path / "missing").exists()
