@@ -152,8 +152,7 @@ class FileWriter:
             write(*args)
             return
         if thread:
-            for worker in self._threads:  # one at a time: each holds its arguments (a large case's arrays) until done
-                worker.join()
+            self._join_threads()  # one at a time: each holds its arguments (a large case's arrays) until done
             worker = threading.Thread(target=self._write_here, args=(path, write, *args), name=f"writing {path.name}")
             worker.start()
             self._threads = [worker]
@@ -169,8 +168,7 @@ class FileWriter:
             self._jobs[str(job)] = (path, None)
             self._queue.append(str(job))
             self._dispatch()
-            alive = any(proc.poll() is None for proc, _ in self._workers)
-        if not alive:  # no worker alive: written here, now
+        if not self._any_worker_alive():  # written here, now
             self._help()
 
     def _dispatch(self) -> None:
@@ -203,15 +201,20 @@ class FileWriter:
 
     def _wait_for_queue(self) -> None:
         """Until no job waits for a worker, or no worker is alive to take one (then the caller runs the rest)."""
-        while True:
-            with self._lock:
-                if not self._queue:
-                    return
-                alive = any(proc.poll() is None for proc, _ in self._workers)
-            if not alive:
+        while self._queue:
+            if not self._any_worker_alive():
                 self._help()
                 return
             time.sleep(0.01)
+
+    def _any_worker_alive(self) -> bool:
+        return any(proc.poll() is None for proc, _ in self._workers)
+
+    def _join_threads(self) -> None:
+        """Wait for the thread task (at most one runs)."""
+        for worker in self._threads:
+            worker.join()
+        self._threads = []
 
     def _write_here(self, path: Path, write: Callable[..., Any], *args: Any) -> None:
         """Run a task in the caller; its failure is recorded with its file and raised by :meth:`close`."""
@@ -259,8 +262,7 @@ class FileWriter:
         try:
             if self._caller_helps:
                 self._help()
-            for worker in self._threads:
-                worker.join()
+            self._join_threads()
             self._wait_for_queue()
             with self._lock:
                 self._closed = True  # no more jobs handed out
@@ -320,9 +322,7 @@ class FileWriter:
                     stream.close()
                 except OSError:
                     pass
-        for worker in self._threads:  # at most one: a file begun by a thread is completed, not left half written
-            worker.join()
-        self._threads = []
+        self._join_threads()  # a file begun by a thread is completed, not left half written
         with self._lock:
             self._workers = []
             unfinished = [path for path, _ in self._jobs.values()]
