@@ -222,8 +222,15 @@ def _learn(args: argparse.Namespace) -> int:
 
 
 def _threads(args: argparse.Namespace) -> None:
+    """Torch threads: ``--threads`` if given, else torch's default capped at the CPUs this process may use
+    (:func:`~agsf_torch.processes.available_cpus`: torch counts the machine's cores, not a container's CPU quota,
+    and more threads than the quota allows take turns and run slower than fewer)."""
+    from ..processes import available_cpus
+
     if getattr(args, "threads", None):
         torch.set_num_threads(max(1, args.threads))
+    elif torch.get_num_threads() > available_cpus():
+        torch.set_num_threads(available_cpus())
 
 
 def _print_summary(name: str, summary: dict) -> None:

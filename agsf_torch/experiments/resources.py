@@ -20,6 +20,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
+from ..cgroups import memory_headroom
 from .config import ExperimentConfig
 
 __all__ = [
@@ -146,9 +147,9 @@ def available_memory() -> int:
     ``base``), capped by a cgroup v2 memory limit (``memory.max`` − ``memory.current``) if there is one."""
     page = os.sysconf("SC_PAGE_SIZE")
     free = _read_int("/proc/meminfo", "MemAvailable:", 1024) or page * os.sysconf("SC_PHYS_PAGES")
-    limit, used = _read_int("/sys/fs/cgroup/memory.max"), _read_int("/sys/fs/cgroup/memory.current")
-    if limit is not None and used is not None:
-        free = min(free, max(limit - used, 0))
+    headroom = memory_headroom()
+    if headroom is not None:
+        free = min(free, headroom)
     try:
         with open("/proc/self/statm", encoding="ascii") as fh:
             rss = int(fh.read().split()[1]) * page  # resident pages

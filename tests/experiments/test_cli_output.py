@@ -233,6 +233,23 @@ def test_simulate_shows_progress_unless_quiet_and_sets_the_threads(tmp_path, mon
     assert code == 0 and err == ""
 
 
+def test_without_threads_torch_is_capped_at_the_cpus_the_process_may_use(tmp_path, monkeypatch):
+    """Torch's default counts the machine's cores; a CPU quota of 2 on a 16-thread default runs 2 threads."""
+    import torch
+
+    from agsf_torch import processes
+
+    calls: list[int] = []
+    monkeypatch.setattr(torch, "set_num_threads", calls.append)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 16)
+    monkeypatch.setattr(processes, "available_cpus", lambda: 2)
+    code, _, _ = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "a")])
+    assert code == 0 and calls == [2]
+    monkeypatch.setattr(processes, "available_cpus", lambda: 32)
+    code, _, _ = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "b")])
+    assert code == 0 and calls == [2]  # more CPUs than threads: torch's default stands
+
+
 def test_a_full_disk_is_an_io_failure_naming_the_file_with_its_own_exit_code(tmp_path, monkeypatch):
     """ENOSPC is the machine's failure, not refused input: exit 3 (not 2), one line naming the file."""
     import errno

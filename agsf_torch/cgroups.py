@@ -1,0 +1,103 @@
+"""The limits a Linux control group sets on this process: its CPU quota and its memory.
+
+A container or a batch scheduler (Docker ``--cpus``, Kubernetes, Slurm, systemd) often limits a process's CPU
+*time* instead of the CPUs it may run on: the process then sees every CPU of the host (its affinity, ``os.cpu_count``)
+but may use only ``quota / period`` of them; threads and worker processes sized from the CPU count then take turns
+and run slower than fewer would.  So the package reads the quota as well (:func:`cpu_limit`, used by
+:func:`agsf_torch.processes.available_cpus`), and the memory limit (:func:`memory_headroom`, used by the memory
+checks of :mod:`agsf_torch.experiments.resources`).
+
+Both cgroup versions are read.  This process's group comes from ``/proc/self/cgroup`` and the hierarchies' mounts
+from ``/proc/self/mountinfo``; a limit set on an enclosing group applies too, so every group from this process's up
+to the top of its mount is read and the tightest limit wins.  Inside a container whose cgroup namespace hides the
+host's path, the path does not resolve under the mount, and the mount itself (the container's own group) is read.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = ["cpu_limit", "memory_headroom"]
+
+#: The files :func:`cpu_limit` and :func:`memory_headroom` read: v1 ``(quota, period)`` and ``(limit, usage)``, v2
+#: ``(limit, usage)`` (v2's CPU quota and period share one file, ``cpu.max``).
+_V1_CPU = ("cpu.cfs_quota_us", "cpu.cfs_period_us")
+_V1_MEMORY = ("memory.limit_in_bytes", "memory.usage_in_bytes")
+_V2_MEMORY = ("memory.max", "memory.current")
+#: A v1 memory limit at or above this is "no limit" (the kernel reports ``PAGE_COUNTER_MAX`` pages, ~2⁶³ bytes).
+_V1_UNLIMITED = 2**60
+
+
+def _groups(controller: str, proc: Path) -> list[Path]:
+    """The folders of this process's cgroup and of its enclosing groups up to the top of the mount, innermost
+    first, in the hierarchy holding ``controller`` (v1) or in the unified one (v2, ``controller = ""``)."""
+    try:
+        memberships = (proc / "self" / "cgroup").read_text().splitlines()
+        mounts = (proc / "self" / "mountinfo").read_text().splitlines()
+    except OSError:
+        return []
+    path = None
+    for line in memberships:
+        parts = line.split(":", 2)
+        if len(parts) == 3 and (controller in parts[1].split(",") if controller else parts[0] == "0"):
+            path = parts[2]
+    if path is None:
+        return []
+    for line in mounts:
+        fields = line.split()
+        if " - " not in line or len(fields) < 5:
+            continue
+        fstype, _, options = line.split(" - ", 1)[1].partition(" ")
+        options = options.split()[-1].split(",") if options.split() else []
+        wanted = fstype == "cgroup2" if not controller else (fstype == "cgroup" and controller in options)
+        if not wanted:
+            continue
+        root, point = fields[3], Path(fields[4])
+        inner = Path(path).relative_to(root) if Path(path).is_relative_to(root) else None
+        start = point / inner if inner is not None and (point / inner).is_dir() else point
+        return [start, *[p for p in start.parents if p.is_relative_to(point)]]
+    return []
+
+
+def _read(folder: Path, name: str) -> list[str] | None:
+    """The words of a cgroup file, or None where it is absent or unreadable."""
+    try:
+        return (folder / name).read_text().split()
+    except OSError:
+        return None
+
+
+def cpu_limit(proc: Path = Path("/proc")) -> float | None:
+    """The CPUs' worth of time this process's control groups allow (``quota / period``, e.g. ``1.5``), the tightest
+    over the enclosing groups of both cgroup versions; ``None`` where no group sets a quota (or there is no
+    cgroup file system).
+
+    Args:
+        proc: the ``/proc`` to read (tests pass a fake tree).
+    """
+    limits = []
+    for folder in _groups("", proc):  # v2: "cpu.max" holds "max 100000" or "150000 100000"
+        words = _read(folder, "cpu.max")
+        if words and len(words) == 2 and words[0] != "max" and words[0].isdigit() and words[1].isdigit():
+            limits.append(int(words[0]) / max(int(words[1]), 1))
+    for folder in _groups("cpu", proc):  # v1: a quota of -1 is no limit
+        quota, period = (_read(folder, name) for name in _V1_CPU)
+        if quota and period and quota[0].lstrip("-").isdigit() and int(quota[0]) > 0 and period[0].isdigit():
+            limits.append(int(quota[0]) / max(int(period[0]), 1))
+    return min(limits) if limits else None
+
+
+def memory_headroom(proc: Path = Path("/proc")) -> int | None:
+    """Bytes this process's control groups still allow (limit − usage, at least 0), the tightest over the
+    enclosing groups of both cgroup versions; ``None`` where no group sets a memory limit.
+
+    Args:
+        proc: the ``/proc`` to read (tests pass a fake tree).
+    """
+    room = []
+    for controller, (limit_file, usage_file) in (("", _V2_MEMORY), ("memory", _V1_MEMORY)):
+        for folder in _groups(controller, proc):
+            limit, usage = _read(folder, limit_file), _read(folder, usage_file)
+            if limit and usage and limit[0].isdigit() and usage[0].isdigit() and int(limit[0]) < _V1_UNLIMITED:
+                room.append(max(int(limit[0]) - int(usage[0]), 0))
+    return min(room) if room else None

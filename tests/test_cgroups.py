@@ -1,0 +1,118 @@
+"""Control-group limits (agsf_torch.cgroups) on fake /proc and cgroup trees, and their use by the CPU count and the
+memory budget."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from agsf_torch import processes
+from agsf_torch.cgroups import cpu_limit, memory_headroom
+from agsf_torch.experiments import resources
+
+
+def fake_system(tmp_path: Path, memberships: list[str], mounts: list[tuple[str, str, str, str]], files: dict) -> Path:
+    """A ``/proc`` whose ``self/cgroup`` lists ``memberships`` and whose ``self/mountinfo`` mounts each ``(root,
+    folder under tmp_path, fstype, super options)``; ``files`` maps paths under ``tmp_path`` to their contents."""
+    proc = tmp_path / "proc"
+    (proc / "self").mkdir(parents=True)
+    (proc / "self" / "cgroup").write_text("\n".join(memberships) + "\n")
+    lines = [
+        f"{30 + i} 23 0:{28 + i} {root} {tmp_path / point} rw,relatime - {fstype} cgroup {options}"
+        for i, (root, point, fstype, options) in enumerate(mounts)
+    ]
+    (proc / "self" / "mountinfo").write_text("\n".join(lines) + "\n")
+    for path, text in files.items():
+        (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / path).write_text(text)
+    return proc
+
+
+V2_MOUNT = [("/", "cg", "cgroup2", "rw,nsdelegate")]
+
+
+def test_v2_quota_of_the_process_group(tmp_path):
+    proc = fake_system(tmp_path, ["0::/job/task"], V2_MOUNT, {"cg/job/task/cpu.max": "150000 100000\n"})
+    assert cpu_limit(proc) == 1.5
+
+
+def test_v2_unlimited_and_malformed_quota_are_no_limit(tmp_path):
+    proc = fake_system(tmp_path, ["0::/job"], V2_MOUNT, {"cg/job/cpu.max": "max 100000\n", "cg/cpu.max": "garbage\n"})
+    assert cpu_limit(proc) is None
+
+
+def test_the_tightest_enclosing_group_wins(tmp_path):
+    proc = fake_system(
+        tmp_path,
+        ["0::/a/b"],
+        V2_MOUNT,
+        {"cg/a/b/cpu.max": "400000 100000\n", "cg/a/cpu.max": "100000 50000\n", "cg/cpu.max": "800000 100000\n"},
+    )
+    assert cpu_limit(proc) == 2.0
+
+
+def test_v1_quota_and_its_no_limit_value(tmp_path):
+    mounts = [("/", "cpu", "cgroup", "rw,cpu,cpuacct")]
+    files = {"cpu/slurm/cpu.cfs_quota_us": "300000\n", "cpu/slurm/cpu.cfs_period_us": "100000\n"}
+    proc = fake_system(tmp_path, ["4:cpu,cpuacct:/slurm", "0::/"], mounts, files)
+    assert cpu_limit(proc) == 3.0
+    (tmp_path / "cpu/slurm/cpu.cfs_quota_us").write_text("-1\n")
+    assert cpu_limit(proc) is None
+
+
+def test_a_namespaced_container_reads_its_own_mount(tmp_path):
+    """The host's path of the group (``/docker/abc``) does not exist under the container's mount, which is the
+    container's own group."""
+    proc = fake_system(tmp_path, ["0::/docker/abc"], V2_MOUNT, {"cg/cpu.max": "50000 100000\n"})
+    assert cpu_limit(proc) == 0.5
+
+
+def test_no_cgroup_file_system(tmp_path):
+    proc = tmp_path / "proc"
+    proc.mkdir()
+    assert cpu_limit(proc) is None and memory_headroom(proc) is None
+    other = fake_system(tmp_path / "x", ["0::/"], [("/", "tmpfs", "tmpfs", "rw")], {})
+    assert cpu_limit(other) is None and memory_headroom(other) is None
+
+
+def test_memory_headroom_v1_and_v2_the_tightest_wins(tmp_path):
+    mounts = [*V2_MOUNT, ("/", "memory", "cgroup", "rw,memory")]
+    files = {
+        "cg/svc/memory.max": "1000000\n",
+        "cg/svc/memory.current": "400000\n",
+        "memory/svc/memory.limit_in_bytes": "800000\n",
+        "memory/svc/memory.usage_in_bytes": "500000\n",
+        "memory/memory.limit_in_bytes": "9223372036854771712\n",  # v1's "no limit"
+        "memory/memory.usage_in_bytes": "10\n",
+    }
+    proc = fake_system(tmp_path, ["5:memory:/svc", "0::/svc"], mounts, files)
+    assert memory_headroom(proc) == 300000
+    (tmp_path / "memory/svc/memory.usage_in_bytes").write_text("900000\n")  # over its limit: no room, not negative
+    assert memory_headroom(proc) == 0
+    (tmp_path / "memory/svc/memory.limit_in_bytes").write_text("9223372036854771712\n")
+    assert memory_headroom(proc) == 600000
+    (tmp_path / "cg/svc/memory.max").write_text("max\n")
+    assert memory_headroom(proc) is None
+
+
+@pytest.mark.parametrize(("quota", "expected"), [(None, 8), (1.5, 2), (0.2, 1), (3.0, 3), (64.0, 8)])
+def test_available_cpus_is_capped_by_the_quota_rounded_up(monkeypatch, quota, expected):
+    monkeypatch.setattr(processes.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    monkeypatch.setattr(processes, "cpu_limit", lambda: quota)
+    assert processes.available_cpus() == expected
+
+
+def test_available_memory_is_capped_by_the_groups_headroom(monkeypatch):
+    unlimited = resources.available_memory()
+    monkeypatch.setattr(resources, "memory_headroom", lambda: 1000)
+    capped = resources.available_memory()
+    assert capped < unlimited
+    assert capped - 1000 == pytest.approx(resources.resident_memory(), rel=0.05)  # the process's own memory added
+
+
+def test_this_machine_reads_without_error():
+    """Whatever this machine's groups say, the readers return a number or None, and the count is at least 1."""
+    for value in (cpu_limit(), memory_headroom()):
+        assert value is None or value >= 0
+    assert processes.available_cpus() >= 1
