@@ -1,4 +1,5 @@
-"""Random test data shared by the test modules (the float64 dtype, unit vectors, SPD matrices, attitudes).
+"""Test data and readers shared by the test modules: random data (the float64 dtype, unit vectors, SPD matrices,
+attitudes) and what an experiment wrote (its files' digests, its TensorBoard records).
 
 Every draw goes through an explicit ``torch.Generator`` (the ``gen`` fixture of ``conftest.py``,
 seeded by ``pytest --seed``).
@@ -6,9 +7,12 @@ seeded by ``pytest --seed``).
 
 from __future__ import annotations
 
+import hashlib
+from pathlib import Path
+
 import torch
 
-__all__ = ["F64", "random_unit_vectors", "random_spd", "random_mrps"]
+__all__ = ["F64", "random_unit_vectors", "random_spd", "random_mrps", "file_digests", "event_records"]
 
 #: The package's default dtype.
 F64 = torch.float64
@@ -41,3 +45,30 @@ def random_mrps(num: int, gen: torch.Generator, max_norm: float = 1.0) -> torch.
 EAGER = ["compile=false", "compile_fused=false"]
 #: ``agsf`` arguments of the smallest run of a preset: 2 runs of 0.3 s, the EKF alone, eager, no progress output.
 TINY_CLI = [*(a for s in ("runs=2", "duration=0.3", 'filters=["EKF"]', *EAGER) for a in ("--set", s)), "--quiet"]
+
+
+def file_digests(root: Path) -> dict[str, str]:
+    """Every file under ``root`` (but the TensorBoard events, whose names hold a time) and a digest of its bytes."""
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and "tfevents" not in p.name and p.name != ".agsf.lock"
+    }
+
+
+def event_records(root: Path) -> dict[str, dict]:
+    """Every TensorBoard run under ``root`` (relative path) → its tags → ``[(step, value)]`` (histograms and the
+    text as their serialised protos)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    runs = {}
+    for run in sorted({p.parent for p in root.rglob("events.out.tfevents.*")}):
+        acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "histograms": 0, "tensors": 0})
+        acc.Reload()
+        tags = acc.Tags()
+        events = {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in tags["scalars"]}
+        events |= {t: [(e.step, str(e.histogram_value)) for e in acc.Histograms(t)] for t in tags["histograms"]}
+        events |= {t: [(e.step, e.tensor_proto.SerializeToString()) for e in acc.Tensors(t)] for t in tags["tensors"]}
+        runs[str(run.relative_to(root))] = events
+    assert runs
+    return runs

@@ -12,9 +12,9 @@ Subcommands:
 * ``agsf adaptation [--scenario …] [--runs R] [--samples K] --out DIR`` — where adapting
   the weights pays: RMS, NEES and the density score against an exact-density reference
   for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.adaptation`).
-* ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
-  resumable grid, in this process or as Ray tasks; ends with a table of every configuration
-  (printed and written to ``results.md``).
+* ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--writers N | --backend ray [--address ADDR]]`` — a
+  resumable grid, in this process (each configuration's files written by a worker process while the next
+  runs) or as Ray tasks; ends with a table of every configuration (printed and written to ``results.md``).
 * ``agsf soak [--filter NAME] [--runs B] [--duration S] --out DIR`` — a long run
   (default one simulated hour, 256 runs, 6-state) with running statistics and a
   pass/fail verdict: no NaN, covariances positive definite, errors inside ±3σ,
@@ -185,6 +185,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="Ray cluster to use (with --backend ray): 'auto' (this node's cluster) or ray://HEAD:10001; "
         "default: RAY_ADDRESS if set, else a new local Ray instance",
+    )
+    p.add_argument(
+        "--writers",
+        type=nonnegative_int,
+        default=None,
+        help="local: worker processes writing each configuration's figures and data while the next runs "
+        "(default: 1 on 2 CPUs or more, else 0; 0: written in this process)",
     )
     common(p)
     p.set_defaults(func=_sweep)

@@ -127,13 +127,15 @@ def _sweep(args: argparse.Namespace) -> int:
 
     if args.address is not None and args.backend != "ray":
         raise ValueError("--address needs --backend ray")
+    if args.writers is not None and args.backend != "local":
+        raise ValueError("--writers is the local backend's (each Ray task writes its own files)")
     base = load_config(args.config, args.set)
     grid = parse_grid(args.grid, base)
     if args.backend == "ray":
         kw = {"address": args.address, "cpus_per_task": max(1, args.threads or 1)}
     else:
         _threads(args)
-        kw = {}
+        kw = {"writers": args.writers, "threads": args.threads}
     try:
         rows = run_sweep(
             base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, force=args.force, **kw

@@ -32,6 +32,7 @@ time) is completed first.  A worker that exits abnormally is announced as a warn
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import itertools
 import json
@@ -50,9 +51,17 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..processes import interpreter_env
+from ..processes import available_cpus, interpreter_env
 
-__all__ = ["FileWriter", "HANDOVER_BYTES", "PRELOAD_MODULES", "WORKER_MEMORY"]
+__all__ = [
+    "FileWriter",
+    "HANDOVER_BYTES",
+    "PRELOAD_MODULES",
+    "WORKER_MEMORY",
+    "default_writers",
+    "check_writers",
+    "writing_beside",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -107,7 +116,7 @@ class FileWriter:
         self._in_hand: dict[int, str | None] = {}  # worker → the job it holds
         self._errors: list[tuple[Path, str]] = []
         self._workers: list[tuple[subprocess.Popen, threading.Thread]] = []
-        self._threads: list[threading.Thread] = []
+        self._threads: list[tuple[threading.Thread, Path]] = []  # the thread task (at most one) and its file
         self._count = itertools.count()
         self._closed = False
         self._scratch = Path(tempfile.mkdtemp(prefix="agsf-writer-")) if workers else None
@@ -155,7 +164,7 @@ class FileWriter:
             self._join_threads()  # one at a time: each holds its arguments (a large case's arrays) until done
             worker = threading.Thread(target=self._write_here, args=(path, write, *args), name=f"writing {path.name}")
             worker.start()
-            self._threads = [worker]
+            self._threads = [(worker, path)]
             return
         job = self._scratch / f"job{next(self._count)}.pkl"
         try:
@@ -212,9 +221,49 @@ class FileWriter:
 
     def _join_threads(self) -> None:
         """Wait for the thread task (at most one runs)."""
-        for worker in self._threads:
+        for worker, _ in self._threads:
             worker.join()
         self._threads = []
+
+    def wait_for(self, folder: str | Path) -> None:
+        """Until every task writing inside ``folder`` is done, while the others go on: the queued ones run here (the
+        caller would only wait), the workers' are waited for (run here if their worker died before it answered), a
+        thread task is joined.  Then ``RuntimeError`` naming the first file inside ``folder`` that failed (and how
+        many did; :meth:`close` does not raise them again).  A sweep waits for one configuration's files before it
+        records the configuration as done, while the next one's are still being written."""
+        folder = Path(folder)
+
+        def inside(path: Path) -> bool:
+            return path == folder or folder in path.parents
+
+        if any(inside(path) for _, path in self._threads):
+            self._join_threads()
+        while True:
+            with self._lock:
+                queued = next((job for job in self._queue if inside(self._jobs[job][0])), None)
+                if queued is not None:
+                    self._queue.remove(queued)
+                    path, _ = self._jobs.pop(queued)
+                held = [(job, path, index) for job, (path, index) in self._jobs.items() if inside(path)]
+            if queued is not None:
+                self._write_here(path, self._run_here, queued)
+                continue
+            if not held:
+                break
+            for job, path, index in held:
+                proc, reader = self._workers[index]
+                if proc.poll() is None:
+                    continue
+                reader.join(timeout=5.0)  # the dead worker's last replies are read before its job is taken back
+                with self._lock:
+                    unanswered = self._jobs.pop(job, None) is not None
+                if unanswered:
+                    self._write_here(path, self._run_here, job)
+            time.sleep(0.005)
+        with self._lock:
+            failed = [(path, error) for path, error in self._errors if inside(path)]
+            self._errors = [(path, error) for path, error in self._errors if not inside(path)]
+        _raise_first(failed)
 
     def _write_here(self, path: Path, write: Callable[..., Any], *args: Any) -> None:
         """Run a task in the caller; its failure is recorded with its file and raised by :meth:`close`."""
@@ -290,10 +339,7 @@ class FileWriter:
         finally:
             self._shutdown()
         errors, self._errors = self._errors, []
-        if errors:
-            path, error = errors[0]
-            more = f" ({len(errors) - 1} more files failed)" if len(errors) > 1 else ""
-            raise RuntimeError(f"could not write {path}: {error}{more}")
+        _raise_first(errors)
 
     def _close_in_forked_child(self) -> None:
         """In a child forked by the caller: drop the workers' input pipes, which would otherwise keep the workers
@@ -354,6 +400,52 @@ class FileWriter:
             for path, error in self._errors:
                 logger.warning("could not write %s: %s (while interrupted)", path, error)
             self._errors = []
+
+
+def default_writers() -> int:
+    """Worker processes of a command that writes files beside its work (:func:`writing_beside`): one where the
+    process may use two CPUs or more, else none (a worker on the only CPU would take its time from the filters)."""
+    return 1 if available_cpus() >= 2 else 0
+
+
+def check_writers(writers: int | None, threads: int | None) -> int:
+    """Validate :func:`writing_beside`'s arguments (before a command creates anything) and return the number of
+    workers (``None``: :func:`default_writers`).
+
+    Raises:
+        ValueError: ``writers`` not a non-negative integer, or ``threads`` neither None nor a positive integer.
+    """
+    writers = default_writers() if writers is None else writers
+    if isinstance(writers, bool) or not isinstance(writers, int) or writers < 0:
+        raise ValueError(f"writers must be a non-negative integer, got {writers!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ValueError(f"threads must be a positive integer or None, got {threads!r}")
+    return writers
+
+
+@contextlib.contextmanager
+def writing_beside(writers: int | None = None, threads: int | None = None):
+    """A :class:`FileWriter` with ``writers`` workers (:func:`check_writers`), this process running ``threads`` torch
+    threads meanwhile (default: torch's, capped so that they and the workers fit the CPUs), restored afterwards.
+    ``agsf reproduce`` writes a case's files beside the next case with it, a local sweep a configuration's."""
+    import torch
+
+    writers = check_writers(writers, threads)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads or max(1, min(before, available_cpus() - writers)))
+        with FileWriter(writers) as writer:
+            yield writer
+    finally:
+        torch.set_num_threads(before)
+
+
+def _raise_first(errors: list[tuple[Path, str]]) -> None:
+    """``RuntimeError`` naming the file of the first failed task and how many more failed, if any did."""
+    if errors:
+        path, error = errors[0]
+        more = f" ({len(errors) - 1} more files failed)" if len(errors) > 1 else ""
+        raise RuntimeError(f"could not write {path}: {error}{more}")
 
 
 def _run_job(job: str) -> None:

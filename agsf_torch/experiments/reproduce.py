@@ -16,15 +16,12 @@ import hashlib
 import json
 from pathlib import Path
 
-import torch
-
 from ..filters.registry import ADAPTIVE_FILTERS
-from ..processes import available_cpus
 from ..storage.files import write_json, write_text
 from .config import load_config
 from .experiment import prepare_output, run_experiment
-from .file_writer import WORKER_MEMORY, FileWriter
-from .resources import available_memory, check_memory
+from .file_writer import check_writers, writing_beside
+from .resources import available_memory, check_memory, writer_memory
 from .statistics import WINDOW_TEXT, minus_gsf_key
 from .tensorboard_log import hparam_domains, write_hparams_session
 
@@ -45,21 +42,17 @@ def reproduce(
     combined ``summary.json`` and ``results.md``; return the Markdown table.  Every case is
     validated (and its memory estimated, unless ``force``) before ``out`` is created.
 
-    A case's figures and event files are written by ``writers`` worker processes (:class:`~.file_writer.FileWriter`;
-    default :func:`default_writers`: one where the process may use two CPUs or more), with its ``runs.npz`` (by a
+    A case's figures and event files are written by ``writers`` worker processes (:func:`~.file_writer.writing_beside`;
+    default :func:`~.file_writer.default_writers`: one where the process may use two CPUs or more), with its ``runs.npz`` (by a
     thread of this process above :data:`~.file_writer.HANDOVER_BYTES`), while the next case runs; after the last case
     this process helps with what is left.  The cases run with
     ``threads`` torch threads (default: torch's, capped so that they and the writers fit the CPUs), restored
-    afterwards.  The memory check counts the writers (:data:`~.file_writer.WORKER_MEMORY` each).  The files are
+    afterwards.  The memory check counts the writers (:func:`~.resources.writer_memory`).  The files are
     the same with and without writers (byte for byte; the event files' records)."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
-    writers = default_writers() if writers is None else writers
-    if isinstance(writers, bool) or not isinstance(writers, int) or writers < 0:
-        raise ValueError(f"writers must be a non-negative integer, got {writers!r}")
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise ValueError(f"threads must be a positive integer or None, got {threads!r}")
+    writers = check_writers(writers, threads)
     for cfg in configs.values():
-        check_memory(cfg, force=force, budget=available_memory() - writers * WORKER_MEMORY)
+        check_memory(cfg, force=force, budget=available_memory() - writer_memory(cfg, writers))
     digest = hashlib.sha256(
         json.dumps({k: c.digest() for k, c in configs.items()}, sort_keys=True).encode()
     ).hexdigest()[:16]
@@ -67,28 +60,17 @@ def reproduce(
     hparams = {name: case_hparams(name, cfg.to_dict()) for name, cfg in configs.items()}
     domains = hparam_domains(hparams.values())
     combined = {}
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(threads or max(1, min(before, available_cpus() - writers)))
-        with FileWriter(writers) as writer:
-            for name, cfg in configs.items():
-                summary = run_experiment(
-                    cfg, out / name, progress=progress, kind="reproduce-case", force=force, writer=writer
-                )
-                combined[name] = _case_summary(cfg, summary)
-                write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(combined[name]), domains)
-    finally:
-        torch.set_num_threads(before)
+    with writing_beside(writers, threads) as writer:
+        for name, cfg in configs.items():
+            summary = run_experiment(
+                cfg, out / name, progress=progress, kind="reproduce-case", force=force, writer=writer
+            )
+            combined[name] = _case_summary(cfg, summary)
+            write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(combined[name]), domains)
     write_json(out / "summary.json", combined, indent=2)
     table = results_table(combined)
     write_text(out / "results.md", table + "\n")
     return table
-
-
-def default_writers() -> int:
-    """File-writing worker processes of :func:`reproduce`: one where the process may use two CPUs or more, else none
-    (a worker on the only CPU would take its time from the filters)."""
-    return 1 if available_cpus() >= 2 else 0
 
 
 def _case_summary(cfg, summary: dict) -> dict:

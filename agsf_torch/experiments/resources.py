@@ -31,6 +31,7 @@ __all__ = [
     "peak_resident_memory",
     "resident_memory",
     "check_memory",
+    "writer_memory",
     "refuse_if_too_large",
     "TooLarge",
 ]
@@ -89,6 +90,19 @@ def estimated_memory(cfg: ExperimentConfig, *, keep_steps: bool = True) -> Memor
     retained = RETAINED_OVERHEAD * _F64 * cfg.num_steps * cfg.runs * per_sample if keep_steps else 0
     working = WORKING_OVERHEAD * _F64 * cfg.runs * (sum(Nf * n * n for Nf in N) + 3 * cfg.max_stars)
     return MemoryEstimate(retained, working, BASE_PROCESS)
+
+
+def writer_memory(cfg: ExperimentConfig, writers: int) -> int:
+    """Memory a run of ``cfg`` shares with ``writers`` file-writing workers (:func:`.file_writer.writing_beside`),
+    bytes: the workers (:data:`~.file_writer.WORKER_MEMORY` each) and, where the run's arrays are too large to hand
+    to one (:data:`~.file_writer.HANDOVER_BYTES`), one copy of them, which a thread of this process holds while it
+    writes the previous run's ``runs.npz`` beside this run.  0 without workers."""
+    from .file_writer import HANDOVER_BYTES, WORKER_MEMORY
+
+    if writers == 0:
+        return 0
+    arrays = estimated_memory(cfg).retained // RETAINED_OVERHEAD
+    return writers * WORKER_MEMORY + (arrays if arrays > HANDOVER_BYTES else 0)
 
 
 def simulation_memory(runs: int, steps: int, max_stars: int) -> MemoryEstimate:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import os
 import threading
 import time
@@ -14,16 +13,7 @@ import torch
 from agsf_torch.experiments.file_writer import FileWriter
 from agsf_torch.experiments.reproduce import reproduce
 from agsf_torch.storage.files import write_text
-from tests.helpers import EAGER
-
-
-def _digests(root: Path) -> dict[str, str]:
-    """Every file under ``root`` (but the TensorBoard events, whose names hold a time) and a digest of its bytes."""
-    return {
-        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and "tfevents" not in p.name and p.name != ".agsf.lock"
-    }
+from tests.helpers import EAGER, event_records, file_digests
 
 
 def write_unless_in_a_worker(path: Path, text: str, caller: int) -> None:
@@ -227,33 +217,15 @@ def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_t
         )
         assert torch.get_num_threads() == threads
     assert tables[0] == tables[1]
-    inline, written = _digests(tmp_path / "0"), _digests(tmp_path / "1")
+    inline, written = file_digests(tmp_path / "0"), file_digests(tmp_path / "1")
     for case in ("case1", "case3"):
         assert {f"{case}/{name}" for name in ("runs.npz", "rms.png", "axes.png", "weights.png", "fpke.png")} <= set(
             inline
         )
     assert written == inline
-    assert _events(tmp_path / "1") == _events(tmp_path / "0")
+    assert event_records(tmp_path / "1") == event_records(tmp_path / "0")
     here = {str(p.relative_to(tmp_path / "1")) for p in here}
     assert "case1/runs.npz" not in here  # case 1's first file went to the idle worker when submitted
-
-
-def _events(root: Path) -> dict[str, dict]:
-    """Every TensorBoard run under ``root`` (relative path) → its tags → ``[(step, value)]`` (histograms and the
-    text as their serialised protos)."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    runs = {}
-    for run in sorted({p.parent for p in root.rglob("events.out.tfevents.*")}):
-        acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "histograms": 0, "tensors": 0})
-        acc.Reload()
-        tags = acc.Tags()
-        events = {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in tags["scalars"]}
-        events |= {t: [(e.step, str(e.histogram_value)) for e in acc.Histograms(t)] for t in tags["histograms"]}
-        events |= {t: [(e.step, e.tensor_proto.SerializeToString()) for e in acc.Tensors(t)] for t in tags["tensors"]}
-        runs[str(run.relative_to(root))] = events
-    assert runs
-    return runs
 
 
 @pytest.mark.parametrize(("option", "value"), [("writers", -1), ("writers", True), ("threads", 0), ("threads", 1.5)])
@@ -348,3 +320,53 @@ def test_thread_tasks_run_one_at_a_time_and_an_interruption_completes_the_one_ru
             assert first.read_text() == "slow"  # the second waited for the first: one case's arrays held at a time
             raise KeyboardInterrupt
     assert second.read_text() == "slow"  # completed, not left half written
+
+
+def write_when_opened(path: Path, gate: Path) -> None:
+    """Write ``path`` once the file ``gate`` exists (at most a minute later)."""
+    deadline = time.monotonic() + 60.0
+    while not gate.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    write_text(path, "gated")
+
+
+def test_wait_for_a_folder_leaves_the_other_tasks_running_and_raises_only_its_own_failures(tmp_path):
+    """A sweep records one configuration (its folder complete) while the next one's files are still written."""
+    mine, other = tmp_path / "a", tmp_path / "b"
+    mine.mkdir()
+    other.mkdir()
+    bad_other = other / "missing-folder" / "x.txt"
+    with pytest.raises(RuntimeError, match=r"could not write .*b/missing-folder/x\.txt") as failure:
+        with FileWriter(1, preload=()) as writer:
+            gate = tmp_path / "gate"
+            writer.submit(write_when_opened, other / "slow.txt", gate, path=other / "slow.txt")  # the worker's
+            writer.submit(write_text, bad_other, "x", path=bad_other)
+            for i in range(3):  # queued behind the worker's task: run here by wait_for
+                writer.submit(write_text, mine / f"{i}.txt", str(i), path=mine / f"{i}.txt")
+            writer.wait_for(mine)
+            assert [(mine / f"{i}.txt").read_text() for i in range(3)] == ["0", "1", "2"]
+            assert not (other / "slow.txt").exists()  # still being written: wait_for(a) did not wait for it
+            writer.wait_for(other / "nothing-here")  # no task: returns at once
+            gate.touch()
+    assert "more files" not in str(failure.value)  # raised by close, once
+    assert (other / "slow.txt").read_text() == "gated"
+
+
+def test_wait_for_raises_a_failure_inside_its_folder_and_close_does_not_raise_it_again(tmp_path):
+    bad = tmp_path / "a" / "missing-folder" / "y.txt"
+    writer = FileWriter(1, preload=(), caller_helps=False)
+    writer.submit(write_text, bad, "y", path=bad)
+    with pytest.raises(RuntimeError, match=r"could not write .*a/missing-folder/y\.txt: FileNotFoundError"):
+        writer.wait_for(tmp_path / "a")
+    writer.close()  # the failure was raised once
+
+
+def test_wait_for_takes_back_the_task_of_a_worker_that_died_and_joins_a_thread_task(tmp_path):
+    folder = tmp_path / "c"
+    folder.mkdir()
+    with FileWriter(1, preload=(), caller_helps=False) as writer:
+        writer.submit(write_unless_in_a_worker, folder / "z.txt", "zeta", os.getpid(), path=folder / "z.txt")
+        writer.submit(write_slowly_here, folder / "t.txt", 0.3, path=folder / "t.txt", thread=True)
+        writer.wait_for(folder)
+        assert (folder / "z.txt").read_text() == "zeta"  # the worker died holding it: written here
+        assert (folder / "t.txt").read_text() == "slow"

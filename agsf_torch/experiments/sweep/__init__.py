@@ -3,7 +3,9 @@
 Every finished configuration is appended as one JSON line to ``results.jsonl``
 (with the configuration's digest) as soon as it finishes; a rerun with the same
 base and grid skips the digests already there, so an interrupted sweep loses
-only the configurations that were running.
+only the configuration that was running and the one whose files were being written
+(locally, a configuration's figures, event files and ``runs.npz`` are written by a worker
+process while the next one runs, and its row is appended once they are complete).
 
 TensorBoard (``tensorboard --logdir out/tensorboard``) gets one HParams session per
 configuration, named by its swept parameters (``reg=0.5,scaling=trace``,

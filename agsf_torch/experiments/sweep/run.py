@@ -18,7 +18,8 @@ from typing import Any
 from ...storage.files import append_line, json_text, repair_json_lines
 from ..config import ExperimentConfig, parse_override
 from ..experiment import prepare_output, run_experiment
-from ..resources import check_memory
+from ..file_writer import check_writers, writing_beside
+from ..resources import available_memory, check_memory, writer_memory
 from ..tensorboard_log import hparam_domains, move_events, run_names, write_hparams_session
 from .ray_backend import import_ray, run_on_ray
 from .rows import config_metrics
@@ -98,6 +99,8 @@ def run_sweep(
     cpus_per_task: int = 1,
     max_retries: int = 3,
     force: bool = False,
+    writers: int | None = None,
+    threads: int | None = None,
 ) -> list[dict[str, Any]]:
     """Run every combination of ``grid`` on top of ``base``; returns all result rows.
 
@@ -127,6 +130,11 @@ def run_sweep(
             to the same number.
         max_retries: Ray only: retries of a task whose worker or node died
             (exceptions raised by the runner are not retried: they are deterministic).
+        writers: local only: worker processes that write a configuration's figures, event files and ``runs.npz``
+            while the next configuration runs (:func:`~..file_writer.writing_beside`; default: one on two CPUs or
+            more, else none).  A configuration is recorded (its events moved, its row appended) once its files are
+            complete; one that reuses another's filters starts once that one's are.
+        threads: local only: torch threads (default: torch's, capped so that they and the writers fit the CPUs).
 
     Raises:
         SweepFailed: (Ray) some configurations failed; all others were recorded.
@@ -139,6 +147,9 @@ def run_sweep(
         raise ValueError("a Ray address needs backend='ray' (--backend ray)")
     if cpus_per_task < 1:
         raise ValueError(f"cpus_per_task must be ≥ 1, got {cpus_per_task}")
+    if backend == "ray" and (writers or threads):
+        raise ValueError("writers and threads are the local backend's (Ray tasks take cpus_per_task)")
+    writers = check_writers(writers, threads) if backend == "local" else 0
     if backend == "ray":
         import_ray()  # fail before any work or folder if the extra is missing
     grid = {key: [getattr(base.replace(**{key: v}), key) for v in values] for key, values in grid.items()}  # 1 ≡ 1.0
@@ -146,13 +157,18 @@ def run_sweep(
     for values in itertools.product(*grid.values()):
         params = dict(zip(grid, values))
         cfg = base.replace(**params)  # validates every configuration first
-        check_memory(cfg, force=force)
+        check_memory(cfg, force=force, budget=available_memory() - writer_memory(cfg, writers))
         if cfg.digest() not in digests:  # grid values the configuration stores alike: run once
             digests.add(cfg.digest())
             configs.append((params, cfg))
     digest = hashlib.sha256(json.dumps({"base": base.digest(), "grid": grid}, sort_keys=True).encode()).hexdigest()[:16]
     out = prepare_output(Path(out), "sweep", digest, {"base": base.to_dict(), "grid": grid})
     with _sweep_lock(out):
+        if backend == "local":
+            with writing_beside(writers, threads) as writer:
+                return _run_pending(
+                    configs, out, progress, runner, backend, address, cpus_per_task, max_retries, writer
+                )
         return _run_pending(configs, out, progress, runner, backend, address, cpus_per_task, max_retries)
 
 
@@ -195,8 +211,12 @@ def _interrupt_latch():
         signal.signal(signal.SIGINT, previous)
 
 
-def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task, max_retries) -> list[dict[str, Any]]:
-    """Run the configurations without a row in ``results.jsonl`` (the lock held); returns all rows."""
+def _run_pending(
+    configs, out, progress, runner, backend, address, cpus_per_task, max_retries, writer=None
+) -> list[dict[str, Any]]:
+    """Run the configurations without a row in ``results.jsonl`` (the lock held); returns all rows.  Locally a
+    configuration's files are written by ``writer`` while the next one runs, and it is recorded once they are
+    complete (:meth:`~..file_writer.FileWriter.wait_for`)."""
     results = out / "results.jsonl"
     rows = repair_json_lines(results)
     done = {r["digest"] for r in rows}
@@ -224,19 +244,45 @@ def _run_pending(configs, out, progress, runner, backend, address, cpus_per_task
         append_line(results, json_text(row))
         rows.append(row)
 
+    def finish(params, cfg, summary, reuse) -> None:
+        """Record a configuration run locally, once its files are complete; its filters can then be reused."""
+        folder = out / "configs" / cfg.digest()
+        writer.wait_for(folder)
+        record(params, cfg, config_metrics(summary), {n: p.name for n, p in reuse.items()})
+        for name in cfg.filters:
+            sources.setdefault(cfg.filter_digest(name), folder)
+
     with _interrupt_latch() as interrupted:
         if backend == "local":
+            previous = None  # the configuration whose files are being written
             for params, cfg in pending:
                 folder = out / "configs" / cfg.digest()
                 label = f"{cfg.name} {names[cfg.digest()]}"  # the bar names the configuration, not only its preset
+                digests = {cfg.filter_digest(n) for n in cfg.filters}
+                if previous is not None and (digests - set(sources)) & {
+                    previous[1].filter_digest(n) for n in previous[1].filters
+                }:  # it reuses a filter of the previous configuration: that one's runs.npz first
+                    finish(*previous)
+                    previous = None
                 reuse = {n: sources[d] for n in cfg.filters if (d := cfg.filter_digest(n)) in sources}
                 kwargs = {"reuse": reuse} if reuse else {}
-                summary = runner(cfg, folder, progress=progress, kind="sweep-config", label=label, **kwargs)
-                record(params, cfg, config_metrics(summary), {n: p.name for n, p in reuse.items()})
-                for name in cfg.filters:
-                    sources.setdefault(cfg.filter_digest(name), folder)
-                if interrupted.is_set():  # a Ctrl-C that Python swallowed (e.g. raised inside a finaliser)
+                try:
+                    summary = runner(
+                        cfg, folder, progress=progress, kind="sweep-config", label=label, writer=writer, **kwargs
+                    )
+                except BaseException:  # failed or interrupted: the previous configuration ran to its end, so it is
+                    # recorded once its files are written (a second Ctrl-C meanwhile stops the writer)
+                    if previous is not None:
+                        finish(*previous)
+                    raise
+                if previous is not None:
+                    finish(*previous)
+                previous = (params, cfg, summary, reuse)
+                if interrupted.is_set():  # a Ctrl-C that Python swallowed (e.g. raised inside a finaliser): this
+                    finish(*previous)  # configuration ran to its end, so it is recorded (once its files are written)
                     raise KeyboardInterrupt
+            if previous is not None:
+                finish(*previous)
         elif pending:
             run_on_ray(
                 pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs), interrupted

@@ -1,0 +1,98 @@
+"""A local sweep writes each configuration's files beside the next configuration's run (agsf_torch.experiments.sweep
+with agsf_torch.experiments.file_writer): the same rows and files as without a writer, each row appended only once
+its configuration's files are complete, a reused filter read only once written."""
+
+from __future__ import annotations
+
+import pytest
+
+from agsf_torch.experiments import cli
+from agsf_torch.experiments.config import load_config
+from agsf_torch.experiments.experiment import run_experiment
+from agsf_torch.experiments.file_writer import HANDOVER_BYTES, WORKER_MEMORY
+from agsf_torch.experiments.resources import RETAINED_OVERHEAD, estimated_memory, writer_memory
+from agsf_torch.experiments.sweep import run as sweep_run
+from agsf_torch.experiments.sweep import run_sweep
+from agsf_torch.storage.files import read_json_lines
+from tests.helpers import EAGER, event_records, file_digests
+
+TINY = ["runs=2", "duration=0.5", "components=2", *EAGER, 'filters=["EKF","GSF","AGSF"]']
+#: Over reg: the EKF and the GSF run once (first configuration), the AGSF for every value.
+GRID = {"reg": [0.5, 1.0, 2.0]}
+
+
+def test_a_sweep_writes_the_same_rows_and_files_with_a_writer_as_without(tmp_path):
+    base = load_config("case1", TINY)
+    rows = {w: run_sweep(base, GRID, tmp_path / str(w), progress=False, writers=w) for w in (0, 1)}
+    assert rows[0] == rows[1]
+    assert read_json_lines(tmp_path / "0" / "results.jsonl") == read_json_lines(tmp_path / "1" / "results.jsonl")
+    assert file_digests(tmp_path / "1" / "configs") == file_digests(tmp_path / "0" / "configs")
+    assert event_records(tmp_path / "1" / "tensorboard") == event_records(tmp_path / "0" / "tensorboard")
+
+
+def test_a_row_is_appended_once_its_files_are_complete_and_a_reused_filter_is_read_once_written(tmp_path, monkeypatch):
+    base = load_config("case1", TINY)
+    out = tmp_path / "sweep"
+    appended, started = [], []
+    append_line = sweep_run.append_line
+
+    def checked_append(path, line):
+        digest = line.split('"digest": "')[1].split('"')[0]
+        folder = out / "configs" / digest
+        assert {"runs.npz", "summary.json", "rms.png", "axes.png", "weights.png", "fpke.png"} <= {
+            p.name for p in folder.iterdir()
+        }
+        assert not (folder / "tensorboard").exists()  # its events moved to the sweep's TensorBoard run
+        assert not list(folder.rglob(".*.tmp"))
+        appended.append(digest)
+        append_line(path, line)
+
+    def runner(cfg, folder, **kw):
+        for source in kw.get("reuse", {}).values():  # what it copies is whole, and recorded
+            assert (source / "runs.npz").is_file() and source.name in appended
+        started.append(cfg.digest())
+        return run_experiment(cfg, folder, **kw)
+
+    monkeypatch.setattr(sweep_run, "append_line", checked_append)
+    run_sweep(base, GRID, out, progress=False, writers=1, runner=runner)
+    assert appended == started and len(appended) == 3
+
+
+def test_a_configuration_that_fails_leaves_the_previous_one_recorded(tmp_path):
+    base = load_config("case1", TINY)
+    calls = []
+
+    def failing_second(cfg, folder, **kw):
+        calls.append(cfg.reg)
+        if len(calls) == 2:
+            raise ZeroDivisionError("the second configuration fails")
+        return run_experiment(cfg, folder, **kw)
+
+    with pytest.raises(ZeroDivisionError):
+        run_sweep(base, GRID, tmp_path / "sweep", progress=False, writers=1, runner=failing_second)
+    rows = read_json_lines(tmp_path / "sweep" / "results.jsonl")
+    assert [r["params"]["reg"] for r in rows] == [0.5]
+
+
+def test_the_memory_a_run_shares_with_the_writer():
+    small = load_config("case1", TINY)
+    assert writer_memory(small, 0) == 0
+    assert writer_memory(small, 2) == 2 * WORKER_MEMORY  # its arrays go to a worker
+    large = load_config("case1", ["runs=4096", "duration=300"])
+    arrays = estimated_memory(large).retained // RETAINED_OVERHEAD
+    assert arrays > HANDOVER_BYTES  # so a thread of the caller holds them beside the next run
+    assert writer_memory(large, 1) == WORKER_MEMORY + arrays
+
+
+def test_writers_are_the_local_backends(tmp_path, capsys):
+    base = load_config("case1", TINY)
+    with pytest.raises(ValueError, match="local backend"):
+        run_sweep(base, GRID, tmp_path / "r", progress=False, backend="ray", writers=1)
+    with pytest.raises(ValueError, match="writers must be a non-negative integer"):
+        run_sweep(base, GRID, tmp_path / "w", progress=False, writers=-1)
+    code = cli.main(
+        ["sweep", "case1", "--grid", "reg=1", "--backend", "ray", "--writers", "1", "--out", str(tmp_path / "c")]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "--writers" in err
+    assert not any((tmp_path / name).exists() for name in ("r", "w", "c"))
