@@ -8,13 +8,20 @@ and run slower than fewer would.  So the package reads the quota as well (:func:
 checks of :mod:`agsf_torch.experiments.resources`).
 
 Both cgroup versions are read.  This process's group comes from ``/proc/self/cgroup`` and the hierarchies' mounts
-from ``/proc/self/mountinfo``; a limit set on an enclosing group applies too, so every group from this process's up
-to the top of its mount is read and the tightest limit wins.  Inside a container whose cgroup namespace hides the
-host's path, the path does not resolve under the mount, and the mount itself (the container's own group) is read.
+from ``/proc/self/mountinfo`` (the mount whose root holds the group; its fields' octal escapes decoded); a limit set
+on an enclosing group applies too, so every group from this process's up to the top of its mount is read and the
+tightest limit wins.  Where the group does not resolve under the mount — a container whose cgroup namespace hides
+the host's path, or a nested namespace whose mount root lies outside it (``/..``) — the mount's own group is read:
+it encloses this process's, so its limits apply, though a tighter one below it cannot be seen from here.
+
+Memory in use is the group's *working set*, as container runtimes count it: its usage less the page cache it
+can drop at once (``inactive_file`` of ``memory.stat``): a group that has written more files than its limit
+holds them in cache, close to the limit, without being short of memory.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 __all__ = ["cpu_limit", "memory_headroom"]
@@ -43,20 +50,32 @@ def _groups(controller: str, proc: Path) -> list[Path]:
             path = parts[2]
     if path is None:
         return []
+    candidates = []  # (root, mount point) of the hierarchy's mounts
     for line in mounts:
         fields = line.split()
         if " - " not in line or len(fields) < 5:
             continue
         fstype, _, options = line.split(" - ", 1)[1].partition(" ")
         options = options.split()[-1].split(",") if options.split() else []
-        wanted = fstype == "cgroup2" if not controller else (fstype == "cgroup" and controller in options)
-        if not wanted:
-            continue
-        root, point = fields[3], Path(fields[4])
-        inner = Path(path).relative_to(root) if Path(path).is_relative_to(root) else None
-        start = point / inner if inner is not None and (point / inner).is_dir() else point
-        return [start, *[p for p in start.parents if p.is_relative_to(point)]]
-    return []
+        if fstype == "cgroup2" if not controller else (fstype == "cgroup" and controller in options):
+            candidates.append((_unescape(fields[3]), Path(_unescape(fields[4]))))
+    holding = [(root, point) for root, point in candidates if Path(path).is_relative_to(root)]
+    if holding:  # the mount whose root is the nearest enclosing group of this process's
+        root, point = max(holding, key=lambda m: len(Path(m[0]).parts))
+        start = point / Path(path).relative_to(root)
+        start = start if start.is_dir() else point
+    elif candidates:
+        point = candidates[0][1]
+        start = point
+    else:
+        return []
+    return [start, *[p for p in start.parents if p.is_relative_to(point)]]
+
+
+def _unescape(field: str) -> str:
+    """A ``mountinfo`` path field with the kernel's octal escapes (``\\040`` a space, ``\\011`` a tab, ``\\012`` a
+    newline, ``\\134`` a backslash) decoded."""
+    return re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), field)
 
 
 def _read(folder: Path, name: str) -> list[str] | None:
@@ -88,16 +107,31 @@ def cpu_limit(proc: Path = Path("/proc")) -> float | None:
 
 
 def memory_headroom(proc: Path = Path("/proc")) -> int | None:
-    """Bytes this process's control groups still allow (limit − usage, at least 0), the tightest over the
-    enclosing groups of both cgroup versions; ``None`` where no group sets a memory limit.
+    """Bytes this process's control groups still allow (limit − working set, at least 0; the working set is the
+    usage less the droppable page cache, module docstring), the tightest over the enclosing groups of both cgroup
+    versions; ``None`` where no group sets a memory limit.
 
     Args:
         proc: the ``/proc`` to read (tests pass a fake tree).
     """
     room = []
-    for controller, (limit_file, usage_file) in (("", _V2_MEMORY), ("memory", _V1_MEMORY)):
+    for controller, (limit_file, usage_file), cache in (
+        ("", _V2_MEMORY, ("inactive_file",)),
+        ("memory", _V1_MEMORY, ("total_inactive_file", "inactive_file")),  # v1: the hierarchy's, as its usage
+    ):
         for folder in _groups(controller, proc):
             limit, usage = _read(folder, limit_file), _read(folder, usage_file)
             if limit and usage and limit[0].isdigit() and usage[0].isdigit() and int(limit[0]) < _V1_UNLIMITED:
-                room.append(max(int(limit[0]) - int(usage[0]), 0))
+                working = max(int(usage[0]) - _stat(folder, cache), 0)
+                room.append(max(int(limit[0]) - working, 0))
     return min(room) if room else None
+
+
+def _stat(folder: Path, keys: tuple[str, ...]) -> int:
+    """The first of ``keys`` found in the group's ``memory.stat`` (bytes), else 0."""
+    words = _read(folder, "memory.stat") or []
+    values = dict(zip(words[::2], words[1::2]))
+    for key in keys:
+        if values.get(key, "").isdigit():
+            return int(values[key])
+    return 0

@@ -116,3 +116,50 @@ def test_this_machine_reads_without_error():
     for value in (cpu_limit(), memory_headroom()):
         assert value is None or value >= 0
     assert processes.available_cpus() >= 1
+
+
+def test_escaped_mount_points_are_decoded(tmp_path):
+    """The kernel writes a space in a mount point as ``\\040``."""
+    proc = fake_system(tmp_path, ["0::/"], [], {"my cg/cpu.max": "50000 100000\n"})
+    (proc / "self" / "mountinfo").write_text(f"30 23 0:28 / {tmp_path}/my\\040cg rw - cgroup2 cgroup rw\n")
+    assert cpu_limit(proc) == 0.5
+
+
+def test_the_mount_whose_root_holds_the_group_is_read(tmp_path):
+    """Of two mounts of the hierarchy, the one whose root encloses the group most nearly."""
+    mounts = [("/", "whole", "cgroup2", "rw"), ("/svc", "svc-only", "cgroup2", "rw")]
+    files = {"whole/svc/job/cpu.max": "300000 100000\n", "svc-only/job/cpu.max": "200000 100000\n"}
+    proc = fake_system(tmp_path, ["0::/svc/job"], mounts, files)
+    assert cpu_limit(proc) == 2.0
+
+
+def test_a_mount_rooted_outside_a_nested_namespace_is_read_as_an_enclosing_group(tmp_path):
+    """``/..``: the mount shows a group above this namespace's; its limit applies to this process too."""
+    proc = fake_system(tmp_path, ["0::/"], [("/../..", "cg", "cgroup2", "rw")], {"cg/cpu.max": "100000 100000\n"})
+    assert cpu_limit(proc) == 1.0
+
+
+@pytest.mark.parametrize(
+    ("mounts", "membership", "limit_file", "usage_file", "stat"),
+    [
+        (V2_MOUNT, "0::/svc", "cg/svc/memory.max", "cg/svc/memory.current", "inactive_file 700000\n"),
+        (
+            [("/", "memory", "cgroup", "rw,memory")],
+            "5:memory:/svc",
+            "memory/svc/memory.limit_in_bytes",
+            "memory/svc/memory.usage_in_bytes",
+            "inactive_file 1\ntotal_inactive_file 700000\n",  # v1: the hierarchy's, as its usage
+        ),
+    ],
+)
+def test_the_page_cache_a_group_can_drop_is_not_counted_as_used(
+    tmp_path, mounts, membership, limit_file, usage_file, stat
+):
+    """A group that has written more files than its limit sits at its limit in page cache without being short of
+    memory: its working set is the usage less ``inactive_file``."""
+    folder = str(Path(limit_file).parent)
+    files = {limit_file: "1000000\n", usage_file: "990000\n", f"{folder}/memory.stat": f"anon 290000\n{stat}"}
+    proc = fake_system(tmp_path, [membership], mounts, files)
+    assert memory_headroom(proc) == 1000000 - (990000 - 700000)
+    (tmp_path / folder / "memory.stat").write_text("anon 990000\n")  # nothing to drop
+    assert memory_headroom(proc) == 10000

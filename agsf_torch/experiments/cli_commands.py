@@ -224,9 +224,10 @@ def _learn(args: argparse.Namespace) -> int:
 
 
 def _threads(args: argparse.Namespace) -> None:
-    """Torch threads: ``--threads`` if given, else torch's default capped at the CPUs this process may use
-    (:func:`~agsf_torch.processes.available_cpus`: torch counts the machine's cores, not a container's CPU quota,
-    and more threads than the quota allows take turns and run slower than fewer)."""
+    """Torch threads: ``--threads`` if given, else torch's count (its default, the machine's cores, or
+    ``OMP_NUM_THREADS``) capped at the CPUs this process may use (:func:`~agsf_torch.processes.available_cpus`:
+    torch does not count a container's CPU quota, and more threads than the quota allows take turns and run slower
+    than fewer)."""
     from ..processes import available_cpus
 
     if getattr(args, "threads", None):

@@ -114,7 +114,7 @@ class FileWriter:
         self._jobs: dict[str, tuple[Path, int | None]] = {}  # job file → (the file it writes, worker or None: queued)
         self._queue: deque[str] = deque()  # job files no worker holds yet, in the order submitted
         self._in_hand: dict[int, str | None] = {}  # worker → the job it holds
-        self._errors: list[tuple[Path, str]] = []
+        self._errors: list[tuple[Path, str, int | None]] = []  # (file, "Type: message", errno of an OSError)
         self._workers: list[tuple[subprocess.Popen, threading.Thread]] = []
         self._threads: list[tuple[threading.Thread, Path]] = []  # the thread task (at most one) and its file
         self._count = itertools.count()
@@ -149,6 +149,11 @@ class FileWriter:
             self._in_hand[index] = None
             reader.start()
         _OPEN.add(self)
+
+    @property
+    def background(self) -> bool:
+        """Whether tasks run beside the caller (in workers, or a thread): with no worker each runs when submitted."""
+        return bool(self._workers)
 
     def submit(self, write: Callable[..., Any], *args: Any, path: str | Path, thread: bool = False) -> None:
         """Run ``write(*args)``, which writes the file ``path`` (named in a failure's message): now, in the caller,
@@ -258,11 +263,12 @@ class FileWriter:
                 with self._lock:
                     unanswered = self._jobs.pop(job, None) is not None
                 if unanswered:
+                    _remove_partial(path)
                     self._write_here(path, self._run_here, job)
             time.sleep(0.005)
         with self._lock:
-            failed = [(path, error) for path, error in self._errors if inside(path)]
-            self._errors = [(path, error) for path, error in self._errors if not inside(path)]
+            failed = [e for e in self._errors if inside(e[0])]
+            self._errors = [e for e in self._errors if not inside(e[0])]
         _raise_first(failed)
 
     def _write_here(self, path: Path, write: Callable[..., Any], *args: Any) -> None:
@@ -271,7 +277,7 @@ class FileWriter:
             write(*args)
         except Exception as exc:  # noqa: BLE001 - recorded with its file, raised by close()
             with self._lock:
-                self._errors.append((path, f"{type(exc).__name__}: {exc}"))
+                self._errors.append((path, f"{type(exc).__name__}: {exc}", _errno(exc)))
 
     def _read(self, index: int, proc: subprocess.Popen) -> None:
         """A worker's replies (one JSON line per task), until it exits."""
@@ -285,15 +291,15 @@ class FileWriter:
         """Note one reply of worker ``index``: the job done, and its error if it failed; hand it the next."""
         try:
             reply = json.loads(line)
-            job, error = reply["job"], reply["error"]
-            if not isinstance(job, str) or not (error is None or isinstance(error, str)):
+            job, error, code = reply["job"], reply["error"], reply.get("errno")
+            if not isinstance(job, str) or not (error is None or isinstance(error, str)) or not _is_errno(code):
                 return
         except Exception:  # noqa: BLE001 - not a reply: ignored, the task is then written by the caller
             return
         with self._lock:
             path, _ = self._jobs.pop(job, (None, None))
             if path is not None and error is not None:
-                self._errors.append((path, error))
+                self._errors.append((path, error, code))
             if self._in_hand.get(index) == job:
                 self._in_hand[index] = None
                 if not self._closed:
@@ -333,6 +339,7 @@ class FileWriter:
             with self._lock:
                 unanswered = list(self._jobs.items())
             for job, (path, _) in unanswered:  # a worker died before it answered: written here, nothing lost
+                _remove_partial(path)
                 self._write_here(path, self._run_here, job)
                 with self._lock:
                     self._jobs.pop(job, None)
@@ -375,12 +382,8 @@ class FileWriter:
             self._jobs.clear()
             self._queue.clear()
             scratch, self._scratch = self._scratch, None
-        for path in unfinished:  # a killed writer's temporary file or folder (storage.files.atomic_open's name)
-            for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
-                if tmp.is_dir():
-                    shutil.rmtree(tmp, ignore_errors=True)
-                else:
-                    tmp.unlink(missing_ok=True)
+        for path in unfinished:
+            _remove_partial(path)
         if scratch is not None:
             shutil.rmtree(scratch, ignore_errors=True)
 
@@ -397,7 +400,7 @@ class FileWriter:
                 logger.warning("%s (while handling %s: %s)", failed, exc_type.__name__, exc)
         else:  # interrupted: stop now
             self._shutdown()
-            for path, error in self._errors:
+            for path, error, _ in self._errors:
                 logger.warning("could not write %s: %s (while interrupted)", path, error)
             self._errors = []
 
@@ -440,11 +443,34 @@ def writing_beside(writers: int | None = None, threads: int | None = None):
         torch.set_num_threads(before)
 
 
-def _raise_first(errors: list[tuple[Path, str]]) -> None:
-    """``RuntimeError`` naming the file of the first failed task and how many more failed, if any did."""
+def _remove_partial(path: Path) -> None:
+    """Remove what a killed writer left of ``path``: its temporary file or folder (the name
+    :func:`agsf_torch.storage.files.atomic_open` and the TensorBoard runs use)."""
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            tmp.unlink(missing_ok=True)
+
+
+def _errno(exc: BaseException) -> int | None:
+    """The errno of an ``OSError`` (a full disk, a missing folder), else None."""
+    return exc.errno if isinstance(exc, OSError) and _is_errno(exc.errno) and exc.errno is not None else None
+
+
+def _is_errno(code: Any) -> bool:
+    return code is None or (isinstance(code, int) and not isinstance(code, bool))
+
+
+def _raise_first(errors: list[tuple[Path, str, int | None]]) -> None:
+    """Raise the first failed task's error naming its file and how many more failed, if any did: an ``OSError`` with
+    its errno where the task failed with one (so that a full disk is reported as such, as when the caller writes
+    itself), else ``RuntimeError``."""
     if errors:
-        path, error = errors[0]
+        path, error, code = errors[0]
         more = f" ({len(errors) - 1} more files failed)" if len(errors) > 1 else ""
+        if code is not None:
+            raise OSError(code, f"{os.strerror(code)}{more}", str(path))
         raise RuntimeError(f"could not write {path}: {error}{more}")
 
 
@@ -459,7 +485,7 @@ def _run_job(job: str) -> None:
 def _serve(preload: Sequence[str]) -> None:
     """A worker: import ``preload``, then run the task of every job file named on stdin (a JSON string per line),
     one JSON reply per line
-    (``{"job": file, "error": null | "Type: message"}``) on the original stdout; anything a task prints goes to
+    (``{"job": file, "error": null | "Type: message", "errno": null | an OSError's errno}``) on the original stdout; anything a task prints goes to
     stderr."""
     import importlib
 
@@ -477,10 +503,10 @@ def _serve(preload: Sequence[str]) -> None:
             continue
         try:
             _run_job(job)
-            error = None
+            error, code = None, None
         except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it naming the file
-            error = f"{type(exc).__name__}: {exc}"
-        replies.write(json.dumps({"job": job, "error": error}) + "\n")
+            error, code = f"{type(exc).__name__}: {exc}", _errno(exc)
+        replies.write(json.dumps({"job": job, "error": error, "errno": code}) + "\n")
         replies.flush()
     # every task answered and its file complete: leave without the interpreter's teardown (half a second with torch
     # and matplotlib loaded, which the caller's close() would wait for)

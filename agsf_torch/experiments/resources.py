@@ -158,7 +158,8 @@ def available_memory() -> int:
     """Memory this process may grow to (bytes), comparable with :attr:`MemoryEstimate.total`:
     what the machine has available (``MemAvailable`` of ``/proc/meminfo``, else the physical
     memory) plus what this process already holds (its resident set, which the estimate counts in
-    ``base``), capped by a cgroup v2 memory limit (``memory.max`` − ``memory.current``) if there is one."""
+    ``base``); what the machine has is capped by what this process's control groups still allow
+    (:func:`agsf_torch.cgroups.memory_headroom`: cgroup v1 or v2, the tightest enclosing group)."""
     page = os.sysconf("SC_PAGE_SIZE")
     free = _read_int("/proc/meminfo", "MemAvailable:", 1024) or page * os.sysconf("SC_PHYS_PAGES")
     headroom = memory_headroom()

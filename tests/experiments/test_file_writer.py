@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import threading
 import time
@@ -88,6 +89,11 @@ def test_a_worker_takes_the_queued_tasks_one_at_a_time_in_order(tmp_path):
     assert times == sorted(times)  # in the order submitted
 
 
+def fill_the_disk(path: Path) -> None:
+    """Fail as a write to a full disk does."""
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
 def write_in_thread(path: Path, main: int) -> None:
     """Write whether this runs in the thread ``main`` (``"main"``) or another (``"thread"``), and the process id."""
     write_text(path, f"{'main' if threading.get_ident() == main else 'thread'} {os.getpid()}")
@@ -98,7 +104,7 @@ def test_a_thread_task_runs_in_a_thread_of_the_caller_and_is_complete_at_close(t
     writer = FileWriter(1, preload=())
     writer.submit(write_in_thread, path, threading.get_ident(), path=path, thread=True)
     writer.submit(write_in_thread, bad, threading.get_ident(), path=bad, thread=True)
-    with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/u\.txt: FileNotFoundError"):
+    with pytest.raises(FileNotFoundError, match=r"No such file or directory.*missing-folder/u\.txt"):
         writer.close()
     assert path.read_text() == f"thread {os.getpid()}"
 
@@ -137,9 +143,36 @@ def test_tasks_of_a_dead_worker_are_written_by_the_caller_and_each_failure_named
     writer = FileWriter(1, preload=())
     for path in (good[0], bad, good[1]):
         writer.submit(write_unless_in_a_worker, path, path.stem, os.getpid(), path=path)
-    with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/j\.txt: FileNotFoundError"):
+    with pytest.raises(FileNotFoundError, match=r"No such file or directory.*missing-folder/j\.txt"):
         writer.close()
     assert [p.read_text() for p in good] == ["i", "k"]
+
+
+def fail_to_draw(path: Path) -> None:
+    """A task that fails without an I/O error."""
+    raise ValueError(f"nothing to draw for {path.name}")
+
+
+def test_a_task_failing_otherwise_than_by_io_is_a_runtime_error_naming_its_file_and_the_cause(tmp_path):
+    paths = [tmp_path / "n.png", tmp_path / "o.png"]
+    writer = FileWriter(1, preload=())
+    for path in paths:
+        writer.submit(fail_to_draw, path, path=path)
+    with pytest.raises(
+        RuntimeError,
+        match=r"could not write .*([no])\.png: ValueError: nothing to draw for \1\.png \(1 more files failed\)",
+    ):
+        writer.close()
+
+
+def test_an_io_failure_in_a_worker_is_an_os_error_with_its_errno_as_when_written_here(tmp_path):
+    """A full disk in a worker is reported as one (``agsf``: exit 3, "I/O failure"), as a write in the caller is."""
+    path = tmp_path / "p.txt"
+    with pytest.raises(OSError) as failure:
+        with FileWriter(1, preload=(), caller_helps=False) as writer:
+            writer.submit(fill_the_disk, path, path=path)
+    assert failure.value.errno == errno.ENOSPC and failure.value.filename == str(path)
+    assert failure.value.strerror == os.strerror(errno.ENOSPC)
 
 
 def test_a_failed_task_is_an_error_naming_its_file_after_the_others_are_written(tmp_path):
@@ -148,7 +181,7 @@ def test_a_failed_task_is_an_error_naming_its_file_after_the_others_are_written(
     writer = FileWriter(1, preload=())
     writer.submit(write_text, bad, "beta", path=bad)
     writer.submit(write_text, good, "gamma", path=good)
-    with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/b\.txt: FileNotFoundError"):
+    with pytest.raises(FileNotFoundError, match=r"No such file or directory.*missing-folder/b\.txt"):
         writer.close()
     assert good.read_text() == "gamma"
 
@@ -158,7 +191,7 @@ def test_a_task_written_by_the_caller_that_fails_is_named_when_the_writer_closes
     writer = FileWriter(1, preload=())
     writer.submit(lambda p: write_text(p, "lambda"), bad, path=bad)  # cannot be pickled: run here, and fails
     writer.submit(write_text, tmp_path / "m.txt", "mu", path=tmp_path / "m.txt")
-    with pytest.raises(RuntimeError, match=r"could not write .*missing-folder/l\.txt: FileNotFoundError"):
+    with pytest.raises(FileNotFoundError, match=r"No such file or directory.*missing-folder/l\.txt"):
         writer.close()
     assert (tmp_path / "m.txt").read_text() == "mu"
 
@@ -336,7 +369,7 @@ def test_wait_for_a_folder_leaves_the_other_tasks_running_and_raises_only_its_ow
     mine.mkdir()
     other.mkdir()
     bad_other = other / "missing-folder" / "x.txt"
-    with pytest.raises(RuntimeError, match=r"could not write .*b/missing-folder/x\.txt") as failure:
+    with pytest.raises(FileNotFoundError, match=r"No such file or directory.*b/missing-folder/x\.txt") as failure:
         with FileWriter(1, preload=()) as writer:
             gate = tmp_path / "gate"
             writer.submit(write_when_opened, other / "slow.txt", gate, path=other / "slow.txt")  # the worker's
@@ -356,7 +389,7 @@ def test_wait_for_raises_a_failure_inside_its_folder_and_close_does_not_raise_it
     bad = tmp_path / "a" / "missing-folder" / "y.txt"
     writer = FileWriter(1, preload=(), caller_helps=False)
     writer.submit(write_text, bad, "y", path=bad)
-    with pytest.raises(RuntimeError, match=r"could not write .*a/missing-folder/y\.txt: FileNotFoundError"):
+    with pytest.raises(FileNotFoundError, match=r"No such file or directory.*a/missing-folder/y\.txt"):
         writer.wait_for(tmp_path / "a")
     writer.close()  # the failure was raised once
 
@@ -370,3 +403,21 @@ def test_wait_for_takes_back_the_task_of_a_worker_that_died_and_joins_a_thread_t
         writer.wait_for(folder)
         assert (folder / "z.txt").read_text() == "zeta"  # the worker died holding it: written here
         assert (folder / "t.txt").read_text() == "slow"
+
+
+def die_halfway_in_a_worker(path: Path, caller: int) -> None:
+    """Leave ``path``'s temporary file and die, in a worker; in the caller, write ``path``."""
+    if os.getpid() != caller:
+        Path(path).with_name(f".{Path(path).name}.0123456789ab.tmp").write_text("partial")
+        os._exit(9)
+    write_text(path, "whole")
+
+
+@pytest.mark.parametrize("wait", [True, False])
+def test_a_task_taken_back_from_a_dead_worker_leaves_no_temporary_file(tmp_path, wait):
+    path = tmp_path / "q.txt"
+    with FileWriter(1, preload=(), caller_helps=False) as writer:
+        writer.submit(die_halfway_in_a_worker, path, os.getpid(), path=path)
+        if wait:
+            writer.wait_for(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["q.txt"] and path.read_text() == "whole"

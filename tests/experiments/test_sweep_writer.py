@@ -96,3 +96,63 @@ def test_writers_are_the_local_backends(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "--writers" in err
     assert not any((tmp_path / name).exists() for name in ("r", "w", "c"))
+
+
+def test_without_a_worker_a_configuration_is_recorded_before_the_next_one_runs(tmp_path):
+    """Nothing is written in the background: a crash in the next configuration loses nothing recorded."""
+    base = load_config("case1", TINY)
+    out = tmp_path / "sweep"
+    rows_seen = []
+
+    def runner(cfg, folder, **kw):
+        rows_seen.append(len(read_json_lines(out / "results.jsonl")) if (out / "results.jsonl").exists() else 0)
+        return run_experiment(cfg, folder, **kw)
+
+    run_sweep(base, GRID, out, progress=False, writers=0, runner=runner)
+    assert rows_seen == [0, 1, 2]
+
+
+def test_a_ctrl_c_swallowed_while_the_last_files_are_written_still_stops_the_sweep(tmp_path, monkeypatch):
+    """The latch (a Ctrl-C Python dropped inside a finaliser) is read after the last configuration's files too."""
+    import threading
+    from contextlib import contextmanager
+
+    latch = threading.Event()
+
+    @contextmanager
+    def fake_latch():
+        yield latch
+
+    from agsf_torch.experiments.file_writer import FileWriter
+
+    wait_for = FileWriter.wait_for
+
+    def waiting(self, folder):
+        wait_for(self, folder)
+        if len(list((tmp_path / "sweep" / "configs").iterdir())) == 3:  # the last configuration's files
+            latch.set()
+
+    monkeypatch.setattr(sweep_run, "_interrupt_latch", fake_latch)
+    monkeypatch.setattr(FileWriter, "wait_for", waiting)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(load_config("case1", TINY), GRID, tmp_path / "sweep", progress=False, writers=1)
+    assert len(read_json_lines(tmp_path / "sweep" / "results.jsonl")) == 3  # every configuration was recorded
+
+
+def test_the_previous_configurations_failed_files_do_not_hide_the_failure_of_the_next(tmp_path, monkeypatch, caplog):
+    from agsf_torch.experiments.file_writer import FileWriter
+
+    def failing_wait(self, folder):
+        raise OSError(28, "No space left on device", str(folder / "rms.png"))
+
+    def runner(cfg, folder, **kw):
+        if cfg.reg == 1.0:
+            raise KeyboardInterrupt
+        return run_experiment(cfg, folder, **kw)
+
+    monkeypatch.setattr(FileWriter, "wait_for", failing_wait)
+    with pytest.raises(KeyboardInterrupt):
+        base = load_config("case1", [*TINY[:-1], 'filters=["AGSF"]'])  # nothing reused: the next one runs at once
+        run_sweep(base, {"reg": [0.5, 1.0]}, tmp_path / "sweep", progress=False, writers=1, runner=runner)
+    assert "No space left on device" in caplog.text  # logged, not raised over the interruption
+    assert not (tmp_path / "sweep" / "results.jsonl").exists()  # its files failed: not recorded

@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import logging
 import signal
 import threading
 from collections.abc import Callable
@@ -27,6 +28,8 @@ from .rows import config_metrics
 __all__ = ["parse_grid", "run_sweep", "SweepBusy", "BACKENDS"]
 
 BACKENDS = ("local", "ray")
+
+logger = logging.getLogger(__name__)
 
 
 def _split_values(text: str) -> list[str]:
@@ -115,9 +118,10 @@ def run_sweep(
     One sweep at a time may write ``out``: a second one raises :class:`SweepBusy`.
 
     Args:
-        runner: runs one configuration, ``runner(cfg, out, progress=, kind=, label=)`` →
+        runner: runs one configuration, ``runner(cfg, out, progress=, kind=, label=, writer=[, reuse=])`` →
             summary (:func:`run_experiment`; tests inject failures through it); ``label`` (local
-            backend) names the configuration on its progress bar: its preset and parameters.
+            backend) names the configuration on its progress bar: its preset and parameters; ``writer`` (local
+            backend) writes its files; ``reuse`` (local backend) names the folders of filters it copies.
             With ``backend="ray"`` it runs on the workers, so it must be picklable.
         backend: ``"local"`` (in this process, one configuration after another)
             or ``"ray"`` (one Ray task per configuration, see the module docstring).
@@ -133,7 +137,7 @@ def run_sweep(
         writers: local only: worker processes that write a configuration's figures, event files and ``runs.npz``
             while the next configuration runs (:func:`~..file_writer.writing_beside`; default: one on two CPUs or
             more, else none).  A configuration is recorded (its events moved, its row appended) once its files are
-            complete; one that reuses another's filters starts once that one's are.
+            complete; one that reuses a filter of the configuration before it starts once that one is recorded.
         threads: local only: torch threads (default: torch's, capped so that they and the writers fit the CPUs).
 
     Raises:
@@ -261,7 +265,7 @@ def _run_pending(
                 digests = {cfg.filter_digest(n) for n in cfg.filters}
                 if previous is not None and (digests - set(sources)) & {
                     previous[1].filter_digest(n) for n in previous[1].filters
-                }:  # it reuses a filter of the previous configuration: that one's runs.npz first
+                }:  # it reuses a filter of the previous configuration: that one is complete and recorded first
                     finish(*previous)
                     previous = None
                 reuse = {n: sources[d] for n in cfg.filters if (d := cfg.filter_digest(n)) in sources}
@@ -271,18 +275,28 @@ def _run_pending(
                         cfg, folder, progress=progress, kind="sweep-config", label=label, writer=writer, **kwargs
                     )
                 except BaseException:  # failed or interrupted: the previous configuration ran to its end, so it is
-                    # recorded once its files are written (a second Ctrl-C meanwhile stops the writer)
+                    # recorded once its files are written (a second Ctrl-C meanwhile stops the writer); its own
+                    # failure to write is logged, and this failure (or the interruption) is the one raised
                     if previous is not None:
-                        finish(*previous)
+                        try:
+                            finish(*previous)
+                        except Exception as failed:  # noqa: BLE001
+                            logger.warning("%s (while handling the failure of the next configuration)", failed)
                     raise
                 if previous is not None:
                     finish(*previous)
                 previous = (params, cfg, summary, reuse)
+                if not writer.background:  # nothing is being written: recorded at once
+                    finish(*previous)
+                    previous = None
                 if interrupted.is_set():  # a Ctrl-C that Python swallowed (e.g. raised inside a finaliser): this
-                    finish(*previous)  # configuration ran to its end, so it is recorded (once its files are written)
+                    if previous is not None:  # configuration ran to its end, so it is recorded (once its files are)
+                        finish(*previous)
                     raise KeyboardInterrupt
             if previous is not None:
                 finish(*previous)
+            if interrupted.is_set():  # swallowed while the last configuration's files were written
+                raise KeyboardInterrupt
         elif pending:
             run_on_ray(
                 pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs), interrupted
