@@ -38,9 +38,9 @@ _V1_UNLIMITED = 2**60
 def _groups(controller: str, proc: Path) -> list[Path]:
     """The folders of this process's cgroup and of its enclosing groups up to the top of the mount, innermost
     first, in the hierarchy holding ``controller`` (v1) or in the unified one (v2, ``controller = ""``)."""
-    try:
-        memberships = (proc / "self" / "cgroup").read_text().splitlines()
-        mounts = (proc / "self" / "mountinfo").read_text().splitlines()
+    try:  # paths are bytes to the kernel: one not in UTF-8 is kept as surrogates (os.fsencode gives it back)
+        memberships = (proc / "self" / "cgroup").read_text(errors="surrogateescape").splitlines()
+        mounts = (proc / "self" / "mountinfo").read_text(errors="surrogateescape").splitlines()
     except OSError:
         return []
     path = None
@@ -59,16 +59,23 @@ def _groups(controller: str, proc: Path) -> list[Path]:
         options = options.split()[-1].split(",") if options.split() else []
         if fstype == "cgroup2" if not controller else (fstype == "cgroup" and controller in options):
             candidates.append((_unescape(fields[3]), Path(_unescape(fields[4]))))
-    holding = [(root, point) for root, point in candidates if Path(path).is_relative_to(root)]
-    if holding:  # the mount whose root is the nearest enclosing group of this process's
-        root, point = max(holding, key=lambda m: len(Path(m[0]).parts))
-        start = point / Path(path).relative_to(root)
-        start = start if start.is_dir() else point
-    elif candidates:
-        point = candidates[0][1]
-        start = point
-    else:
-        return []
+    # the mounts whose root encloses the group, shallowest first: each shows the same hierarchy, so the shallowest
+    # under which the group's folder exists shows every enclosing group
+    holding = sorted(
+        ((root, point) for root, point in candidates if Path(path).is_relative_to(root)),
+        key=lambda mount: len(Path(mount[0]).parts),
+    )
+    found = next(((r, p) for r, p in holding if (p / Path(path).relative_to(r)).is_dir()), None)
+    if found is not None:
+        point = found[1]
+        start = point / Path(path).relative_to(found[0])
+    elif holding:  # the group's path hidden (a cgroup namespace): the mount's own group encloses it
+        point = start = holding[0][1]
+    else:  # a mount rooted above a nested namespace (only "..": an enclosing group); a sibling's is not read
+        above = [p for r, p in candidates if Path(r).is_absolute() and set(Path(r).parts[1:]) == {".."}]
+        if not above:
+            return []
+        point = start = above[0]
     return [start, *[p for p in start.parents if p.is_relative_to(point)]]
 
 
@@ -81,7 +88,7 @@ def _unescape(field: str) -> str:
 def _read(folder: Path, name: str) -> list[str] | None:
     """The words of a cgroup file, or None where it is absent or unreadable."""
     try:
-        return (folder / name).read_text().split()
+        return (folder / name).read_text(errors="replace").split()
     except OSError:
         return None
 

@@ -125,11 +125,37 @@ def test_escaped_mount_points_are_decoded(tmp_path):
     assert cpu_limit(proc) == 0.5
 
 
-def test_the_mount_whose_root_holds_the_group_is_read(tmp_path):
-    """Of two mounts of the hierarchy, the one whose root encloses the group most nearly."""
-    mounts = [("/", "whole", "cgroup2", "rw"), ("/svc", "svc-only", "cgroup2", "rw")]
-    files = {"whole/svc/job/cpu.max": "300000 100000\n", "svc-only/job/cpu.max": "200000 100000\n"}
-    proc = fake_system(tmp_path, ["0::/svc/job"], mounts, files)
+def test_of_the_mounts_that_show_the_group_the_shallowest_is_read(tmp_path):
+    """Every mount of a hierarchy shows the same groups: the whole tree's shows the enclosing ``machine.slice`` and its
+    limit, a bind of the service's group alone does not, whatever the order of the mounts."""
+    mounts = [("/machine.slice/svc", "svc-only", "cgroup2", "rw"), ("/", "whole", "cgroup2", "rw")]
+    files = {
+        "whole/machine.slice/cpu.max": "100000 100000\n",
+        "whole/machine.slice/svc/cpu.max": "max 100000\n",
+        "svc-only/cpu.max": "max 100000\n",
+    }
+    proc = fake_system(tmp_path, ["0::/machine.slice/svc"], mounts, files)
+    assert cpu_limit(proc) == 1.0
+
+
+def test_a_group_shown_by_a_deeper_mount_only_is_read_there(tmp_path):
+    mounts = [("/", "whole", "cgroup2", "rw"), ("/machine.slice/svc", "svc-only", "cgroup2", "rw")]
+    (tmp_path / "whole").mkdir()  # the whole tree's mount does not show the group's folder
+    proc = fake_system(tmp_path, ["0::/machine.slice/svc"], mounts, {"svc-only/cpu.max": "50000 100000\n"})
+    assert cpu_limit(proc) == 0.5
+
+
+def test_a_siblings_mount_is_not_read(tmp_path):
+    """A mount rooted at another group beside this process's (``/../other``) sets none of its limits."""
+    proc = fake_system(tmp_path, ["0::/"], [("/../other", "cg", "cgroup2", "rw")], {"cg/cpu.max": "50000 100000\n"})
+    assert cpu_limit(proc) is None
+
+
+def test_a_mount_point_not_in_utf8_is_read(tmp_path):
+    """Paths are bytes to the kernel; one that is not UTF-8 elsewhere in the table does not stop the reader."""
+    proc = fake_system(tmp_path, ["0::/"], V2_MOUNT, {"cg/cpu.max": "200000 100000\n"})
+    with open(proc / "self" / "mountinfo", "ab") as fh:
+        fh.write(b"41 23 0:40 / /media/Caf\xe9 rw - vfat /dev/sdb1 rw\n")
     assert cpu_limit(proc) == 2.0
 
 

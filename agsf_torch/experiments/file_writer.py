@@ -14,7 +14,9 @@ which import matplotlib and TensorBoard's writer while the caller works): a new 
 worker holds one task at a time; the others wait in the caller's queue, and a worker that finishes takes the next.
 :meth:`FileWriter.close` (leaving the ``with`` block) first *helps*: the caller, whose own work is done, runs the
 queued tasks itself beside the workers (the last case's figures no longer wait for one worker to draw them in
-turn); then it waits for every task and raises ``RuntimeError`` naming the file of the first that failed.
+turn); then it waits for every task and raises a failed task's error naming its file, as the caller would have
+raised it writing the file itself (an ``OSError`` with its errno — a full disk is one, first — a ``ValueError``, else
+``RuntimeError``).  :meth:`FileWriter.wait_for` waits for one folder's tasks while the others go on.
 
 A task submitted with ``thread=True`` runs in a thread of the caller instead: for a task whose arguments are too
 large to hand over (``runs.npz``'s arrays above :data:`HANDOVER_BYTES`: a copy, gigabytes for a large run) and
@@ -33,6 +35,7 @@ time) is completed first.  A worker that exits abnormally is announced as a warn
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import glob
 import itertools
 import json
@@ -114,7 +117,7 @@ class FileWriter:
         self._jobs: dict[str, tuple[Path, int | None]] = {}  # job file → (the file it writes, worker or None: queued)
         self._queue: deque[str] = deque()  # job files no worker holds yet, in the order submitted
         self._in_hand: dict[int, str | None] = {}  # worker → the job it holds
-        self._errors: list[tuple[Path, str, int | None]] = []  # (file, "Type: message", errno of an OSError)
+        self._errors: list[_Failure] = []
         self._workers: list[tuple[subprocess.Popen, threading.Thread]] = []
         self._threads: list[tuple[threading.Thread, Path]] = []  # the thread task (at most one) and its file
         self._count = itertools.count()
@@ -152,8 +155,8 @@ class FileWriter:
 
     @property
     def background(self) -> bool:
-        """Whether tasks run beside the caller (in workers, or a thread): with no worker each runs when submitted."""
-        return bool(self._workers)
+        """Whether tasks run beside the caller: while a worker is alive (without one each runs in the caller)."""
+        return self._any_worker_alive()
 
     def submit(self, write: Callable[..., Any], *args: Any, path: str | Path, thread: bool = False) -> None:
         """Run ``write(*args)``, which writes the file ``path`` (named in a failure's message): now, in the caller,
@@ -233,8 +236,8 @@ class FileWriter:
     def wait_for(self, folder: str | Path) -> None:
         """Until every task writing inside ``folder`` is done, while the others go on: the queued ones run here (the
         caller would only wait), the workers' are waited for (run here if their worker died before it answered), a
-        thread task is joined.  Then ``RuntimeError`` naming the first file inside ``folder`` that failed (and how
-        many did; :meth:`close` does not raise them again).  A sweep waits for one configuration's files before it
+        thread task is joined.  Then the error of a task inside ``folder`` that failed, naming its file and how many
+        failed (as :meth:`close` raises it, which does not raise them again).  A sweep waits for one configuration's files before it
         records the configuration as done, while the next one's are still being written."""
         folder = Path(folder)
 
@@ -267,8 +270,8 @@ class FileWriter:
                     self._write_here(path, self._run_here, job)
             time.sleep(0.005)
         with self._lock:
-            failed = [e for e in self._errors if inside(e[0])]
-            self._errors = [e for e in self._errors if not inside(e[0])]
+            failed = [e for e in self._errors if inside(e.path)]
+            self._errors = [e for e in self._errors if not inside(e.path)]
         _raise_first(failed)
 
     def _write_here(self, path: Path, write: Callable[..., Any], *args: Any) -> None:
@@ -277,7 +280,7 @@ class FileWriter:
             write(*args)
         except Exception as exc:  # noqa: BLE001 - recorded with its file, raised by close()
             with self._lock:
-                self._errors.append((path, f"{type(exc).__name__}: {exc}", _errno(exc)))
+                self._errors.append(_Failure(path, **_describe(exc)))
 
     def _read(self, index: int, proc: subprocess.Popen) -> None:
         """A worker's replies (one JSON line per task), until it exits."""
@@ -291,15 +294,15 @@ class FileWriter:
         """Note one reply of worker ``index``: the job done, and its error if it failed; hand it the next."""
         try:
             reply = json.loads(line)
-            job, error, code = reply["job"], reply["error"], reply.get("errno")
-            if not isinstance(job, str) or not (error is None or isinstance(error, str)) or not _is_errno(code):
+            job, error = reply["job"], reply["error"]
+            if not isinstance(job, str) or not (error is None or isinstance(error, str)):
                 return
-        except Exception:  # noqa: BLE001 - not a reply: ignored, the task is then written by the caller
+        except Exception:  # noqa: BLE001 - not a reply: ignored; the worker's task is taken back if it dies
             return
         with self._lock:
             path, _ = self._jobs.pop(job, (None, None))
             if path is not None and error is not None:
-                self._errors.append((path, error, code))
+                self._errors.append(_Failure.from_reply(path, reply))
             if self._in_hand.get(index) == job:
                 self._in_hand[index] = None
                 if not self._closed:
@@ -312,8 +315,8 @@ class FileWriter:
         Path(job).unlink(missing_ok=True)
 
     def close(self) -> None:
-        """Run the queued tasks here beside the workers, wait for every task; then ``RuntimeError`` naming the file
-        of the first that failed (and how many did)."""
+        """Run the queued tasks here beside the workers, wait for every task; then the error of a task that failed,
+        naming its file and how many failed (module docstring)."""
         try:
             if self._caller_helps:
                 self._help()
@@ -400,8 +403,8 @@ class FileWriter:
                 logger.warning("%s (while handling %s: %s)", failed, exc_type.__name__, exc)
         else:  # interrupted: stop now
             self._shutdown()
-            for path, error, _ in self._errors:
-                logger.warning("could not write %s: %s (while interrupted)", path, error)
+            for failure in self._errors:
+                logger.warning("could not write %s: %s (while interrupted)", failure.path, failure.error)
             self._errors = []
 
 
@@ -446,32 +449,78 @@ def writing_beside(writers: int | None = None, threads: int | None = None):
 def _remove_partial(path: Path) -> None:
     """Remove what a killed writer left of ``path``: its temporary file or folder (the name
     :func:`agsf_torch.storage.files.atomic_open` and the TensorBoard runs use)."""
-    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.{'[0-9a-f]' * 12}.tmp"):  # not another file's
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
         else:
             tmp.unlink(missing_ok=True)
 
 
-def _errno(exc: BaseException) -> int | None:
-    """The errno of an ``OSError`` (a full disk, a missing folder), else None."""
-    return exc.errno if isinstance(exc, OSError) and _is_errno(exc.errno) and exc.errno is not None else None
+@dataclasses.dataclass(frozen=True)
+class _Failure:
+    """A task that failed: the file it writes, ``"Type: message"``, and what re-raises it as the caller would have
+    seen it had it written the file itself: ``kind`` (``"os"`` an ``OSError`` with ``errno``, ``strerror`` and
+    ``filename``; ``"value"`` a ``ValueError``; ``"other"``)."""
+
+    path: Path
+    error: str
+    kind: str = "other"
+    errno: int | None = None
+    strerror: str | None = None
+    filename: str | None = None
+
+    @classmethod
+    def from_reply(cls, path: Path, reply: dict) -> _Failure:
+        """From a worker's reply (:func:`_describe`'s fields); a field of the wrong type is dropped."""
+        fields = _describe_fields(reply)
+        return cls(path, str(reply["error"]), **fields)
 
 
-def _is_errno(code: Any) -> bool:
-    return code is None or (isinstance(code, int) and not isinstance(code, bool))
+def _describe(exc: BaseException) -> dict[str, Any]:
+    """What :class:`_Failure` keeps of an exception (a worker sends it in its reply)."""
+    if isinstance(exc, OSError) and _valid_errno(exc.errno):
+        return {
+            "error": f"{type(exc).__name__}: {exc}",
+            "kind": "os",
+            "errno": exc.errno,
+            "strerror": exc.strerror if isinstance(exc.strerror, str) else None,
+            "filename": os.fsdecode(exc.filename) if isinstance(exc.filename, (str, bytes)) else None,
+        }
+    return {"error": f"{type(exc).__name__}: {exc}", "kind": "value" if isinstance(exc, ValueError) else "other"}
 
 
-def _raise_first(errors: list[tuple[Path, str, int | None]]) -> None:
-    """Raise the first failed task's error naming its file and how many more failed, if any did: an ``OSError`` with
-    its errno where the task failed with one (so that a full disk is reported as such, as when the caller writes
-    itself), else ``RuntimeError``."""
-    if errors:
-        path, error, code = errors[0]
-        more = f" ({len(errors) - 1} more files failed)" if len(errors) > 1 else ""
-        if code is not None:
-            raise OSError(code, f"{os.strerror(code)}{more}", str(path))
-        raise RuntimeError(f"could not write {path}: {error}{more}")
+def _describe_fields(reply: dict) -> dict[str, Any]:
+    """The re-raising fields of a reply, each kept only if it has its type (an older or foreign worker's reply
+    lacks them: the failure is then reported as one of an unknown kind)."""
+    kind = reply.get("kind") if reply.get("kind") in ("os", "value", "other") else "other"
+    errno_ = reply.get("errno") if _valid_errno(reply.get("errno")) else None
+    if kind == "os" and errno_ is None:
+        kind = "other"
+    text = {k: reply.get(k) if isinstance(reply.get(k), str) else None for k in ("strerror", "filename")}
+    return {"kind": kind, "errno": errno_, **text}
+
+
+def _valid_errno(code: Any) -> bool:
+    """An errno a system call can report: a positive C int."""
+    return isinstance(code, int) and not isinstance(code, bool) and 0 < code < 2**31
+
+
+def _raise_first(failures: list[_Failure]) -> None:
+    """Raise a failed task's error, naming its file and how many more failed, if any did, as the caller would have
+    raised it writing the file itself: an ``OSError`` with its errno, message and file name (the first such, so that
+    a full disk is reported as one whatever failed before it), else a ``ValueError``, else ``RuntimeError``."""
+    if not failures:
+        return
+    first = next((f for f in failures if f.kind == "os"), failures[0])
+    more = f" ({len(failures) - 1} more files failed)" if len(failures) > 1 else ""
+    if first.kind == "os":
+        message = f"{first.strerror or os.strerror(first.errno)}{more}"
+        if first.filename is not None and Path(first.filename) != first.path:
+            message = f"{message}, writing {first.path}"
+        raise OSError(first.errno, message, first.filename if first.filename is not None else str(first.path))
+    if first.kind == "value":
+        raise ValueError(f"could not write {first.path}: {first.error}{more}")
+    raise RuntimeError(f"could not write {first.path}: {first.error}{more}")
 
 
 def _run_job(job: str) -> None:
@@ -485,7 +534,8 @@ def _run_job(job: str) -> None:
 def _serve(preload: Sequence[str]) -> None:
     """A worker: import ``preload``, then run the task of every job file named on stdin (a JSON string per line),
     one JSON reply per line
-    (``{"job": file, "error": null | "Type: message", "errno": null | an OSError's errno}``) on the original stdout; anything a task prints goes to
+    (``{"job": file, "error": null | "Type: message"}``, a failure with :func:`_describe`'s fields) on the original
+    stdout; anything a task prints goes to
     stderr."""
     import importlib
 
@@ -503,10 +553,10 @@ def _serve(preload: Sequence[str]) -> None:
             continue
         try:
             _run_job(job)
-            error, code = None, None
+            reply = {"job": job, "error": None}
         except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it naming the file
-            error, code = f"{type(exc).__name__}: {exc}", _errno(exc)
-        replies.write(json.dumps({"job": job, "error": error, "errno": code}) + "\n")
+            reply = {"job": job, **_describe(exc)}
+        replies.write(json.dumps(reply) + "\n")
         replies.flush()
     # every task answered and its file complete: leave without the interpreter's teardown (half a second with torch
     # and matplotlib loaded, which the caller's close() would wait for)

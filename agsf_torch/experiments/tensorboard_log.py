@@ -176,7 +176,8 @@ def filter_events(data: dict[str, np.ndarray], summary: dict[str, Any]) -> dict[
 def write_filter_run(run: Path, events: dict[str, Any]) -> None:
     """Write one filter's run ``run`` (a folder) from its :func:`filter_events` entry: the ``time_axis`` text at step
     0, each tag's scalars, then the weight histograms.  The event file is written in a hidden folder beside ``run``
-    (``.{name}.{hex}.tmp``) and moved into ``run`` when whole: an interrupted run leaves no truncated curves."""
+    (``.{name}.{hex}.tmp``) and moved into ``run`` when whole, in place of any event file ``run`` held (a task written
+    again after its worker died leaves one run, not two): an interrupted run leaves no truncated curves."""
     from torch.utils.tensorboard import SummaryWriter
 
     run = Path(run)
@@ -195,6 +196,8 @@ def write_filter_run(run: Path, events: dict[str, Any]) -> None:
         finally:
             writer.close()
         run.mkdir(parents=True, exist_ok=True)
+        for earlier in run.glob("events.out.tfevents.*"):  # a retaken task's first write: the run is this one
+            earlier.unlink()
         for event_file in sorted(tmp.iterdir()):
             os.replace(event_file, run / event_file.name)
         tmp.rmdir()

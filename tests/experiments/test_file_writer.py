@@ -153,16 +153,83 @@ def fail_to_draw(path: Path) -> None:
     raise ValueError(f"nothing to draw for {path.name}")
 
 
-def test_a_task_failing_otherwise_than_by_io_is_a_runtime_error_naming_its_file_and_the_cause(tmp_path):
+def divide_by_zero(path: Path) -> None:
+    """A task that fails with neither an I/O error nor a ValueError."""
+    1 / 0
+
+
+def test_a_failed_task_is_raised_as_the_caller_would_have_raised_it_naming_its_file(tmp_path):
+    """A ValueError as a ValueError (``agsf``: one line, exit 2, as when the caller draws the figure itself), any
+    other failure as RuntimeError, each naming the file and how many failed."""
     paths = [tmp_path / "n.png", tmp_path / "o.png"]
     writer = FileWriter(1, preload=())
     for path in paths:
         writer.submit(fail_to_draw, path, path=path)
     with pytest.raises(
-        RuntimeError,
+        ValueError,
         match=r"could not write .*([no])\.png: ValueError: nothing to draw for \1\.png \(1 more files failed\)",
     ):
         writer.close()
+    with pytest.raises(RuntimeError, match=r"could not write .*r\.png: ZeroDivisionError"):
+        with FileWriter(1, preload=(), caller_helps=False) as writer:
+            writer.submit(divide_by_zero, tmp_path / "r.png", path=tmp_path / "r.png")
+
+
+def fail_with(path: Path, code: int, message: str, filename: str | None) -> None:
+    raise OSError(code, message, filename)
+
+
+def test_an_io_failure_keeps_its_message_and_file_and_comes_first_and_a_non_errno_is_not_one(tmp_path):
+    """An ``OSError`` keeps its own message and file name (the file written named too where they differ); it is the
+    one raised whatever failed before it (a full disk exits 3); an errno 0 or out of range is no I/O failure."""
+    out = tmp_path / "s.png"
+    style = str(tmp_path / "agsf.mplstyle")
+    with pytest.raises(OSError) as failure:
+        with FileWriter(1, preload=(), caller_helps=False) as writer:
+            writer.submit(fail_to_draw, tmp_path / "q.png", path=tmp_path / "q.png")
+            writer.submit(fail_with, out, errno.ENOENT, "the style sheet is missing", style, path=out)
+    assert failure.value.errno == errno.ENOENT and failure.value.filename == style
+    assert failure.value.strerror == f"the style sheet is missing (1 more files failed), writing {out}"
+    for code in (0, 2**40):
+        with pytest.raises(RuntimeError, match=r"could not write .*s\.png: OSError"):
+            with FileWriter(1, preload=(), caller_helps=False) as writer:
+                writer.submit(fail_with, out, code, "odd", None, path=out)
+
+
+def test_a_reply_with_foreign_fields_is_taken_as_a_failure_of_unknown_kind_not_dropped(tmp_path):
+    """A worker's reply whose errno is not a number still reports its job done (a dropped reply left the job held
+    by a live worker, and wait_for waiting for ever)."""
+    import json
+
+    path = tmp_path / "t.png"
+    writer = FileWriter(1, preload=(), caller_helps=False)
+    try:
+        with writer._lock:
+            writer._jobs["job-x"] = (path, 0)
+            writer._in_hand[0] = "job-x"
+        writer._take(0, json.dumps({"job": "job-x", "error": "OSError: full", "kind": "os", "errno": "ENOSPC"}))
+        assert "job-x" not in writer._jobs
+        with pytest.raises(RuntimeError, match=r"could not write .*t\.png: OSError: full"):
+            writer.wait_for(tmp_path)
+    finally:
+        writer.close()
+
+
+def test_a_dead_workers_leftovers_are_its_own_file_only_and_background_ends_with_the_workers(tmp_path):
+    from agsf_torch.experiments.file_writer import _remove_partial
+
+    mine, other = tmp_path / ".data.0123456789ab.tmp", tmp_path / ".data.csv.0123456789ab.tmp"
+    mine.write_text("partial")
+    other.write_text("another task's, being written")
+    _remove_partial(tmp_path / "data")
+    assert not mine.exists() and other.exists()
+    writer = FileWriter(1, preload=())
+    assert writer.background
+    for proc, _ in writer._workers:
+        proc.kill()
+        proc.wait()
+    assert not writer.background  # every task now runs in the caller
+    writer.close()
 
 
 def test_an_io_failure_in_a_worker_is_an_os_error_with_its_errno_as_when_written_here(tmp_path):

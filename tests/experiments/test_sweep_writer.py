@@ -112,31 +112,61 @@ def test_without_a_worker_a_configuration_is_recorded_before_the_next_one_runs(t
     assert rows_seen == [0, 1, 2]
 
 
-def test_a_ctrl_c_swallowed_while_the_last_files_are_written_still_stops_the_sweep(tmp_path, monkeypatch):
-    """The latch (a Ctrl-C Python dropped inside a finaliser) is read after the last configuration's files too."""
+def _latched_sweep(tmp_path, monkeypatch, on_wait):
+    """Run the sweep of ``GRID`` with a latch (a Ctrl-C Python dropped inside a finaliser) that ``on_wait(folder,
+    latch)`` may set after each wait for a configuration's files; return the runner's calls."""
     import threading
     from contextlib import contextmanager
 
-    latch = threading.Event()
+    from agsf_torch.experiments.file_writer import FileWriter
+
+    latch, calls = threading.Event(), []
 
     @contextmanager
     def fake_latch():
         yield latch
 
-    from agsf_torch.experiments.file_writer import FileWriter
-
     wait_for = FileWriter.wait_for
 
     def waiting(self, folder):
         wait_for(self, folder)
-        if len(list((tmp_path / "sweep" / "configs").iterdir())) == 3:  # the last configuration's files
-            latch.set()
+        on_wait(folder, latch)
+
+    def runner(cfg, folder, **kw):
+        calls.append(cfg.reg)
+        return run_experiment(cfg, folder, **kw)
 
     monkeypatch.setattr(sweep_run, "_interrupt_latch", fake_latch)
     monkeypatch.setattr(FileWriter, "wait_for", waiting)
+    run_sweep(load_config("case1", TINY), GRID, tmp_path / "sweep", progress=False, writers=1, runner=runner)
+    return calls
+
+
+def test_a_ctrl_c_swallowed_while_a_reused_configuration_is_recorded_stops_the_sweep_before_the_next(
+    tmp_path, monkeypatch
+):
+    """The second configuration reuses the first's filters, so it waits for the first's files: a Ctrl-C dropped
+    meanwhile stops the sweep there, the second never started."""
+    calls = []
     with pytest.raises(KeyboardInterrupt):
-        run_sweep(load_config("case1", TINY), GRID, tmp_path / "sweep", progress=False, writers=1)
-    assert len(read_json_lines(tmp_path / "sweep" / "results.jsonl")) == 3  # every configuration was recorded
+        calls = _latched_sweep(tmp_path, monkeypatch, lambda folder, latch: latch.set())
+    rows = read_json_lines(tmp_path / "sweep" / "results.jsonl")
+    assert [r["params"]["reg"] for r in rows] == [0.5] and calls == []  # (the runner's calls are lost with the raise)
+    assert len(list((tmp_path / "sweep" / "configs").iterdir())) == 1
+
+
+def test_a_ctrl_c_swallowed_while_the_last_files_are_written_finds_the_sweep_complete(tmp_path, monkeypatch):
+    """Every configuration has run and is recorded: the sweep ends as it would have a moment later."""
+    waits = []
+
+    def late(folder, latch):
+        waits.append(folder)
+        if len(waits) == 3:  # the first (reused by the second), the second (after the third ran), the third: the last
+            latch.set()
+
+    calls = _latched_sweep(tmp_path, monkeypatch, late)
+    assert calls == [0.5, 1.0, 2.0] and len(waits) == 3
+    assert len(read_json_lines(tmp_path / "sweep" / "results.jsonl")) == 3
 
 
 def test_the_previous_configurations_failed_files_do_not_hide_the_failure_of_the_next(tmp_path, monkeypatch, caplog):

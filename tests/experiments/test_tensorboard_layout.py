@@ -335,3 +335,18 @@ def test_event_series_go_to_the_writer_unless_they_exceed_the_handover_limit(tmp
     assert writer.calls == handed
     written = sorted(p.parent.name for p in (tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
     assert written == sorted({"EKF", "GSF"} - set(handed))  # what was not handed over is written here
+
+
+def test_a_filter_run_written_again_holds_one_event_file(tmp_path):
+    """A task taken back from a worker that died after writing the run writes it again: the run is replaced, its
+    curves not doubled."""
+    from agsf_torch.experiments.tensorboard_log import write_filter_run
+    from tests.helpers import event_records
+
+    events = {"text": "time: simulated s", "scalars": {"rms_deg": (np.arange(3), np.array([1.0, 0.5, 0.25]))}}
+    events["histograms"] = None
+    write_filter_run(tmp_path / "GSF", events)
+    once = event_records(tmp_path)
+    write_filter_run(tmp_path / "GSF", events)
+    assert len(list((tmp_path / "GSF").glob("events.out.tfevents.*"))) == 1
+    assert event_records(tmp_path) == once and not list(tmp_path.glob(".*.tmp"))

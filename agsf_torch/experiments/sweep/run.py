@@ -268,6 +268,8 @@ def _run_pending(
                 }:  # it reuses a filter of the previous configuration: that one is complete and recorded first
                     finish(*previous)
                     previous = None
+                    if interrupted.is_set():  # a Ctrl-C swallowed while its files were written
+                        raise KeyboardInterrupt
                 reuse = {n: sources[d] for n in cfg.filters if (d := cfg.filter_digest(n)) in sources}
                 kwargs = {"reuse": reuse} if reuse else {}
                 try:
@@ -281,7 +283,7 @@ def _run_pending(
                         try:
                             finish(*previous)
                         except Exception as failed:  # noqa: BLE001
-                            logger.warning("%s (while handling the failure of the next configuration)", failed)
+                            logger.warning("%s (while the next configuration failed or was interrupted)", failed)
                     raise
                 if previous is not None:
                     finish(*previous)
@@ -293,10 +295,9 @@ def _run_pending(
                     if previous is not None:  # configuration ran to its end, so it is recorded (once its files are)
                         finish(*previous)
                     raise KeyboardInterrupt
-            if previous is not None:
-                finish(*previous)
-            if interrupted.is_set():  # swallowed while the last configuration's files were written
-                raise KeyboardInterrupt
+            if previous is not None:  # a Ctrl-C swallowed while its files are written finds the sweep complete:
+                finish(*previous)  # it ends as it would have a moment later
+
         elif pending:
             run_on_ray(
                 pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs), interrupted
