@@ -15,8 +15,8 @@ worker holds one task at a time; the others wait in the caller's queue, and a wo
 :meth:`FileWriter.close` (leaving the ``with`` block) first *helps*: the caller, whose own work is done, runs the
 queued tasks itself beside the workers (the last case's figures no longer wait for one worker to draw them in
 turn); then it waits for every task and raises a failed task's error naming its file, as the caller would have
-raised it writing the file itself (an ``OSError`` with its errno — a full disk is one, first — a ``ValueError``, else
-``RuntimeError``).  :meth:`FileWriter.wait_for` waits for one folder's tasks while the others go on.
+raised it writing the file itself (an ``OSError`` with its errno where it has one — a full disk first — a
+``ValueError``, else ``RuntimeError``).  :meth:`FileWriter.wait_for` waits for one folder's tasks while the others go on.
 
 A task submitted with ``thread=True`` runs in a thread of the caller instead: for a task whose arguments are too
 large to hand over (``runs.npz``'s arrays above :data:`HANDOVER_BYTES`: a copy, gigabytes for a large run) and
@@ -486,16 +486,15 @@ def _describe(exc: BaseException) -> dict[str, Any]:
             "strerror": exc.strerror if isinstance(exc.strerror, str) else None,
             "filename": os.fsdecode(exc.filename) if isinstance(exc.filename, (str, bytes)) else None,
         }
-    return {"error": f"{type(exc).__name__}: {exc}", "kind": "value" if isinstance(exc, ValueError) else "other"}
+    kind = "os" if isinstance(exc, OSError) else "value" if isinstance(exc, ValueError) else "other"
+    return {"error": f"{type(exc).__name__}: {exc}", "kind": kind}  # an OSError without a usable errno: "os" alone
 
 
 def _describe_fields(reply: dict) -> dict[str, Any]:
     """The re-raising fields of a reply, each kept only if it has its type (an older or foreign worker's reply
     lacks them: the failure is then reported as one of an unknown kind)."""
     kind = reply.get("kind") if reply.get("kind") in ("os", "value", "other") else "other"
-    errno_ = reply.get("errno") if _valid_errno(reply.get("errno")) else None
-    if kind == "os" and errno_ is None:
-        kind = "other"
+    errno_ = reply.get("errno") if kind == "os" and _valid_errno(reply.get("errno")) else None
     text = {k: reply.get(k) if isinstance(reply.get(k), str) else None for k in ("strerror", "filename")}
     return {"kind": kind, "errno": errno_, **text}
 
@@ -508,16 +507,19 @@ def _valid_errno(code: Any) -> bool:
 def _raise_first(failures: list[_Failure]) -> None:
     """Raise a failed task's error, naming its file and how many more failed, if any did, as the caller would have
     raised it writing the file itself: an ``OSError`` with its errno, message and file name (the first such, so that
-    a full disk is reported as one whatever failed before it), else a ``ValueError``, else ``RuntimeError``."""
+    a full disk is reported as one whatever failed before it), else an ``OSError`` without an errno (errno 0 or
+    none), a ``ValueError``, or ``RuntimeError`` for anything else, each naming the file."""
     if not failures:
         return
-    first = next((f for f in failures if f.kind == "os"), failures[0])
+    first = next((f for f in failures if f.errno is not None), failures[0])
     more = f" ({len(failures) - 1} more files failed)" if len(failures) > 1 else ""
-    if first.kind == "os":
+    if first.errno is not None:
         message = f"{first.strerror or os.strerror(first.errno)}{more}"
         if first.filename is not None and Path(first.filename) != first.path:
             message = f"{message}, writing {first.path}"
         raise OSError(first.errno, message, first.filename if first.filename is not None else str(first.path))
+    if first.kind == "os":
+        raise OSError(f"could not write {first.path}: {first.error}{more}")
     if first.kind == "value":
         raise ValueError(f"could not write {first.path}: {first.error}{more}")
     raise RuntimeError(f"could not write {first.path}: {first.error}{more}")
