@@ -8,7 +8,7 @@ summary, each filter's few event series).
 
 :class:`FileWriter` takes *tasks*: a module-level function that writes one file (atomically, as every writer of
 the package does, or one TensorBoard run) and its arguments.  With ``workers=0`` each task runs when it is submitted, in the caller.  With
-``workers=k`` they go to ``k`` worker interpreters started at once (``python -m agsf_torch.experiments.file_writer``,
+``workers=k`` they go to ``k`` worker interpreters started at once (``python -m agsf_torch.experiments.writer_tasks``,
 which import matplotlib and TensorBoard's writer while the caller works): a new interpreter, not a multiprocessing child, so the caller's
 ``__main__`` is not run again.  A task's function and arguments travel as a pickle file in a scratch folder.  Each
 worker holds one task at a time; the others wait in the caller's queue, and a worker that finishes takes the next.
@@ -35,8 +35,6 @@ time) is completed first.  A worker that exits abnormally is announced as a warn
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import glob
 import itertools
 import json
 import logging
@@ -55,6 +53,9 @@ from pathlib import Path
 from typing import Any
 
 from ..processes import available_cpus, interpreter_env
+from ..storage.files import remove_partial
+from . import writer_tasks
+from .writer_tasks import Failure, describe, raise_first, run_job
 
 __all__ = [
     "FileWriter",
@@ -117,7 +118,7 @@ class FileWriter:
         self._jobs: dict[str, tuple[Path, int | None]] = {}  # job file → (the file it writes, worker or None: queued)
         self._queue: deque[str] = deque()  # job files no worker holds yet, in the order submitted
         self._in_hand: dict[int, str | None] = {}  # worker → the job it holds
-        self._errors: list[_Failure] = []
+        self._errors: list[Failure] = []
         self._workers: list[tuple[subprocess.Popen, threading.Thread]] = []
         self._threads: list[tuple[threading.Thread, Path]] = []  # the thread task (at most one) and its file
         self._count = itertools.count()
@@ -137,7 +138,7 @@ class FileWriter:
             err = open(self._scratch / f"worker{index}.err", "w")  # noqa: SIM115 - the worker's, kept open by it
             try:
                 proc = subprocess.Popen(
-                    [sys.executable, "-m", __name__, *preload],
+                    [sys.executable, "-m", writer_tasks.__name__, *preload],
                     stdin=subprocess.PIPE,
                     stdout=subprocess.PIPE,
                     stderr=err,
@@ -266,13 +267,13 @@ class FileWriter:
                 with self._lock:
                     unanswered = self._jobs.pop(job, None) is not None
                 if unanswered:
-                    _remove_partial(path)
+                    remove_partial(path)
                     self._write_here(path, self._run_here, job)
             time.sleep(0.005)
         with self._lock:
             failed = [e for e in self._errors if inside(e.path)]
             self._errors = [e for e in self._errors if not inside(e.path)]
-        _raise_first(failed)
+        raise_first(failed)
 
     def _write_here(self, path: Path, write: Callable[..., Any], *args: Any) -> None:
         """Run a task in the caller; its failure is recorded with its file and raised by :meth:`close`."""
@@ -280,7 +281,7 @@ class FileWriter:
             write(*args)
         except Exception as exc:  # noqa: BLE001 - recorded with its file, raised by close()
             with self._lock:
-                self._errors.append(_Failure(path, **_describe(exc)))
+                self._errors.append(Failure(path, **describe(exc)))
 
     def _read(self, index: int, proc: subprocess.Popen) -> None:
         """A worker's replies (one JSON line per task), until it exits."""
@@ -302,7 +303,7 @@ class FileWriter:
         with self._lock:
             path, _ = self._jobs.pop(job, (None, None))
             if path is not None and error is not None:
-                self._errors.append(_Failure.from_reply(path, reply))
+                self._errors.append(Failure.from_reply(path, reply))
             if self._in_hand.get(index) == job:
                 self._in_hand[index] = None
                 if not self._closed:
@@ -311,7 +312,7 @@ class FileWriter:
             Path(job).unlink(missing_ok=True)
 
     def _run_here(self, job: str) -> None:
-        _run_job(job)
+        run_job(job)
         Path(job).unlink(missing_ok=True)
 
     def close(self) -> None:
@@ -342,14 +343,14 @@ class FileWriter:
             with self._lock:
                 unanswered = list(self._jobs.items())
             for job, (path, _) in unanswered:  # a worker died before it answered: written here, nothing lost
-                _remove_partial(path)
+                remove_partial(path)
                 self._write_here(path, self._run_here, job)
                 with self._lock:
                     self._jobs.pop(job, None)
         finally:
             self._shutdown()
         errors, self._errors = self._errors, []
-        _raise_first(errors)
+        raise_first(errors)
 
     def _close_in_forked_child(self) -> None:
         """In a child forked by the caller: drop the workers' input pipes, which would otherwise keep the workers
@@ -386,7 +387,7 @@ class FileWriter:
             self._queue.clear()
             scratch, self._scratch = self._scratch, None
         for path in unfinished:
-            _remove_partial(path)
+            remove_partial(path)
         if scratch is not None:
             shutil.rmtree(scratch, ignore_errors=True)
 
@@ -444,128 +445,3 @@ def writing_beside(writers: int | None = None, threads: int | None = None):
             yield writer
     finally:
         torch.set_num_threads(before)
-
-
-def _remove_partial(path: Path) -> None:
-    """Remove what a killed writer left of ``path``: its temporary file or folder (the name
-    :func:`agsf_torch.storage.files.atomic_open` and the TensorBoard runs use)."""
-    for tmp in path.parent.glob(f".{glob.escape(path.name)}.{'[0-9a-f]' * 12}.tmp"):  # not another file's
-        if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            tmp.unlink(missing_ok=True)
-
-
-@dataclasses.dataclass(frozen=True)
-class _Failure:
-    """A task that failed: the file it writes, ``"Type: message"``, and what re-raises it as the caller would have
-    seen it had it written the file itself: ``kind`` (``"os"`` an ``OSError`` with ``errno``, ``strerror`` and
-    ``filename``; ``"value"`` a ``ValueError``; ``"other"``)."""
-
-    path: Path
-    error: str
-    kind: str = "other"
-    errno: int | None = None
-    strerror: str | None = None
-    filename: str | None = None
-
-    @classmethod
-    def from_reply(cls, path: Path, reply: dict) -> _Failure:
-        """From a worker's reply (:func:`_describe`'s fields); a field of the wrong type is dropped."""
-        fields = _describe_fields(reply)
-        return cls(path, str(reply["error"]), **fields)
-
-
-def _describe(exc: BaseException) -> dict[str, Any]:
-    """What :class:`_Failure` keeps of an exception (a worker sends it in its reply)."""
-    if isinstance(exc, OSError) and _valid_errno(exc.errno):
-        return {
-            "error": f"{type(exc).__name__}: {exc}",
-            "kind": "os",
-            "errno": exc.errno,
-            "strerror": exc.strerror if isinstance(exc.strerror, str) else None,
-            "filename": os.fsdecode(exc.filename) if isinstance(exc.filename, (str, bytes)) else None,
-        }
-    kind = "os" if isinstance(exc, OSError) else "value" if isinstance(exc, ValueError) else "other"
-    return {"error": f"{type(exc).__name__}: {exc}", "kind": kind}  # an OSError without a usable errno: "os" alone
-
-
-def _describe_fields(reply: dict) -> dict[str, Any]:
-    """The re-raising fields of a reply, each kept only if it has its type (an older or foreign worker's reply
-    lacks them: the failure is then reported as one of an unknown kind)."""
-    kind = reply.get("kind") if reply.get("kind") in ("os", "value", "other") else "other"
-    errno_ = reply.get("errno") if kind == "os" and _valid_errno(reply.get("errno")) else None
-    text = {k: reply.get(k) if isinstance(reply.get(k), str) else None for k in ("strerror", "filename")}
-    return {"kind": kind, "errno": errno_, **text}
-
-
-def _valid_errno(code: Any) -> bool:
-    """An errno a system call can report: a positive C int."""
-    return isinstance(code, int) and not isinstance(code, bool) and 0 < code < 2**31
-
-
-def _raise_first(failures: list[_Failure]) -> None:
-    """Raise a failed task's error, naming its file and how many more failed, if any did, as the caller would have
-    raised it writing the file itself: an ``OSError`` with its errno, message and file name (the first such, so that
-    a full disk is reported as one whatever failed before it), else an ``OSError`` without an errno (errno 0 or
-    none), a ``ValueError``, or ``RuntimeError`` for anything else, each naming the file."""
-    if not failures:
-        return
-    first = next((f for f in failures if f.errno is not None), failures[0])
-    more = f" ({len(failures) - 1} more files failed)" if len(failures) > 1 else ""
-    if first.errno is not None:
-        message = f"{first.strerror or os.strerror(first.errno)}{more}"
-        if first.filename is not None and Path(first.filename) != first.path:
-            message = f"{message}, writing {first.path}"
-        raise OSError(first.errno, message, first.filename if first.filename is not None else str(first.path))
-    if first.kind == "os":
-        raise OSError(f"could not write {first.path}: {first.error}{more}")
-    if first.kind == "value":
-        raise ValueError(f"could not write {first.path}: {first.error}{more}")
-    raise RuntimeError(f"could not write {first.path}: {first.error}{more}")
-
-
-def _run_job(job: str) -> None:
-    """Run the task of a job file (the caller removes the file once the task is known to have succeeded: until then
-    it may run it again)."""
-    write, args = pickle.loads(Path(job).read_bytes())
-    write(*args)
-    del write, args  # a large task's arguments are freed before the next job is read
-
-
-def _serve(preload: Sequence[str]) -> None:
-    """A worker: import ``preload``, then run the task of every job file named on stdin (a JSON string per line),
-    one JSON reply per line
-    (``{"job": file, "error": null | "Type: message"}``, a failure with :func:`_describe`'s fields) on the original
-    stdout; anything a task prints goes to
-    stderr."""
-    import importlib
-
-    replies = os.fdopen(os.dup(1), "w")  # the reply channel; file descriptor 1 (anything a library or a child
-    os.dup2(2, 1)  # process writes there) and Python's stdout go to stderr
-    sys.stdout = sys.stderr
-    if hasattr(os, "register_at_fork"):  # a process a task forks does not hold the reply channel open
-        os.register_at_fork(after_in_child=replies.close)
-    for module in preload:
-        importlib.import_module(module)
-    for line in sys.stdin:
-        try:
-            job = json.loads(line)
-        except ValueError:
-            continue
-        try:
-            _run_job(job)
-            reply = {"job": job, "error": None}
-        except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it naming the file
-            reply = {"job": job, **_describe(exc)}
-        replies.write(json.dumps(reply) + "\n")
-        replies.flush()
-    # every task answered and its file complete: leave without the interpreter's teardown (half a second with torch
-    # and matplotlib loaded, which the caller's close() would wait for)
-    for stream in (sys.stderr, sys.__stdout__):
-        stream.flush()
-    os._exit(0)
-
-
-if __name__ == "__main__":
-    _serve(sys.argv[1:])

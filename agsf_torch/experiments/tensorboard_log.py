@@ -46,7 +46,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import secrets
 import shutil
 import time
 from collections.abc import Iterable, Mapping
@@ -55,6 +54,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..storage.files import temporary_name
 from .file_writer import HANDOVER_BYTES
 
 if TYPE_CHECKING:
@@ -181,7 +181,7 @@ def write_filter_run(run: Path, events: dict[str, Any]) -> None:
     from torch.utils.tensorboard import SummaryWriter
 
     run = Path(run)
-    tmp = run.with_name(f".{run.name}.{secrets.token_hex(6)}.tmp")
+    tmp = temporary_name(run)
     try:
         writer = SummaryWriter(str(tmp))
         try:

@@ -20,10 +20,12 @@ Every file the package writes goes through here, so that an interruption
 
 from __future__ import annotations
 
+import glob
 import json
 import math
 import os
 import secrets
+import shutil
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -31,6 +33,8 @@ from pathlib import Path
 from typing import IO, Any
 
 __all__ = [
+    "temporary_name",
+    "remove_partial",
     "atomic_open",
     "write_text",
     "write_json",
@@ -41,6 +45,25 @@ __all__ = [
     "read_json_lines",
     "repair_json_lines",
 ]
+
+
+def temporary_name(path: str | Path) -> Path:
+    """A hidden name beside ``path`` to write it under until it is whole (``.NAME.{12 hex digits}.tmp``), unique:
+    concurrent writers never share one.  :func:`atomic_open` writes files under it, TensorBoard runs are written in
+    a folder of that name."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+
+
+def remove_partial(path: str | Path) -> None:
+    """Remove what a killed writer left of ``path``: the file or folder of its :func:`temporary_name` (exactly
+    that pattern: ``.data.csv.….tmp`` is not ``data``'s)."""
+    path = Path(path)
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.{'[0-9a-f]' * 12}.tmp"):
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            tmp.unlink(missing_ok=True)
 
 
 @contextmanager
@@ -54,7 +77,7 @@ def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO]:
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_open writes whole files: mode must be 'wb' or 'w', got {mode!r}")
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")  # unique: concurrent writers never share it
+    tmp = temporary_name(path)
     try:
         with open(tmp, mode.replace("w", "x"), **({"encoding": "utf-8"} if mode == "w" else {})) as fh:
             yield fh

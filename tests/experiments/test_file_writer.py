@@ -218,12 +218,12 @@ def test_a_reply_with_foreign_fields_is_taken_as_a_failure_of_unknown_kind_not_d
 
 
 def test_a_dead_workers_leftovers_are_its_own_file_only_and_background_ends_with_the_workers(tmp_path):
-    from agsf_torch.experiments.file_writer import _remove_partial
+    from agsf_torch.storage.files import remove_partial
 
     mine, other = tmp_path / ".data.0123456789ab.tmp", tmp_path / ".data.csv.0123456789ab.tmp"
     mine.write_text("partial")
     other.write_text("another task's, being written")
-    _remove_partial(tmp_path / "data")
+    remove_partial(tmp_path / "data")
     assert not mine.exists() and other.exists()
     writer = FileWriter(1, preload=())
     assert writer.background
