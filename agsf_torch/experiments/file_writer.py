@@ -7,16 +7,14 @@ cannot overlap them with the next case's filters; another process can.  Both are
 summary, each filter's few event series).
 
 :class:`FileWriter` takes *tasks*: a module-level function that writes one file (atomically, as every writer of
-the package does, or one TensorBoard run) and its arguments.  With ``workers=0`` each task runs when it is submitted, in the caller.  With
-``workers=k`` they go to ``k`` worker interpreters started at once (``python -m agsf_torch.experiments.writer_tasks``,
-which import matplotlib and TensorBoard's writer while the caller works): a new interpreter, not a multiprocessing child, so the caller's
-``__main__`` is not run again.  A task's function and arguments travel as a pickle file in a scratch folder.  Each
-worker holds one task at a time; the others wait in the caller's queue, and a worker that finishes takes the next.
-:meth:`FileWriter.close` (leaving the ``with`` block) first *helps*: the caller, whose own work is done, runs the
-queued tasks itself beside the workers (the last case's figures no longer wait for one worker to draw them in
-turn); then it waits for every task and raises a failed task's error naming its file, as the caller would have
-raised it writing the file itself (an ``OSError`` with its errno where it has one — a full disk first — a
-``ValueError``, else ``RuntimeError``).  :meth:`FileWriter.wait_for` waits for one folder's tasks while the others go on.
+the package does, or one TensorBoard run) and its arguments.  With ``workers=0`` each task runs when it is
+submitted, in the caller.  With ``workers=k`` they go to ``k`` worker interpreters started at once, which import
+matplotlib and TensorBoard's writer while the caller works (:mod:`.writer_tasks`: a new interpreter, not a
+multiprocessing child, so the caller's ``__main__`` is not run again; a task travels as a pickle file in a scratch
+folder).  Each worker holds one task at a time; the others wait in the caller's queue.  :meth:`FileWriter.close`
+first *helps*: the caller, whose own work is done, runs the queued tasks itself beside the workers; then it waits
+for every task and raises a failed task's error naming its file, as the caller would have raised it writing the
+file itself (:func:`.writer_tasks.raise_first`).  :meth:`FileWriter.wait_for` waits for one folder's tasks.
 
 A task submitted with ``thread=True`` runs in a thread of the caller instead: for a task whose arguments are too
 large to hand over (``runs.npz``'s arrays above :data:`HANDOVER_BYTES`: a copy, gigabytes for a large run) and
@@ -48,7 +46,7 @@ import threading
 import time
 import weakref
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +60,7 @@ __all__ = [
     "HANDOVER_BYTES",
     "PRELOAD_MODULES",
     "WORKER_MEMORY",
+    "too_large_to_hand_over",
     "default_writers",
     "check_writers",
     "writing_beside",
@@ -326,10 +325,8 @@ class FileWriter:
             with self._lock:
                 self._closed = True  # no more jobs handed out
             for proc, _ in self._workers:
-                try:
+                with contextlib.suppress(OSError):
                     proc.stdin.close()
-                except OSError:
-                    pass
             for index, (proc, reader) in enumerate(self._workers):
                 proc.wait()
                 reader.join(timeout=5.0)  # a process the task forked may hold the reply pipe: not waited for
@@ -356,10 +353,8 @@ class FileWriter:
         """In a child forked by the caller: drop the workers' input pipes, which would otherwise keep the workers
         waiting for input after the caller closes its ends."""
         for proc, _ in self._workers:
-            try:
+            with contextlib.suppress(OSError, ValueError):
                 os.close(proc.stdin.fileno())
-            except (OSError, ValueError):
-                pass
 
     def _shutdown(self) -> None:
         """Stop the workers (killed if still running), wait for a thread's file, remove the temporary files of the
@@ -375,10 +370,8 @@ class FileWriter:
             # a reader still inside a read (a process the task forked holds the pipe) keeps its stream: closing it
             # would block until that process exits; the daemon reader ends with it
             for stream in (proc.stdin,) if reader.is_alive() else (proc.stdin, proc.stdout):
-                try:
+                with contextlib.suppress(OSError):
                     stream.close()
-                except OSError:
-                    pass
         self._join_threads()  # a file begun by a thread is completed, not left half written
         with self._lock:
             self._workers = []
@@ -407,6 +400,12 @@ class FileWriter:
             for failure in self._errors:
                 logger.warning("could not write %s: %s (while interrupted)", failure.path, failure.error)
             self._errors = []
+
+
+def too_large_to_hand_over(arrays: Iterable[Any]) -> bool:
+    """Whether a task's arrays exceed :data:`HANDOVER_BYTES` (then they are written by the caller, or a thread of
+    it, instead of a copy handed to a worker)."""
+    return sum(a.nbytes for a in arrays) > HANDOVER_BYTES
 
 
 def default_writers() -> int:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..storage.files import atomic_open, read_json, write_json
-from .file_writer import HANDOVER_BYTES, FileWriter
+from .file_writer import FileWriter, too_large_to_hand_over
 from .runner import MonteCarloResult
 
 __all__ = [
@@ -210,8 +210,7 @@ def save_runs(
     if writer is None:
         save_npz(path, arrays)
     else:  # handed to a worker, or too large to copy: a thread (compression releases the interpreter lock)
-        thread = sum(a.nbytes for a in arrays.values()) > HANDOVER_BYTES
-        writer.submit(save_npz, path, arrays, path=path, thread=thread)
+        writer.submit(save_npz, path, arrays, path=path, thread=too_large_to_hand_over(arrays.values()))
     return data
 
 

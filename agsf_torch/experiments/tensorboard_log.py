@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..storage.files import temporary_name
-from .file_writer import HANDOVER_BYTES
+from .file_writer import too_large_to_hand_over
 
 if TYPE_CHECKING:
     from .file_writer import FileWriter
@@ -127,7 +127,7 @@ def write_tensorboard(
     clear_runs(folder)
     for name, events in filter_events(data, summary).items():
         arrays = [a for pair in events["scalars"].values() for a in pair] + list(events["histograms"] or ())
-        if writer is None or sum(a.nbytes for a in arrays) > HANDOVER_BYTES:
+        if writer is None or too_large_to_hand_over(arrays):
             write_filter_run(folder / name, events)
         else:
             writer.submit(write_filter_run, folder / name, events, path=folder / name)

@@ -362,12 +362,12 @@ class _Submissions:
 def test_runs_npz_goes_to_a_worker_unless_its_arrays_exceed_the_handover_limit(tmp_path, monkeypatch, limit, thread):
     import numpy as np
 
-    from agsf_torch.experiments import outputs
+    from agsf_torch.experiments import file_writer, outputs
 
     reused = {
         "GSF": ({"time": np.arange(3.0), "star_frame": np.zeros(3, bool), "GSF/error_angle": np.ones((2, 3))}, {})
     }
-    monkeypatch.setattr(outputs, "HANDOVER_BYTES", limit)
+    monkeypatch.setattr(file_writer, "HANDOVER_BYTES", limit)
     writer = _Submissions()
     data = outputs.save_runs(tmp_path / "runs.npz", None, reused, writer)
     assert writer.calls == [("runs.npz", thread)] and set(data) == {"time", "star_frame", "GSF/error_angle"}

@@ -317,7 +317,7 @@ class _Submissions:
 
 @pytest.mark.parametrize(("limit", "handed"), [(2**40, ["EKF", "GSF"]), (1, [])])
 def test_event_series_go_to_the_writer_unless_they_exceed_the_handover_limit(tmp_path, monkeypatch, limit, handed):
-    from agsf_torch.experiments import tensorboard_log
+    from agsf_torch.experiments import file_writer, tensorboard_log
 
     T = 4
     data = {
@@ -329,7 +329,7 @@ def test_event_series_go_to_the_writer_unless_they_exceed_the_handover_limit(tmp
     summary = {
         "filters": {name: {"rms_deg": np.ones(T).tolist(), "nees_mean": np.ones(T).tolist()} for name in ("EKF", "GSF")}
     }
-    monkeypatch.setattr(tensorboard_log, "HANDOVER_BYTES", limit)
+    monkeypatch.setattr(file_writer, "HANDOVER_BYTES", limit)
     writer = _Submissions()
     tensorboard_log.write_tensorboard(tmp_path, data, summary, writer)
     assert writer.calls == handed
