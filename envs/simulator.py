@@ -19,6 +19,7 @@ The reward's error angle is :func:`agsf_torch.rotations.attitude_error_angle`
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch
@@ -66,6 +67,17 @@ class _Block(NamedTuple):
     stars: Stars | None  # [F, B, M(, 3)]; None if F = 0
 
 
+@dataclass
+class _Ahead:
+    """A block computed ahead by :meth:`StarTrackerSimulator.advance` and how far it has been served."""
+
+    block: _Block
+    first_step: int  # the step index the block starts from (its row 0 is step first_step + 1)
+    row: int  # the next row to serve
+    frame: int  # the next of the block's star frames to serve
+    frame_steps: list[int]  # the block's star-frame step indices (block.star_steps as a list)
+
+
 class StarTrackerSimulator:
     """The batched simulation behind both environments (torch, float64).
 
@@ -104,7 +116,7 @@ class StarTrackerSimulator:
         self.bias: Tensor | None = None
         self.rate: Tensor | None = None
         self.last_gyro: Tensor | None = None  # fault-free reading of the last step
-        self._ahead: list | None = None  # advance()'s block: [block, its first step, row, frame, the frames' steps]
+        self._ahead: _Ahead | None = None  # advance()'s block computed ahead
         self._ahead_size = _FIRST_AHEAD  # the length of advance()'s next block: doubled each block, from a reset
 
     # --------------------------------------------------------------- checkpoints
@@ -276,15 +288,18 @@ class StarTrackerSimulator:
         if self._ahead is None:
             k0 = self.step_index
             block = self._advance_block(self._steps_ahead())
-            self._ahead = [block, k0, 0, 0, block.star_steps.tolist()]
+            self._ahead = _Ahead(block, k0, 0, 0, block.star_steps.tolist())
             self._ahead_size = min(2 * self._ahead_size, _AHEAD_STEPS)
-        block, k0, j, f, frame_steps = self._ahead
-        k = k0 + j + 1
+        ahead = self._ahead
+        block, j = ahead.block, ahead.row
+        k = ahead.first_step + j + 1
         stars = self._no_stars()
-        if f < len(frame_steps) and frame_steps[f] == k:
-            stars = tuple(s[f] for s in block.stars)  # type: ignore[union-attr]
-            f += 1
-        self._ahead = None if j + 1 == block.q.shape[0] else [block, k0, j + 1, f, frame_steps]
+        if ahead.frame < len(ahead.frame_steps) and ahead.frame_steps[ahead.frame] == k:
+            stars = tuple(s[ahead.frame] for s in block.stars)  # type: ignore[union-attr]
+            ahead.frame += 1
+        ahead.row = j + 1
+        if ahead.row == block.q.shape[0]:
+            self._ahead = None
         self.q, self.bias, self.rate, self.last_gyro = (x[j] if x.shape[0] == 1 else x[j].clone() for x in block[:4])
         self.step_index = k
         return self._obs(self.last_gyro, stars), self._info()  # type: ignore[arg-type]
