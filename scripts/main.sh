@@ -6,6 +6,11 @@
 # the first time on a machine, which compiles the filters' kernels once).  Progress bars on stderr; at the end,
 # the tables and where the outputs are (folder, results.md, figures, the TensorBoard command).
 set -euo pipefail
+if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then
+    echo "usage: bash scripts/main.sh [OUT]   (set up .venv, then agsf reproduce --case all --out OUT;"
+    echo "       OUT defaults to runs/reproduce, or runs/reproduce-<date> if that already holds a result)"
+    exit 0
+fi
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$here"
 bash scripts/setup_env.sh

@@ -4,6 +4,16 @@
 # `--slow` runs only the slow tests; with no arguments the numerically sensitive tests run a second time
 # under another seed, MKL code path and thread count.
 set -euo pipefail
+if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then
+    cat <<'USAGE'
+usage: bash scripts/test.sh [--slow] [PYTEST_ARGS ...]
+  (no arguments)  set up .venv, ruff, the docs build (warnings are errors), the test suite on 2 workers,
+                  then the numerically sensitive tests again (--seed 2, MKL_CBWR=COMPATIBLE, one thread)
+  --slow          only the tests marked slow (set-up first; no ruff, docs or second pass)
+  PYTEST_ARGS     passed to pytest (e.g. tests/fused -k star); the second pass is then skipped
+USAGE
+    exit 0
+fi
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$here"
 bash scripts/setup_env.sh

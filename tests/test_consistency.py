@@ -47,7 +47,12 @@ def test_learn_command_flags_the_configured_gyro_noise(tmp_path, capsys):
     res = json.loads((tmp_path / "l" / "learn.json").read_text())
     assert abs(res["learned"]["sigma_v"] / 2e-5 - 1) < 0.15
     assert res["inside"]["sigma_v"] is False
-    assert "mis-modelled" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "mis-modelled" in out
+    # the report shows 5 significant digits of the exact values learn.json keeps
+    lo, hi = res["interval"]["sigma_v"]
+    line = f"sigma_v: learned {res['learned']['sigma_v']:.5g}, 95 % interval ({lo:.5g}, {hi:.5g}), configured 1e-05 — "
+    assert line in out
 
 
 def test_whiteness_check_on_synthetic_innovations():

@@ -251,7 +251,7 @@ def axes_figure(summary: dict[str, Any]) -> Any:
     ncol = min(len(labels), 3)
     fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=9, frameon=False)
     what = "error about the true body axes" + (" and gyro bias error" if bias else "")
-    state = "" if bias else "\nattitude-only state (no bias states)"
+    state = "" if bias else "\n(the filters' state: the attitude alone, no gyro-bias states)"
     fig.suptitle(
         f"{summary['config']['name']}: RMS over {runs} runs of the {what}, and 3× the RMS of each filter's σ{state}",
         fontsize=11,
@@ -310,7 +310,7 @@ def weights_figure(summary: dict[str, Any]) -> Any:
         if row == len(shown) - 1:
             ax.set_xlabel("time (s)")
     handles: list[Any] = [Patch(facecolor=colors[i], alpha=0.8) for i in range(ncomp)]
-    labels = [f"component {i + 1}" for i in range(ncomp)]
+    labels = [f"component {i}" for i in range(ncomp)]  # 0-based, as runs.npz, the event tags and the errors
     if star is not None:
         handles.append(star)
         labels.append("star frame")

@@ -138,7 +138,8 @@ def learn(
         else:
             flag = "OUTSIDE the 95 % interval: mis-modelled"
         lines.append(
-            f"  {k}: learned {res.learned[k]}, 95 % interval {res.interval[k]}, configured {res.configured[k]} — {flag}"
+            f"  {k}: learned {_digits(res.learned[k])}, 95 % interval {_digits(res.interval[k])}, "
+            f"configured {_digits(res.configured[k])} — {flag}"
         )
     report = "\n".join(lines)
     write_json(
@@ -149,3 +150,13 @@ def learn(
     )
     write_text(out / "learn.md", report + "\n")
     return report
+
+
+def _digits(value) -> str:
+    """A learned value, interval or configured value for the report: 5 significant digits, a list per axis and
+    a ``(low, high)`` pair as such (``learn.json`` keeps every digit)."""
+    if isinstance(value, tuple):
+        return "(" + ", ".join(_digits(v) for v in value) + ")"
+    if isinstance(value, list):
+        return "[" + ", ".join(_digits(v) for v in value) + "]"
+    return f"{value:.5g}"

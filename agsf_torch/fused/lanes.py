@@ -214,7 +214,7 @@ def _load(
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
     if not path.is_file():
         logger.info(
-            "compiling the fused kernel %r ahead of time (once per machine and torch version: about 30–100 s; later "
+            "compiling the fused kernel %r ahead of time (once per machine and torch version: about 10–60 s on 2 cores; later "
             "processes load it from %s in about a second)",
             name,
             path.parent,
@@ -379,7 +379,7 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
     workers = max(1, min(len(jobs), processes or available_cpus()))
     logger.info(
         "compiling the fused kernels %s ahead of time, %d at once (once per machine and torch version: about "
-        "30–100 s each; later processes load them from %s in about a second)",
+        "10–60 s each on 2 cores; later processes load them from %s in about a second)",
         ", ".join(repr(job[0]) for job in jobs.values()),
         workers,
         kernel_cache_dir(),
