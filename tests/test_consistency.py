@@ -74,3 +74,21 @@ def test_whiteness_check_on_synthetic_innovations():
     c = by_name(consistency_checks(nees=None, state_dim=3, nis=correlated, nis_dof=dofs))
     assert w["whiteness"].passed and w["nis"].passed
     assert not c["whiteness"].passed and c["whiteness"].value > 0.5
+
+
+def test_diagnose_judges_a_recording_as_the_live_run_it_records(tmp_path, capsys):
+    """``agsf diagnose --recording`` replays the file as ``agsf run --recording`` does: a recording of the
+    configuration's own simulation gets the live run's verdict, number for number."""
+    from agsf_torch.experiments.config import load_config
+    from agsf_torch.experiments.factories import make_env
+    from agsf_torch.experiments.recorded import record_environment
+
+    small = ["runs=8", "duration=6.0", "update_iterations=3", 'filters=["EKF"]', *EAGER]
+    args = [*sum([["--set", s] for s in small], []), "--quiet"]
+    cfg = load_config("case1", small)
+    path = tmp_path / "logs.npz"
+    record_environment(make_env(cfg), cfg.num_steps, seed=cfg.seed).save(path)
+    live = cli.main(["diagnose", "case1", "--out", str(tmp_path / "live"), *args])
+    replay = cli.main(["diagnose", "case1", "--recording", str(path), "--out", str(tmp_path / "replay"), *args])
+    assert replay == live
+    assert (tmp_path / "replay" / "diagnose.json").read_text() == (tmp_path / "live" / "diagnose.json").read_text()

@@ -165,11 +165,16 @@ class Recording:
         fmt = str(data.pop("format")) if "format" in data else FORMAT
         if fmt != FORMAT:
             raise ValueError(f"recording {path}: format {fmt!r} is not {FORMAT!r}")
-        try:
-            return cls(**data)
-        except ValueError as exc:  # the content checks: name the file too
-            message = str(exc).removeprefix("recording: ")
-            raise ValueError(f"recording {path}: {message}") from None
+        with warnings.catch_warnings(record=True) as caught:  # the content checks' warnings: name the file too
+            warnings.simplefilter("always")
+            try:
+                recording = cls(**data)
+            except ValueError as exc:  # the content checks: name the file too
+                message = str(exc).removeprefix("recording: ")
+                raise ValueError(f"recording {path}: {message}") from None
+        for w in caught:
+            warnings.warn(f"recording {path}: {str(w.message).removeprefix('recording: ')}", w.category, stacklevel=2)
+        return recording
 
     def content_digest(self) -> str:
         """Short hash of the contents (16 hex digits of a SHA-256).

@@ -19,7 +19,7 @@ Subcommands:
   (default one simulated hour, 256 runs, 6-state) with running statistics and a
   pass/fail verdict: no NaN, covariances positive definite, errors inside ±3σ,
   flat memory (:mod:`agsf_torch.experiments.soak`).
-* ``agsf diagnose CONFIG [--set …] --out DIR`` — run a configuration and judge its
+* ``agsf diagnose CONFIG [--set …] [--recording FILE] --out DIR`` — run a configuration and judge its
   consistency in words: NEES, NIS and whiteness against their χ² bands
   (:mod:`agsf_torch.experiments.diagnose`).
 * ``agsf learn CONFIG --learn NAMES [--recording FILE] --out DIR`` — maximum-likelihood
@@ -197,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_sweep)
     p = sub.add_parser("diagnose", help="consistency checks (NEES, NIS, whiteness) of one configuration, in words")
     p.add_argument("config", help="TOML file or preset")
+    p.add_argument("--recording", default=None, help="replay a recorded .npz file (with truth) instead of simulating")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_diagnose)

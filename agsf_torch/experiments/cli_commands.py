@@ -206,7 +206,7 @@ def _diagnose(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.set)
     _threads(args)
-    report, passed = diagnose(cfg, Path(args.out), progress=not args.quiet, force=args.force)
+    report, passed = diagnose(cfg, Path(args.out), progress=not args.quiet, force=args.force, recording=args.recording)
     print(report)
     return 0 if passed else 1
 

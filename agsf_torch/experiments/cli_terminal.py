@@ -148,17 +148,29 @@ class _TqdmHandler(logging.Handler):
 @contextmanager
 def messages(quiet: bool):
     """While the command runs: the package's INFO messages (``agsf_torch`` logger, e.g. the
-    FPKE kernel's compilation) on stderr as ``agsf: …`` unless ``quiet``, and the dependencies'
-    warnings that are not the user's concern filtered out (precisely, by message and module)."""
+    FPKE kernel's compilation) on stderr as ``agsf: …`` unless ``quiet``, every warning as one line
+    ``agsf: warning: …`` (also with ``quiet``; not Python's ``file:line: Category: …`` form, whose location
+    is the package's, not the user's), and the dependencies' warnings that are not the user's concern
+    filtered out (precisely, by message and module)."""
+    import warnings
+
     logger = logging.getLogger("agsf_torch")
     handler = _TqdmHandler()
     handler.setFormatter(logging.Formatter("agsf: %(message)s"))
     level = logger.level
     logger.addHandler(handler)
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = " ".join(str(message).split())
+        handler.emit(logging.LogRecord("agsf_torch", logging.WARNING, filename, lineno, f"warning: {text}", None, None))
+
+    warnings.showwarning = show
     try:
         with torch_internal_deprecations_hidden():
             yield
     finally:
+        warnings.showwarning = shown
         logger.removeHandler(handler)
         logger.setLevel(level)

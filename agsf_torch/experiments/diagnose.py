@@ -16,13 +16,22 @@ from .tensorboard_log import clear_events
 __all__ = ["diagnose"]
 
 
-def diagnose(cfg: ExperimentConfig, out: Path, *, progress: bool = True, force: bool = False) -> tuple[str, bool]:
-    """Run ``cfg`` under ``out`` and check every filter; writes ``diagnose.json`` / ``diagnose.md``.
+def diagnose(
+    cfg: ExperimentConfig,
+    out: Path,
+    *,
+    progress: bool = True,
+    force: bool = False,
+    recording: str | Path | None = None,
+) -> tuple[str, bool]:
+    """Run ``cfg`` under ``out`` (on a simulation, or replaying ``recording`` as ``agsf run --recording`` does:
+    it must hold the truth and ``cfg.runs`` trajectories, checked before ``out`` is created) and check every
+    filter; writes ``diagnose.json`` / ``diagnose.md``.
 
     Returns:
         ``(report text, whether every check of every filter passed)``.
     """
-    run_experiment(cfg, out, progress=progress, kind="diagnose", force=force)
+    run_experiment(cfg, out, progress=progress, kind="diagnose", force=force, recording=recording)
     data = np.load(Path(out) / "runs.npz")
     n = filter_model(cfg).state_dim
     texts, result, passed = [], {}, True

@@ -142,8 +142,9 @@ RUN_UNITS = {
     "sigma": "rad (attitude: 1σ of the rotation error), rad/s (bias)",
     "cov": "MRP² (attitude), (rad/s)² (bias): the filter's own chart",
     "nees": "1 (χ² with n degrees of freedom)",
-    "nis": "1 (χ² with nis_dof degrees of freedom); NaN between star frames",
-    "nis_dof": "count",
+    "nis": "1 (νᵀS⁻¹ν at star frames, NaN between them; for star unit vectors its expectation is 2 per star, "
+    "⅔·nis_dof: the noise lies across each star vector, agsf_torch.consistency)",
+    "nis_dof": "count (the innovation's valid entries, 3 per star)",
     "weights": "1",
     "weight_entropy": "nat",
     "gyro_held": "bool (the gyro sample was bridged)",

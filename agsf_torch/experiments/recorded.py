@@ -39,9 +39,10 @@ def record_environment(env, num_steps: int, seed: int, progress: bool = False) -
     return Recording(time=np.array(times), **arrays)
 
 
-def sample_spacing(recording: Recording) -> tuple[float, float]:
+def sample_spacing(recording: Recording, name: str = "") -> tuple[float, float]:
     """``(Δt, tolerance)``: the recording's uniform sample spacing (s), judged at the precision of its
-    timestamps, or ``ValueError`` if the samples are not uniformly spaced.
+    timestamps, or ``ValueError`` (naming the recording ``name``) if the samples are not uniformly spaced:
+    the filters step by one constant ``Δt``, so a log with jittered timestamps is resampled first.
 
     A timestamp ``t`` stored with machine epsilon ``ε`` (float32's if every time is a float32 number,
     else float64's) is known to ``ε|t|/2``, so two spacings may differ by ``2ε max|t|`` from rounding
@@ -57,8 +58,9 @@ def sample_spacing(recording: Recording) -> tuple[float, float]:
     worst = float(np.abs(np.diff(t) - dt).max())
     if worst > tol:
         raise ValueError(
-            f"the samples are not uniformly spaced (column 'time'): a spacing differs from the mean {dt:g} s by "
-            f"{worst:.3g} s, more than the timestamps' precision allows ({tol:.3g} s)"
+            f"{f'recording {name}: ' if name else ''}the samples are not uniformly spaced (column 'time'): a spacing "
+            f"differs from the mean {dt:g} s by {worst:.3g} s, more than the timestamps' precision allows "
+            f"({tol:.3g} s); the filters step by one constant dt: resample the log onto a uniform time grid"
         )
     return dt, tol
 
@@ -69,7 +71,7 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
     precision), gyro rates that turn less than half a turn per sample (``|ω̃|·Δt < π``: beyond, a sampled
     rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, the truth and ``cfg.runs``
     trajectories of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
-    dt, tol = sample_spacing(recording)
+    dt, tol = sample_spacing(recording, name)
     if recording.num_samples > 1 and abs(dt - cfg.dt) > tol + 1e-9 * cfg.dt:
         raise ValueError(f"recording {name} is sampled every {dt:g} s; the configuration's dt is {cfg.dt:g} s")
     gyro = np.asarray(recording.gyro, dtype=np.float64)

@@ -74,6 +74,11 @@ def test_bad_files_name_row_and_column(recording, tmp_path):
     with pytest.warns(UserWarning, match="normalised"):
         fixed = Recording(**a)
     assert abs(np.linalg.norm(fixed.star_inertial[b, t, m]) - 1) < 1e-15
+    np.savez(tmp_path / "off.npz", **a)  # read from a file, the warning names it
+    with pytest.warns(
+        UserWarning, match=r"^recording .*off\.npz: column 'star_inertial' has star vectors off unit norm"
+    ):
+        Recording.load(tmp_path / "off.npz")
     a = _arrays(recording)
     del a["star_mask"]
     np.savez(tmp_path / "missing.npz", **a)

@@ -295,16 +295,18 @@ def test_evenly_sampled_recordings_are_judged_at_the_precision_of_their_timestam
     assert code == 0, err
 
 
-@pytest.mark.parametrize("command", ["run", "learn"])
+@pytest.mark.parametrize("command", ["run", "learn", "diagnose"])
 @pytest.mark.parametrize("defect", ["uneven", "gyro_x1e6", "other_dt"])
-def test_run_and_learn_check_a_recording_alike(tmp_path, recording, command, defect):
-    """One set of checks for both commands: samples evenly spaced, at the configuration's dt, gyro rates that
-    are rotations (×1e6 ran to completion with NEES 3e112); learn accepted a dt that run refused."""
+def test_run_learn_and_diagnose_check_a_recording_alike(tmp_path, recording, command, defect):
+    """One set of checks for every command that reads a recording: samples evenly spaced, at the configuration's
+    dt, gyro rates that are rotations (×1e6 ran to completion with NEES 3e112); learn accepted a dt that run
+    refused."""
     rec = Recording.load(recording)
     if defect == "uneven":
         time = rec.time.copy()
         time[2] += 0.01
-        path, names = _rewrite(recording, tmp_path / "r.npz", time=time), "not uniformly spaced"
+        path = _rewrite(recording, tmp_path / "r.npz", time=time)
+        names = f"recording {path}: the samples are not uniformly spaced"
     elif defect == "gyro_x1e6":
         path, names = _rewrite(recording, tmp_path / "r.npz", gyro=rec.gyro * 1e6), "rad per sample"
     else:
@@ -346,3 +348,18 @@ def test_a_rerun_of_learn_replaces_its_events(tmp_path, recording):
     acc.Reload()
     steps = [e.step for e in acc.Scalars("learn/nll")]
     assert steps == sorted(set(steps)) and steps[0] == 1
+
+
+def test_a_warning_is_one_line_naming_the_file(tmp_path, recording):
+    """A recording's star vectors off unit norm within the tolerance are normalised with a warning: on the
+    command line one line ``agsf: warning: recording FILE: …`` (it was Python's ``<string>:11: UserWarning: …``,
+    with a location inside the package), also with ``--quiet``, and the command runs."""
+    rec = Recording.load(recording)
+    star_body = np.where(rec.star_mask[..., None], rec.star_body * (1 + 5e-4), rec.star_body)
+    path = _rewrite(recording, tmp_path / "off.npz", star_body=star_body)
+    code, err = _agsf(["run", "case1", *TINY, "--recording", str(path), "--out", str(tmp_path / "out")])
+    assert code == 0, err
+    assert err.startswith(
+        f"agsf: warning: recording {path}: column 'star_body' has star vectors off unit norm by up to "
+    )
+    assert err.endswith("; normalised\n") and err.count("\n") == 1 and "UserWarning" not in err
