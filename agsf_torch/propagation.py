@@ -10,6 +10,13 @@ integrated with classic fourth-order Runge–Kutta over the interval ``dt`` (in
 the transition-matrix form of :func:`propagate_moments`), the input ``u`` held
 constant (zero-order hold).  All trajectories and
 components advance in one batched call.
+
+A step ``h = dt / substeps`` that RK4 cannot follow is refused (``ValueError``), not integrated: when the
+drift's Jacobian ``A`` at a component's mean has an eigenvalue with ``|λ|h`` beyond
+:data:`RK4_STABILITY_LIMIT` (a stiff model, or a component far out where the drift is steep), RK4 amplifies
+a mode the dynamics damp and the moments run off to 1e45 and beyond within a few steps, finite and wrong.
+The check costs one ``‖A‖∞`` per RK4 step (an upper bound of ``|λ|``); the eigenvalues are computed only
+where that bound exceeds the limit.
 """
 
 from __future__ import annotations
@@ -23,7 +30,13 @@ from torch import Tensor
 from .models.base import ContinuousModel
 from .shapes import broadcast_shapes
 
-__all__ = ["moment_derivatives", "propagate_moments", "MomentRates"]
+__all__ = ["moment_derivatives", "propagate_moments", "MomentRates", "RK4_STABILITY_LIMIT"]
+
+#: ``|λ|h`` beyond which an RK4 step leaves its stability region on a decaying mode (the region meets the
+#: negative real axis at −2.785); well before it the step's local error is already of the order of the solution.
+RK4_STABILITY_LIMIT = 2.785
+#: ``|λ|h`` the substeps suggested in the error message aim at (inside the region in every direction).
+_SUGGESTED = 2.0
 
 
 @dataclass(frozen=True)
@@ -102,29 +115,65 @@ def propagate_moments(
                 None if uf is None else uf[a : a + PROPAGATION_CHUNK],
                 dt,
                 substeps,
+                (lead, a),
             )
             for a in range(0, count, PROPAGATION_CHUNK)
         ]
         return torch.cat([q[0] for q in parts]).reshape(*lead, n), torch.cat([q[1] for q in parts]).reshape(*lead, n, n)
-    return _propagate(model, mean, cov, u, dt, substeps)
+    return _propagate(model, mean, cov, u, dt, substeps, (None, 0))
+
+
+def _check_step(A: Tensor, h: float, dt: float, where: tuple[tuple[int, ...] | None, int]) -> None:
+    """Refuse the RK4 step ``h`` where the Jacobian ``A [..., n, n]`` has an eigenvalue with ``|λ|h`` beyond
+    :data:`RK4_STABILITY_LIMIT` (module docstring); ``where``: ``(the call's batch shape, this chunk's offset in it)``
+    for a chunk of the flattened batch, ``(None, 0)`` for the whole call (indices in ``A``'s batch dims)."""
+    bound = A.abs().sum(-1).amax(-1) * h  # ‖A‖∞ h ≥ |λ|h
+    if not bool((bound > RK4_STABILITY_LIMIT).any()):
+        return
+    flagged = (bound > RK4_STABILITY_LIMIT).reshape(-1).nonzero().squeeze(-1)
+    lam = torch.linalg.eigvals(A.reshape(-1, *A.shape[-2:])[flagged])  # [k, n]
+    radius = lam.abs().amax(-1)
+    beyond = (radius * h > RK4_STABILITY_LIMIT).nonzero().squeeze(-1)
+    if beyond.numel() == 0:
+        return
+    k = int(beyond[0])
+    worst = lam[k, lam[k].abs().argmax()]
+    lead, offset = where  # a chunk of the flattened batch ``lead``, or (None, 0): A's own batch dims
+    shape = A.shape[:-2] if lead is None else lead
+    index = tuple(int(i) for i in torch.unravel_index(torch.tensor(offset + int(flagged[k])), shape)) if shape else ()
+    needed = math.ceil(float(radius[k]) * dt / _SUGGESTED)
+    raise ValueError(
+        f"the RK4 step of {h:g} s (dt / substeps) cannot follow the model's drift at batch index {index}: its "
+        f"Jacobian there has an eigenvalue {complex(worst):.4g} 1/s, |λ|·step = {float(radius[k]) * h:.3g} beyond "
+        f"RK4's stability limit {RK4_STABILITY_LIMIT} (the moments would run off, finite and wrong); use at least "
+        f"substeps={needed} for dt={dt:g} s"
+    )
 
 
 def _propagate(
-    model: ContinuousModel, mean: Tensor, cov: Tensor, u: Tensor | None, dt: float, substeps: int
+    model: ContinuousModel,
+    mean: Tensor,
+    cov: Tensor,
+    u: Tensor | None,
+    dt: float,
+    substeps: int,
+    where: tuple[tuple[int, ...] | None, int],
 ) -> tuple[Tensor, Tensor]:
     h = dt / substeps
     n = mean.shape[-1]
     eye = torch.eye(n, dtype=mean.dtype, device=mean.device)
 
-    def rates(m: Tensor, Phi: Tensor, S: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        A = model.drift_jacobian(m, u)
+    def rates(m: Tensor, Phi: Tensor, S: Tensor, A: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        A = model.drift_jacobian(m, u) if A is None else A
         AS = A @ S
         return model.drift(m, u), A @ Phi, AS + AS.transpose(-1, -2) + model.process_noise(m)
 
     for _ in range(substeps):
         Phi = eye.expand_as(cov)
         S = torch.zeros_like(cov)
-        k1 = rates(mean, Phi, S)
+        A = model.drift_jacobian(mean, u)
+        _check_step(A, h, dt, where)
+        k1 = rates(mean, Phi, S, A)
         k2 = rates(mean + 0.5 * h * k1[0], Phi + 0.5 * h * k1[1], S + 0.5 * h * k1[2])
         k3 = rates(mean + 0.5 * h * k2[0], Phi + 0.5 * h * k2[1], S + 0.5 * h * k2[2])
         k4 = rates(mean + h * k3[0], Phi + h * k3[1], S + h * k3[2])

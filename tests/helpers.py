@@ -12,10 +12,28 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["F64", "random_unit_vectors", "random_spd", "random_mrps", "file_digests", "event_records"]
+from agsf_torch.models import ContinuousModel
+
+__all__ = ["F64", "CubicDrift", "random_unit_vectors", "random_spd", "random_mrps", "file_digests", "event_records"]
 
 #: The package's default dtype.
 F64 = torch.float64
+
+
+class CubicDrift(ContinuousModel):
+    """A user's model: ``dx = (x − x³) dt + dβ``, ``E[dβ²] = 0.25 dt``; its drift's slope ``1 − 3x²`` is steep far
+    from the wells at ±1 (−805.9 1/s at x = 16.4), where an RK4 step of 0.1 s cannot follow it."""
+
+    state_dim = 1
+
+    def drift(self, x, u=None):
+        return x - x**3
+
+    def noise_gain(self, x):
+        return torch.ones_like(x).unsqueeze(-1)
+
+    def noise_psd(self):
+        return torch.full((1, 1), 0.25, dtype=F64)
 
 
 def random_unit_vectors(gen: torch.Generator, *shape: int) -> torch.Tensor:

@@ -7,9 +7,9 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from agsf_torch.models import AttitudeModel
+from agsf_torch.models import AttitudeModel, ContinuousModel
 from agsf_torch.propagation import moment_derivatives, propagate_moments
-from tests.helpers import random_mrps
+from tests.helpers import CubicDrift, random_mrps
 
 
 def _reference(model, mean, cov, u, dt):
@@ -40,3 +40,64 @@ def test_rk4_matches_fine_reference(gen, estimate_bias):
         np.testing.assert_allclose(m1[b].numpy(), m_ref, rtol=1e-9, atol=1e-9 * np.abs(m_ref).max())
         np.testing.assert_allclose(P1[b].numpy(), P_ref, rtol=1e-9, atol=1e-9 * np.abs(P_ref).max())
     torch.testing.assert_close(P1, P1.transpose(-1, -2), rtol=0, atol=0)
+
+
+class _Shear(ContinuousModel):
+    """dx₀ = 100 x₁ dt, dx₁ = dβ: ‖A‖∞ = 100 but both eigenvalues are 0 (a nilpotent drift RK4 follows exactly)."""
+
+    state_dim = 2
+
+    def drift(self, x, u=None):
+        return torch.stack((100.0 * x[..., 1], torch.zeros_like(x[..., 0])), -1)
+
+    def noise_gain(self, x):
+        return torch.tensor([[0.0], [1.0]], dtype=x.dtype).expand(*x.shape[:-1], 2, 1)
+
+    def noise_psd(self):
+        return torch.ones(1, 1, dtype=torch.float64)
+
+
+def test_a_step_rk4_cannot_follow_is_refused_naming_the_component_and_the_substeps_that_can():
+    """At x = 16.4 the drift's slope is 1 − 3·16.4² = −805.9 1/s: one RK4 step of 0.1 s (|λh| = 80.6) sent the
+    moments to 1e45 and 1e95, finite and wrong.  It is refused, naming the component and the substeps needed
+    (|λ|·dt / 2 = 40.3 → 41); with them the step is stable, and more substeps converge on the exact mean at
+    RK4's order."""
+    model = CubicDrift()
+    mean = torch.tensor([[[1.0], [16.4]], [[0.5], [-1.0]]], dtype=torch.float64)  # [B = 2, N = 2, 1]
+    cov = torch.full((2, 2, 1, 1), 0.01, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"at batch index \(0, 1\).*eigenvalue -805\.9.*use at least substeps=41"):
+        propagate_moments(model, mean, cov, None, dt=0.1, substeps=1)
+    # the mean's ODE ẋ = x − x³ (the moment equations' mean follows it) has the solution x² = 1 / (1 − c e^{−2t})
+    x0, t = 16.4, 0.1
+    exact = 1.0 / np.sqrt(1.0 - (1.0 - 1.0 / x0**2) * np.exp(-2.0 * t))
+    errors = []
+    for substeps in (41, 82, 164):
+        m, P = propagate_moments(model, mean, cov, None, dt=0.1, substeps=substeps)
+        assert torch.isfinite(m).all() and torch.isfinite(P).all() and bool((P > 0).all())
+        errors.append(abs(float(m[0, 1, 0]) - exact) / exact)
+    assert errors[0] < 1e-3  # stable, from x = 16.4 down to 2.33 in 0.1 s
+    assert errors[1] < errors[0] / 16 and errors[2] < errors[1] / 16  # fourth order: halving h gains ≥ 2⁴
+
+
+def test_the_step_check_reads_eigenvalues_not_the_norm():
+    """A drift whose Jacobian has a large norm but no large eigenvalue (a shear) is not refused."""
+    mean = torch.zeros(3, 2, dtype=torch.float64)
+    cov = torch.eye(2, dtype=torch.float64).expand(3, 2, 2).clone()
+    m, P = propagate_moments(_Shear(), mean, cov, None, dt=0.1, substeps=1)
+    # exactly (RK4 integrates these polynomials of degree ≤ 3 without error): Φ = [[1, 10], [0, 1]] and
+    # S = ∫ e^{As} B Bᵀ e^{Aᵀs} ds = [[1e4·h³/3, 100·h²/2], [100·h²/2, h]], so P = ΦΦᵀ + S
+    h = 0.1
+    expected = torch.tensor([[101 + 1e4 * h**3 / 3, 10 + 50 * h**2], [10 + 50 * h**2, 1 + h]], dtype=torch.float64)
+    torch.testing.assert_close(P, expected.expand(3, 2, 2), rtol=1e-13, atol=0)
+
+
+def test_the_step_check_names_the_component_in_chunked_batches(monkeypatch):
+    """Batches propagated in chunks name the component's index in the whole batch, not in its chunk."""
+    import agsf_torch.propagation as propagation
+
+    monkeypatch.setattr(propagation, "PROPAGATION_CHUNK", 4)
+    mean = torch.zeros(3, 5, 1, dtype=torch.float64)
+    mean[2, 3, 0] = 16.4  # flat index 13: the fourth chunk of 4
+    cov = torch.full((3, 5, 1, 1), 0.01, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"at batch index \(2, 3\)"):
+        propagation.propagate_moments(CubicDrift(), mean, cov, None, dt=0.1, substeps=1)

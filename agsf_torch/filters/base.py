@@ -214,10 +214,15 @@ class BaseFilter:
     def _ensure_positive_definite(self, covs: Tensor, where: str, what: str = "covariance") -> tuple[Tensor, int]:
         """``covs [..., N, n, n]`` checked by a Cholesky factorisation; where it fails, repaired
         (``repair_covariance``) or refused naming ``what``, ``where``, the trajectory and the
-        component.  Returns the covariances and the number of repairs."""
+        component; a non-finite matrix is always refused (no clip repairs it).  Returns the covariances and the
+        number of repairs."""
         bad = torch.linalg.cholesky_ex(covs).info != 0
         if not bool(bad.any()):
             return covs, 0
+        lost = bad & ~torch.isfinite(covs).flatten(-2).all(-1)
+        if bool(lost.any()):  # no eigenvalue clip repairs a non-finite matrix: it would return NaN
+            idx = lost.nonzero()[0].tolist()
+            raise ValueError(f"{what} is not finite {where} at trajectory index {tuple(idx[:-1])}, component {idx[-1]}")
         if not self.repair_covariance:
             idx = bad.nonzero()[0].tolist()
             raise ValueError(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 
 import pytest
@@ -12,7 +13,7 @@ from agsf_torch.experiments.sine_benchmark import run_sine_benchmark
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.models.benchmarks import SineDriftModel
-from tests.helpers import F64, random_mrps
+from tests.helpers import F64, CubicDrift, random_mrps
 
 
 def _sine_filters():
@@ -285,3 +286,36 @@ def test_an_interval_the_propagation_cannot_follow_is_refused_naming_the_rotatio
         for _ in range(intervals):
             mix = filt.predict(mix, u, dt / intervals)
         assert bool(torch.isfinite(mix.log_weights).all())
+
+
+@pytest.mark.parametrize("kind", ["gsf", "galerkin", "penalty"])
+def test_a_step_rk4_cannot_follow_on_a_users_model_is_refused_before_anything_changes(kind):
+    """A user's stiff model on the generic path (``dx = (x − x³)dt + dβ``, a component at x = 16.4, one RK4 step of
+    0.1 s): the GSF returned means of 1e45 and covariances of 1e95 without a word, the adaptive filters a raw
+    ``LinAlgError`` naming a 'batch element'.  Now every filter refuses the step naming the component and the
+    substeps that can take it, before its weight update's counter moves; with those substeps it runs."""
+    model = CubicDrift()
+    means = torch.tensor([[[-1.0], [1.0], [16.4]], [[0.0], [0.5], [-0.5]]], dtype=F64)  # [B = 2, N = 3, 1]
+    mix = GaussianMixture(
+        log_weights=torch.full((2, 3), -math.log(3), dtype=F64),
+        means=means,
+        covs=torch.full((2, 3, 1, 1), 0.05, dtype=F64),
+    )
+
+    def build(substeps):
+        return {
+            "gsf": lambda: GaussianSumFilter(model, substeps=substeps),
+            "galerkin": lambda: AdaptiveGaussianSumFilter(model, weight_update="galerkin", substeps=substeps),
+            "penalty": lambda: AdaptiveGaussianSumFilter(model, substeps=substeps),
+        }[kind]()
+
+    filt = build(1)
+    before = filt.state_dict() if kind != "gsf" else None
+    with pytest.raises(ValueError, match=r"at batch index \(0, 2\).*use at least substeps=41 for dt=0\.1 s") as exc:
+        filt.predict(mix, None, 0.1)
+    if before is not None:
+        assert filt.state_dict() == before
+    substeps = int(re.search(r"substeps=(\d+)", str(exc.value)).group(1))
+    out = build(substeps).predict(mix, None, 0.1)
+    assert bool(torch.isfinite(out.means).all() and torch.isfinite(out.covs).all())
+    assert bool(torch.isfinite(out.log_weights).all()) and float(out.means[0, 2, 0]) < 3.0  # 16.4 falls to 2.33

@@ -133,3 +133,13 @@ def test_loss_of_positive_definiteness_is_named_or_repaired(gen):
     out = gsf.predict(broken, torch.zeros(3, 3, dtype=F64), 0.1)
     assert gsf.diagnostics["covariance_repairs"] == 1
     assert bool((torch.linalg.eigvalsh(out.covs) > 0).all())
+    # a covariance that is not finite is refused even with the repair on (its eigenvalue clip returned NaN)
+    covs[1, 1, 0, 0] = float("inf")
+    lost = mix.replace(covs=covs, validate=False)
+    for fused in (True, False):
+        with pytest.raises(
+            ValueError, match=r"covariance is not finite during propagation at trajectory index \(1,\), component 1"
+        ):
+            GaussianSumFilter(model, repair_covariance=True, fused=fused).predict(
+                lost, torch.zeros(3, 3, dtype=F64), 0.1
+            )
