@@ -181,6 +181,11 @@ class BaseFilter:
     ) -> None:
         if not isinstance(model, self.model_type):
             raise TypeError(f"{type(self).__name__} needs a {self.model_type.__name__}, got {type(model).__name__}")
+        n = getattr(model, "state_dim", None)
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(
+                f"{type(model).__name__}.state_dim must be a positive integer (the state's size), got {n!r}"
+            )
         options = FilterOptions(
             update_iterations=update_iterations,
             gate_probability=gate_probability,

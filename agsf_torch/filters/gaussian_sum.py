@@ -53,10 +53,15 @@ class GaussianSumFilter(BaseFilter):
         if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
         self.substeps = int(substeps)
+        self._contract_checked: ContinuousModel | None = None  # the model check_contract passed for
 
     def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
-        """As the base class's, and the model's check of the interval (``ContinuousModel.check_step``)."""
+        """As the base class's, the model's shape contract at the first ``predict`` with it
+        (``ContinuousModel.check_contract``) and its check of the interval (``ContinuousModel.check_step``)."""
         u, dt = super()._validate_predict(mixture, u, dt)
+        if self._contract_checked is not self.model:
+            self.model.check_contract(mixture.means, None if u is None else u.unsqueeze(-2))
+            self._contract_checked = self.model
         self.model.check_step(mixture.means, u, dt)
         return u, dt
 

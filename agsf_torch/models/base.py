@@ -53,6 +53,14 @@ def check_nonnegative(name: str, value) -> Tensor:
     return t
 
 
+def _covers(lead: torch.Size, batch: torch.Size) -> bool:
+    """Whether an output's leading dims ``lead`` are ``batch`` broadcast with others (the shape contract)."""
+    try:
+        return torch.broadcast_shapes(lead, batch) == lead
+    except RuntimeError:
+        return False
+
+
 def batched_jacobian(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
     """Jacobian of an elementwise-batched function by forward-mode AD.
 
@@ -162,15 +170,46 @@ class ContinuousModel(nn.Module):
 
     def drift(self, x: Tensor, u: Tensor | None) -> Tensor:
         """Drift ``f(x, u)``: ``x [..., n]``, ``u [..., m]`` (or None) → ``[..., n]``."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must implement drift(x, u): [..., n] → [..., n]")
 
     def noise_gain(self, x: Tensor) -> Tensor:
         """Noise gain ``g(x)``: ``[..., n]`` → ``[..., n, q]``."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must implement noise_gain(x): [..., n] → [..., n, q]")
 
     def noise_psd(self) -> Tensor:
         """Spectral density ``Q`` of the driving white noise, ``[q, q]``."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must implement noise_psd(): the [q, q] spectral density Q")
+
+    def check_contract(self, x: Tensor, u: Tensor | None) -> None:
+        """Refuse (``ValueError`` naming the method, the shape expected and the one returned) a model whose
+        :meth:`drift`, :meth:`noise_gain` or :meth:`noise_psd` breaks the shape contract at ``x [..., n]``, or
+        whose ``Q`` is not a finite symmetric positive semidefinite matrix (a negative density was accepted
+        and integrated).  The filters call it once, at their first ``predict`` with this model, before anything
+        changes; a subclass may extend it."""
+        name, n = type(self).__name__, self.state_dim
+        f = self.drift(x, u)
+        if not isinstance(f, Tensor) or f.dim() < 1 or f.shape[-1] != n or not _covers(f.shape[:-1], x.shape[:-1]):
+            got = tuple(f.shape) if isinstance(f, Tensor) else type(f).__name__
+            raise ValueError(
+                f"{name}.drift must return [..., n] = {(*x.shape[:-1], n)} for x {tuple(x.shape)}, got {got}"
+            )
+        g = self.noise_gain(x)
+        if not isinstance(g, Tensor) or g.dim() < 2 or g.shape[-2] != n or not _covers(g.shape[:-2], x.shape[:-1]):
+            got = tuple(g.shape) if isinstance(g, Tensor) else type(g).__name__
+            raise ValueError(f"{name}.noise_gain must return [..., n, q] = {(*x.shape[:-1], n, 'q')}, got {got}")
+        q = g.shape[-1]
+        Q = self.noise_psd()
+        if not isinstance(Q, Tensor) or Q.shape != (q, q):
+            got = tuple(Q.shape) if isinstance(Q, Tensor) else type(Q).__name__
+            raise ValueError(f"{name}.noise_psd must return [q, q] = {(q, q)} (q: noise_gain's last dim), got {got}")
+        Q = Q.detach().to(torch.float64)
+        if not bool(torch.isfinite(Q).all()) or not torch.allclose(Q, Q.T, rtol=1e-12, atol=0.0):
+            raise ValueError(f"{name}.noise_psd must be finite and symmetric, got {Q.tolist()}")
+        if q and float(torch.linalg.eigvalsh(Q)[0]) < -1e-12 * float(Q.abs().max()):
+            raise ValueError(
+                f"{name}.noise_psd must be positive semidefinite (a spectral density), got eigenvalues "
+                f"{torch.linalg.eigvalsh(Q).tolist()}"
+            )
 
     # ----------------------------------------------------------- derived terms
     def drift_jacobian(self, x: Tensor, u: Tensor | None) -> Tensor:
@@ -321,11 +360,11 @@ class MeasurementModel(nn.Module):
 
     def predict(self, x: Tensor) -> Tensor:
         """Predicted measurement ``h(x)``: ``[..., n]`` → ``[..., d]``."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must implement predict(x): [..., n] → [..., d]")
 
     def noise_cov(self) -> Tensor:
         """Measurement noise covariance ``R``, ``[d, d]`` or ``[..., d, d]``."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must implement noise_cov(): R, [d, d] or [..., d, d]")
 
     def jacobian(self, x: Tensor) -> Tensor:
         """``H = ∂h/∂x`` at ``x``, ``[..., d, n]`` (default: ``torch.func``)."""

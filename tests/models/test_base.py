@@ -137,3 +137,78 @@ def test_model_input_size_is_checked_when_declared():
         Driven().check_input(None)
     Pendulum().check_input(torch.zeros(4, 7))  # not declared: the model's own business
     assert Pendulum().drift(x, torch.zeros(4, 1)).shape == (4, 2)
+
+
+def _broken(**overrides):
+    """The test helpers' CubicDrift with methods replaced (a user's mistakes)."""
+    from tests.helpers import CubicDrift
+
+    return type("Broken", (CubicDrift,), overrides)()
+
+
+@pytest.mark.parametrize(
+    ("overrides", "error", "match"),
+    [
+        (
+            {"drift": lambda self, x, u=None: x.sum(-1)},
+            ValueError,
+            r"Broken\.drift must return \[\.\.\., n\] = \(2, 3, 1\)",
+        ),
+        ({"drift": lambda self, x, u=None: "f"}, ValueError, r"Broken\.drift must return .* got str"),
+        (
+            {"noise_gain": lambda self, x: torch.ones_like(x)},
+            ValueError,
+            r"Broken\.noise_gain must return \[\.\.\., n, q\]",
+        ),
+        (
+            {"noise_psd": lambda self: torch.ones(2, 2, dtype=torch.float64)},
+            ValueError,
+            r"noise_psd must return \[q, q\] = \(1, 1\)",
+        ),
+        (
+            {"noise_psd": lambda self: torch.full((1, 1), -0.25, dtype=torch.float64)},
+            ValueError,
+            r"positive semidefinite",
+        ),
+        (
+            {"noise_psd": lambda self: torch.full((1, 1), float("nan"), dtype=torch.float64)},
+            ValueError,
+            r"finite and symmetric",
+        ),
+        ({"noise_psd": ContinuousModel.noise_psd}, NotImplementedError, r"Broken must implement noise_psd\(\)"),
+        ({"noise_gain": ContinuousModel.noise_gain}, NotImplementedError, r"Broken must implement noise_gain\(x\)"),
+    ],
+)
+@pytest.mark.parametrize("kind", ["gsf", "penalty"])
+def test_a_model_breaking_its_contract_is_refused_at_the_first_predict_naming_the_method(overrides, error, match, kind):
+    """A user's model whose drift, noise gain or noise density has the wrong shape (a raw broadcasting error
+    deep in the propagation), a negative density (accepted and integrated) or a missing method (a bare
+    NotImplementedError) is refused at the first predict, naming the method and the shapes, before anything
+    changes."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter
+
+    model = _broken(**overrides)
+    filt = GaussianSumFilter(model) if kind == "gsf" else AdaptiveGaussianSumFilter(model)
+    mix = GaussianMixture.from_gaussian(
+        torch.zeros(2, 1, dtype=torch.float64), 0.1 * torch.ones(2, 1, 1, dtype=torch.float64), 3
+    )
+    before = filt.state_dict() if kind != "gsf" else None
+    with pytest.raises(error, match=match):
+        filt.predict(mix, None, 0.1)
+    if before is not None:
+        assert filt.state_dict() == before
+
+
+@pytest.mark.parametrize("state_dim", [None, 0, -1, 1.5, True, "3"])
+def test_a_model_without_a_positive_integer_state_dim_is_refused_at_construction(state_dim):
+    from agsf_torch.filters import GaussianSumFilter
+    from tests.helpers import CubicDrift
+
+    if state_dim is None:  # no attribute at all: the subclass forgot it (the base class only annotates it)
+        methods = {k: getattr(CubicDrift, k) for k in ("drift", "noise_gain", "noise_psd")}
+        model = type("Broken", (ContinuousModel,), methods)()
+    else:
+        model = _broken(state_dim=state_dim)
+    with pytest.raises(ValueError, match=r"Broken\.state_dim must be a positive integer"):
+        GaussianSumFilter(model)
