@@ -368,7 +368,9 @@ def kalman_update(
         h, H = evaluate_measurement(measurement, x)
         d = h.shape[-1]
         if y.shape[-1] != d:
-            raise ValueError(f"y has {y.shape[-1]} entries but the measurement model predicts {d}")
+            raise ValueError(
+                f"y has {y.shape[-1]} entries but the measurement model predicts {d} (h: {tuple(h.shape)})"
+            )
         if mask is None:
             valid = torch.ones(h.shape[:-1] + (d,), dtype=means.dtype, device=means.device)
         else:

@@ -396,15 +396,28 @@ class MeasurementModel(nn.Module):
         the ``y`` to use.
 
         Called by the filters before anything changes.  The default checks that :meth:`mask`,
-        if any, has ``d`` entries; subclasses add their own checks (the size ``d``, unit
-        vectors…) and may return a corrected ``y`` (e.g. normalised).
+        if any, has ``d`` entries and that :meth:`noise_cov` is a finite symmetric ``[d, d]`` or
+        ``[..., d, d]`` matrix with a non-negative diagonal (a negative variance was reported as a
+        component covariance losing definiteness, a wrong size as a raw solver error); subclasses add their
+        own checks (the size ``d``, unit vectors…) and may return a corrected ``y`` (e.g. normalised).
 
         Raises:
-            ValueError: naming ``y`` (or the mask) and the shapes.
+            ValueError: naming ``y``, the mask or ``noise_cov``, and the shapes or values.
         """
         mask = self.mask()
         if mask is not None and (mask.dim() < 1 or mask.shape[-1] != y.shape[-1]):
             raise ValueError(
                 f"the measurement mask has shape {tuple(mask.shape)}, y has {tuple(y.shape)}: their last dims differ"
+            )
+        name, d, R = type(self).__name__, y.shape[-1] if y.dim() else 0, self.noise_cov()
+        if not isinstance(R, Tensor) or R.dim() < 2 or R.shape[-2:] != (d, d):
+            got = tuple(R.shape) if isinstance(R, Tensor) else type(R).__name__
+            raise ValueError(f"{name}.noise_cov must be [d, d] or [..., d, d] with d = {d} (y's entries), got {got}")
+        diagonal = R.diagonal(dim1=-2, dim2=-1)
+        asymmetric = (R - R.transpose(-1, -2)).abs() > 1e-10 * R.abs().amax((-2, -1), keepdim=True)  # beyond rounding
+        if not bool(torch.isfinite(R).all() & (diagonal >= 0).all() & ~asymmetric.any()):
+            raise ValueError(
+                f"{name}.noise_cov must be a finite symmetric covariance with a non-negative diagonal, "
+                f"got diagonal {diagonal.detach().flatten()[:8].tolist()}"
             )
         return y

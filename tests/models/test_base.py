@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from agsf_torch.models import ContinuousModel, FunctionMeasurement, LinearModel, batched_jacobian
+from agsf_torch.models import ContinuousModel, FunctionMeasurement, LinearModel, MeasurementModel, batched_jacobian
 
 
 class Pendulum(ContinuousModel):
@@ -212,3 +212,66 @@ def test_a_model_without_a_positive_integer_state_dim_is_refused_at_construction
         model = _broken(state_dim=state_dim)
     with pytest.raises(ValueError, match=r"Broken\.state_dim must be a positive integer"):
         GaussianSumFilter(model)
+
+
+class _Direct(MeasurementModel):
+    """A user's measurement subclass ``y = x + v`` with the noise covariance ``R`` given."""
+
+    def __init__(self, R):
+        super().__init__()
+        self.R = R
+
+    def predict(self, x):
+        return x
+
+    def noise_cov(self):
+        return self.R
+
+
+@pytest.mark.parametrize(
+    ("R", "match"),
+    [
+        (
+            torch.full((1, 1), -0.01, dtype=torch.float64),
+            r"_Direct\.noise_cov must be a finite symmetric .* \[-0\.01\]",
+        ),
+        (torch.full((1, 1), float("nan"), dtype=torch.float64), r"_Direct\.noise_cov must be a finite symmetric"),
+        (torch.eye(2, dtype=torch.float64), r"_Direct\.noise_cov must be \[d, d\] or \[\.\.\., d, d\] with d = 1"),
+        (torch.ones(1, dtype=torch.float64), r"_Direct\.noise_cov must be \[d, d\]"),
+    ],
+)
+def test_a_measurement_subclass_with_a_bad_noise_covariance_is_refused_naming_it(R, match):
+    """A negative variance was reported as 'covariance is not positive definite in the measurement update', a
+    wrong size as a raw cholesky_solve error: the filters' check of the measurement names noise_cov."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+    from tests.helpers import CubicDrift
+
+    mix = GaussianMixture.from_gaussian(
+        torch.zeros(2, 1, dtype=torch.float64), 0.1 * torch.ones(2, 1, 1, dtype=torch.float64), 3
+    )
+    with pytest.raises(ValueError, match=match):
+        GaussianSumFilter(CubicDrift()).update(mix, torch.zeros(2, 1, dtype=torch.float64), _Direct(R))
+
+
+def test_a_noise_covariance_symmetric_to_rounding_is_accepted_and_one_that_is_not_refused(gen):
+    """``R = AAᵀ`` as a user computes it is symmetric only to rounding: accepted; an asymmetric one is not."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+    from tests.helpers import CubicDrift
+
+    A = torch.randn(2, 2, generator=gen, dtype=torch.float64)
+    R = A @ A.T + 0.1 * torch.eye(2, dtype=torch.float64)
+    R[0, 1] = R[0, 1] * (1 + 1e-15)  # rounding
+    mix = GaussianMixture.from_gaussian(
+        torch.zeros(3, 2, dtype=torch.float64), 0.1 * torch.eye(2, dtype=torch.float64).expand(3, 2, 2), 2
+    )
+
+    class Plane(CubicDrift):
+        state_dim = 2
+
+    y = torch.zeros(3, 2, dtype=torch.float64)
+    GaussianSumFilter(Plane()).update(mix, y, _Direct(R))
+    R[0, 1] += 0.5
+    with pytest.raises(ValueError, match=r"must be a finite symmetric covariance"):
+        GaussianSumFilter(Plane()).update(mix, y, _Direct(R))
