@@ -50,7 +50,7 @@ def test_the_context_hides_exactly_torchs_internal_deprecation():
 def test_a_compiled_fused_kernel_call_hides_it(monkeypatch, tmp_path):
     """The fused layer's compile call (a stand-in that raises the warnings as export and inductor do)."""
 
-    def compile_ahead_of_time(kernel, inputs, shared, path, serial):
+    def compile_ahead_of_time(kernel, inputs, shared, path, serial, threads=None):
         _emit()
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"package")

@@ -1,7 +1,7 @@
 """A worker process of :func:`agsf_torch.fused.lanes.compiling_in_parallel`: compiles one kernel into the cache.
 
 ``python -m agsf_torch.fused.compile_worker JOB`` reads ``JOB`` (a pickle of the kernel, its export sample,
-its shared tensors, the cache path and the variant), compiles the kernel ahead of time into that path
+its shared tensors, the cache path, the variant and the caller's thread count), compiles the kernel ahead of time into that path
 (written atomically) and prints the seconds it took.
 """
 
@@ -17,11 +17,11 @@ from .lanes import _compile_ahead_of_time
 
 
 def main(job: str) -> None:
-    kernel, inputs, shared, path, serial = pickle.loads(Path(job).read_bytes())
+    kernel, inputs, shared, path, serial, threads = pickle.loads(Path(job).read_bytes())
     t0 = time.perf_counter()
     if not Path(path).is_file():
         with torch_internal_deprecations_hidden():
-            _compile_ahead_of_time(kernel, inputs, shared, Path(path), serial)
+            _compile_ahead_of_time(kernel, inputs, shared, Path(path), serial, threads)
     print(f"{time.perf_counter() - t0:.1f}")
 
 

@@ -169,10 +169,17 @@ def _package_name(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared
 
 
 def _compile_ahead_of_time(
-    kernel: Callable, inputs: Sequence[Tensor], shared: Sequence[Tensor], path: Path, serial: bool = False
+    kernel: Callable,
+    inputs: Sequence[Tensor],
+    shared: Sequence[Tensor],
+    path: Path,
+    serial: bool = False,
+    threads: int | None = None,
 ) -> None:
     """Export ``kernel`` and compile it into the package ``path`` (written atomically): for the lane count of
-    ``inputs`` (threaded code), or with ``serial`` for any lane count ≥ 2 (code without OpenMP threads)."""
+    ``inputs`` (threaded code for ``threads`` OpenMP threads, by default this process's torch threads), or with
+    ``serial`` for any lane count ≥ 2 (code without OpenMP threads).  The compiler writes the thread count into
+    the code (one thread: no parallel region at all), so it is part of the package's name (:func:`_package_path`)."""
     from torch._inductor import config as inductor_config
     from torch.export import Dim
 
@@ -189,7 +196,7 @@ def _compile_ahead_of_time(
     fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=path.parent)
     os.close(fd)
     try:
-        with inductor_config.patch({"cpp.threads": 1} if serial else {}):
+        with inductor_config.patch({"cpp.threads": 1 if serial else threads or torch.get_num_threads()}):
             torch._inductor.aoti_compile_and_package(program, package_path=tmp)
         os.replace(tmp, path)
     finally:
@@ -200,8 +207,10 @@ def _compile_ahead_of_time(
 def _package_path(
     kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor], serial: bool
 ) -> Path:
-    """Where the compiled kernel of this call is kept (``inputs``: its export sample)."""
-    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0])
+    """Where the compiled kernel of this call is kept (``inputs``: its export sample): the threaded variant per
+    lane count and per thread count (this process's torch threads: a kernel compiled in a one-thread process,
+    a test worker's say, has no parallel region, and a two-thread process loaded it and ran 30 % slower)."""
+    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0], "threads", torch.get_num_threads())
     return kernel_cache_dir() / _package_name(kernel, key + variant, inputs, shared)
 
 
@@ -221,7 +230,7 @@ def _load(
         )
         t0 = time.perf_counter()
         with torch_internal_deprecations_hidden():  # torch's warnings about its own internals, not the user's
-            _compile_ahead_of_time(kernel, inputs, shared, path, serial)
+            _compile_ahead_of_time(kernel, inputs, shared, path, serial, torch.get_num_threads())
         logger.info("compiled the fused kernel %r in %.1f s", name, time.perf_counter() - t0)
     return _load_package(path)
 
@@ -299,7 +308,8 @@ def run_in_chunks(
         return tuple(torch.cat(p) for p in zip(*parts))
     serial = C < compiled_chunk  # below one chunk: the serial variant (PARALLEL_MIN_LANES for the default)
     chunk_lanes = None if serial else compiled_chunk  # the threaded variant is compiled for its chunk
-    cache_key = (kernel, chunk_lanes, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
+    threads = 1 if serial else torch.get_num_threads()  # the threaded variant is compiled per thread count
+    cache_key = (kernel, chunk_lanes, threads, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
     try:
         if cache_key in _FAILED:
             raise _Declined
@@ -334,7 +344,8 @@ def _defer(kernel: Callable, key: tuple, part: Sequence[Tensor], shared: Sequenc
     if path.is_file():
         return False
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
-    _PENDING.get().setdefault(path, (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial))
+    job = (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial, torch.get_num_threads())
+    _PENDING.get().setdefault(path, job)
     return True
 
 
@@ -369,7 +380,7 @@ def compiling_in_parallel(processes: int | None = None):
 
 
 def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
-    """Compile ``jobs`` (cache path → (name, kernel, inputs, shared, serial)) into the cache, up to ``processes``
+    """Compile ``jobs`` (cache path → (name, kernel, inputs, shared, serial, threads)) into the cache, up to ``processes``
     at once, each in a new interpreter (:mod:`agsf_torch.fused.compile_worker`: the caller's ``__main__`` is not
     imported again, as a multiprocessing worker would)."""
     import pickle
@@ -391,10 +402,12 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
         try:
             while queue or running:
                 while queue and len(running) < workers:
-                    path, (name, kernel, inputs, shared, serial) = queue.pop(0)
+                    path, (name, kernel, inputs, shared, serial, threads) = queue.pop(0)
                     job = Path(scratch) / f"job{len(queue)}"
                     try:
-                        job.with_suffix(".pkl").write_bytes(pickle.dumps((kernel, inputs, shared, str(path), serial)))
+                        job.with_suffix(".pkl").write_bytes(
+                            pickle.dumps((kernel, inputs, shared, str(path), serial, threads))
+                        )
                         cmd = [sys.executable, "-m", "agsf_torch.fused.compile_worker", str(job.with_suffix(".pkl"))]
                         # output to files, not pipes: a worker never waits for the parent to read it
                         with open(job.with_suffix(".out"), "w") as out, open(job.with_suffix(".err"), "w") as err:

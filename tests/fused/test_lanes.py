@@ -103,7 +103,7 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
 
     compiled = []
 
-    def fake_compile(kernel, inputs, shared, path, serial):
+    def fake_compile(kernel, inputs, shared, path, serial, threads=None):
         compiled.append(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"package")
@@ -205,3 +205,36 @@ def test_a_bad_compiled_chunk_is_refused(gen, bad):
     x = torch.randn(4, 3, generator=gen, dtype=F64)
     with pytest.raises(ValueError, match="compiled_chunk must be a positive integer"):
         run_in_chunks(_kernel, (x, x[:, :2]), compile=True, compiled_chunk=bad)
+
+
+def test_the_threaded_variant_is_kept_per_thread_count(monkeypatch, gen, tmp_path):
+    """The compiler writes the thread count into the threaded code (one thread: no parallel region), so a kernel
+    compiled in a one-thread process (a test worker) and loaded by a two-thread one ran 30 % slower (the penalty
+    step at B = 256: 21–23 ms against 16–18 ms).  The threaded variant is compiled and kept per torch thread
+    count, and compiled for that count; the serial one is shared."""
+    compiled = []
+
+    def fake_compile(kernel, inputs, shared, path, serial, threads=None):
+        compiled.append((path, serial, threads))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"package")
+
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(lanes, "_compile_ahead_of_time", fake_compile)
+    monkeypatch.setattr(lanes, "_load_package", lambda path: _kernel)
+    monkeypatch.setattr(lanes, "_COMPILED", {})
+    big = lanes.PARALLEL_MIN_LANES
+    args = (torch.randn(big, 3, generator=gen, dtype=F64), torch.randn(big, 2, generator=gen, dtype=F64))
+    small = tuple(t[:5] for t in args)
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2, 1):
+            torch.set_num_threads(threads)
+            run_in_chunks(_kernel, args, compile=True)
+            run_in_chunks(_kernel, small, compile=True)
+    finally:
+        torch.set_num_threads(before)
+    threaded = [(path, n) for path, serial, n in compiled if not serial]
+    assert [n for _, n in threaded] == [1, 2]  # one package per thread count, compiled for it, reused after
+    assert threaded[0][0] != threaded[1][0]
+    assert sum(serial for _, serial, _ in compiled) == 1  # the serial variant: one package for every count

@@ -55,10 +55,11 @@ def test_inside_the_block_missing_kernels_run_eagerly_and_are_compiled_together_
     assert all(torch.equal(a, b) for a, b in zip(out, _kernel(x, y)))
     (jobs,) = empty_cache
     assert sorted((job[0], job[4]) for job in jobs.values()) == [("_kernel (serial)", True), ("_other_kernel", False)]
-    for path, (name, kernel, inputs, shared, serial) in jobs.items():
+    for path, (name, kernel, inputs, shared, serial, threads) in jobs.items():
         assert path.parent == lanes.kernel_cache_dir() and path.name.startswith(kernel.__name__ + "-")
         # the export sample is what a first call would have compiled: a full chunk for the threaded variant
         assert inputs[0].shape[0] == (x.shape[0] if serial else lanes.COMPILED_CHUNK)
+        assert threads == torch.get_num_threads()  # the worker compiles for the caller's threads, not its own
 
 
 def test_a_kernel_already_in_the_cache_is_not_noted(gen, empty_cache, monkeypatch):
@@ -106,8 +107,8 @@ def test_a_kernel_a_worker_cannot_compile_is_announced_and_left_to_its_first_cal
 
     monkeypatch.setattr(lanes, "_compile_pending", _COMPILE_PENDING)
     jobs = {
-        tmp_path / "a.pt2": ("_failing_kernel (serial)", _failing_kernel, [x, y], [], True),
-        tmp_path / "b.pt2": ("local_kernel (serial)", local_kernel, [x, y], [], True),
+        tmp_path / "a.pt2": ("_failing_kernel (serial)", _failing_kernel, [x, y], [], True, 1),
+        tmp_path / "b.pt2": ("local_kernel (serial)", local_kernel, [x, y], [], True, 1),
     }
     lanes._compile_pending(jobs, processes=2)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -136,7 +137,7 @@ def test_a_batch_of_kernels_none_of_which_can_be_sent_ends_without_a_worker(gen,
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
     caplog.set_level(logging.INFO, logger="agsf_torch")
     x, y = _inputs(gen, 4)
-    jobs = {tmp_path / "a.pt2": ("lambda (serial)", lambda a, b: (a,), [x, y], [], True)}
+    jobs = {tmp_path / "a.pt2": ("lambda (serial)", lambda a, b: (a,), [x, y], [], True, 1)}
     monkeypatch.setattr("subprocess.Popen", lambda *a, **k: pytest.fail("a worker was started"))
     monkeypatch.setattr(lanes, "_compile_pending", _COMPILE_PENDING)
     lanes._compile_pending(jobs, processes=1)
