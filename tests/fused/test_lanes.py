@@ -96,15 +96,14 @@ def test_padding_copies_the_first_lane():
     assert lanes._padded(t.t(), 1).is_contiguous()
 
 
-def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog, gen, tmp_path):
-    """The first use on a machine compiles (announced, start and end) into the cache; a new process (here: the
-    in-memory table cleared) loads the package without compiling."""
-    import logging
-
+@pytest.fixture
+def fake_compiler(monkeypatch, tmp_path) -> list:
+    """Compilation ahead of time stood in for, into a cache under ``tmp_path / "cache"``: the list of
+    ``(package path, serial, threads)`` it was asked for; a package loads as :func:`_kernel`."""
     compiled = []
 
     def fake_compile(kernel, inputs, shared, path, serial, threads=None):
-        compiled.append(path)
+        compiled.append((path, serial, threads))
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"package")
 
@@ -112,20 +111,32 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
     monkeypatch.setattr(lanes, "_compile_ahead_of_time", fake_compile)
     monkeypatch.setattr(lanes, "_load_package", lambda path: _kernel)
     monkeypatch.setattr(lanes, "_COMPILED", {})
+    return compiled
+
+
+def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog, gen, tmp_path, fake_compiler):
+    """The first use on a machine compiles (announced, start and end) into the cache; a new process (here: the
+    in-memory table cleared) loads the package without compiling."""
+    import logging
+
+    def compiled() -> list:  # the packages compiled so far
+        return [path for path, _, _ in fake_compiler]
+
     caplog.set_level(logging.INFO, logger="agsf_torch")
     x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
     run_in_chunks(_kernel, (x, y), compile=True)
     run_in_chunks(_kernel, (x, y), compile=True)
     assert [r.getMessage().split(" the fused kernel ")[0] for r in caplog.records] == ["compiling", "compiled"]
     assert "'_kernel (serial)' ahead of time" in caplog.records[0].getMessage()
-    assert len(compiled) == 1 and compiled[0].parent == tmp_path / "cache" and compiled[0].name.startswith("_kernel-")
+    assert len(compiled()) == 1 and compiled()[0].parent == tmp_path / "cache"
+    assert compiled()[0].name.startswith("_kernel-")
     monkeypatch.setattr(lanes, "_COMPILED", {})  # a new process
     caplog.clear()
     run_in_chunks(_kernel, (x, y), compile=True)
-    assert len(compiled) == 1 and not caplog.records
+    assert len(compiled()) == 1 and not caplog.records
     big = lanes.PARALLEL_MIN_LANES  # a large call: the threaded variant, in its own package
     run_in_chunks(_kernel, (torch.randn(big, 3, dtype=F64), torch.randn(big, 2, dtype=F64)), compile=True)
-    assert len(compiled) == 2 and compiled[1] != compiled[0] and compiled[1].name.startswith("_kernel-")
+    assert len(compiled()) == 2 and compiled()[1] != compiled()[0] and compiled()[1].name.startswith("_kernel-")
     assert "'_kernel' ahead of time" in caplog.records[0].getMessage()
 
 
@@ -207,22 +218,12 @@ def test_a_bad_compiled_chunk_is_refused(gen, bad):
         run_in_chunks(_kernel, (x, x[:, :2]), compile=True, compiled_chunk=bad)
 
 
-def test_the_threaded_variant_is_kept_per_thread_count(monkeypatch, gen, tmp_path):
+def test_the_threaded_variant_is_kept_per_thread_count(gen, fake_compiler):
     """The compiler writes the thread count into the threaded code (one thread: no parallel region), so a kernel
     compiled in a one-thread process (a test worker) and loaded by a two-thread one ran 30 % slower (the penalty
     step at B = 256: 21–23 ms against 16–18 ms).  The threaded variant is compiled and kept per torch thread
     count, and compiled for that count; the serial one is shared."""
-    compiled = []
-
-    def fake_compile(kernel, inputs, shared, path, serial, threads=None):
-        compiled.append((path, serial, threads))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(b"package")
-
-    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(lanes, "_compile_ahead_of_time", fake_compile)
-    monkeypatch.setattr(lanes, "_load_package", lambda path: _kernel)
-    monkeypatch.setattr(lanes, "_COMPILED", {})
+    compiled = fake_compiler
     big = lanes.PARALLEL_MIN_LANES
     args = (torch.randn(big, 3, generator=gen, dtype=F64), torch.randn(big, 2, generator=gen, dtype=F64))
     small = tuple(t[:5] for t in args)
