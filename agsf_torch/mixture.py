@@ -15,7 +15,7 @@ from torch import Tensor
 
 from .finite import all_finite
 
-__all__ = ["GaussianMixture", "split_gaussian", "check_covariance", "as_real_tensor"]
+__all__ = ["GaussianMixture", "split_gaussian", "check_covariance", "check_symmetric", "as_real_tensor"]
 
 
 def _describe(value: object) -> str:
@@ -54,6 +54,16 @@ def check_covariance(name: str, P: Tensor, rtol: float = 1e-9) -> None:
 
     The message names the first offending batch index.
     """
+    check_symmetric(name, P, rtol)
+    info = torch.linalg.cholesky_ex(P).info
+    if bool((info != 0).any()):
+        idx = (info != 0).nonzero()[0].tolist()
+        raise ValueError(f"{name} is not positive definite at batch index {tuple(idx)}")
+
+
+def check_symmetric(name: str, P: Tensor, rtol: float = 1e-9) -> None:
+    """Raise ``ValueError`` unless ``P [..., n, n]`` is a floating-point tensor, finite and symmetric to ``rtol`` of
+    its largest diagonal entry, naming ``name`` and the first offending batch index."""
     if not torch.is_tensor(P) or not P.is_floating_point():
         raise ValueError(f"{name} must be a floating-point tensor, got {_describe(P)}")
     if P.dim() < 2 or P.shape[-1] != P.shape[-2]:
@@ -66,10 +76,6 @@ def check_covariance(name: str, P: Tensor, rtol: float = 1e-9) -> None:
     if bool(asym.any()):
         idx = asym.flatten(-2).any(-1).nonzero()[0].tolist()
         raise ValueError(f"{name} is not symmetric at batch index {tuple(idx)}")
-    info = torch.linalg.cholesky_ex(P).info
-    if bool((info != 0).any()):
-        idx = (info != 0).nonzero()[0].tolist()
-        raise ValueError(f"{name} is not positive definite at batch index {tuple(idx)}")
 
 
 @dataclass(frozen=True)

@@ -196,12 +196,18 @@ def _compile_ahead_of_time(
     fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=path.parent)
     os.close(fd)
     try:
-        with inductor_config.patch({"cpp.threads": 1 if serial else threads or torch.get_num_threads()}):
+        with inductor_config.patch({"cpp.threads": 1 if serial else threads or _variant_threads(serial)}):
             torch._inductor.aoti_compile_and_package(program, package_path=tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _variant_threads(serial: bool) -> int:
+    """The OpenMP threads a variant is compiled for: none for the serial one, this process's torch threads for the
+    threaded one (the compiler writes the count into the code: :func:`_package_path`)."""
+    return 1 if serial else torch.get_num_threads()
 
 
 def _package_path(
@@ -210,7 +216,7 @@ def _package_path(
     """Where the compiled kernel of this call is kept (``inputs``: its export sample): the threaded variant per
     lane count and per thread count (this process's torch threads: a kernel compiled in a one-thread process,
     a test worker's say, has no parallel region, and a two-thread process loaded it and ran 30 % slower)."""
-    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0], "threads", torch.get_num_threads())
+    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0], "threads", _variant_threads(serial))
     return kernel_cache_dir() / _package_name(kernel, key + variant, inputs, shared)
 
 
@@ -230,7 +236,7 @@ def _load(
         )
         t0 = time.perf_counter()
         with torch_internal_deprecations_hidden():  # torch's warnings about its own internals, not the user's
-            _compile_ahead_of_time(kernel, inputs, shared, path, serial, torch.get_num_threads())
+            _compile_ahead_of_time(kernel, inputs, shared, path, serial, _variant_threads(serial))
         logger.info("compiled the fused kernel %r in %.1f s", name, time.perf_counter() - t0)
     return _load_package(path)
 
@@ -308,8 +314,8 @@ def run_in_chunks(
         return tuple(torch.cat(p) for p in zip(*parts))
     serial = C < compiled_chunk  # below one chunk: the serial variant (PARALLEL_MIN_LANES for the default)
     chunk_lanes = None if serial else compiled_chunk  # the threaded variant is compiled for its chunk
-    threads = 1 if serial else torch.get_num_threads()  # the threaded variant is compiled per thread count
-    cache_key = (kernel, chunk_lanes, threads, *key, *(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
+    shapes = (*(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
+    cache_key = (kernel, chunk_lanes, _variant_threads(serial), *key, *shapes)
     try:
         if cache_key in _FAILED:
             raise _Declined
@@ -344,7 +350,7 @@ def _defer(kernel: Callable, key: tuple, part: Sequence[Tensor], shared: Sequenc
     if path.is_file():
         return False
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
-    job = (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial, torch.get_num_threads())
+    job = (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial, _variant_threads(serial))
     _PENDING.get().setdefault(path, job)
     return True
 
