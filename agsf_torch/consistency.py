@@ -28,7 +28,7 @@ from torch import Tensor
 
 from .quantiles import chi2_quantile
 
-__all__ = ["nees", "rms", "chi2_band", "Check", "consistency_checks", "format_report"]
+__all__ = ["nees", "rms", "chi2_band", "nis_per_expected", "Check", "consistency_checks", "format_report"]
 
 
 def nees(error: Tensor, cov: Tensor) -> Tensor:
@@ -62,6 +62,34 @@ def chi2_band(dof: float, num_samples: int, confidence: float = 0.95) -> tuple[f
     a = (1.0 - confidence) / 2.0
     k = dof * num_samples
     return chi2_quantile(a, k) / num_samples, chi2_quantile(1.0 - a, k) / num_samples
+
+
+def nis_per_expected(
+    nis: np.ndarray, nis_dof: np.ndarray, tangent_fraction: float = 2.0 / 3.0, confidence: float = 0.95
+) -> tuple[float, tuple[float, float]] | None:
+    """The pooled NIS ratio ``Σ NIS / Σ E[NIS]`` over every valid update and its χ² band.
+
+    ``E[NIS] = tangent_fraction · d`` for ``d`` valid measurement entries (2 per star for star unit
+    vectors, module docstring); an entry counts where the NIS is finite and ``d > 0``.  A consistent
+    filter's ratio is 1 and lies, with probability ``confidence``, in the band: the average of
+    ``count`` χ² values of ``k`` (the mean expectation) degrees of freedom, divided by ``k``
+    (:func:`chi2_band`).
+
+    Args:
+        nis: ``[...]`` NIS, NaN where there was no update; nis_dof: ``[...]`` its valid entries.
+
+    Returns:
+        ``(ratio, (low, high))``, or ``None`` when no update has a valid NIS.
+    """
+    nis, nis_dof = np.asarray(nis, dtype=np.float64), np.asarray(nis_dof, dtype=np.float64)
+    valid = np.isfinite(nis) & (nis_dof > 0)
+    count = int(valid.sum())
+    if not count:
+        return None
+    expected = tangent_fraction * nis_dof[valid]
+    k = float(expected.mean())
+    lo, hi = chi2_band(k, count, confidence)
+    return float(nis[valid].sum() / expected.sum()), (lo / k, hi / k)
 
 
 @dataclass(frozen=True)
@@ -107,24 +135,22 @@ def consistency_checks(
                 "the filter is under-confident (covariance too large)",
             )
         )
-    valid = np.isfinite(nis) & (nis_dof > 0)
-    expected = tangent_fraction * nis_dof[valid]
-    count = int(valid.sum())
-    if count:
-        k = float(expected.mean())
-        lo, hi = chi2_band(k, count, confidence)
+    pooled = nis_per_expected(nis, nis_dof, tangent_fraction, confidence)
+    if pooled is not None:
+        ratio, (lo, hi) = pooled
         checks.append(
             _band_check(
                 "nis",
                 "NIS / expected",
-                float(nis[valid].sum() / expected.sum()),
-                lo / k,
-                hi / k,
+                ratio,
+                lo,
+                hi,
                 "innovations match the measurement model",
                 "innovations are larger than the filter expects — measurement or process noise under-modelled",
                 "innovations are smaller than the filter expects — noise over-modelled",
             )
         )
+        valid = np.isfinite(nis) & (nis_dof > 0)
         # whiteness: lag-1 autocorrelation of the standardised NIS per run
         z = np.where(
             valid,

@@ -240,12 +240,14 @@ def _print_summary(name: str, summary: dict) -> None:
     """The run's per-filter numbers and every adaptive filter's paired difference against the GSF, aligned."""
     from .statistics import WINDOW_TEXT, minus_gsf_key
 
-    print(f"{name}: mean RMS between star frames (deg) and time-averaged NEES")
+    print(f"{name}: mean RMS between star frames (deg), time-averaged NEES and NIS / expected (1 when consistent)")
     filters = summary["filters"]
     width = max((len(f"{f} − GSF") for f in filters), default=0)
     for fname, f in filters.items():
         bu = f.get("between_frames", {}).get("mean_rms_deg", float("nan"))
-        print(f"  {fname:<{width}}  {bu:>11.6g}       NEES {f['time_averaged_nees']:.4g}")
+        nis = f.get("nis_per_expected")
+        nis_text = f"   NIS / expected {nis:.4g}" if nis is not None else ""
+        print(f"  {fname:<{width}}  {bu:>11.6g}       NEES {f['time_averaged_nees']:.4g}{nis_text}")
     for fname in filters:
         d = (summary.get(minus_gsf_key(fname)) or {}).get("between_frames")
         if d:

@@ -84,6 +84,7 @@ def _case_summary(cfg, summary: dict) -> dict:
                 "before_first_frame_mean_rms_deg": s.get("before_first_frame", {}).get("mean_rms_deg"),
                 "final_rms_deg": s["rms_deg"][-1],
                 "time_averaged_nees": s["time_averaged_nees"],
+                "nis_per_expected": s.get("nis_per_expected"),
             }
             for f, s in summary["filters"].items()
         },
@@ -106,6 +107,7 @@ def case_metrics(case: dict) -> dict[str, float]:
             ("before_first_frame_mean_rms_deg", "mean_rms_before_first_frame_deg"),
             ("final_rms_deg", "final_rms_deg"),
             ("time_averaged_nees", "time_averaged_nees"),
+            ("nis_per_expected", "nis_per_expected"),
         ):
             if s.get(key) is not None:
                 metrics[f"{f}/{metric}"] = float(s[key])
@@ -120,14 +122,15 @@ def case_metrics(case: dict) -> dict[str, float]:
 def results_table(combined: dict) -> str:
     """Markdown table of the combined summary."""
     lines = [
-        "| case | star frames | filter | mean RMS between frames (deg) | mean RMS before first frame (deg) | final RMS (deg) | time-avg NEES |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| case | star frames | filter | mean RMS between frames (deg) | mean RMS before first frame (deg) | final RMS (deg) | time-avg NEES | NIS / expected |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for case, c in combined.items():
         for f, s in c["filters"].items():
             lines.append(
                 f"| {case} | {1 / c['star_period_s']:g} Hz | {f} | {_cell(s['between_frames_mean_rms_deg'], '.5g')} | "
-                f"{_cell(s['before_first_frame_mean_rms_deg'], '.5g')} | {s['final_rms_deg']:.3g} | {s['time_averaged_nees']:.4g} |"
+                f"{_cell(s['before_first_frame_mean_rms_deg'], '.5g')} | {s['final_rms_deg']:.3g} | {s['time_averaged_nees']:.4g} | "
+                f"{_cell(s.get('nis_per_expected'), '.4g')} |"
             )
     lines += ["", _WINDOWS_NOTE]
     for label in ADAPTIVE_FILTERS:
@@ -150,7 +153,11 @@ def results_table(combined: dict) -> str:
 
 _WINDOWS = f"{WINDOW_TEXT['between_frames']}; {WINDOW_TEXT['before_first_frame']}"
 #: The sentences under the tables of :func:`results_table`: what their windows are.
-_WINDOWS_NOTE = f"Windows — {_WINDOWS}; final: the last step; NEES: averaged over every step and run."
+_WINDOWS_NOTE = (
+    f"Windows — {_WINDOWS}; final: the last step; NEES: averaged over every step and run; NIS / expected: "
+    "Σ NIS ÷ Σ its expectation (2 per valid star) over every star frame and run, 1 for a consistent filter "
+    "(needs no truth)."
+)
 _DIFFERENCES_NOTE = (
     f"Paired per-run differences of the mean RMS, Student-t 95 % interval over runs; windows — {_WINDOWS}."
 )

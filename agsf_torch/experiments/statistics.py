@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ..consistency import chi2_band, rms
+from ..consistency import chi2_band, nis_per_expected, rms
 from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 from ..quantiles import student_t_quantile
 from .config import ExperimentConfig
@@ -56,7 +56,11 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     * ``agsf_minus_gsf`` (``agsf_galerkin_minus_gsf``): paired differences
       ``r_b(AGSF) − r_b(GSF)`` (the Galerkin filter's), mean and a Student-t 95 %
       confidence interval; every per-run mean above carries its own interval
-      (``ci95_rms_deg``, ``time_averaged_nees_ci95``, over runs).
+      (``ci95_rms_deg``, ``time_averaged_nees_ci95``, over runs);
+    * ``nis_per_expected``: ``Σ NIS / Σ E[NIS]`` over every star frame and run (``E[NIS]`` = 2 per valid star,
+      :func:`~agsf_torch.consistency.nis_per_expected`), 1 for a consistent filter, with ``nis_band_95``, the
+      95 % band a consistent filter's ratio lies in; the consistency measure that needs no truth.  Absent
+      without a star frame.
     """
     time = data["time"]
     frames = data["star_frame"].astype(bool)
@@ -89,6 +93,9 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
             "rms_sigma_axes_rad": np.sqrt(np.mean(data[f"{name}/sigma"] ** 2, axis=0)).tolist(),
             "mean_weight_entropy": float(data[f"{name}/weight_entropy"].mean()),
         }
+        pooled = nis_per_expected(data[f"{name}/nis"], data[f"{name}/nis_dof"]) if f"{name}/nis" in data else None
+        if pooled is not None:
+            entry["nis_per_expected"], entry["nis_band_95"] = pooled[0], list(pooled[1])
         for key in ("fpke_error_before", "fpke_error_after"):
             if f"{name}/{key}" in data:
                 entry[f"{key}_mean"] = data[f"{name}/{key}"].mean(0).tolist()

@@ -96,6 +96,12 @@ def test_summary_matches_independent_recomputation(experiment):
         assert summary["filters"][name]["time_averaged_nees"] == pytest.approx(
             float(np.mean(data[f"{name}/nees"])), rel=1e-12
         )
+        # NIS over expectation, pooled over every update with a valid NIS: 2 per star, ⅔ of the valid entries
+        nis, dof = data[f"{name}/nis"], data[f"{name}/nis_dof"]
+        updates = [(b, k) for b in range(B) for k in range(len(frames)) if np.isfinite(nis[b, k]) and dof[b, k] > 0]
+        assert updates and all(frames[k] for _, k in updates)
+        ratio = sum(nis[b, k] for b, k in updates) / sum(2.0 * dof[b, k] / 3.0 for b, k in updates)
+        assert summary["filters"][name]["nis_per_expected"] == pytest.approx(ratio, rel=1e-12)
     d = per_run["AGSF"] - per_run["GSF"]
     half = student_t.ppf(0.975, B - 1) * np.std(d, ddof=1) / np.sqrt(B)
     got = summary["agsf_minus_gsf"]["between_frames"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from agsf_torch.experiments.reproduce import results_table
 from agsf_torch.experiments.statistics import WINDOW_TEXT, error_windows
@@ -47,6 +48,28 @@ def test_reproduce_tables_say_what_their_windows_are():
         assert table.startswith("| case |") and not note.startswith("|")
         assert WINDOW_TEXT["between_frames"] in note and WINDOW_TEXT["before_first_frame"] in note
     assert "| case1 | between frames | -0.01 |" in blocks[2]
+    assert "NIS / expected" in blocks[0] and "NIS / expected" in blocks[1]
+    assert blocks[0].splitlines()[2].endswith("| 3 | — |")  # a summary without star frames has no NIS ratio
+    filters["GSF"]["nis_per_expected"] = 1.02345
+    rows = results_table({"case1": {"star_period_s": 1.0, "filters": filters}}).splitlines()
+    assert rows[2] == "| case1 | 1 Hz | GSF | 0.5 | 8 | 0.01 | 3 | 1.023 |"
+
+
+def test_nis_per_expected_pools_every_valid_update_and_gives_the_chi2_band():
+    """``Σ NIS / Σ ⅔·dof`` over the finite NIS with ``dof > 0``; the band of a consistent filter's ratio is
+    that of the average of ``count`` χ²(k) values divided by ``k``, ``k`` the mean expectation."""
+    from scipy.stats import chi2
+
+    from agsf_torch.consistency import nis_per_expected
+
+    nis = np.array([[2.0, np.nan, 5.0], [4.0, 6.0, 1.0]])
+    dof = np.array([[3, 0, 0], [6, 3, 3]])  # the 5.0 has no valid entry: not counted
+    ratio, (lo, hi) = nis_per_expected(nis, dof)
+    assert ratio == (2.0 + 4.0 + 6.0 + 1.0) / (2.0 + 4.0 + 2.0 + 2.0)
+    # 4 updates, mean expectation k = 2.5: the sum of 4 χ²(2.5) values is χ²(10)
+    assert lo == pytest.approx(chi2.ppf(0.025, 10) / 4 / 2.5, rel=1e-9)
+    assert hi == pytest.approx(chi2.ppf(0.975, 10) / 4 / 2.5, rel=1e-9)
+    assert nis_per_expected(np.full((2, 3), np.nan), np.zeros((2, 3))) is None
 
 
 def test_fpke_ratio_is_per_run_and_skips_steps_without_a_residual():

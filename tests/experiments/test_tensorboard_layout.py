@@ -256,6 +256,7 @@ def test_reproduce_makes_each_case_an_hparams_session(tmp_path):
             s = combined[case]["filters"][f]
             assert metrics[f"{METRIC_PREFIX}{f}/time_averaged_nees"] == pytest.approx(s["time_averaged_nees"], rel=1e-6)
             assert metrics[f"{METRIC_PREFIX}{f}/final_rms_deg"] == pytest.approx(s["final_rms_deg"], rel=1e-6)
+            assert metrics[f"{METRIC_PREFIX}{f}/nis_per_expected"] == pytest.approx(s["nis_per_expected"], rel=1e-6)
         data = np.load(out / case / "runs.npz")
         summary = json.loads((out / case / "summary.json").read_text())
         check_time_series(out / case / "tensorboard", data, summary, ["EKF", "GSF"], started)

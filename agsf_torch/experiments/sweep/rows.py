@@ -12,12 +12,14 @@ __all__ = ["config_metrics", "results_table"]
 
 def config_metrics(summary: dict[str, Any]) -> dict[str, float]:
     """The row metrics of one configuration's ``summary.json``: per filter its mean RMS between star frames
-    (deg) and its time-averaged NEES, and the paired AGSF − GSF difference (deg) when there is one."""
+    (deg), its time-averaged NEES and its NIS ratio ``nis_per_expected`` (when it had star frames), and the paired AGSF − GSF difference (deg) when there is one."""
     m: dict[str, float] = {}
     for name, f in summary["filters"].items():
         if "between_frames" in f:
             m[f"{name}/mean_rms_between_frames_deg"] = f["between_frames"]["mean_rms_deg"]
         m[f"{name}/time_averaged_nees"] = f["time_averaged_nees"]
+        if "nis_per_expected" in f:
+            m[f"{name}/nis_per_expected"] = f["nis_per_expected"]
     d = summary.get("agsf_minus_gsf", {}).get("between_frames")
     if d:
         m["agsf_minus_gsf_deg"] = d["mean_deg"]
