@@ -27,6 +27,7 @@ from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR
 from ..filters.registry import ADAPTIVE_FILTERS, CONFIG_OPTIONS, FILTER_NAMES
 
 __all__ = [
+    "REPLAY_IGNORED",
     "ExperimentConfig",
     "load_config",
     "load_preset",
@@ -42,6 +43,20 @@ __all__ = [
 DEFAULT_FILTERS = ("EKF", "GSF", "AGSF")
 #: Largest run seed: trajectory ``i`` is seeded ``seed + i``, and the simulator's seeds lie in ``[0, 2⁶²)``.
 MAX_SEED = 2**62 - 1
+
+
+#: The configuration's fields a replay of a recording does not read: the simulation's own (the file holds the
+#: star frames, the stars and their directions, the rates, the gyro bias and the faults).
+REPLAY_IGNORED = (
+    "star_period",
+    "max_stars",
+    "fov_deg",
+    "focal_length",
+    "omega0",
+    "rate_axes",
+    "gyro_bias_deg_per_hr",
+    "faults",
+)
 
 
 @dataclass(frozen=True)
@@ -238,9 +253,12 @@ class _ExperimentFields:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
-    def digest(self) -> str:
-        """Short hash of the configuration (identifies an experiment in an output folder)."""
-        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+    def digest(self, *, replay: bool = False) -> str:
+        """Short hash of the configuration (identifies an experiment in an output folder).  With ``replay``,
+        of the fields a replay of a recording reads: every field but :data:`REPLAY_IGNORED`, so that a key the
+        replay does not read cannot make the same replay a different experiment."""
+        fields = {k: v for k, v in self.to_dict().items() if not (replay and k in REPLAY_IGNORED)}
+        return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
     def filter_digest(self, name: str) -> str:
         """Short hash of what filter ``name``'s results depend on in this configuration: every field except

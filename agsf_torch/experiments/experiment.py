@@ -79,7 +79,7 @@ def run_experiment(
         rec = Recording.load(recording)
         check_recording(rec, cfg, str(recording))
         env = RecordingEnv(rec)
-        digest = f"{cfg.digest()}:recording={rec.content_digest()}"
+        digest = f"{cfg.digest(replay=True)}:recording={rec.content_digest()}"
         check_memory(cfg, force=force)
     else:
         check_memory(cfg, force=force)

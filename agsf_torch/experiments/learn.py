@@ -111,9 +111,8 @@ def learn(
         check_memory(cfg, force=force)
         rec, source = record_environment(make_env(cfg), cfg.num_steps, cfg.seed), "simulated"
     configured, kwargs = learning_problem(cfg, rec)
-    out = prepare_output(
-        Path(out), "learn", f"{cfg.digest()}:{','.join(names)}:{source}:max_iter={max_iter}", cfg.to_dict()
-    )
+    digest = cfg.digest(replay=recording is not None)  # a replay: of the keys it reads
+    out = prepare_output(Path(out), "learn", f"{digest}:{','.join(names)}:{source}:max_iter={max_iter}", cfg.to_dict())
     from torch.utils.tensorboard import SummaryWriter
 
     clear_events(out / "tensorboard")  # a rerun replaces its events (the curve's steps would repeat)

@@ -115,6 +115,34 @@ def test_cli_simulate_then_run_on_the_file(tmp_path):
     assert cli.main(args[:4] + ["--set", "runs=7", "--out", str(tmp_path / "x")]) == 2  # shape mismatch named
 
 
+def test_a_replay_is_identified_by_the_keys_it_reads(tmp_path):
+    """Keys a replay does not read (the simulation's) leave it the same experiment: a rerun into its folder
+    with them changed is accepted and gives the same numbers; a key the filters read makes another experiment."""
+    import json
+
+    from agsf_torch.experiments.config import REPLAY_IGNORED, load_config
+    from agsf_torch.experiments.experiment import make_env, run_experiment
+    from agsf_torch.experiments.outputs import OutputConflict, release_outputs
+
+    keys = ["runs=3", "duration=2.0", *EAGER, 'filters=["GSF"]']
+    cfg = load_config("case1", keys)
+    ignored = ["star_period=2.0", "max_stars=3", "omega0=0.002", "gyro_bias_deg_per_hr=5.0", "fov_deg=12.0"]
+    other = load_config("case1", keys + ignored)
+    assert {k.split("=")[0] for k in ignored} <= set(REPLAY_IGNORED)
+    assert other.digest() != cfg.digest() and other.digest(replay=True) == cfg.digest(replay=True)
+    assert load_config("case1", keys + ["sigma_s=2e-5"]).digest(replay=True) != cfg.digest(replay=True)
+    path = record_environment(make_env(cfg), cfg.num_steps, cfg.seed).save(tmp_path / "rec.npz")
+    out = tmp_path / "replay"
+    first = run_experiment(cfg, out, progress=False, recording=path)
+    release_outputs()
+    again = run_experiment(other, out, progress=False, recording=path)  # the same experiment: accepted
+    release_outputs()
+    assert again["filters"]["GSF"]["rms_deg"] == first["filters"]["GSF"]["rms_deg"]
+    assert json.loads((out / "experiment.json").read_text())["config"]["star_period"] == 2.0
+    with pytest.raises(OutputConflict, match="different experiment"):
+        run_experiment(load_config("case1", keys + ["sigma_s=2e-5"]), out, progress=False, recording=path)
+
+
 def test_gyro_valid_column_round_trips_replays_and_is_validated(tmp_path):
     faults = [{"kind": "gyro_dropout", "start": 1.0, "end": 1.5}]
     live_env = envs.StarTrackerAttitudeVectorEnv(num_envs=4, max_steps=40, faults=faults)
