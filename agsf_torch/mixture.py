@@ -240,10 +240,14 @@ class GaussianMixture:
     def from_gaussian(cls, mean: Tensor, cov: Tensor, num_components: int = 1, spread: float = 0.5) -> GaussianMixture:
         """Moment-preserving split of ``N(mean, cov)`` into ``num_components``.
 
-        See :func:`split_gaussian` for the scheme.
+        See :func:`split_gaussian` for the scheme: along the principal axis of ``cov`` (for an isotropic
+        ``cov`` every axis is principal, and the eigensolver's choice among them is used).
 
         Args:
             mean: ``[..., n]``; cov: ``[..., n, n]`` symmetric positive definite.
+            num_components: ``N ≥ 1`` (1: the Gaussian itself).
+            spread: in ``(0, 1)``, the share of the principal variance carried by the spacing of the means
+                (each component keeps ``1 − spread`` of it; :func:`split_gaussian`).
         """
         mean = as_real_tensor("mean", mean)
         cov = as_real_tensor("cov", cov, mean.dtype, mean.device)

@@ -30,7 +30,6 @@ from ..finite import all_finite
 from ..gating import chi2_threshold, innovation_gate
 from ..mixture import GaussianMixture, as_real_tensor
 from ..models.base import ContinuousModel, MeasurementModel
-from ..shapes import broadcast_shapes
 from ..update import ComponentUpdate, kalman_update
 from .options import FilterOptions
 from .step_diagnostics import StepDiagnostics
@@ -86,19 +85,23 @@ class Filter(Protocol):
 
 def check_batched(name: str, value: Tensor, batch_shape: torch.Size, last: int | None = None) -> None:
     """Raise ``ValueError`` naming ``name`` unless ``value [..., last]`` is finite and its leading
-    dims broadcast with the mixture's ``batch_shape`` (``last``: the required size of the last dim, if any)."""
+    dims equal the mixture's ``batch_shape`` (``last``: the required size of the last dim, if any).
+
+    One entry per trajectory, never broadcast: a single trajectory's gyro reading or star frame given to a
+    batch was applied to every trajectory without a word (wrong estimates for all but one).  An input
+    meant for every trajectory is expanded by the caller (``value.expand(*batch_shape, -1)``)."""
     if last is not None and (value.dim() < 1 or value.shape[-1] != last):
         raise ValueError(f"{name} must have shape [..., {last}], got {tuple(value.shape)}")
     if not all_finite(value):
         idx = (~torch.isfinite(value)).nonzero()[0].tolist()
         raise ValueError(f"{name} must be finite; non-finite value at index {tuple(idx)}")
-    try:
-        broadcast_shapes(value.shape[:-1], batch_shape)
-    except RuntimeError:
+    if value.dim() < 1 or tuple(value.shape[:-1]) != tuple(batch_shape):
+        want = (*batch_shape, value.shape[-1] if value.dim() else "…")
         raise ValueError(
-            f"{name} has shape {tuple(value.shape)}, whose leading dims do not broadcast with "
-            f"the mixture's batch shape {tuple(batch_shape)}"
-        ) from None
+            f"{name} has shape {tuple(value.shape)}; the mixture's batch shape is {tuple(batch_shape)}, so {name} must "
+            f"be {want}: one entry per trajectory (not broadcast; for one value shared by every trajectory, "
+            f"{name}.expand({', '.join(map(str, (*batch_shape, -1)))}))"
+        )
 
 
 def check_interval(dt: Any) -> float:

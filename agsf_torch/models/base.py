@@ -28,6 +28,7 @@ from ..mixture import check_symmetric
 from ..shapes import broadcast_shapes
 
 __all__ = [
+    "check_measurement_batch",
     "FokkerPlanckTerms",
     "FokkerPlanckMoments",
     "batched_jacobian",
@@ -53,6 +54,18 @@ def check_nonnegative(name: str, value) -> Tensor:
     if bool((t < 0).any()):
         raise ValueError(f"{name} must be non-negative, got {t.tolist()}")
     return t
+
+
+def check_measurement_batch(name: str, lead: tuple[int, ...], y: Tensor) -> None:
+    """Raise ``ValueError`` unless a measurement model's part ``name`` with leading dims ``lead`` is one per
+    trajectory (``lead`` equal to ``y [..., d]``'s leading dims) or one for all (``lead = ()``): a model built
+    for one trajectory and given a batch's ``y`` applied that trajectory's stars (or mask, or noise) to all."""
+    lead, want = tuple(lead), tuple(y.shape[:-1])
+    if lead not in ((), want):
+        raise ValueError(
+            f"the measurement's {name} has leading dims {lead}, y has {want}: build the measurement model from "
+            f"the same trajectories as y (one per trajectory, {want}, or one for all, no leading dims)"
+        )
 
 
 def _covers(lead: torch.Size, batch: torch.Size) -> bool:
@@ -397,7 +410,8 @@ class MeasurementModel(nn.Module):
         the ``y`` to use.
 
         Called by the filters before anything changes.  The default checks that :meth:`mask`,
-        if any, has ``d`` entries and that :meth:`noise_cov` is a finite symmetric ``[d, d]`` or
+        if any, has ``d`` entries, that the mask and the noise are one per trajectory of ``y`` or one for all
+        (:func:`check_measurement_batch`), and that :meth:`noise_cov` is a finite symmetric ``[d, d]`` or
         ``[..., d, d]`` matrix (:func:`~agsf_torch.mixture.check_symmetric`) with a non-negative diagonal (a negative variance was reported as a
         component covariance losing definiteness, a wrong size as a raw solver error); subclasses add their
         own checks (the size ``d``, unit vectors…) and may return a corrected ``y`` (e.g. normalised).
@@ -414,6 +428,9 @@ class MeasurementModel(nn.Module):
         if not isinstance(R, Tensor) or R.dim() < 2 or R.shape[-2:] != (d, d):
             got = tuple(R.shape) if isinstance(R, Tensor) else type(R).__name__
             raise ValueError(f"{name}.noise_cov must be [d, d] or [..., d, d] with d = {d} (y's entries), got {got}")
+        if mask is not None:
+            check_measurement_batch("mask", mask.shape[:-1], y)
+        check_measurement_batch(f"{name}.noise_cov", R.shape[:-2], y)
         check_symmetric(f"{name}.noise_cov", R.detach())
         diagonal = R.diagonal(dim1=-2, dim2=-1)
         if not bool((diagonal >= 0).all()):

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ..finite import check_finite
 from ..shapes import broadcast_shapes
-from .base import MeasurementModel
+from .base import MeasurementModel, check_measurement_batch
 
 __all__ = ["FunctionMeasurement"]
 
@@ -98,12 +98,16 @@ class FunctionMeasurement(MeasurementModel):
         return super().jacobian(x)
 
     def check_measurement(self, y: Tensor) -> Tensor:
-        """``y`` must have ``d`` entries (``noise_cov``'s size)."""
+        """``y`` must have ``d`` entries (``noise_cov``'s size); ``noise_cov`` and the mask one per trajectory of
+        ``y`` or one for all (:func:`~agsf_torch.models.base.check_measurement_batch`)."""
         if y.dim() < 1 or y.shape[-1] != self.measurement_dim:
             raise ValueError(
                 f"y has shape {tuple(y.shape)}: {y.shape[-1] if y.dim() else 0} entries but the measurement model "
                 f"predicts {self.measurement_dim} (d = noise_cov's size)"
             )
+        check_measurement_batch("noise_cov", self.R.shape[:-2], y)
+        if self._mask is not None:
+            check_measurement_batch("mask", self._mask.shape[:-1], y)
         return y
 
     def mask(self) -> Tensor | None:

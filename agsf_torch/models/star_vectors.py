@@ -24,7 +24,7 @@ from torch import Tensor
 
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_to_dcm
 from ..shapes import broadcast_shapes
-from .base import MeasurementModel, check_finite, check_nonnegative
+from .base import MeasurementModel, check_finite, check_measurement_batch
 
 __all__ = ["StarVectorMeasurement", "UNIT_TOLERANCE", "UNIT_ROUNDING", "unit_vectors"]
 
@@ -133,9 +133,16 @@ class StarVectorMeasurement(MeasurementModel):
         if r.dim() < 2 or r.shape[-1] != 3:
             raise ValueError(f"r_inertial must have shape [..., M, 3], got {tuple(r.shape)}")
         check_finite("r_inertial", r)
-        sig = check_nonnegative("sigma", sigma)
-        if sig.dim() != 0 or bool(sig <= 0):
-            raise ValueError(f"sigma must be a positive scalar, got {sig.tolist()}")
+        sig = torch.as_tensor(sigma, dtype=torch.float64) if not isinstance(sigma, Tensor) else sigma
+        if (
+            isinstance(sigma, bool)
+            or sig.dim() != 0
+            or sig.dtype == torch.bool
+            or sig.is_complex()
+            or not bool(sig > 0)
+            or not bool(sig.isfinite())
+        ):
+            raise ValueError(f"sigma must be a positive finite scalar (rad), got {sig.tolist()}")
         if mask is not None:
             mask = torch.as_tensor(mask, dtype=torch.bool, device=r.device)
             if mask.shape != r.shape[:-1]:
@@ -190,12 +197,16 @@ class StarVectorMeasurement(MeasurementModel):
         """``y [..., 3M]`` (returned unchanged): the valid stars' measured vectors ``C r + v`` must lie
         within ``max(UNIT_TOLERANCE, 10 σ)`` of the unit sphere, σ the radial noise (σ_s, or
         ``radial_sigma`` for the tangent model) — a zero, unnormalised or mis-scaled vector is
-        refused, naming the star, its batch index and its norm."""
+        refused, naming the star, its batch index and its norm.  The catalogue vectors and the mask are one per
+        trajectory of ``y`` or one for all (:func:`~agsf_torch.models.base.check_measurement_batch`)."""
         M = self.num_stars
         if y.dim() < 1 or y.shape[-1] != 3 * M:
             raise ValueError(
                 f"y has shape {tuple(y.shape)}: {y.shape[-1] if y.dim() else 0} entries but the measurement model predicts {3 * M} (3 for each of {M} stars)"
             )
+        check_measurement_batch("r_inertial (catalogue vectors)", self.r_inertial.shape[:-2], y)
+        if self.star_mask is not None:
+            check_measurement_batch("star_mask", self.star_mask.shape[:-1], y)
         radial = float(self.sigma.detach()) if self.noise_model == "isotropic" else self.radial_sigma
         _off_unit(
             "y (measured star vectors)",

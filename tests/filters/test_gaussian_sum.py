@@ -122,6 +122,76 @@ def test_bad_inputs_raise_before_state_changes(gen):
     assert torch.equal(mix.means, before)
 
 
+def _all_filters(model):
+    from agsf_torch.filters import AdaptiveGaussianSumFilter, MultiplicativeEKF
+
+    return {
+        "EKF": ExtendedKalmanFilter(model),
+        "GSF": GaussianSumFilter(model),
+        "AGSF": AdaptiveGaussianSumFilter(model),
+        "AGSF-galerkin": AdaptiveGaussianSumFilter(model, weight_update="galerkin"),
+        "MEKF": MultiplicativeEKF(model),
+    }
+
+
+@pytest.mark.parametrize("name", ["EKF", "GSF", "AGSF", "AGSF-galerkin", "MEKF"])
+def test_one_trajectory_input_is_not_broadcast_over_a_batch(gen, name):
+    """A gyro reading, a star frame or a measurement model of one trajectory given to a batch's belief (or a batch's
+    to one belief) is refused, naming the shapes, before anything changes: broadcast, it was applied to every
+    trajectory and gave wrong estimates without a word (or a raw torch error, or a belief expanded to the batch)."""
+    model, mix, r, y = _setup(gen, B=4, N=1 if name in ("EKF", "MEKF") else 3)
+    filt = _all_filters(model)[name]
+    u = 1e-3 * torch.randn(4, 3, generator=gen, dtype=F64)
+    meas = StarVectorMeasurement(r, sigma=1e-5)
+    before = (mix.means.clone(), mix.covs.clone(), mix.log_weights.clone())
+    for bad in (u[0], u[:1], u[None]):
+        with pytest.raises(ValueError, match=r"u has shape .* batch shape is \(4,\).* one entry per trajectory"):
+            filt.predict(mix, bad, 0.1)
+    prior = filt.predict(mix, u, 0.1)
+    for bad in (y[0], y[:1]):
+        with pytest.raises(ValueError, match=r"y has shape .* batch shape is \(4,\)"):
+            filt.update(prior, bad, meas)
+    with pytest.raises(ValueError, match=r"r_inertial .* leading dims \(1,\), y has \(4,\)"):
+        filt.update(prior, y, StarVectorMeasurement(r[:1], sigma=1e-5))
+    one = GaussianMixture(log_weights=mix.log_weights[0], means=mix.means[0], covs=mix.covs[0])  # batch ()
+    filt.reset()
+    with pytest.raises(ValueError, match=r"u has shape \(4, 3\); the mixture's batch shape is \(\)"):
+        filt.predict(one, u, 0.1)
+    assert all(torch.equal(a, b) for a, b in zip(before, (mix.means, mix.covs, mix.log_weights)))
+    # shared parts built once for every trajectory are accepted: one catalogue for all, u expanded by the caller
+    filt.reset()
+    shared = filt.predict(mix, u[:1].expand(4, 3), 0.1)
+    filt.update(
+        shared,
+        StarVectorMeasurement(r[0], sigma=1e-5).predict(shared.means[:, 0]),
+        StarVectorMeasurement(r[0], sigma=1e-5),
+    )
+
+
+@pytest.mark.parametrize("sigma", [-1e-5, 0.0, float("nan"), float("inf"), True, torch.tensor([1e-5, 1e-5])])
+def test_star_noise_must_be_one_positive_finite_number(sigma):
+    r = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
+    with pytest.raises(ValueError, match=r"sigma must be a positive finite scalar \(rad\), got"):
+        StarVectorMeasurement(r, sigma=sigma)
+    assert StarVectorMeasurement(r, sigma=1e-5).sigma.item() == 1e-5  # a float is kept in float64
+
+
+def test_function_measurement_parts_are_one_per_trajectory_or_one_for_all(gen):
+    from agsf_torch.models import FunctionMeasurement
+
+    model, mix, _, _ = _setup(gen, B=4, N=2)
+    gsf = GaussianSumFilter(model)
+    fn = lambda x: x[..., :2]  # noqa: E731
+    y = torch.zeros(4, 2, dtype=F64)
+    gsf.update(mix, y, FunctionMeasurement(fn, 1e-4 * torch.eye(2, dtype=F64)))  # one R for all
+    gsf.update(mix, y, FunctionMeasurement(fn, 1e-4 * torch.eye(2, dtype=F64).expand(4, 2, 2)))  # one each
+    with pytest.raises(ValueError, match=r"noise_cov has leading dims \(1,\), y has \(4,\)"):
+        gsf.update(mix, y, FunctionMeasurement(fn, 1e-4 * torch.eye(2, dtype=F64)[None]))
+    mask = torch.ones(1, 2, dtype=torch.bool)
+    with pytest.raises(ValueError, match=r"mask has leading dims \(1,\), y has \(4,\)"):
+        gsf.update(mix, y, FunctionMeasurement(fn, 1e-4 * torch.eye(2, dtype=F64), mask=mask))
+
+
 def test_loss_of_positive_definiteness_is_named_or_repaired(gen):
     model, mix, r, y = _setup(gen, B=3, N=2)
     covs = mix.covs.clone()
