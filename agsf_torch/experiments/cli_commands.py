@@ -79,6 +79,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
     _threads(args)
     cases = [1, 2, 3] if args.case == "all" else [int(args.case)]
+    _refuse_set(args.set, {k: f"--{k}" for k in ("runs", "duration") if getattr(args, k) is not None})
     overrides = list(args.set)
     if args.runs is not None:
         overrides.append(f"runs={args.runs}")
@@ -131,6 +132,7 @@ def _sweep(args: argparse.Namespace) -> int:
         raise ValueError("--writers is the local backend's (each Ray task writes its own files)")
     base = load_config(args.config, args.set)
     grid = parse_grid(args.grid, base)
+    _refuse_set(args.set, {key: f"--grid {key}=…" for key in grid})
     if args.backend == "ray":
         kw = {"address": args.address, "cpus_per_task": max(1, args.threads or 1)}
     else:
@@ -186,6 +188,7 @@ def _soak(args: argparse.Namespace) -> int:
     from .config import parse_override
     from .soak import run_soak, soak_config, soak_verdict
 
+    _refuse_set(args.set, {"runs": "--runs", "duration": "--duration", "seed": "--seed"})
     changes = dict(parse_override(item) for item in args.set or [])
     changes.update(runs=args.runs, duration=args.duration, seed=args.seed)
     if args.no_compile:
@@ -193,7 +196,9 @@ def _soak(args: argparse.Namespace) -> int:
     cfg = soak_config(args.filter, **changes)
     _threads(args)
     out = Path(args.out)
-    rows = run_soak(cfg, out, report_every=args.report_every, progress=not args.quiet, force=args.force)
+    rows = run_soak(
+        cfg, out, report_every=args.report_every, warmup=args.warmup, progress=not args.quiet, force=args.force
+    )
     verdict = soak_verdict(rows, warmup=args.warmup)
     write_json(out / "verdict.json", verdict, indent=2)
     print(json.dumps(verdict, indent=2))
@@ -221,6 +226,17 @@ def _learn(args: argparse.Namespace) -> int:
     report = learn(cfg, names, Path(args.out), recording=args.recording, max_iter=args.max_iter, force=args.force)
     print(report)
     return 0
+
+
+def _refuse_set(items: list[str] | None, owners: dict[str, str]) -> None:
+    """Refuse a ``--set KEY=…`` of a key another option of the command sets (``owners``: key → that option):
+    one of the two values would be dropped without a word."""
+    from .config import parse_override
+
+    for item in items or []:
+        key = parse_override(item)[0]
+        if key in owners:
+            raise ValueError(f"--set {key}=… conflicts with {owners[key]}, which sets {key} here: give it once")
 
 
 def _threads(args: argparse.Namespace) -> None:

@@ -23,6 +23,7 @@ warm-up to the last below ``max_rss_growth_mb``.
 from __future__ import annotations
 
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -110,6 +111,7 @@ def run_soak(
     out: Path | None = None,
     *,
     report_every: float = 60.0,
+    warmup: float | None = None,
     progress: bool = False,
     force: bool = False,
 ) -> list[dict[str, Any]]:
@@ -120,13 +122,29 @@ def run_soak(
         out: if given, an experiment folder (:func:`~.outputs.prepare_output`, created after
             every check) whose ``soak.jsonl`` gets each row as it is made (complete lines).
         report_every: simulated seconds per report row (a multiple of ``cfg.dt``).
-        progress: print each row.
+        warmup: if given, the warm-up :func:`soak_verdict` will leave out, checked before anything runs: a
+            multiple of ``report_every`` (the verdict leaves out whole rows, so a warm-up inside a row would
+            count the rest of that row, the prior's stretch included) and shorter than the run.
+        progress: print each row (on stderr).
         force: run even if the memory estimate (:func:`~.resources.check_memory`, running
             statistics only) exceeds the memory available.
     """
     per_report = int(round(report_every / cfg.dt))
     if per_report < 1 or abs(per_report * cfg.dt - report_every) > 1e-9 * report_every:
         raise ValueError(f"report_every must be a positive multiple of dt={cfg.dt}, got {report_every}")
+    if warmup is not None:
+        rows_out = warmup / report_every
+        if abs(rows_out - round(rows_out)) > 1e-9 * max(1.0, rows_out):
+            raise ValueError(
+                f"the warm-up must be a multiple of report_every={report_every:g} s (the verdict leaves out whole "
+                f"report rows), got {warmup:g} s"
+            )
+        end = cfg.num_steps * cfg.dt
+        if warmup >= end * (1.0 - 1e-9):
+            raise ValueError(
+                f"the warm-up of {warmup:g} s leaves no report to judge in a run of {end:g} s: shorten the warm-up "
+                "or lengthen the run"
+            )
     check_memory(cfg, force=force, keep_steps=False)
     env, setups = make_env(cfg), make_filters(cfg)
     n = next(iter(setups.values())).filter.model.state_dim
@@ -172,6 +190,7 @@ def run_soak(
                 )
                 print(
                     f"t = {row['time_s']:7.1f} s  wall {row['wall_s']:7.1f} s  RSS {row['rss_mb']:7.1f} MB  {f}",
+                    file=sys.stderr,
                     flush=True,
                 )
     finally:

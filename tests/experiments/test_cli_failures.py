@@ -363,3 +363,40 @@ def test_a_warning_is_one_line_naming_the_file(tmp_path, recording):
         f"agsf: warning: recording {path}: column 'star_body' has star vectors off unit norm by up to "
     )
     assert err.endswith("; normalised\n") and err.count("\n") == 1 and "UserWarning" not in err
+
+
+@pytest.mark.parametrize(
+    ("argv", "names"),
+    [
+        (["soak", "--runs", "2", "--duration", "10", "--warmup", "5"], "multiple of report_every=60"),
+        (["soak", "--runs", "2", "--duration", "10", "--report-every", "5", "--warmup", "5.5"], "multiple"),
+        (["soak", "--runs", "2", "--duration", "10", "--report-every", "5", "--warmup", "10"], "no report to judge"),
+        (
+            ["soak", "--runs", "2", "--duration", "10", "--set", "duration=70"],
+            "--set duration=… conflicts with --duration",
+        ),
+        (["soak", "--runs", "2", "--duration", "10", "--set", "runs=3"], "--set runs=… conflicts with --runs"),
+        (["reproduce", "--case", "1", "--runs", "2", "--set", "runs=3"], "--set runs=… conflicts with --runs"),
+        (["sweep", "case1", "--grid", "reg=1,2", "--set", "reg=3"], "--set reg=… conflicts with --grid reg"),
+    ],
+)
+def test_a_value_given_twice_or_a_soak_schedule_without_a_verdict_is_refused_before_any_work(argv, names, tmp_path):
+    """A soak whose warm-up falls inside a report row (the verdict would count the rest of that row, the prior's
+    stretch included) or leaves no row to judge, and a key set both by ``--set`` and by the command's own option,
+    are refused in one line before anything runs or is created (they had simulated the whole run, or dropped a value)."""
+    root = tmp_path / "work"
+    root.mkdir()
+    _assert_refused([*argv, "--out", str(root / "out"), "--quiet"], root, names)
+
+
+def test_soak_progress_rows_go_to_stderr(tmp_path, capsys):
+    """stdout carries the verdict alone (``agsf soak … | jq``); the report rows are progress, on stderr."""
+    import json
+
+    code = cli.main(
+        ["soak", "--runs", "2", "--duration", "2", "--report-every", "1", "--warmup", "1"]
+        + ["--set", "components=2", "--out", str(tmp_path / "s")]
+    )
+    out, err = capsys.readouterr()
+    assert code in (0, 1) and json.loads(out)["warmup_s"] == 1.0
+    assert err.count("t = ") == 2 and "RSS" in err
