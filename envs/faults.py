@@ -134,10 +134,11 @@ def parse_faults(value: Any, max_stars: int | None = None) -> tuple[SensorFault,
         unknown = sorted(set(item) - {"kind", "start", "end", "slot", "limit"})
         if unknown:
             raise ValueError(f"faults[{i}]: unknown key(s) {unknown}; valid: kind, start, end, slot, limit")
+        missing = [k for k in ("kind", "start", "end") if k not in item]
+        if missing:
+            raise ValueError(f"faults[{i}]: no {', '.join(missing)} given; every fault needs kind, start and end")
         try:
             out.append(SensorFault(**item))
-        except TypeError as exc:  # a missing key
-            raise ValueError(f"faults[{i}]: {exc}; needs kind, start and end") from None
         except ValueError as exc:
             raise ValueError(f"faults[{i}]: {exc}") from None
     if max_stars is not None:

@@ -390,7 +390,8 @@ def parse_override(item: str) -> tuple[str, Any]:
     """``"key=value"`` with the value read as a TOML value (bare words as strings).
 
     Raises:
-        ValueError: no ``=``, or a key that is not a configuration field (the message lists the known keys).
+        ValueError: no ``=``, a key that is not a configuration field (the message lists the known keys), or a
+            value that begins as an array, a table or a quoted string and is not valid TOML.
     """
     if "=" not in item:
         raise ValueError(f"override {item!r} must look like key=value")
@@ -399,8 +400,14 @@ def parse_override(item: str) -> tuple[str, Any]:
     known = {f.name for f in dataclasses.fields(ExperimentConfig)}
     if key not in known:
         raise ValueError(f"unknown config key '{key}' in override {item!r} (known: {', '.join(sorted(known))})")
+    text = text.strip()
     try:
-        value = tomllib.loads(f"v = {text.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = text.strip()
+        value = tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError as exc:
+        if text[:1] in ("[", "{", '"', "'"):  # meant as an array, a table or a quoted string: not a bare word
+            raise ValueError(
+                f"the value of '{key}' in override {item!r} is not valid TOML ({exc}); strings inside an array or a "
+                "table are quoted, and the shell strips one level of quotes (e.g. --set 'filters=[\"GSF\"]')"
+            ) from None
+        value = text
     return key, value

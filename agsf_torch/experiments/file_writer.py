@@ -419,11 +419,17 @@ def check_writers(writers: int | None, threads: int | None) -> int:
     workers (``None``: :func:`default_writers`).
 
     Raises:
-        ValueError: ``writers`` not a non-negative integer, or ``threads`` neither None nor a positive integer.
+        ValueError: ``writers`` not a non-negative integer or more than the CPUs this process may use (each worker
+            is a process of its own, ~:data:`WORKER_MEMORY`), or ``threads`` neither None nor a positive integer.
     """
     writers = default_writers() if writers is None else writers
     if isinstance(writers, bool) or not isinstance(writers, int) or writers < 0:
         raise ValueError(f"writers must be a non-negative integer, got {writers!r}")
+    if writers > available_cpus():
+        raise ValueError(
+            f"writers must be at most the {available_cpus()} CPUs this process may use (each is a process of its "
+            f"own), got {writers}"
+        )
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
         raise ValueError(f"threads must be a positive integer or None, got {threads!r}")
     return writers

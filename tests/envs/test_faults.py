@@ -31,7 +31,8 @@ FAULTS = [
         ({"kind": "gyro_dropout", "start": 0, "end": 1, "limit": 1.0}, r"limit applies to gyro_saturation only"),
         ({"kind": "misidentified_star", "start": 0, "end": 1, "slot": -1}, r"slot must be an integer ≥ 0"),
         ({"kind": "star_outage", "start": 0, "end": 1, "duration": 3}, r"unknown key\(s\) \['duration'\]"),
-        ({"kind": "star_outage", "start": 0}, r"needs kind, start and end"),
+        ({"kind": "star_outage", "start": 0}, r"no end given; every fault needs kind, start and end"),
+        ({"start": 0}, r"no kind, end given; every fault needs kind, start and end"),
     ],
 )
 def test_bad_faults_raise_naming_the_entry(fault, message):

@@ -337,6 +337,16 @@ def test_reproduce_refuses_bad_writer_and_thread_counts_before_creating_anything
     assert not (tmp_path / "out").exists()
 
 
+def test_more_writers_than_cpus_are_refused_naming_the_cpus(tmp_path):
+    """More worker processes than CPUs had been refused as a memory shortfall with a negative budget."""
+    from agsf_torch.processes import available_cpus
+
+    cpus = available_cpus()
+    with pytest.raises(ValueError, match=f"writers must be at most the {cpus} CPUs .* got {cpus + 1}"):
+        reproduce([1], tmp_path / "out", list(EAGER), progress=False, writers=cpus + 1)
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_job_file_is_removed_once_its_task_has_written_its_file(tmp_path):
     path = tmp_path / "w.txt"
     with FileWriter(1, preload=()) as writer:
