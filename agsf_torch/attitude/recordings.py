@@ -15,6 +15,8 @@ key                 shape               dtype   meaning
 ``gyro_valid``      ``[B, T]``          bool    optional: false for a missing or saturated gyro sample (default all true)
 ``truth_mrp``       ``[B, T, 3]``       float   optional: true attitude (MRP) at ``time``
 ``truth_bias``      ``[B, T, 3]``       float   optional: true gyro bias (rad/s)
+``initial_mrp``     ``[B, 3]``          float   optional: an attitude estimate at row 0 (MRP), where the filters start without the truth
+``initial_bias``    ``[B, 3]``          float   optional: a gyro-bias estimate (rad/s) for that start (default zero)
 ``format``          ``[]``              str     ``"agsf-recording-1"``
 ==================  ==================  ======  =====================================================
 
@@ -53,7 +55,7 @@ __all__ = ["Recording", "FORMAT", "UNIT_TOLERANCE"]
 
 FORMAT = "agsf-recording-1"
 _REQUIRED = ("time", "gyro", "star_body", "star_inertial", "star_mask")
-_OPTIONAL = ("gyro_valid", "truth_mrp", "truth_bias")
+_OPTIONAL = ("gyro_valid", "truth_mrp", "truth_bias", "initial_mrp", "initial_bias")
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a member's header, or an empty archive's directory (numpy's test)
 # What reading a damaged archive raises from inside zipfile / zlib / numpy.
 _READ_ERRORS = (
@@ -80,12 +82,14 @@ class Recording:
     gyro_valid: np.ndarray | None = None
     truth_mrp: np.ndarray | None = None
     truth_bias: np.ndarray | None = None
+    initial_mrp: np.ndarray | None = None
+    initial_bias: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         arrays = {f.name: getattr(self, f.name) for f in fields(self)}
         if arrays["gyro"] is not None and np.ndim(arrays["gyro"]) == 2:  # one trajectory: add B = 1
             for k, v in arrays.items():
-                if k != "time" and v is not None:
+                if k != "time" and v is not None and not (k.startswith("initial_") and np.ndim(v) == 2):
                     arrays[k] = np.asarray(v)[None]
         _validate(arrays)
         for k, v in arrays.items():
@@ -286,6 +290,17 @@ def _validate(a: dict[str, np.ndarray | None]) -> None:
             if v.shape != (B, T, 3):
                 raise ValueError(f"recording: column '{key}' must have shape [{B}, {T}, 3], got {v.shape}")
             a[key] = v
+    for key in ("initial_mrp", "initial_bias"):
+        if a.get(key) is not None:
+            v = _real_column(key, a[key])
+            if v.shape != (B, 3):
+                raise ValueError(f"recording: column '{key}' must have shape [{B}, 3], got {v.shape}")
+            bad = ~np.isfinite(v)
+            if bad.any():
+                raise ValueError(f"recording: column '{key}' is not finite at trajectory {int(np.argwhere(bad)[0][0])}")
+            a[key] = v
+    if a.get("initial_bias") is not None and a.get("initial_mrp") is None:
+        raise ValueError("recording: column 'initial_bias' needs 'initial_mrp' (the estimate the filters start from)")
     for key in ("gyro", "star_body", "star_inertial", "truth_mrp", "truth_bias"):
         v = a[key]
         if v is None:

@@ -113,7 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="one configuration (a TOML file or a preset name)")
     p.add_argument("config", help="TOML file or preset (case1, case2, case3, wide_prior, faults)")
-    p.add_argument("--recording", default=None, help="replay a recorded .npz file (with truth) instead of simulating")
+    p.add_argument(
+        "--recording",
+        default=None,
+        help="replay a recorded .npz file instead of simulating (with the truth, or initial_mrp: flight data)",
+    )
     p.add_argument(
         "--out", required=True, help="output folder (created; an existing one must hold the same experiment)"
     )
@@ -197,7 +201,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_sweep)
     p = sub.add_parser("diagnose", help="consistency checks (NEES, NIS, whiteness) of one configuration, in words")
     p.add_argument("config", help="TOML file or preset")
-    p.add_argument("--recording", default=None, help="replay a recorded .npz file (with truth) instead of simulating")
+    p.add_argument(
+        "--recording",
+        default=None,
+        help="replay a recorded .npz file instead of simulating (with the truth, or initial_mrp: flight data)",
+    )
     p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_diagnose)

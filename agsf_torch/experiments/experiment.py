@@ -63,8 +63,9 @@ def run_experiment(
     read), and ``summary["reused"]`` names the folder each came from.  The simulation of the filters that do
     run must match theirs (times and star frames), else ``RuntimeError``.
 
-    With ``recording`` the filters replay that file (it must hold the truth and
-    ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps) instead of a simulation;
+    With ``recording`` the filters replay that file (it must hold ``cfg.runs`` trajectories of at least
+    ``cfg.num_steps`` steps, and the truth or an initial estimate: without the truth the filters start at the
+    file's ``initial_mrp`` / ``initial_bias`` and nothing is scored against a truth) instead of a simulation;
     the experiment is identified by the configuration and the recording's *contents*
     (:meth:`~agsf_torch.attitude.recordings.Recording.content_digest`), so new contents at the same
     path are a different experiment and never replace earlier results.

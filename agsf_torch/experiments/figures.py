@@ -416,10 +416,12 @@ def runtime_rc_params() -> dict[str, Any]:
 
 
 def write_figures(out: Path, summary: dict[str, Any], writer: FileWriter | None = None) -> list[Path]:
-    """Write ``axes.png``, ``rms.png``, ``weights.png`` and ``fpke.png`` into ``out`` (each through ``writer``, a
+    """Write ``axes.png``, ``rms.png`` (these two with the truth only), ``weights.png`` and ``fpke.png`` into ``out``
+    (each through ``writer``, a
     :class:`~.file_writer.FileWriter`, if given: then they may still be being drawn when this returns, by a process
     given this one's matplotlib settings); returns their paths."""
-    paths = [Path(out) / fname for fname in FIGURES]
+    truth = summary.get("scored_against_truth", True)  # rms.png and axes.png plot the errors against the truth
+    paths = [Path(out) / fname for fname in FIGURES if truth or fname not in ("rms.png", "axes.png")]
     rc = runtime_rc_params() if writer is not None else None
     for path in paths:
         if writer is None:

@@ -132,11 +132,27 @@ def save_npz(path: Path, data: dict[str, np.ndarray]) -> Path:
     return Path(path)
 
 
+#: The :class:`~agsf_torch.experiments.runner.FilterTrace` arrays ``runs.npz`` holds per filter (``error_angle``,
+#: ``error`` and ``nees`` only with the truth).
+TRACE_KEYS = (
+    "estimate",
+    "error_angle",
+    "error",
+    "sigma",
+    "cov",
+    "nees",
+    "nis",
+    "nis_dof",
+    "weights",
+    "weight_entropy",
+)
+
 #: Units of the ``runs.npz`` arrays (per filter: the key after ``name/``); diagnostics not listed are counts or ratios.
 RUN_UNITS = {
     "time": "s",
     "star_frame": "bool",
     "prior_error_angle": "rad",
+    "estimate": "MRP (attitude, inertial to body), rad/s (bias): the filter's estimate, its mixture's mean",
     "error_angle": "rad",
     "error": "rad (attitude: rotation-error vector, body axes of the truth), rad/s (bias)",
     "sigma": "rad (attitude: 1σ of the rotation error), rad/s (bias)",
@@ -170,7 +186,9 @@ def save_runs(
 
     Layout (batch first, as everywhere in the package): ``time [T]`` (s), ``star_frame [T]``,
     ``prior_error_angle [B]`` (rad: the prior mean's attitude error at ``t = 0``), and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
-    ``[B, T, ...]`` — ``error_angle``, ``error`` and ``sigma`` (rotation error and its 1σ),
+    ``[B, T, ...]`` (:data:`TRACE_KEYS`) — ``estimate``, ``error_angle``, ``error`` and ``sigma`` (rotation error
+    and its 1σ; without the truth, a replay of flight data: no ``prior_error_angle``, ``error_angle``, ``error``
+    and ``nees``),
     ``cov [B, T, n, n]`` (the filter's covariance), ``nees``, ``nis``, ``nis_dof``,
     ``weights [B, T, N]``, ``weight_entropy`` — plus every per-trajectory diagnostic
     ``[B, T]`` the filter reported (its ``diagnostic_keys``, e.g. ``fpke_error_before``,
@@ -192,11 +210,12 @@ def save_runs(
         data, traces = {k: first[k] for k in SHARED_KEYS if k in first}, {}
     units = {k: RUN_UNITS[k] for k in SHARED_KEYS if k in data}
     for name, tr in traces.items():
-        for key in ("error_angle", "error", "sigma", "cov", "nees", "nis", "nis_dof", "weights", "weight_entropy"):
-            data[f"{name}/{key}"] = getattr(tr, key)
-            units[key] = RUN_UNITS[key]
+        for key in TRACE_KEYS:
+            if getattr(tr, key) is not None:  # the scores against the truth are absent without it
+                data[f"{name}/{key}"] = getattr(tr, key)
+                units[key] = RUN_UNITS[key]
         for key, values in tr.extra.items():
-            if values.shape == tr.error_angle.shape:
+            if values.shape == tr.weight_entropy.shape:
                 data[f"{name}/{key}"] = values
                 units[key] = RUN_UNITS.get(key, "1")
     for name, (arrays, their_units) in reused.items():

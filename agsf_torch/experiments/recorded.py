@@ -65,12 +65,17 @@ def sample_spacing(recording: Recording, name: str = "") -> tuple[float, float]:
     return dt, tol
 
 
+def has_truth(recording: Recording) -> bool:
+    """Whether ``recording`` holds the truth (``truth_mrp`` and ``truth_bias``) to score the filters against."""
+    return recording.truth_mrp is not None and recording.truth_bias is not None
+
+
 def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = True) -> float:
     """The one check of a recording against a configuration, for ``agsf run --recording`` and ``agsf learn``:
     uniformly spaced samples (:func:`sample_spacing`) at the configuration's ``dt`` (to the timestamps'
     precision), gyro rates that turn less than half a turn per sample (``|ω̃|·Δt < π``: beyond, a sampled
-    rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, the truth and ``cfg.runs``
-    trajectories of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
+    rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, the truth or an initial
+    estimate (``initial_mrp``), and ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
     dt, tol = sample_spacing(recording, name)
     if recording.num_samples > 1 and abs(dt - cfg.dt) > tol + 1e-9 * cfg.dt:
         raise ValueError(f"recording {name} is sampled every {dt:g} s; the configuration's dt is {cfg.dt:g} s")
@@ -82,10 +87,11 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
                 f"recording {name}: a gyro rate of {rate:g} rad/s turns {rate * dt:g} rad per sample of {dt:g} s, "
                 "half a turn or more: not a sampled rotation (are the rates in rad/s?)"
             )
-    if whole_run and (recording.truth_mrp is None or recording.truth_bias is None):
+    if whole_run and not has_truth(recording) and recording.initial_mrp is None:
         raise ValueError(
-            f"recording {name} has no truth (truth_mrp and truth_bias): replaying it through the Monte Carlo runner "
-            "scores the filters against the truth"
+            f"recording {name} has neither the truth (truth_mrp and truth_bias) nor an initial estimate (initial_mrp "
+            "[B, 3], the attitude at row 0, e.g. a star fix; initial_bias [B, 3] optional): the filters start around "
+            "one of them"
         )
     if whole_run and (recording.num_trajectories != cfg.runs or recording.num_samples - 1 < cfg.num_steps):
         raise ValueError(
@@ -98,13 +104,16 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
 class RecordingEnv:
     """Replays a :class:`Recording` with the reset/step interface the Monte Carlo runner uses.
 
-    The recording must hold the truth (``truth_mrp``, ``truth_bias``): the runner
-    scores the filters against it.  ``config.dt`` is the recording's (uniform) sample spacing.
+    With the truth (``truth_mrp``, ``truth_bias``) its ``info`` carries it at every sample, and the runner scores
+    the filters against it.  Without it ``reset``'s ``info`` carries the file's initial estimate instead
+    (``initial_mrp`` and ``initial_bias``, zero if absent, ``[B, 3]``) and later samples an empty ``info``: the
+    runner starts the filters there and keeps their estimates, covariances and innovations, scoring nothing.
+    ``config.dt`` is the recording's (uniform) sample spacing.
     """
 
     def __init__(self, recording: Recording) -> None:
-        if recording.truth_mrp is None or recording.truth_bias is None:
-            raise ValueError("replaying through the Monte Carlo runner needs truth_mrp and truth_bias in the recording")
+        if not has_truth(recording) and recording.initial_mrp is None:
+            raise ValueError("replaying a recording needs the truth (truth_mrp, truth_bias) or initial_mrp")
         dt, _ = sample_spacing(recording)
         self.rec = recording
         self.num_envs = recording.num_trajectories
@@ -114,8 +123,12 @@ class RecordingEnv:
     def _sample(self, k: int):
         r, t = self.rec, torch.as_tensor
         obs = r.observation(k)
-        info = {"truth_mrp": t(r.truth_mrp[:, k]), "truth_bias": t(r.truth_bias[:, k])}
-        return obs, info
+        if has_truth(r):
+            return obs, {"truth_mrp": t(r.truth_mrp[:, k]), "truth_bias": t(r.truth_bias[:, k])}
+        if k > 0:
+            return obs, {}
+        bias = np.zeros((self.num_envs, 3)) if r.initial_bias is None else r.initial_bias
+        return obs, {"initial_mrp": t(r.initial_mrp), "initial_bias": t(bias)}
 
     def reset(self, seed=None):
         self._k = 0

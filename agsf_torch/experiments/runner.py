@@ -28,6 +28,7 @@ __all__ = [
     "monte_carlo_steps",
     "run_monte_carlo",
     "rotation_error",
+    "rotation_sigma",
     "sample_prior",
 ]
 
@@ -37,42 +38,47 @@ class FilterTrace:
     """Per-time metrics of one filter over ``B`` trajectories and ``T`` steps (numpy, batch first).
 
     Attributes:
-        error_angle: attitude error angle (rad) ``[B, T]``.
-        error: state error ``[B, T, n]``: the attitude part is the rotation error, the
-            small-angle vector of ``q_est ⊗ q_true⁻¹`` (rad, body axes of the truth;
-            :func:`~agsf_torch.rotations.attitude_error_vector`), the bias part in rad/s.
-        sigma: 1σ of the same quantities from the filter's covariance ``[B, T, n]``: the MRP
+        estimate: the filter's estimate, its mixture's mean ``[B, T, n]`` (MRP, then the bias in rad/s).
+        sigma: 1σ of the estimate's error ``[B, T, n]`` from the filter's covariance: the MRP
             covariance mapped to the rotation error by ``J P Jᵀ``
             (:func:`~agsf_torch.rotations.attitude_error_jacobian`), the bias part as is.
         cov: the filter's covariance ``[B, T, n, n]`` in its own chart (MRP² and (rad/s)²).
-        nees: ``eᵀP⁻¹e`` in the filter's chart ``[B, T]``.
         nis: mixture NIS at star frames, NaN elsewhere ``[B, T]``; ``nis_dof`` its
             number of valid entries ``[B, T]``.
         weights: ``[B, T, N]``.
         weight_entropy: ``[B, T]``.
+        error_angle: attitude error angle (rad) ``[B, T]``; ``None`` without the truth (a replay of flight data).
+        error: state error ``[B, T, n]``: the attitude part is the rotation error, the
+            small-angle vector of ``q_est ⊗ q_true⁻¹`` (rad, body axes of the truth;
+            :func:`~agsf_torch.rotations.attitude_error_vector`), the bias part in rad/s; ``None`` without the truth.
+        nees: ``eᵀP⁻¹e`` in the filter's chart ``[B, T]``; ``None`` without the truth.
         extra: any further per-step diagnostics of the filter, ``name -> [B, T, ...]``.
     """
 
-    error_angle: np.ndarray
-    error: np.ndarray
+    estimate: np.ndarray
     sigma: np.ndarray
     cov: np.ndarray
-    nees: np.ndarray
     nis: np.ndarray
     nis_dof: np.ndarray
     weights: np.ndarray
     weight_entropy: np.ndarray
+    error_angle: np.ndarray | None = None
+    error: np.ndarray | None = None
+    nees: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
 
     def rms_error(self) -> np.ndarray:
-        """RMS attitude error angle over trajectories, ``[T]`` (rad)."""
+        """RMS attitude error angle over trajectories, ``[T]`` (rad); needs the truth."""
+        if self.error_angle is None:
+            raise ValueError("no attitude error without the truth (a replay of a recording without it)")
         return rms(self.error_angle, 0)
 
 
 @dataclass
 class MonteCarloResult:
     """Times ``[T]`` (s), star-frame flags ``[T]``, one :class:`FilterTrace` per filter and the attitude error
-    of the prior mean at ``t = 0`` (every filter's estimate before its first step) ``[B]`` (rad)."""
+    of the prior mean at ``t = 0`` (every filter's estimate before its first step) ``[B]`` (rad; ``None`` without
+    the truth)."""
 
     time: np.ndarray
     star_frame: np.ndarray
@@ -93,13 +99,15 @@ class SimulatedStep:
     against the truth then ``prior_truth_mrp [B, 3]``); ``chart_error``:
     name → the state error of the filter's estimate against the truth in the estimate's chart
     ``[B, n]`` (MRP and rad/s: the units of the covariance, for NEES; :class:`FilterTrace`
-    stores the error as a rotation instead, :func:`rotation_error`)."""
+    stores the error as a rotation instead, :func:`rotation_error`).  Without the truth (an environment whose
+    ``reset`` gives an initial estimate, ``initial_mrp`` and ``initial_bias``, instead: a replay of flight data)
+    ``x_true``, ``truth_mrp`` and ``prior_truth_mrp`` are ``None`` and ``chart_error`` is empty."""
 
     index: int
     time: float
     star_frame: bool
-    x_true: Tensor
-    truth_mrp: Tensor
+    x_true: Tensor | None
+    truth_mrp: Tensor | None
     filters: dict[str, FilterStep]
     u: Tensor | None = None
     measurement: tuple | None = None
@@ -140,10 +148,17 @@ def monte_carlo_steps(
     if env.config.max_steps < num_steps:
         raise ValueError(f"the environment ends after max_steps={env.config.max_steps} < num_steps={num_steps}")
     obs, info = env.reset(seed=seed)
-    truth_p, truth_b = as_float64(info["truth_mrp"]), as_float64(info["truth_bias"])
+    truthful = "truth_mrp" in info
+    if truthful:
+        truth_p, truth_b = as_float64(info["truth_mrp"]), as_float64(info["truth_bias"])
+        gen = torch.Generator().manual_seed(int(seed) + PRIOR_SEED_OFFSET)
+        mean0 = sample_prior(torch.cat((truth_p, truth_b), -1)[:, :n], prior_cov, gen)
+    elif "initial_mrp" in info:  # no truth: the filters start at the environment's initial estimate
+        truth_p, truth_b = None, as_float64(info["initial_bias"])
+        mean0 = torch.cat((as_float64(info["initial_mrp"]), truth_b), -1)[:, :n]
+    else:
+        raise ValueError("the environment's reset gives neither the truth (truth_mrp) nor an initial estimate")
     truth0 = truth_p
-    gen = torch.Generator().manual_seed(int(seed) + PRIOR_SEED_OFFSET)
-    mean0 = sample_prior(torch.cat((truth_p, truth_b), -1)[:, :n], prior_cov, gen)
     for setup in filters.values():
         setup.filter.reset()  # a filter follows one run: forget any earlier one
     mixtures = initial_mixtures(filters, mean0, prior_cov)
@@ -153,20 +168,27 @@ def monte_carlo_steps(
     adapter = AttitudeInputs(
         sigma_s=sigma_s, gyro_hold_sigma=gyro_hold_sigma, known_bias=not estimate_bias, noise_model=noise_model
     )
-    adapter.start(obs, dt, truth_b)
+    adapter.start(obs, dt, truth_b)  # without the truth, the known bias (3 states) is the initial estimate's
     action = {"mrp": filters[first].filter.estimate(mixtures[first])[0][:, :3]}
 
     def inputs():
+        bias, truth_p, x_true = truth_b, None, None  # without the truth: the initial estimate's bias throughout
         for _ in range(num_steps):
-            obs, _, _, _, info = env.step(action["mrp"])
-            truth_p, truth_b = as_float64(info["truth_mrp"]), as_float64(info["truth_bias"])
-            time = float(as_float64(obs["time"]).reshape(truth_p.shape[0], -1)[0, 0])
-            yield adapter(obs, dt, truth_b, context=(time, truth_p, torch.cat((truth_p, truth_b), -1)[:, :n]))
+            obs, _, _, _, step_info = env.step(action["mrp"])
+            if truthful:
+                truth_p, bias = as_float64(step_info["truth_mrp"]), as_float64(step_info["truth_bias"])
+                x_true = torch.cat((truth_p, bias), -1)[:, :n]
+            time = float(as_float64(obs["time"]).reshape(-1)[0])
+            yield adapter(obs, dt, bias, context=(time, truth_p, x_true))
 
     for step in filter_steps({k: s.filter for k, s in filters.items()}, mixtures, inputs()):
         action["mrp"] = step.filters[first].mean[:, :3]
         time, truth_p, x_true = step.input.context
-        errors = {name: fs.filter.model.state_error(fs.mean, x_true) for name, fs in step.filters.items()}
+        errors = (
+            {}
+            if x_true is None
+            else {name: fs.filter.model.state_error(fs.mean, x_true) for name, fs in step.filters.items()}
+        )
         yield SimulatedStep(
             step.index,
             time,
@@ -182,6 +204,22 @@ def monte_carlo_steps(
         )
 
 
+def rotation_sigma(mean: Tensor, cov: Tensor) -> Tensor:
+    """The 1σ of the estimate's error as a rotation (:class:`FilterTrace` ``sigma``): ``sqrt(diag(J P Jᵀ))``
+    with ``J = ∂δθ/∂p`` at the estimate (rad) for the attitude, ``sqrt(diag P)`` (rad/s) for the bias.
+
+    Args:
+        mean: ``[..., n]`` (MRP, then the bias if ``n = 6``); cov: ``[..., n, n]`` in the MRP chart.
+
+    Returns:
+        ``[..., n]``.
+    """
+    n = mean.shape[-1]
+    J = torch.eye(n, dtype=cov.dtype, device=cov.device).expand(cov.shape).clone()
+    J[..., :3, :3] = attitude_error_jacobian(mean[..., :3])
+    return (J @ cov @ J.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sqrt()
+
+
 def rotation_error(mean: Tensor, cov: Tensor, x_true: Tensor) -> tuple[Tensor, Tensor]:
     """The estimate's error as a rotation and its 1σ (:class:`FilterTrace` ``error``, ``sigma``).
 
@@ -191,15 +229,10 @@ def rotation_error(mean: Tensor, cov: Tensor, x_true: Tensor) -> tuple[Tensor, T
 
     Returns:
         ``(error [..., n], sigma [..., n])``: attitude part ``δθ`` of ``q_est ⊗ q_true⁻¹`` (rad)
-        and ``sqrt(diag(J P Jᵀ))`` with ``J = ∂δθ/∂p`` at the estimate; bias part
-        ``b̂ − b`` and ``sqrt(diag P)`` (rad/s).
+        and :func:`rotation_sigma`; bias part ``b̂ − b`` (rad/s).
     """
-    n = mean.shape[-1]
-    J = torch.eye(n, dtype=cov.dtype, device=cov.device).expand(cov.shape).clone()
-    J[..., :3, :3] = attitude_error_jacobian(mean[..., :3])
     error = torch.cat((attitude_error_vector(mean[..., :3], x_true[..., :3]), mean[..., 3:] - x_true[..., 3:]), -1)
-    sigma = (J @ cov @ J.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sqrt()
-    return error, sigma
+    return error, rotation_sigma(mean, cov)
 
 
 def run_monte_carlo(
@@ -261,17 +294,19 @@ def run_monte_carlo(
         steps = progress_bar(steps, desc=label, unit="step", total=num_steps)
     prior_error = None
     for step in steps:
-        if prior_error is None:
+        if prior_error is None and step.prior_truth_mrp is not None:
             prior_error = attitude_error_angle(step.prior_mean[:, :3], step.prior_truth_mrp).numpy()
         times.append(step.time)
         frames.append(step.star_frame)
-        truths.append(step.x_true)
-        truth_mrps.append(step.truth_mrp)
+        if step.x_true is not None:
+            truths.append(step.x_true)
+            truth_mrps.append(step.truth_mrp)
         for name, fs in step.filters.items():
             rec = records[name]
             rec["mean"].append(fs.mean)
             rec["cov"].append(fs.cov)
-            rec["chart_error"].append(step.chart_error[name])
+            if name in step.chart_error:
+                rec["chart_error"].append(step.chart_error[name])
             rec["nis"].append(fs.nis)
             rec["nis_dof"].append(fs.dof)
             rec["weights"].append(fs.mixture.weights)
@@ -283,12 +318,14 @@ def run_monte_carlo(
     traces = {}
     x_true, truth_mrp = (torch.stack(t, 1) if t else None for t in (truths, truth_mrps))
     for name, rec in records.items():
-        extra = rec.pop("extra")
+        extra, chart_error = rec.pop("extra"), rec.pop("chart_error")
         stacked = {k: torch.stack(v, 1) for k, v in rec.items()}
-        mean, cov, chart_error = stacked.pop("mean"), stacked["cov"], stacked.pop("chart_error")
-        stacked["error"], stacked["sigma"] = rotation_error(mean, cov, x_true)
-        stacked["error_angle"] = attitude_error_angle(mean[..., :3], truth_mrp)
-        stacked["nees"] = nees(chart_error, cov)
+        mean, cov = stacked.pop("mean"), stacked["cov"]
+        stacked["estimate"], stacked["sigma"] = mean, rotation_sigma(mean, cov)
+        if x_true is not None:  # scored against the truth
+            stacked["error"] = rotation_error(mean, cov, x_true)[0]
+            stacked["error_angle"] = attitude_error_angle(mean[..., :3], truth_mrp)
+            stacked["nees"] = nees(torch.stack(chart_error, 1), cov)
         extra_keys = extra[0].keys() if extra else []
         traces[name] = FilterTrace(
             **{k: v.numpy() for k, v in stacked.items()},

@@ -61,38 +61,50 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
       :func:`~agsf_torch.consistency.nis_per_expected`), 1 for a consistent filter, with ``nis_band_95``, the
       95 % band a consistent filter's ratio lies in; the consistency measure that needs no truth.  Absent
       without a star frame.
+
+    Without the truth (``runs.npz`` of a replay of flight data: no ``error_angle``) the scores against it
+    (``rms_deg``, the windows, NEES, the errors, the paired differences) are absent, and ``scored_against_truth``
+    says so; the 1σ, the weights, the NIS and the FPKE residual are there.
     """
     time = data["time"]
     frames = data["star_frame"].astype(bool)
     windows = {k: v for k, v in error_windows(frames).items() if k != "all"}
-    names = [n for n in FILTER_NAMES if f"{n}/error_angle" in data]
-    n_state = data[f"{names[0]}/error"].shape[-1]
-    runs = data[f"{names[0]}/error_angle"].shape[0]
-    lo, hi = chi2_band(n_state, runs)
+    names = [n for n in FILTER_NAMES if f"{n}/sigma" in data]
+    n_state = data[f"{names[0]}/sigma"].shape[-1]
+    runs = data[f"{names[0]}/sigma"].shape[0]
+    truth = f"{names[0]}/error_angle" in data  # a replay of flight data has no truth: no errors, no NEES
     out: dict[str, Any] = {
         "config": cfg.to_dict(),
         "time_s": time.tolist(),
         "star_frame": frames.tolist(),
-        "nees_band_95": [lo, hi],
+        "scored_against_truth": truth,
         "filters": {},
     }
+    if truth:
+        out["nees_band_95"] = list(chi2_band(n_state, runs))
     if "prior_error_angle" in data:  # every filter's estimate at t = 0: the prior mean
         out["prior_rms_deg"] = float(np.degrees(rms(np.asarray(data["prior_error_angle"]), 0)))
     per_run: dict[str, dict[str, np.ndarray]] = {}
     for name in names:
-        theta = data[f"{name}/error_angle"]  # [B, T]
         entry: dict[str, Any] = {
-            "rms_deg": np.degrees(rms(theta, 0)).tolist(),
-            "nees_mean": data[f"{name}/nees"].mean(0).tolist(),
-            "time_averaged_nees": float(data[f"{name}/nees"].mean()),
-            "time_averaged_nees_ci95": list(mean_ci95(data[f"{name}/nees"].mean(1))[1:]),
             "weights_run0": data[f"{name}/weights"][0].tolist(),
-            "error_run0_rad": data[f"{name}/error"][0].tolist(),
             "sigma_run0_rad": data[f"{name}/sigma"][0].tolist(),
-            "rms_error_axes_rad": np.sqrt(np.mean(data[f"{name}/error"] ** 2, axis=0)).tolist(),
             "rms_sigma_axes_rad": np.sqrt(np.mean(data[f"{name}/sigma"] ** 2, axis=0)).tolist(),
             "mean_weight_entropy": float(data[f"{name}/weight_entropy"].mean()),
         }
+        if f"{name}/estimate" in data:
+            entry["estimate_run0"] = data[f"{name}/estimate"][0].tolist()
+        if truth:
+            entry.update(
+                {
+                    "rms_deg": np.degrees(rms(data[f"{name}/error_angle"], 0)).tolist(),
+                    "nees_mean": data[f"{name}/nees"].mean(0).tolist(),
+                    "time_averaged_nees": float(data[f"{name}/nees"].mean()),
+                    "time_averaged_nees_ci95": list(mean_ci95(data[f"{name}/nees"].mean(1))[1:]),
+                    "error_run0_rad": data[f"{name}/error"][0].tolist(),
+                    "rms_error_axes_rad": np.sqrt(np.mean(data[f"{name}/error"] ** 2, axis=0)).tolist(),
+                }
+            )
         pooled = nis_per_expected(data[f"{name}/nis"], data[f"{name}/nis_dof"]) if f"{name}/nis" in data else None
         if pooled is not None:
             entry["nis_per_expected"], entry["nis_band_95"] = pooled[0], list(pooled[1])
@@ -106,8 +118,8 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
                 entry[f"{key}_total"] = int(data[f"{name}/{key}"].sum())
         per_run[name] = {}
         for wname, mask in windows.items():
-            if mask.any():
-                r = np.degrees(rms(theta[:, mask], 1))  # [B]
+            if truth and mask.any():
+                r = np.degrees(rms(data[f"{name}/error_angle"][:, mask], 1))  # [B]
                 per_run[name][wname] = r
                 entry[wname] = {
                     "mean_rms_deg": float(r.mean()),

@@ -273,15 +273,17 @@ def _rewrite(recording: Path, path: Path, **changes) -> Path:
     return path
 
 
-def test_a_recording_without_the_truth_is_refused_naming_it(recording, tmp_path):
-    """Flight data has no truth to score the filters against: ``agsf run --recording`` refuses it in one line
-    naming the file, before the output folder exists."""
+def test_a_recording_without_the_truth_or_an_initial_estimate_is_refused_naming_it(recording, tmp_path):
+    """Flight data without an initial estimate gives the filters nowhere to start: ``agsf run --recording``
+    refuses it in one line naming the file, before the output folder exists."""
     rec = Recording.load(recording)
     keys = ("time", "gyro", "star_body", "star_inertial", "star_mask")
     bad = tmp_path / "flight.npz"
     np.savez(bad, **{k: getattr(rec, k) for k in keys})
     argv = ["run", "case1", *TINY, "--recording", str(bad), "--out", str(tmp_path / "out")]
-    _assert_refused(argv, tmp_path, "flight.npz has no truth")
+    _assert_refused(
+        argv, tmp_path, "flight.npz has neither the truth (truth_mrp and truth_bias) nor an initial estimate"
+    )
 
 
 @pytest.mark.parametrize("stamps", ["epoch_float64", "float32"])

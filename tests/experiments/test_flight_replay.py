@@ -1,0 +1,95 @@
+"""A recording without the truth (flight data): the filters start at its initial estimate and nothing is scored."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from agsf_torch.attitude.recordings import Recording
+from agsf_torch.experiments import cli
+from agsf_torch.experiments.config import load_config
+from agsf_torch.experiments.experiment import make_env, prior_covariance
+from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.filter_loop import PRIOR_SEED_OFFSET, sample_prior
+from tests.helpers import EAGER
+
+KEYS = ["runs=3", "duration=3.0", "update_iterations=2", "sigma_u=0.0", *EAGER]  # sigma_u = 0: a constant bias
+SENSORS = ("time", "gyro", "star_body", "star_inertial", "star_mask")
+
+
+@pytest.fixture(scope="module", params=["6 states", "3 states"])
+def recorded(request, tmp_path_factory):
+    """The configuration's keys, a simulated recording with its truth and the same without it, starting where
+    the simulated run's prior draw starts (with 3 states, the bias known: the truth's, constant)."""
+    keys = KEYS + [f"estimate_bias={'true' if request.param == '6 states' else 'false'}"]
+    cfg = load_config("case1", keys)
+    rec = record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
+    truth0 = torch.cat((torch.as_tensor(rec.truth_mrp[:, 0]), torch.as_tensor(rec.truth_bias[:, 0])), -1)
+    gen = torch.Generator().manual_seed(cfg.seed + PRIOR_SEED_OFFSET)  # the runner's draw of the prior mean
+    n = 6 if cfg.estimate_bias else 3
+    mean0 = sample_prior(truth0[:, :n], prior_covariance(cfg), gen).numpy()
+    bias0 = mean0[:, 3:] if cfg.estimate_bias else rec.truth_bias[:, 0]
+    assert np.array_equal(rec.truth_bias, np.broadcast_to(rec.truth_bias[:, :1], rec.truth_bias.shape))
+    folder = tmp_path_factory.mktemp("flight")
+    with_truth = rec.save(folder / "sim.npz")
+    flight = Recording(**{k: getattr(rec, k) for k in SENSORS}, initial_mrp=mean0[:, :3], initial_bias=bias0).save(
+        folder / "flight.npz"
+    )
+    return keys, with_truth, flight
+
+
+def _run(tmp_path, name, path, keys, command="run"):
+    argv = [command, "case1", *sum((["--set", k] for k in keys), []), "--recording", str(path)]
+    code = cli.main([*argv, "--out", str(tmp_path / name), "--quiet"])
+    return code, np.load(tmp_path / name / "runs.npz"), json.loads((tmp_path / name / "summary.json").read_text())
+
+
+def test_a_replay_without_truth_gives_the_estimates_of_the_one_with_it(recorded, tmp_path, capsys):
+    """Started at the same prior mean, the filters see the same data: every array they produce is equal bit for
+    bit; what needs the truth (errors, NEES, the RMS and its figures) is absent, and the summary says so."""
+    keys, with_truth, flight = recorded
+    code_t, data_t, _ = _run(tmp_path, "truth", with_truth, keys)
+    code_f, data_f, summary = _run(tmp_path, "flight", flight, keys)
+    assert code_t == code_f == 0
+    scored = {"prior_error_angle"} | {k for k in data_t.files if k.split("/")[-1] in ("error_angle", "error", "nees")}
+    assert scored and set(data_f.files) == set(data_t.files) - scored
+    for key in set(data_f.files) - {"units"}:
+        assert np.array_equal(data_f[key], data_t[key], equal_nan=True), key
+    assert summary["scored_against_truth"] is False and "nees_band_95" not in summary
+    for name, f in summary["filters"].items():
+        assert "rms_deg" not in f and "time_averaged_nees" not in f and "between_frames" not in f
+        assert f["nis_per_expected"] > 0 and f["estimate_run0"] == data_f[f"{name}/estimate"][0].tolist()
+    assert not (tmp_path / "flight" / "rms.png").exists() and not (tmp_path / "flight" / "axes.png").exists()
+    assert (tmp_path / "flight" / "weights.png").exists() and (tmp_path / "truth" / "rms.png").exists()
+    assert "no truth in the recording, so no errors or NEES" in capsys.readouterr().out
+
+
+def test_diagnose_without_truth_judges_the_innovations_alone(recorded, tmp_path):
+    keys, with_truth, flight = recorded
+    _run(tmp_path, "truth", with_truth, keys, "diagnose")
+    _run(tmp_path, "flight", flight, keys, "diagnose")
+    judged = {
+        which: json.loads((tmp_path / which / "diagnose.json").read_text())["filters"] for which in ("truth", "flight")
+    }
+    for name, checks in judged["flight"].items():
+        assert [c["name"] for c in checks] == [c["name"] for c in judged["truth"][name] if c["name"] != "nees"]
+        assert checks == [c for c in judged["truth"][name] if c["name"] != "nees"]  # the same innovations
+
+
+def test_initial_estimate_columns_are_validated_naming_them(recorded):
+    _, _, flight = recorded
+    rec = Recording.load(flight)
+    base = {k: getattr(rec, k) for k in SENSORS}
+    with pytest.raises(ValueError, match=r"column 'initial_mrp' must have shape \[3, 3\], got \(2, 3\)"):
+        Recording(**base, initial_mrp=rec.initial_mrp[:2])
+    bad = rec.initial_mrp.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="column 'initial_mrp' is not finite at trajectory 1"):
+        Recording(**base, initial_mrp=bad)
+    with pytest.raises(ValueError, match="'initial_bias' needs 'initial_mrp'"):
+        Recording(**base, initial_bias=rec.initial_bias)
+    assert Recording.load(flight).content_digest() == rec.content_digest()  # the columns round-trip
+    assert Recording(**base, initial_mrp=rec.initial_mrp).content_digest() != rec.content_digest()
