@@ -267,11 +267,11 @@ def _print_summary(name: str, summary: dict) -> None:
         return
     print(f"{name}: mean RMS between star frames (deg), time-averaged NEES and NIS / expected (1 when consistent)")
     for fname, f in filters.items():
-        bu = f.get("between_frames", {}).get("mean_rms_deg", float("nan"))
-        nees = f.get("time_averaged_nees", float("nan"))
+        bu = f.get("between_frames", {}).get("mean_rms_deg")  # none without a star frame: "—", as in the tables
         nis = f.get("nis_per_expected")
         nis_text = f"   NIS / expected {nis:.4g}" if nis is not None else ""
-        print(f"  {fname:<{width}}  {bu:>11.6g}       NEES {nees:.4g}{nis_text}")
+        rms_text = "—" if bu is None else format(bu, ".6g")
+        print(f"  {fname:<{width}}  {rms_text:>11}       NEES {f['time_averaged_nees']:.4g}{nis_text}")
     for fname in filters:
         d = (summary.get(minus_gsf_key(fname)) or {}).get("between_frames")
         if d:

@@ -163,7 +163,7 @@ RUN_UNITS = {
     "nis_dof": "count (the innovation's valid entries, 3 per star)",
     "weights": "1",
     "weight_entropy": "nat",
-    "gyro_held": "bool (the gyro sample was bridged)",
+    "gyro_held": "0/1 (1: the gyro sample was bridged)",
     "gate_rejected": "count (star blocks the gate rejected)",
     "fpke_error_before": "FPKE residual (1/s) before the weight update",
     "fpke_error_after": "FPKE residual (1/s) after the weight update",

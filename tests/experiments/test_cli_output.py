@@ -133,6 +133,12 @@ def test_run_prints_every_filter_aligned_and_every_adaptive_difference_with_its_
     assert "  (window — between frames: every step after the first star frame that is not itself a frame)" in lines
 
 
+def test_run_without_a_star_frame_prints_a_dash_for_the_window_as_the_tables_do(tmp_path):
+    code, stdout, _ = _agsf(["run", "case1", *TINY, "--set", "duration=0.5", "--out", str(tmp_path / "run")])
+    rows = [line.split() for line in stdout.splitlines() if "NEES" in line and line.startswith("  ")]
+    assert code == 0 and rows and all(r[1] == "—" for r in rows), rows
+
+
 @pytest.mark.parametrize(
     ("argv", "says"),
     [
