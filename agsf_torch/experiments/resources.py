@@ -75,7 +75,7 @@ def estimated_memory(cfg: ExperimentConfig, *, keep_steps: bool = True) -> Memor
     ``M`` stars per frame:
 
     .. math::
-        retained = c_r · 8 · T · B · Σ_f (n² + 2n + N_f + 5 + e),\\qquad
+        retained = c_r · 8 · T · B · Σ_f (n² + 3n + N_f + 5 + e),\\qquad
         working = c_w · 8 · B · (Σ_f N_f n² + 3 M)
 
     (``N_f = 1`` for the single-Gaussian filters, ``e`` the per-step diagnostics,
@@ -86,7 +86,7 @@ def estimated_memory(cfg: ExperimentConfig, *, keep_steps: bool = True) -> Memor
 
     n = 6 if cfg.estimate_bias else 3
     N = [cfg.components if filter_spec(f).mixture else 1 for f in cfg.filters]
-    per_sample = sum(n * n + 2 * n + Nf + 5 + _EXTRA_DIAGNOSTICS for Nf in N)
+    per_sample = sum(n * n + 3 * n + Nf + 5 + _EXTRA_DIAGNOSTICS for Nf in N)  # cov; estimate, error, sigma; …
     retained = RETAINED_OVERHEAD * _F64 * cfg.num_steps * cfg.runs * per_sample if keep_steps else 0
     working = WORKING_OVERHEAD * _F64 * cfg.runs * (sum(Nf * n * n for Nf in N) + 3 * cfg.max_stars)
     return MemoryEstimate(retained, working, BASE_PROCESS)
