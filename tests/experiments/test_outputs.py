@@ -165,9 +165,9 @@ def test_a_second_sweep_into_the_same_folder_is_refused_while_the_first_runs(tmp
 def test_the_memory_estimate_counts_what_the_runner_keeps():
     cfg = load_config("case1", ["runs=100", "duration=30", 'filters=["EKF", "GSF", "AGSF"]', "components=5"])
     est = estimated_memory(cfg)
-    # per step and trajectory: angle, error (3), sigma (3), covariance (9), NEES, NIS, NIS dof, weights (N),
-    # entropy, and up to 16 diagnostics; EKF has N = 1, GSF and AGSF N = 5
-    floats = (1 + 3 + 3 + 9 + 1 + 1 + 1 + 1 + 1 + 16) + 2 * (1 + 3 + 3 + 9 + 1 + 1 + 1 + 5 + 1 + 16)
+    # per step and trajectory: angle, estimate (3), error (3), sigma (3), covariance (9), NEES, NIS, NIS dof,
+    # weights (N), entropy, and up to 16 diagnostics; EKF has N = 1, GSF and AGSF N = 5
+    floats = (1 + 3 + 3 + 3 + 9 + 1 + 1 + 1 + 1 + 1 + 16) + 2 * (1 + 3 + 3 + 3 + 9 + 1 + 1 + 1 + 5 + 1 + 16)
     assert est.retained == RETAINED_OVERHEAD * 8 * 300 * 100 * floats
     assert est.working == WORKING_OVERHEAD * 8 * 100 * ((1 + 5 + 5) * 9 + 3 * 5)
     assert est.total == est.retained + est.working + BASE_PROCESS
