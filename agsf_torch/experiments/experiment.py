@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ..storage.files import write_json
-from .config import ExperimentConfig
+from .config import REPLAY_IGNORED, ExperimentConfig
 from .factories import make_env, make_filters, prior_covariance
 from .figures import write_figures
 from .file_writer import FileWriter
@@ -95,7 +95,7 @@ def run_experiment(
         _check_reusable(cfg, name, Path(folder))
     reused = {name: load_filter_runs(Path(folder) / "runs.npz", name) for name, folder in reuse.items()}
     filters = {name: setup for name, setup in make_filters(cfg).items() if name not in reuse}
-    out = prepare_output(Path(out), kind, digest, cfg.to_dict())
+    out = prepare_output(Path(out), kind, digest, cfg.to_dict(), REPLAY_IGNORED if recording is not None else ())
     if not filters:
         data = save_runs(out / "runs.npz", None, reused, writer)
         return _write_results(out, data, cfg, reuse, writer)

@@ -12,7 +12,7 @@ from ..attitude.recordings import Recording
 from ..constants import DEG_PER_HOUR
 from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
 from ..storage.files import write_json, write_text
-from .config import ExperimentConfig
+from .config import REPLAY_IGNORED, ExperimentConfig
 from .experiment import make_env, prepare_output, prior_covariance
 from .recorded import check_recording, record_environment
 from .resources import check_memory
@@ -112,7 +112,10 @@ def learn(
         rec, source = record_environment(make_env(cfg), cfg.num_steps, cfg.seed), "simulated"
     configured, kwargs = learning_problem(cfg, rec)
     digest = cfg.digest(replay=recording is not None)  # a replay: of the keys it reads
-    out = prepare_output(Path(out), "learn", f"{digest}:{','.join(names)}:{source}:max_iter={max_iter}", cfg.to_dict())
+    ignored = REPLAY_IGNORED if recording is not None else ()
+    out = prepare_output(
+        Path(out), "learn", f"{digest}:{','.join(names)}:{source}:max_iter={max_iter}", cfg.to_dict(), ignored
+    )
     from torch.utils.tensorboard import SummaryWriter
 
     clear_events(out / "tensorboard")  # a rerun replaces its events (the curve's steps would repeat)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -42,10 +43,39 @@ class OutputConflict(ValueError):
     """The output folder holds a different experiment."""
 
 
-def check_output(out: Path, kind: str, digest: str) -> None:
+def _flat(config: Any, prefix: str = "") -> dict[str, Any]:
+    """A configuration (nested mappings) as ``{"dotted.key": value}``."""
+    if not isinstance(config, dict):
+        return {prefix: config}
+    flat: dict[str, Any] = {}
+    for key, value in config.items():
+        flat.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
+    return flat
+
+
+def _what_differs(theirs: Any, ours: Any, ignored: Collection[str] = (), limit: int = 4) -> str:
+    """Words naming how the configuration ``ours`` differs from ``theirs`` (the folder's): the first ``limit``
+    differing keys (but ``ignored``: keys that do not make another experiment) with both values, or that the
+    configurations agree (then another input differs)."""
+    a, b = _flat(theirs), _flat(ours)
+    keys = [k for k in sorted(set(a) | set(b)) if a.get(k, "—") != b.get(k, "—") and k not in ignored]
+    if not keys:
+        return "the same configuration with another input (a recording's contents, the filters named, an option)"
+    text = lambda v: json.dumps(v, ensure_ascii=False, default=str)  # noqa: E731
+    shown = "; ".join(f"{k}: {text(a.get(k, '—'))} there, {text(b.get(k, '—'))} here" for k in keys[:limit])
+    more = f"; and {len(keys) - limit} more" if len(keys) > limit else ""
+    return f"its configuration differs in {shown}{more}"
+
+
+def check_output(
+    out: Path, kind: str, digest: str, config: dict[str, Any] | None = None, ignored: Collection[str] = ()
+) -> None:
     """Refuse ``out`` if it holds a different experiment (or is not an experiment folder);
     creates nothing.  ``digest`` identifies the experiment by content: its configuration and
     the digests of its input files, never their paths.
+
+    With ``config`` (the experiment's configuration) a conflict names the keys whose values differ from the
+    folder's (but ``ignored``, keys that do not enter ``digest``).
 
     Raises:
         OutputConflict: another experiment, or a non-empty folder without ``experiment.json``.
@@ -62,8 +92,11 @@ def check_output(out: Path, kind: str, digest: str) -> None:
             raise ValueError(f"{exc}; remove {out} or choose another --out") from None
         if not isinstance(prev, dict) or prev.get("kind") != kind or prev.get("digest") != digest:
             prev = prev if isinstance(prev, dict) else {}
+            why = ""
+            if config is not None and prev.get("kind") == kind and "config" in prev:
+                why = f": {_what_differs(prev['config'], config, ignored)}"
             raise OutputConflict(
-                f"{out} already holds a different experiment ({prev.get('kind')} {prev.get('digest')}); "
+                f"{out} already holds a different experiment ({prev.get('kind')} {prev.get('digest')}){why}; "
                 "choose another --out or remove it"
             )
     elif out.exists() and any(p.name != LOCK_NAME for p in out.iterdir()):
@@ -103,13 +136,13 @@ def release_outputs() -> None:
         lock.release()
 
 
-def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any]) -> Path:
+def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any], ignored: Collection[str] = ()) -> Path:
     """Create ``out`` for an experiment (after :func:`check_output`), claim it for this process (one writer
     per folder: a second command on it is refused with :class:`OutputBusy` until :func:`release_outputs`)
     and write its ``experiment.json`` atomically.  Callers validate every input first: a refused command
     creates nothing."""
     out = Path(out)
-    check_output(out, kind, digest)
+    check_output(out, kind, digest, config, ignored)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     try:

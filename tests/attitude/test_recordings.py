@@ -139,7 +139,7 @@ def test_a_replay_is_identified_by_the_keys_it_reads(tmp_path):
     release_outputs()
     assert again["filters"]["GSF"]["rms_deg"] == first["filters"]["GSF"]["rms_deg"]
     assert json.loads((out / "experiment.json").read_text())["config"]["star_period"] == 2.0
-    with pytest.raises(OutputConflict, match="different experiment"):
+    with pytest.raises(OutputConflict, match=r"different experiment .*differs in sigma_s: 1e-05 there, 2e-05 here;"):
         run_experiment(load_config("case1", keys + ["sigma_s=2e-5"]), out, progress=False, recording=path)
 
 

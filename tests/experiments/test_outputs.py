@@ -41,7 +41,7 @@ def test_new_recording_contents_at_the_same_path_never_replace_earlier_results(t
     first = run_experiment(cfg, out, progress=False, recording=path)
     kept = (out / "summary.json").read_bytes()
     record_environment(make_env(cfg), cfg.num_steps, seed=2).save(path)  # new data, same path
-    with pytest.raises(OutputConflict, match="different experiment"):
+    with pytest.raises(OutputConflict, match="different experiment .*: the same configuration with another input"):
         run_experiment(cfg, out, progress=False, recording=path)
     assert (out / "summary.json").read_bytes() == kept
     # the first contents under another name are the same experiment: the folder is reused
@@ -230,3 +230,21 @@ def test_a_ctrl_c_swallowed_inside_a_finaliser_still_stops_the_sweep(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         run_sweep(base, parse_grid(["reg=0.5,1,2"], base), tmp_path / "sweep", progress=False, runner=runner)
     assert len(read_json_lines(tmp_path / "sweep" / "results.jsonl")) == 1
+
+
+def test_a_conflict_names_what_differs_and_how_much_more(tmp_path):
+    """A refused folder says which keys differ from the experiment it holds (the first four, then how many
+    more), with both values; nested configurations (a sweep's base and grid) by dotted keys."""
+    from agsf_torch.experiments.outputs import check_output, prepare_output, release_outputs
+
+    out = prepare_output(tmp_path / "x", "run", "aaaa", {"runs": 2, "grid": {"reg": [1.0, 2.0]}, "seed": 1})
+    release_outputs()
+    with pytest.raises(
+        OutputConflict, match=r"differs in grid\.reg: \[1\.0, 2\.0\] there, \[2\.0, 1\.0\] here; choose"
+    ):
+        check_output(out, "run", "bbbb", {"runs": 2, "grid": {"reg": [2.0, 1.0]}, "seed": 1})
+    many = {"runs": 3, "grid": {"reg": [3.0]}, "seed": 2, "a": 1, "b": 2}
+    with pytest.raises(OutputConflict, match=r"differs in a: \"—\" there, 1 here; .*; and 1 more; choose"):
+        check_output(out, "run", "bbbb", many)
+    with pytest.raises(OutputConflict, match=r"\(run aaaa\); choose"):  # another kind: no configuration to compare
+        check_output(out, "sweep", "aaaa", {"runs": 2})
