@@ -16,6 +16,7 @@ import hashlib
 import json
 import math
 import re
+import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -180,9 +181,16 @@ class _ExperimentFields:
         from envs.faults import parse_faults
 
         try:
-            parse_faults(self.faults)
+            faults = parse_faults(self.faults)
         except ValueError as exc:
             raise ValueError(f"config key 'faults': {exc}") from None
+        late = [i for i, fault in enumerate(faults) if fault.start >= self.duration]
+        if late:  # legal (a longer run meets them) but, here, injected into nothing
+            warnings.warn(
+                f"config: fault(s) {late} start at or after the end of the run (duration = {self.duration:g} s): "
+                "they never happen",
+                stacklevel=2,
+            )
         if len(self.rate_axes) != 3 or not all(
             isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes
         ):

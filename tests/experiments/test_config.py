@@ -113,3 +113,15 @@ def test_every_filter_option_is_a_config_key_with_its_declared_default_help_and_
     with pytest.raises(ValueError, match="config key 'tikhonov': tikhonov must be a finite number > 0"):
         ExperimentConfig(tikhonov=-1.0)
     assert ExperimentConfig(cadence=3).filter_options()["cadence"] == 3
+
+
+def test_a_fault_after_the_end_of_the_run_is_named_in_a_warning():
+    """A fault window starting at or after ``duration`` is legal (a longer run meets it) but injects nothing."""
+    import warnings
+
+    faults = '[{kind="star_outage", start=1.0, end=2.0}, {kind="gyro_dropout", start=3.0, end=4.0}]'
+    with pytest.warns(UserWarning, match=r"fault\(s\) \[1\] start at or after the end of the run \(duration = 3 s\)"):
+        load_config("case1", [f"faults={faults}", "duration=3.0"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_config("case1", [f"faults={faults}", "duration=3.1"])
