@@ -3,6 +3,7 @@
 * :mod:`.inputs` — the filter loop's attitude adapter (observations → steps);
 * :mod:`.gyro_hold` — bridging missing or saturated gyro samples, with the covariance they cost;
 * :mod:`.recordings` — sensor logs on disk (a user's own data), identified by content;
+* :mod:`.star_fix` — the attitude of one star frame (Wahba's problem), batched: where a replay without the truth starts;
 * :mod:`.learning` — maximum-likelihood fits of the noise model through the filter.
 
 The attitude *model* and the star-vector *measurement* are models like any other

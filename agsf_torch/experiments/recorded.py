@@ -70,6 +70,33 @@ def has_truth(recording: Recording) -> bool:
     return recording.truth_mrp is not None and recording.truth_bias is not None
 
 
+def initial_estimate(recording: Recording, name: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """Where the filters start on a recording without the truth: ``(mrp [B, 3], bias [B, 3])``, the file's
+    ``initial_mrp`` / ``initial_bias`` (zero if absent) or, without ``initial_mrp``, the star fix of row 0
+    (:func:`~agsf_torch.attitude.star_fix.star_fix`) and a zero bias.
+
+    Raises:
+        ValueError: no ``initial_mrp`` and a trajectory whose row 0 determines no attitude (fewer than two valid,
+            non-parallel stars), naming the recording ``name`` and the trajectory.
+    """
+    B = recording.num_trajectories
+    bias = np.zeros((B, 3)) if recording.initial_bias is None else recording.initial_bias
+    if recording.initial_mrp is not None:
+        return recording.initial_mrp, bias
+    from ..attitude.star_fix import star_fix
+
+    t = torch.as_tensor
+    mrp, ok = star_fix(t(recording.star_body[:, 0]), t(recording.star_inertial[:, 0]), t(recording.star_mask[:, 0]))
+    if not bool(ok.all()):
+        raise ValueError(
+            f"recording {name} has neither the truth (truth_mrp and truth_bias) nor an initial estimate (initial_mrp "
+            f"[B, 3]; initial_bias [B, 3] optional), and row 0 of trajectory {int((~ok).nonzero()[0, 0])} holds no "
+            "star frame that determines an attitude (two valid, non-parallel stars): the filters start around one "
+            "of these"
+        )
+    return mrp.numpy(), bias
+
+
 def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = True) -> float:
     """The one check of a recording against a configuration, for ``agsf run --recording`` and ``agsf learn``:
     uniformly spaced samples (:func:`sample_spacing`) at the configuration's ``dt`` (to the timestamps'
@@ -87,12 +114,8 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
                 f"recording {name}: a gyro rate of {rate:g} rad/s turns {rate * dt:g} rad per sample of {dt:g} s, "
                 "half a turn or more: not a sampled rotation (are the rates in rad/s?)"
             )
-    if whole_run and not has_truth(recording) and recording.initial_mrp is None:
-        raise ValueError(
-            f"recording {name} has neither the truth (truth_mrp and truth_bias) nor an initial estimate (initial_mrp "
-            "[B, 3], the attitude at row 0, e.g. a star fix; initial_bias [B, 3] optional): the filters start around "
-            "one of them"
-        )
+    if whole_run and not has_truth(recording):
+        initial_estimate(recording, name)  # where the filters start without the truth, or ValueError
     if whole_run and (recording.num_trajectories != cfg.runs or recording.num_samples - 1 < cfg.num_steps):
         raise ValueError(
             f"recording {name} has {recording.num_trajectories} trajectories × {recording.num_samples - 1} steps of "
@@ -105,15 +128,15 @@ class RecordingEnv:
     """Replays a :class:`Recording` with the reset/step interface the Monte Carlo runner uses.
 
     With the truth (``truth_mrp``, ``truth_bias``) its ``info`` carries it at every sample, and the runner scores
-    the filters against it.  Without it ``reset``'s ``info`` carries the file's initial estimate instead
-    (``initial_mrp`` and ``initial_bias``, zero if absent, ``[B, 3]``) and later samples an empty ``info``: the
-    runner starts the filters there and keeps their estimates, covariances and innovations, scoring nothing.
+    the filters against it.  Without it ``reset``'s ``info`` carries an initial estimate instead
+    (:func:`initial_estimate`: the file's ``initial_mrp`` / ``initial_bias`` or row 0's star fix, ``[B, 3]``) and
+    later samples an empty ``info``: the runner starts the filters there and keeps their estimates, covariances and
+    innovations, scoring nothing.
     ``config.dt`` is the recording's (uniform) sample spacing.
     """
 
     def __init__(self, recording: Recording) -> None:
-        if not has_truth(recording) and recording.initial_mrp is None:
-            raise ValueError("replaying a recording needs the truth (truth_mrp, truth_bias) or initial_mrp")
+        self.start = None if has_truth(recording) else initial_estimate(recording)  # or ValueError
         dt, _ = sample_spacing(recording)
         self.rec = recording
         self.num_envs = recording.num_trajectories
@@ -127,8 +150,7 @@ class RecordingEnv:
             return obs, {"truth_mrp": t(r.truth_mrp[:, k]), "truth_bias": t(r.truth_bias[:, k])}
         if k > 0:
             return obs, {}
-        bias = np.zeros((self.num_envs, 3)) if r.initial_bias is None else r.initial_bias
-        return obs, {"initial_mrp": t(r.initial_mrp), "initial_bias": t(bias)}
+        return obs, {"initial_mrp": t(self.start[0]), "initial_bias": t(self.start[1])}
 
     def reset(self, seed=None):
         self._k = 0

@@ -93,3 +93,31 @@ def test_initial_estimate_columns_are_validated_naming_them(recorded):
         Recording(**base, initial_bias=rec.initial_bias)
     assert Recording.load(flight).content_digest() == rec.content_digest()  # the columns round-trip
     assert Recording(**base, initial_mrp=rec.initial_mrp).content_digest() != rec.content_digest()
+
+
+def test_a_log_that_starts_at_a_star_frame_needs_no_initial_estimate(tmp_path):
+    """Without the truth and ``initial_mrp`` the filters start at row 0's star fix (here: scipy's solution of the
+    same frame, an independent one) with a zero bias; a row 0 without a determining frame is refused, naming it."""
+    from scipy.spatial.transform import Rotation
+
+    from agsf_torch.experiments.recorded import RecordingEnv
+    from agsf_torch.rotations import mrp_to_dcm
+
+    keys = KEYS + ["estimate_bias=true"]
+    cfg = load_config("case1", keys)
+    longer = load_config("case1", keys + ["duration=4.0"])  # 10 steps more: the log is cut at the first frame
+    rec = record_environment(make_env(longer), longer.num_steps, cfg.seed)
+    first = int(np.argmax(rec.star_frames()))  # the first star frame (t = 1 s)
+    cut = Recording(**{k: getattr(rec, k)[first:] if k == "time" else getattr(rec, k)[:, first:] for k in SENSORS})
+    _, info = RecordingEnv(cut).reset()
+    assert np.array_equal(info["initial_bias"].numpy(), np.zeros((cfg.runs, 3)))
+    C = mrp_to_dcm(info["initial_mrp"]).numpy()
+    for b in range(cfg.runs):
+        m = cut.star_mask[b, 0]
+        theirs = Rotation.align_vectors(cut.star_body[b, 0][m], cut.star_inertial[b, 0][m])[0].as_matrix()
+        np.testing.assert_allclose(C[b], theirs, atol=1e-12)
+    code, _, summary = _run(tmp_path, "cut", cut.save(tmp_path / "cut.npz"), keys)
+    assert code == 0 and summary["scored_against_truth"] is False
+    uncut = Recording(**{k: getattr(rec, k) for k in SENSORS}).save(tmp_path / "uncut.npz")  # row 0: no frame
+    with pytest.raises(ValueError, match="row 0 of trajectory 0 holds no star frame that determines an attitude"):
+        RecordingEnv(Recording.load(uncut))
