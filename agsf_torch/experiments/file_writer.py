@@ -419,17 +419,12 @@ def check_writers(writers: int | None, threads: int | None) -> int:
     workers (``None``: :func:`default_writers`).
 
     Raises:
-        ValueError: ``writers`` not a non-negative integer or more than the CPUs this process may use (each worker
-            is a process of its own, ~:data:`WORKER_MEMORY`), or ``threads`` neither None nor a positive integer.
+        ValueError: ``writers`` not an integer from 0 to the CPUs this process may use (each worker is a process),
+            or ``threads`` neither None nor a positive integer.
     """
-    writers = default_writers() if writers is None else writers
-    if isinstance(writers, bool) or not isinstance(writers, int) or writers < 0:
-        raise ValueError(f"writers must be a non-negative integer, got {writers!r}")
-    if writers > available_cpus():
-        raise ValueError(
-            f"writers must be at most the {available_cpus()} CPUs this process may use (each is a process of its "
-            f"own), got {writers}"
-        )
+    writers, cpus = default_writers() if writers is None else writers, available_cpus()
+    if isinstance(writers, bool) or not isinstance(writers, int) or not 0 <= writers <= cpus:
+        raise ValueError(f"writers must be an integer from 0 to the {cpus} CPUs this process may use, got {writers!r}")
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
         raise ValueError(f"threads must be a positive integer or None, got {threads!r}")
     return writers

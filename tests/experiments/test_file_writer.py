@@ -342,7 +342,9 @@ def test_more_writers_than_cpus_are_refused_naming_the_cpus(tmp_path):
     from agsf_torch.processes import available_cpus
 
     cpus = available_cpus()
-    with pytest.raises(ValueError, match=f"writers must be at most the {cpus} CPUs .* got {cpus + 1}"):
+    with pytest.raises(
+        ValueError, match=f"writers must be an integer from 0 to the {cpus} CPUs this process may use, got {cpus + 1}"
+    ):
         reproduce([1], tmp_path / "out", list(EAGER), progress=False, writers=cpus + 1)
     assert not (tmp_path / "out").exists()
 
