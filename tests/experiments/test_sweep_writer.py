@@ -88,7 +88,9 @@ def test_writers_are_the_local_backends(tmp_path, capsys):
     base = load_config("case1", TINY)
     with pytest.raises(ValueError, match="local backend"):
         run_sweep(base, GRID, tmp_path / "r", progress=False, backend="ray", writers=1)
-    with pytest.raises(ValueError, match="writers must be an integer from 0 to the [0-9]+ CPUs this process may use, got -1"):
+    with pytest.raises(
+        ValueError, match="writers must be an integer from 0 to the [0-9]+ CPUs this process may use, got -1"
+    ):
         run_sweep(base, GRID, tmp_path / "w", progress=False, writers=-1)
     code = cli.main(
         ["sweep", "case1", "--grid", "reg=1", "--backend", "ray", "--writers", "1", "--out", str(tmp_path / "c")]
