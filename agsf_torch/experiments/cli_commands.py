@@ -68,6 +68,12 @@ def _run(args: argparse.Namespace) -> int:
     summary = run_experiment(
         cfg, Path(args.out), progress=not args.quiet, kind="run", recording=args.recording, force=args.force
     )
+    from .reproduce import case_hparams
+    from .sweep.rows import config_metrics
+    from .tensorboard_log import hparam_domains, write_hparams_session
+
+    hparams = case_hparams(cfg.name, cfg.to_dict())  # an HParams session, as each case of reproduce
+    write_hparams_session(Path(args.out) / "tensorboard", hparams, config_metrics(summary), hparam_domains([hparams]))
     _print_summary(cfg.name, summary)
     print(f"results: {args.out}/summary.json, figures {args.out}/*.png")
     print(f"TensorBoard: {tensorboard_command(args.out)}")
