@@ -54,8 +54,8 @@ def run_experiment(
     processes if it has them (``runs.npz`` above :data:`~.file_writer.HANDOVER_BYTES` in a thread of this process):
     the call then returns before they are written, and they are complete when the writer is closed.
 
-    ``label`` names the run on its progress bar (default: the configuration's ``name``; a sweep passes
-    the configuration's parameters).
+    ``label`` names the run on its progress bar and in its figures' titles (``summary["label"]``; default: the
+    configuration's ``name``; a sweep passes the configuration's parameters).
 
     ``reuse`` maps filters of the configuration to the folder of an earlier experiment that ran them with the
     same :meth:`~.config.ExperimentConfig.filter_digest` (the same simulation, prior and options): their arrays
@@ -98,7 +98,7 @@ def run_experiment(
     out = prepare_output(Path(out), kind, digest, cfg.to_dict(), REPLAY_IGNORED if recording is not None else ())
     if not filters:
         data = save_runs(out / "runs.npz", None, reused, writer)
-        return _write_results(out, data, cfg, reuse, writer)
+        return _write_results(out, data, cfg, reuse, writer, label)
     res = run_monte_carlo(
         env,
         filters,
@@ -112,7 +112,7 @@ def run_experiment(
         label=cfg.name if label is None else label,
     )
     data = save_runs(out / "runs.npz", res, reused, writer)
-    return _write_results(out, data, cfg, reuse, writer)
+    return _write_results(out, data, cfg, reuse, writer, label)
 
 
 def _check_reusable(cfg: ExperimentConfig, name: str, folder: Path) -> None:
@@ -133,10 +133,17 @@ def _check_reusable(cfg: ExperimentConfig, name: str, folder: Path) -> None:
 
 
 def _write_results(
-    out: Path, data: dict, cfg: ExperimentConfig, reuse: dict[str, Path], writer: FileWriter | None
+    out: Path,
+    data: dict,
+    cfg: ExperimentConfig,
+    reuse: dict[str, Path],
+    writer: FileWriter | None,
+    label: str | None = None,
 ) -> dict[str, Any]:
     """The summary, figures (through ``writer``) and TensorBoard events of an experiment's data."""
     summary = summarize(data, cfg)
+    if label is not None:
+        summary["label"] = label
     if reuse:
         summary["reused"] = {name: Path(folder).name for name, folder in reuse.items()}
     write_json(out / "summary.json", summary)

@@ -122,7 +122,7 @@ def rms_figure(summary: dict[str, Any]) -> Any:
     ax.set(
         xlabel="time (s)",
         ylabel="RMS attitude error angle (deg)",
-        title=f"{summary['config']['name']}: RMS over {_runs(summary)} runs of the attitude error angle",
+        title=f"{_label(summary)}: RMS over {_runs(summary)} runs of the attitude error angle",
     )
     ax.grid(True, which="both", alpha=0.3)
     handles, labels = ax.get_legend_handles_labels()
@@ -253,7 +253,7 @@ def axes_figure(summary: dict[str, Any]) -> Any:
     what = "error about the true body axes" + (" and gyro bias error" if bias else "")
     state = "" if bias else "\n(the filters' state: the attitude alone, no gyro-bias states)"
     fig.suptitle(
-        f"{summary['config']['name']}: RMS over {runs} runs of the {what}, and 3× the RMS of each filter's σ{state}",
+        f"{_label(summary)}: RMS over {runs} runs of the {what}, and 3× the RMS of each filter's σ{state}",
         fontsize=11,
     )
     rows_of_legend = -(-len(labels) // ncol)
@@ -316,7 +316,7 @@ def weights_figure(summary: dict[str, Any]) -> Any:
         labels.append("star frame")
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=9, frameon=False)
     fig.suptitle(
-        f"{summary['config']['name']}: component weights of each mixture filter, run 0 "
+        f"{_label(summary)}: component weights of each mixture filter, run 0 "
         "(stacked: each band's thickness is one component's weight)",
         fontsize=11,
     )
@@ -352,8 +352,7 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
     ax.axhline(1.0, color="0.4", lw=0.8, ls=":", label="1: the update removed nothing")
     ax.set(xlabel="time (s)", ylabel="residual left by the weight update\nwᵀLw(adapted w) / wᵀLw(propagated w)")
     ax.set_title(
-        f"{summary['config']['name']}: FPKE residual ∫e² dx after the weight update relative to before it, "
-        f"{_runs(summary)} runs",
+        f"{_label(summary)}: FPKE residual ∫e² dx after the weight update relative to before it, {_runs(summary)} runs",
         fontsize=10,
     )
     ax.grid(True, which="both", alpha=0.3)
@@ -382,6 +381,12 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
 #: file name → the function that builds it, the longest to draw first (the order a writer's workers take them in).
 FIGURES = {"axes.png": axes_figure, "rms.png": rms_figure, "weights.png": weights_figure, "fpke.png": fpke_figure}
 _DPI = {"rms.png": 110, "axes.png": 100, "weights.png": 100, "fpke.png": 110}
+
+
+def _label(summary: dict[str, Any]) -> str:
+    """What a figure's title calls the experiment: its label (a sweep's configuration: the preset and the
+    parameters), else its configuration's name."""
+    return summary.get("label") or summary["config"]["name"]
 
 
 def write_figure(path: Path, summary: dict[str, Any], rc: dict[str, Any] | None = None) -> Path:

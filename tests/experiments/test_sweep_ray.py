@@ -101,6 +101,7 @@ def check_rows_and_files_equal_local(local_out, local_rows, tmp_path):
         )
         ours = json.loads((theirs / "summary.json").read_text())
         ours.pop("reused", None)
+        assert ours["label"] == f"case1 {run_name(local_rows[digest]['params'])}"  # the figures' titles name it
         assert json.loads((mine / "summary.json").read_text()) == ours
         a, b = np.load(mine / "runs.npz"), np.load(theirs / "runs.npz")
         assert sorted(a.files) == sorted(b.files)

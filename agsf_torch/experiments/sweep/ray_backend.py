@@ -52,7 +52,9 @@ def import_ray():
     return ray
 
 
-def _config_on_worker(runner: Callable[..., dict[str, Any]], cfg: ExperimentConfig, threads: int) -> dict[str, Any]:
+def _config_on_worker(
+    runner: Callable[..., dict[str, Any]], cfg: ExperimentConfig, threads: int, label: str | None = None
+) -> dict[str, Any]:
     """Body of one Ray task: run ``cfg`` into a temporary folder on the worker.
 
     Returns the row's metrics and the folder's files (relative path → bytes), so
@@ -67,7 +69,7 @@ def _config_on_worker(runner: Callable[..., dict[str, Any]], cfg: ExperimentConf
     with tempfile.TemporaryDirectory(prefix="agsf-sweep-") as tmp:
         folder = Path(tmp) / cfg.digest()
         try:
-            summary = runner(cfg, folder, progress=False, kind="sweep-config")
+            summary = runner(cfg, folder, progress=False, kind="sweep-config", label=label)
         finally:
             release_outputs()  # the worker process outlives the task: let go of the folder
         files = {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
@@ -103,12 +105,14 @@ def run_on_ray(
     progress: bool,
     total: int,
     interrupted: threading.Event | None = None,
+    labels: dict[str, str] | None = None,
 ) -> None:
     """Run ``pending`` as one Ray task per distinct configuration, ``record`` each result as it arrives.
 
     ``interrupted``: a latch of Ctrl-C (set by the caller's SIGINT handler); checked after every
     recorded row, so that a ``KeyboardInterrupt`` Python swallowed (raised inside a finaliser) still
-    stops the driver — the tasks still running are cancelled, what finished is kept.
+    stops the driver — the tasks still running are cancelled, what finished is kept.  ``labels``: each
+    configuration's label by digest (the runner's ``label``: its figures' title).
 
     Raises:
         SweepFailed: some configurations failed (every other one is recorded).
@@ -132,7 +136,8 @@ def run_on_ray(
             if cfg.digest() in seen:
                 continue  # the same configuration twice in the grid: run it once
             seen.add(cfg.digest())
-            submitted[task.remote(runner_ref, cfg, cpus_per_task)] = (params, cfg)
+            label = (labels or {}).get(cfg.digest())
+            submitted[task.remote(runner_ref, cfg, cpus_per_task, label)] = (params, cfg)
         failures: list[tuple[str, dict[str, Any], str]] = []
         waiting = list(submitted)
         bar = progress_bar(desc="sweep (ray)", unit="config", total=len(waiting), disable=not progress)

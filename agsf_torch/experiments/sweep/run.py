@@ -227,6 +227,8 @@ def _run_pending(
     pending = [(params, cfg) for params, cfg in configs if cfg.digest() not in done]
     # names and domains from every configuration of the sweep: the same on every (resumed) run
     names = run_names((params, cfg.digest()) for params, cfg in configs)
+    #: each configuration's label: its progress bar's and its figures' title (the preset's name and the parameters)
+    labels = {cfg.digest(): f"{cfg.name} {names[cfg.digest()]}" for _, cfg in configs}
     domains = hparam_domains(params for params, _ in configs)
 
     # every filter's results by its own digest (the options it reads): the configuration folder that holds them
@@ -261,7 +263,7 @@ def _run_pending(
             previous = None  # the configuration whose files are being written
             for params, cfg in pending:
                 folder = out / "configs" / cfg.digest()
-                label = f"{cfg.name} {names[cfg.digest()]}"  # the bar names the configuration, not only its preset
+                label = labels[cfg.digest()]  # the bar names the configuration, not only its preset
                 digests = {cfg.filter_digest(n) for n in cfg.filters}
                 if previous is not None and (digests - set(sources)) & {
                     previous[1].filter_digest(n) for n in previous[1].filters
@@ -300,6 +302,16 @@ def _run_pending(
 
         elif pending:
             run_on_ray(
-                pending, out, record, runner, address, cpus_per_task, max_retries, progress, len(configs), interrupted
+                pending,
+                out,
+                record,
+                runner,
+                address,
+                cpus_per_task,
+                max_retries,
+                progress,
+                len(configs),
+                interrupted,
+                labels,
             )
     return rows
