@@ -21,8 +21,8 @@ from ..rotations import dcm_to_mrp
 
 __all__ = ["star_fix", "MIN_SPREAD"]
 
-#: The smallest ratio of ``B``'s second to first singular value taken as two directions (stars closer than
-#: ~1e-6 rad to parallel determine no attitude here).
+#: The smallest ratio of ``B``'s second to first singular value taken as two directions: for two stars an angle
+#: θ apart the ratio is ``tan²(θ/2) ≈ θ²/4``, so stars within ~2e-3 rad (0.1°) of parallel determine no attitude.
 MIN_SPREAD = 1e-6
 
 

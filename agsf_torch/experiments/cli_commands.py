@@ -68,12 +68,6 @@ def _run(args: argparse.Namespace) -> int:
     summary = run_experiment(
         cfg, Path(args.out), progress=not args.quiet, kind="run", recording=args.recording, force=args.force
     )
-    from .reproduce import case_hparams
-    from .sweep.rows import config_metrics
-    from .tensorboard_log import hparam_domains, write_hparams_session
-
-    hparams = case_hparams(cfg.name, cfg.to_dict())  # an HParams session, as each case of reproduce
-    write_hparams_session(Path(args.out) / "tensorboard", hparams, config_metrics(summary), hparam_domains([hparams]))
     _print_summary(cfg.name, summary)
     print(f"results: {args.out}/summary.json, figures {args.out}/*.png")
     print(f"TensorBoard: {tensorboard_command(args.out)}")
@@ -194,7 +188,8 @@ def _soak(args: argparse.Namespace) -> int:
     from .config import parse_override
     from .soak import run_soak, soak_config, soak_verdict
 
-    _refuse_set(args.set, {"runs": "--runs", "duration": "--duration", "seed": "--seed"})
+    owners = {"runs": "--runs", "duration": "--duration", "seed": "--seed", "filters": "--filter"}
+    _refuse_set(args.set, owners | ({"compile": "--no-compile"} if args.no_compile else {}))
     changes = dict(parse_override(item) for item in args.set or [])
     changes.update(runs=args.runs, duration=args.duration, seed=args.seed)
     if args.no_compile:
@@ -275,7 +270,7 @@ def _print_summary(name: str, summary: dict) -> None:
     for fname, f in filters.items():
         bu = f.get("between_frames", {}).get("mean_rms_deg")  # none without a star frame: "—", as in the tables
         nis = f.get("nis_per_expected")
-        nis_text = f"   NIS / expected {nis:.4g}" if nis is not None else ""
+        nis_text = f"   NIS / expected {'—' if nis is None else format(nis, '.4g')}"
         rms_text = "—" if bu is None else format(bu, ".6g")
         print(f"  {fname:<{width}}  {rms_text:>11}       NEES {f['time_averaged_nees']:.4g}{nis_text}")
     for fname in filters:

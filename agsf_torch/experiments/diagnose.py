@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..consistency import consistency_checks, format_report
+from ..consistency import Check, consistency_checks, format_report
 from ..storage.files import write_json, write_text
 from .config import ExperimentConfig
 from .experiment import run_experiment
@@ -41,6 +41,9 @@ def diagnose(
         checks = consistency_checks(
             nees=nees, state_dim=n, nis=data[f"{name}/nis"].T, nis_dof=data[f"{name}/nis_dof"].T
         )
+        if not checks:  # no truth and no star frame: nothing judged is not a pass
+            text = "nothing to judge: no truth (NEES) and no star frame (NIS) in the run"
+            checks = [Check("nothing", float("nan"), (float("nan"), float("nan")), False, text)]
         fpke = None
         if f"{name}/fpke_error_before" in data:
             fpke = (float(data[f"{name}/fpke_error_before"].mean()), float(data[f"{name}/fpke_error_after"].mean()))

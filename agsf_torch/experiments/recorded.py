@@ -101,8 +101,9 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
     """The one check of a recording against a configuration, for ``agsf run --recording`` and ``agsf learn``:
     uniformly spaced samples (:func:`sample_spacing`) at the configuration's ``dt`` (to the timestamps'
     precision), gyro rates that turn less than half a turn per sample (``|ω̃|·Δt < π``: beyond, a sampled
-    rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, the truth or an initial
-    estimate (``initial_mrp``), and ``cfg.runs`` trajectories of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
+    rotation is not defined — e.g. rates in the wrong unit) and, if ``whole_run``, both truth columns or neither
+    and then an initial estimate (:func:`initial_estimate`: ``initial_mrp`` or row 0's star fix), and ``cfg.runs``
+    trajectories of at least ``cfg.num_steps`` steps.  Returns ``Δt``; ``ValueError`` naming the recording otherwise."""
     dt, tol = sample_spacing(recording, name)
     if recording.num_samples > 1 and abs(dt - cfg.dt) > tol + 1e-9 * cfg.dt:
         raise ValueError(f"recording {name} is sampled every {dt:g} s; the configuration's dt is {cfg.dt:g} s")
@@ -114,6 +115,12 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
                 f"recording {name}: a gyro rate of {rate:g} rad/s turns {rate * dt:g} rad per sample of {dt:g} s, "
                 "half a turn or more: not a sampled rotation (are the rates in rad/s?)"
             )
+    if whole_run and (recording.truth_mrp is None) != (recording.truth_bias is None):
+        have, lack = ("truth_mrp", "truth_bias") if recording.truth_bias is None else ("truth_bias", "truth_mrp")
+        raise ValueError(
+            f"recording {name} has {have} but not {lack}: a replay scores against the whole truth, give both columns "
+            "or neither (a replay of flight data)"
+        )
     if whole_run and not has_truth(recording):
         initial_estimate(recording, name)  # where the filters start without the truth, or ValueError
     if whole_run and (recording.num_trajectories != cfg.runs or recording.num_samples - 1 < cfg.num_steps):
@@ -136,7 +143,9 @@ class RecordingEnv:
     """
 
     def __init__(self, recording: Recording) -> None:
-        self.start = None if has_truth(recording) else initial_estimate(recording)  # or ValueError
+        if (recording.truth_mrp is None) != (recording.truth_bias is None):
+            raise ValueError("replaying a recording needs both truth columns (truth_mrp, truth_bias) or neither")
+        self.start = None if has_truth(recording) else initial_estimate(recording, "(in memory)")  # or ValueError
         dt, _ = sample_spacing(recording)
         self.rec = recording
         self.num_envs = recording.num_trajectories

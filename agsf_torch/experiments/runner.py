@@ -258,10 +258,11 @@ def run_monte_carlo(
         num_steps: gyro periods to simulate.
         prior_cov: ``[n, n]`` prior covariance (MRP² and (rad/s)²).
         sigma_s: star noise σ_s assumed by the filters (rad).
-        seed: seeds the environment and the prior draws.
+        seed: seeds the environment and the prior draws (without the truth the prior is not drawn: it is
+            centred on the environment's initial estimate).
         estimate_bias: ``False`` → the filters' model is 3-state and the gyro
-            is compensated with the true bias (the paper's "bias known");
-            ``True`` → 6-state.
+            is compensated with the true bias (the paper's "bias known"; without the truth, the initial
+            estimate's); ``True`` → 6-state.
         progress: show a progress bar, labelled ``label``.
         callback: optional ``callback(step, name, filter, mixture)`` after each step.
         noise_model: star-vector noise model of the filters (``"isotropic"`` or ``"tangent"``).

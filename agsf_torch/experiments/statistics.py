@@ -129,7 +129,7 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
         out["filters"][name] = entry
     for adaptive in ADAPTIVE_FILTERS:
         key = minus_gsf_key(adaptive)
-        if "GSF" in per_run and adaptive in per_run:
+        if truth and "GSF" in per_run and adaptive in per_run:
             out[key] = {
                 wname: paired_difference(per_run[adaptive][wname], per_run["GSF"][wname])
                 for wname in windows

@@ -19,6 +19,7 @@ import math
 import warnings
 from collections.abc import Mapping
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -133,16 +134,13 @@ class StarVectorMeasurement(MeasurementModel):
         if r.dim() < 2 or r.shape[-1] != 3:
             raise ValueError(f"r_inertial must have shape [..., M, 3], got {tuple(r.shape)}")
         check_finite("r_inertial", r)
-        sig = torch.as_tensor(sigma, dtype=torch.float64) if not isinstance(sigma, Tensor) else sigma
-        if (
-            isinstance(sigma, bool)
-            or sig.dim() != 0
-            or sig.dtype == torch.bool
-            or sig.is_complex()
-            or not bool(sig > 0)
-            or not bool(sig.isfinite())
-        ):
-            raise ValueError(f"sigma must be a positive finite scalar (rad), got {sig.tolist()}")
+        try:  # one real, positive, finite number: bools, strings and complex numbers are refused alike
+            sig = torch.as_tensor(sigma, dtype=torch.float64) if not isinstance(sigma, Tensor) else sigma
+            real = not (isinstance(sigma, (bool, np.bool_)) or sig.dtype == torch.bool or sig.is_complex())
+        except (TypeError, ValueError, RuntimeError):
+            sig, real = None, False
+        if not real or sig.dim() != 0 or not bool(sig > 0) or not bool(sig.isfinite()):
+            raise ValueError(f"sigma must be a positive finite scalar (rad), got {sigma!r}")
         if mask is not None:
             mask = torch.as_tensor(mask, dtype=torch.bool, device=r.device)
             if mask.shape != r.shape[:-1]:

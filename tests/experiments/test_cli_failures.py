@@ -380,6 +380,8 @@ def test_a_warning_is_one_line_naming_the_file(tmp_path, recording):
         (["soak", "--runs", "2", "--duration", "10", "--set", "runs=3"], "--set runs=… conflicts with --runs"),
         (["reproduce", "--case", "1", "--runs", "2", "--set", "runs=3"], "--set runs=… conflicts with --runs"),
         (["sweep", "case1", "--grid", "reg=1,2", "--set", "reg=3"], "--set reg=… conflicts with --grid reg"),
+        (["soak", "--filter", "EKF", "--set", 'filters=["GSF"]'], "--set filters=… conflicts with --filter"),
+        (["soak", "--no-compile", "--set", "compile=true"], "--set compile=… conflicts with --no-compile"),
     ],
 )
 def test_a_value_given_twice_or_a_soak_schedule_without_a_verdict_is_refused_before_any_work(argv, names, tmp_path):
@@ -402,3 +404,13 @@ def test_soak_progress_rows_go_to_stderr(tmp_path, capsys):
     out, err = capsys.readouterr()
     assert code in (0, 1) and json.loads(out)["warmup_s"] == 1.0
     assert err.count("t = ") == 2 and "RSS" in err
+
+
+def test_a_recording_with_half_the_truth_is_refused_naming_the_missing_column(recording, tmp_path):
+    """``truth_mrp`` without ``truth_bias`` had been replayed as flight data, its truth ignored without a word."""
+    rec = Recording.load(recording)
+    keys = ("time", "gyro", "star_body", "star_inertial", "star_mask", "truth_mrp")
+    half = tmp_path / "half.npz"
+    np.savez(half, initial_mrp=rec.truth_mrp[:, 0], **{k: getattr(rec, k) for k in keys})
+    argv = ["run", "case1", *TINY, "--recording", str(half), "--out", str(tmp_path / "out")]
+    _assert_refused(argv, tmp_path, "half.npz has truth_mrp but not truth_bias")

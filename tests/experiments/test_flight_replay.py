@@ -121,3 +121,15 @@ def test_a_log_that_starts_at_a_star_frame_needs_no_initial_estimate(tmp_path):
     uncut = Recording(**{k: getattr(rec, k) for k in SENSORS}).save(tmp_path / "uncut.npz")  # row 0: no frame
     with pytest.raises(ValueError, match="row 0 of trajectory 0 holds no star frame that determines an attitude"):
         RecordingEnv(Recording.load(uncut))
+
+
+def test_diagnose_with_nothing_to_judge_does_not_pass(recorded, tmp_path):
+    """Without the truth and without a star frame in the run there is no NEES and no NIS: the verdict is a
+    failure that says so, not a pass of zero checks."""
+    keys, _, flight = recorded
+    short = [k for k in keys if not k.startswith("duration")] + ["duration=0.5"]  # the first frame is at 1 s
+    code, _, _ = _run(tmp_path, "short", flight, short, "diagnose")
+    verdict = json.loads((tmp_path / "short" / "diagnose.json").read_text())
+    assert code == 1 and verdict["passed"] is False
+    for checks in verdict["filters"].values():
+        assert [c["name"] for c in checks] == ["nothing"] and "nothing to judge" in checks[0]["text"]

@@ -351,25 +351,3 @@ def test_a_filter_run_written_again_holds_one_event_file(tmp_path):
     write_filter_run(tmp_path / "GSF", events)
     assert len(list((tmp_path / "GSF").glob("events.out.tfevents.*"))) == 1
     assert event_records(tmp_path) == once and not list(tmp_path.glob(".*.tmp"))
-
-
-def test_agsf_run_makes_its_folder_an_hparams_session_and_runs_side_by_side_compare(tmp_path):
-    """Two ``agsf run`` folders under one parent: two sessions, with the configuration's values and the summary's
-    metrics (a rerun replaces its session, it does not add one)."""
-    from agsf_torch.experiments import cli
-
-    base = ["--set", "runs=2", "--set", "duration=1.2", "--set", 'filters=["EKF","GSF"]', "--quiet"]
-    base += sum((["--set", s] for s in EAGER), [])
-    for sigma, name in (("1e-5", "a"), ("2e-5", "b"), ("2e-5", "b")):  # b twice: a rerun
-        assert cli.main(["run", "case1", *base, "--set", f"sigma_s={sigma}", "--out", str(tmp_path / name)]) == 0
-    runs, _, groups = tensorboard_view(tmp_path)
-    assert [r for r in runs if r.endswith("tensorboard")] == ["a/tensorboard", "b/tensorboard"]
-    assert groups.total_size == 2
-    by_session = {g.sessions[0].name: g for g in groups.session_groups}
-    for name, sigma in (("a", 1e-5), ("b", 2e-5)):
-        group = by_session[f"{name}/tensorboard"]
-        assert group.hparams["sigma_s"].number_value == sigma
-        metrics = {m.name.tag: m.value for m in group.metric_values}
-        summary = json.loads((tmp_path / name / "summary.json").read_text())
-        nees = summary["filters"]["GSF"]["time_averaged_nees"]
-        assert metrics[f"{METRIC_PREFIX}GSF/time_averaged_nees"] == pytest.approx(nees, rel=1e-6)  # float32 events

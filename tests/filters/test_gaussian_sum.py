@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -168,7 +169,9 @@ def test_one_trajectory_input_is_not_broadcast_over_a_batch(gen, name):
     )
 
 
-@pytest.mark.parametrize("sigma", [-1e-5, 0.0, float("nan"), float("inf"), True, torch.tensor([1e-5, 1e-5])])
+@pytest.mark.parametrize(
+    "sigma", [-1e-5, 0.0, float("nan"), float("inf"), True, np.bool_(True), "a", 1 + 0j, torch.tensor([1e-5, 1e-5])]
+)
 def test_star_noise_must_be_one_positive_finite_number(sigma):
     r = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
     with pytest.raises(ValueError, match=r"sigma must be a positive finite scalar \(rad\), got"):
