@@ -70,7 +70,8 @@ def nis_per_expected(
     """The pooled NIS ratio ``Σ NIS / Σ E[NIS]`` over every valid update and its χ² band.
 
     ``E[NIS] = tangent_fraction · d`` for ``d`` valid measurement entries (2 per star for star unit
-    vectors, module docstring); an entry counts where the NIS is finite and ``d > 0``.  A consistent
+    vectors, module docstring); every update with ``d > 0`` counts, so a non-finite NIS there (a filter that
+    diverged) makes the ratio non-finite (``inf``, or NaN) instead of being left out.  A consistent
     filter's ratio is 1 and lies, with probability ``confidence``, in the band: the average of
     ``count`` χ² values of ``k`` (the mean expectation) degrees of freedom, divided by ``k``
     (:func:`chi2_band`).
@@ -82,14 +83,14 @@ def nis_per_expected(
         ``(ratio, (low, high))``, or ``None`` when no update has a valid NIS.
     """
     nis, nis_dof = np.asarray(nis, dtype=np.float64), np.asarray(nis_dof, dtype=np.float64)
-    valid = np.isfinite(nis) & (nis_dof > 0)
-    count = int(valid.sum())
+    updates = nis_dof > 0  # the NIS is NaN where there was no update (d = 0)
+    count = int(updates.sum())
     if not count:
         return None
-    expected = tangent_fraction * nis_dof[valid]
+    expected = tangent_fraction * nis_dof[updates]
     k = float(expected.mean())
     lo, hi = chi2_band(k, count, confidence)
-    return float(nis[valid].sum() / expected.sum()), (lo / k, hi / k)
+    return float(nis[updates].sum() / expected.sum()), (lo / k, hi / k)
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,10 @@ def consistency_checks(
             )
         )
     pooled = nis_per_expected(nis, nis_dof, tangent_fraction, confidence)
-    if pooled is not None:
+    if pooled is not None and not math.isfinite(pooled[0]):
+        text = f"NIS / expected {pooled[0]}: an update's NIS is not finite — the filter diverged"
+        checks.append(Check("nis", pooled[0], pooled[1], False, text))
+    elif pooled is not None:
         ratio, (lo, hi) = pooled
         checks.append(
             _band_check(

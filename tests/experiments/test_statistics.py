@@ -72,6 +72,20 @@ def test_nis_per_expected_pools_every_valid_update_and_gives_the_chi2_band():
     assert nis_per_expected(np.full((2, 3), np.nan), np.zeros((2, 3))) is None
 
 
+def test_a_non_finite_nis_at_an_update_makes_the_ratio_non_finite_and_fails_the_check():
+    """A diverged filter's NIS (inf or NaN where an update had valid entries) is counted, not left out: left
+    out, the other updates made such a filter look consistent."""
+    from agsf_torch.consistency import consistency_checks, nis_per_expected
+
+    dof = np.array([[3, 3, 0], [3, 3, 3]])
+    for bad, want in ((np.inf, np.isposinf), (np.nan, np.isnan)):
+        nis = np.array([[2.0, 2.0, np.nan], [2.0, bad, 2.0]])
+        ratio, _ = nis_per_expected(nis, dof)
+        assert want(ratio)
+        check = next(c for c in consistency_checks(nees=None, state_dim=3, nis=nis.T, nis_dof=dof.T) if c.name == "nis")
+        assert not check.passed and "not finite — the filter diverged" in check.text
+
+
 def test_fpke_ratio_is_per_run_and_skips_steps_without_a_residual():
     """``after / before`` per run, then the mean and the 10–90 % range over the runs; a zero or non-finite
     ``before`` gives no ratio for that run (a step without any gives NaN, not a warning)."""
