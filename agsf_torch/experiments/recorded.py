@@ -65,9 +65,16 @@ def sample_spacing(recording: Recording, name: str = "") -> tuple[float, float]:
     return dt, tol
 
 
-def has_truth(recording: Recording) -> bool:
-    """Whether ``recording`` holds the truth (``truth_mrp`` and ``truth_bias``) to score the filters against."""
-    return recording.truth_mrp is not None and recording.truth_bias is not None
+def has_truth(recording: Recording, name: str = "") -> bool:
+    """Whether ``recording`` holds the truth (``truth_mrp`` and ``truth_bias``) to score the filters against;
+    ``ValueError`` (naming the recording ``name``) if it holds one of the two columns only."""
+    if (recording.truth_mrp is None) != (recording.truth_bias is None):
+        have, lack = ("truth_mrp", "truth_bias") if recording.truth_bias is None else ("truth_bias", "truth_mrp")
+        raise ValueError(
+            f"recording {name} has {have} but not {lack}: a replay scores against the whole truth, give both columns "
+            "or neither (a replay of flight data)"
+        )
+    return recording.truth_mrp is not None
 
 
 def initial_estimate(recording: Recording, name: str = "") -> tuple[np.ndarray, np.ndarray]:
@@ -115,13 +122,7 @@ def check_recording(recording: Recording, cfg, name: str, *, whole_run: bool = T
                 f"recording {name}: a gyro rate of {rate:g} rad/s turns {rate * dt:g} rad per sample of {dt:g} s, "
                 "half a turn or more: not a sampled rotation (are the rates in rad/s?)"
             )
-    if whole_run and (recording.truth_mrp is None) != (recording.truth_bias is None):
-        have, lack = ("truth_mrp", "truth_bias") if recording.truth_bias is None else ("truth_bias", "truth_mrp")
-        raise ValueError(
-            f"recording {name} has {have} but not {lack}: a replay scores against the whole truth, give both columns "
-            "or neither (a replay of flight data)"
-        )
-    if whole_run and not has_truth(recording):
+    if whole_run and not has_truth(recording, name):
         initial_estimate(recording, name)  # where the filters start without the truth, or ValueError
     if whole_run and (recording.num_trajectories != cfg.runs or recording.num_samples - 1 < cfg.num_steps):
         raise ValueError(
@@ -143,9 +144,8 @@ class RecordingEnv:
     """
 
     def __init__(self, recording: Recording) -> None:
-        if (recording.truth_mrp is None) != (recording.truth_bias is None):
-            raise ValueError("replaying a recording needs both truth columns (truth_mrp, truth_bias) or neither")
-        self.start = None if has_truth(recording) else initial_estimate(recording, "(in memory)")  # or ValueError
+        name = "(in memory)"
+        self.start = None if has_truth(recording, name) else initial_estimate(recording, name)  # or ValueError
         dt, _ = sample_spacing(recording)
         self.rec = recording
         self.num_envs = recording.num_trajectories
@@ -155,7 +155,7 @@ class RecordingEnv:
     def _sample(self, k: int):
         r, t = self.rec, torch.as_tensor
         obs = r.observation(k)
-        if has_truth(r):
+        if self.start is None:  # with the truth
             return obs, {"truth_mrp": t(r.truth_mrp[:, k]), "truth_bias": t(r.truth_bias[:, k])}
         if k > 0:
             return obs, {}
