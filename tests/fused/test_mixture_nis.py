@@ -76,7 +76,8 @@ def _fifty_digits(log_w, nu, HL, sigma2, valid, b):
 @pytest.mark.parametrize("masked", [False, True])
 def test_where_the_covariance_form_declines_the_information_form_matches_fifty_digits(gen, monkeypatch, masked):
     """A precise sensor after a wide prior with two components (``AAᵀ`` of rank 8 < 15, so
-    ``κ(S̄) ≈ 10¹⁵``): every trajectory takes the information form, whose value is the minimum of a
+    ``κ(S̄) ≈ 10¹⁵``): every trajectory takes the information form (with stars masked at random, a trajectory
+    left with few enough stars may not be rank-deficient and keep the covariance form), whose value is the minimum of a
     regularised least-squares problem solved by QR (an error in its minimiser enters the value at second
     order); its first-order error is the rounding of the final sums over ``K + d = 23`` terms: within
     ``4(K + d)·ε`` of the value's scale ``NIS + 1``."""
@@ -91,8 +92,8 @@ def test_where_the_covariance_form_declines_the_information_form_matches_fifty_d
     monkeypatch.setattr(mixture_nis, "covariance_form_usable", spy)
     args = _inputs(gen, 6, N=2, sigma=1e-9, spread=1e-2, masked=masked)
     got = mixture_information_nis(*args)
-    assert declined == [6]
-    for b in range(6):
+    assert len(declined) == 1 and (declined[0] == 6 if not masked else declined[0] >= 1)
+    for b in range(6):  # both forms, where each is taken, within the bound
         want = _fifty_digits(*args, b)
         assert abs(float(got[b]) - want) <= 4 * 23 * EPS * (want + 1.0)
 
