@@ -173,16 +173,9 @@ class _ExperimentFields:
         from envs.faults import parse_faults
 
         try:
-            faults = parse_faults(self.faults)
+            parse_faults(self.faults)
         except ValueError as exc:
             raise ValueError(f"config key 'faults': {exc}") from None
-        late = [i for i, fault in enumerate(faults) if fault.start >= self.duration]
-        if late:  # legal (a longer run meets them) but, here, injected into nothing
-            warnings.warn(
-                f"config: fault(s) {late} start at or after the end of the run (duration = {self.duration:g} s): "
-                "they never happen",
-                stacklevel=2,
-            )
         if len(self.rate_axes) != 3 or not all(
             isinstance(v, (int, float)) and math.isfinite(v) for v in self.rate_axes
         ):
@@ -249,6 +242,20 @@ class _ExperimentFields:
             "rate": [self.omega0 * a for a in self.rate_axes],
             "faults": self.faults,
         }
+
+    def warn_unreached_faults(self) -> None:
+        """Warn, naming them, of the faults that start at or after the end of the run (``duration``): legal (a
+        longer run meets them) but injected into nothing.  Called where the configuration is simulated
+        (:func:`~.factories.make_env`), not where it is read: a replay of a recording reads no fault."""
+        from envs.faults import parse_faults
+
+        late = [i for i, fault in enumerate(parse_faults(self.faults)) if fault.start >= self.duration]
+        if late:
+            warnings.warn(
+                f"config: fault(s) {late} start at or after the end of the run (duration = {self.duration:g} s): "
+                "they never happen",
+                stacklevel=3,
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -14,8 +14,11 @@ __all__ = ["make_env", "make_filters", "prior_covariance", "filter_model"]
 
 
 def make_env(cfg: ExperimentConfig):
-    """The batched star-tracker environment of a configuration."""
+    """The batched star-tracker environment of a configuration (warning of faults it never reaches:
+    :meth:`~.config.ExperimentConfig.warn_unreached_faults`)."""
     import envs
+
+    cfg.warn_unreached_faults()
 
     return envs.StarTrackerAttitudeVectorEnv(num_envs=cfg.runs, **cfg.env_settings())
 

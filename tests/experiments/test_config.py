@@ -115,13 +115,30 @@ def test_every_filter_option_is_a_config_key_with_its_declared_default_help_and_
     assert ExperimentConfig(cadence=3).filter_options()["cadence"] == 3
 
 
-def test_a_fault_after_the_end_of_the_run_is_named_in_a_warning():
-    """A fault window starting at or after ``duration`` is legal (a longer run meets it) but injects nothing."""
+def test_a_fault_after_the_end_of_a_simulated_run_is_named_in_a_warning_and_a_replay_is_not_warned(tmp_path):
+    """A fault window starting at or after ``duration`` is legal (a longer run meets it) but injects nothing: the
+    simulation warns, naming it; reading the configuration does not, nor does a replay, which reads no fault."""
     import warnings
 
+    from agsf_torch.attitude.recordings import Recording
+    from agsf_torch.experiments import cli
+    from agsf_torch.experiments.factories import make_env
+    from agsf_torch.experiments.recorded import record_environment
+
     faults = '[{kind="star_outage", start=1.0, end=2.0}, {kind="gyro_dropout", start=3.0, end=4.0}]'
-    with pytest.warns(UserWarning, match=r"fault\(s\) \[1\] start at or after the end of the run \(duration = 3 s\)"):
-        load_config("case1", [f"faults={faults}", "duration=3.0"])
+    keys = [f"faults={faults}", "duration=3.0", "runs=2", "compile=false", "compile_fused=false"]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        load_config("case1", [f"faults={faults}", "duration=3.1"])
+        cfg = load_config("case1", keys)
+        record_environment(make_env(load_config("case1", keys[:1] + ["duration=3.1", "runs=2"])), 3, 1)
+    with pytest.warns(UserWarning, match=r"fault\(s\) \[1\] start at or after the end of the run \(duration = 3 s\)"):
+        rec = record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
+    path = Recording(
+        **{k: getattr(rec, k) for k in ("time", "gyro", "star_body", "star_inertial", "star_mask")},
+        truth_mrp=rec.truth_mrp,
+        truth_bias=rec.truth_bias,
+    ).save(tmp_path / "log.npz")
+    argv = ["run", "case1", *sum((["--set", k] for k in keys), []), "--recording", str(path)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert cli.main([*argv, "--out", str(tmp_path / "replay"), "--quiet"]) == 0
