@@ -10,8 +10,10 @@ turns the attitude by ``δω · jΔt``, so the angle variance grows by
 
 .. math:: σ_h^2 Δt^2 \\left(j^2 - (j-1)^2\\right) = σ_h^2 Δt^2 (2j - 1)
 
-at the ``j``-th held step (per axis; an MRP variance is that over 16, from
-``δθ ≈ 4 δp``).  The default ``σ_h = σ_v / √Δt`` is the noise of one gyro
+at the ``j``-th held step (per axis, in the body frame).  In the MRP chart of a component with mean ``p`` the
+error angle maps as ``δp = ¼ B(p) δθ`` with ``B Bᵀ = (1 + |p|²)² I``
+(:mod:`agsf_torch.filters.multiplicative`), so the MRP covariance grows by that variance times
+``(1 + |p|²)² / 16``: a quarter of it at ``p = 0``, up to four times that at ``|p| = 1``.  The default ``σ_h = σ_v / √Δt`` is the noise of one gyro
 sample, right for a constant or slowly varying rate; a manoeuvring spacecraft
 needs ``σ_h`` of its rate change over the gap.  Without this inflation a filter
 that holds the rate for a minute becomes overconfident and its innovation gate
@@ -96,7 +98,10 @@ class GyroHold:
 
     @staticmethod
     def inflate(mixture: GaussianMixture, angle_variance: Tensor) -> GaussianMixture:
-        """Add ``angle_variance / 16`` (MRP units) to the attitude block of every component.
+        """Add the MRP covariance of an isotropic error angle of variance ``angle_variance`` (per axis) to the
+        attitude block of every component: ``angle_variance · (1 + |pᵢ|²)² / 16 · I₃`` for the component of mean
+        MRP ``pᵢ`` (module docstring; ``T P_δ Tᵀ`` of :mod:`agsf_torch.filters.multiplicative` with
+        ``P_δ = angle_variance · I₃``).
 
         Args:
             mixture: batch ``[B]``, state ``[p (3), …]``.
@@ -122,9 +127,10 @@ class GyroHold:
                 f"angle_variance must be finite and ≥ 0 (rad²), got {float(angle_variance[k])} at trajectory {k}"
             )
         n = mixture.state_dim
-        diag = torch.zeros(n, dtype=mixture.covs.dtype, device=mixture.covs.device)
-        diag[:3] = 1.0 / 16.0
-        add = angle_variance.to(mixture.covs)[:, None, None, None] * torch.diag(diag)
+        attitude = torch.zeros(n, dtype=mixture.covs.dtype, device=mixture.covs.device)
+        attitude[:3] = 1.0
+        scale = (1.0 + mixture.means[..., :3].square().sum(-1)).square() / 16.0  # [B, N]: (1 + |p|²)² / 16
+        add = (angle_variance.to(mixture.covs)[:, None] * scale)[..., None, None] * torch.diag(attitude)
         return mixture.replace(covs=mixture.covs + add, validate=False)
 
     def state_dict(self) -> dict[str, Any]:

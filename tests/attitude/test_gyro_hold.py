@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -31,16 +32,64 @@ def test_holds_the_last_valid_reading_and_grows_the_variance_quadratically():
     )
 
 
-def test_inflate_adds_to_the_attitude_block_of_every_component_in_mrp_units():
+def _B(p: torch.Tensor) -> torch.Tensor:
+    """``B(p) = (1 − pᵀp) I + 2[p×] + 2ppᵀ`` written out (``ṗ = ¼ B(p) ω``), ``[..., 3, 3]``."""
+    x, y, z = p.unbind(-1)
+    zero = torch.zeros_like(x)
+    cross = torch.stack((zero, -z, y, z, zero, -x, -y, x, zero), -1).reshape(*p.shape, 3)
+    s = (p * p).sum(-1)[..., None, None]
+    return (1 - s) * torch.eye(3, dtype=p.dtype) + 2 * cross + 2 * p[..., :, None] * p[..., None, :]
+
+
+def test_inflate_adds_the_mrp_covariance_of_the_angle_variance_to_every_component():
+    """``T P_δ Tᵀ`` with ``T = ¼ B(p)`` of each component's mean and ``P_δ = v I₃``: ``v/16 · B Bᵀ`` (written out,
+    not through the ``(1 + |p|²)²`` identity the implementation uses); zero for ``v = 0``, the bias block untouched."""
+    gen = torch.Generator().manual_seed(5)
+    means = torch.randn(2, 3, 6, generator=gen, dtype=F64)
+    means[..., :3] *= 0.9 / means[..., :3].norm(dim=-1, keepdim=True)  # |p| = 0.9: near the short set's edge
     covs = torch.eye(6, dtype=F64).expand(2, 3, 6, 6) * 1e-8
-    mix = GaussianMixture(
-        means=torch.zeros(2, 3, 6, dtype=F64), covs=covs.clone(), weights=torch.full((2, 3), 1 / 3, dtype=F64)
-    )
-    out = GyroHold.inflate(mix, torch.tensor([16e-8, 0.0], dtype=F64))
+    mix = GaussianMixture(means=means, covs=covs.clone(), weights=torch.full((2, 3), 1 / 3, dtype=F64))
+    v = 16e-8
+    out = GyroHold.inflate(mix, torch.tensor([v, 0.0], dtype=F64))
+    B = _B(means[0, :, :3])
     expected = covs.clone()
-    expected[0, :, :3, :3] += 1e-8 * torch.eye(3, dtype=F64)
-    assert torch.allclose(out.covs, expected, rtol=0, atol=1e-24)
+    expected[0, :, :3, :3] += v / 16 * B @ B.transpose(-1, -2)
+    # B Bᵀ's off-diagonal entries vanish to rounding of its O(1) terms: an absolute tolerance of v/16 · 1e-14
+    assert torch.allclose(out.covs, expected, rtol=1e-14, atol=v / 16 * 1e-14)
     assert torch.equal(out.means, mix.means) and torch.equal(out.log_weights, mix.log_weights)
+    # at |p| = 0.9 that is (1 + 0.81)² = 3.28 times the p = 0 value v/16
+    assert float(out.covs[0, 0, 0, 0] - covs[0, 0, 0, 0]) == pytest.approx(v / 16 * 1.81**2, rel=1e-12)
+
+
+@pytest.mark.parametrize("norm", [0.0, 0.5, 0.95])
+def test_the_inflation_is_the_covariance_of_the_mrp_error_a_held_rate_makes(norm):
+    """Monte Carlo, independent of the filters: a reading off the true rate by ``δω ~ N(0, σ_h² I)`` (body
+    frame), held over ``j`` steps, turns the attitude by ``δθ = δω jΔt`` (``C = exp(−[δθ×]) C(q̂)``, scipy's
+    rotations); the covariance of the resulting MRP error equals what :meth:`GyroHold.step` accumulates and
+    :meth:`GyroHold.inflate` adds, each entry within 5 standard errors ``sqrt((PᵢᵢPⱼⱼ + Pᵢⱼ²)/N)``.  The
+    angles (~1e-4 rad) keep the linearisation's error (~1e-4 relative) far below the standard error (~0.5 %)."""
+    from scipy.spatial.transform import Rotation
+
+    sigma_h, dt, held, N = 1e-3, 0.1, 10, 100_000
+    gen = torch.Generator().manual_seed(11)
+    direction = torch.randn(3, generator=gen, dtype=F64)
+    p_hat = norm * direction / direction.norm()
+    hold = GyroHold(sigma_h)
+    hold.step(torch.zeros(1, 3, dtype=F64), None, dt)
+    total = sum(float(hold.step(torch.zeros(1, 3, dtype=F64), torch.tensor([False]), dt)[1]) for _ in range(held))
+    floor = 1e-30 * torch.eye(3, dtype=F64)  # a covariance to add to, negligible against the inflation (~1e-8)
+    mix = GaussianMixture.from_gaussian(p_hat[None], floor[None], 1)
+    predicted = (GyroHold.inflate(mix, torch.tensor([total], dtype=F64)).covs[0, 0] - floor).numpy()
+
+    rng = np.random.default_rng(12)
+    dtheta = rng.standard_normal((N, 3)) * sigma_h * held * dt
+    # C(q) = exp(−[δθ×]) C(q̂) with C = R.as_matrix().T: R(q) = R(q̂) · exp(δθ)
+    p = (Rotation.from_mrp(p_hat.numpy()) * Rotation.from_rotvec(dtheta)).as_mrp()
+    err = p - p_hat.numpy()
+    empirical = err.T @ err / N
+    se = np.sqrt((np.outer(np.diag(predicted), np.diag(predicted)) + predicted**2) / N)
+    assert np.all(np.abs(empirical - predicted) < 5 * se), (empirical, predicted)
+    assert total == pytest.approx((sigma_h * held * dt) ** 2, rel=1e-12)
 
 
 def test_bad_input_raises_and_state_round_trips():
