@@ -141,8 +141,10 @@ class GaussianMixture:
                 raise ValueError("weights must have a positive sum in every mixture")
         log_weights = log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
         object.__setattr__(self, "log_weights", log_weights)
-        object.__setattr__(self, "means", means)
-        object.__setattr__(self, "covs", covs)
+        # own memory per entry (an expanded, stride-0 tensor is copied: torch.func refuses to differentiate through
+        # one and in-place updates would write one value to every alias); a no-op for the filters' own tensors
+        object.__setattr__(self, "means", means.contiguous())
+        object.__setattr__(self, "covs", covs.contiguous())
 
     # ------------------------------------------------------------ properties
     @property

@@ -182,3 +182,34 @@ def test_entropy_of_weights_is_shannons_in_nats(gen):
     )
     want = entropy(w.numpy(), axis=-1)  # normalises the rows itself
     np.testing.assert_allclose(mix.entropy_of_weights().numpy(), want, rtol=1e-14)
+
+
+def test_a_mixture_of_expanded_views_filters_as_one_of_copies():
+    """Means and covariances given as expanded (stride-0) views of one Gaussian — the natural way to start every
+    component at the prior — had failed at the first predict with a user model (torch.func refuses to differentiate
+    through aliased memory); the mixture holds its own copies, so both give the same numbers, bit for bit."""
+    from agsf_torch.filters import GaussianSumFilter
+    from agsf_torch.models import ContinuousModel
+
+    class Oscillator(ContinuousModel):  # no closed-form Jacobian: torch.func differentiates the drift
+        state_dim = 2
+
+        def drift(self, x, u=None):
+            return torch.stack((x[..., 1], -x[..., 0] - 0.2 * x[..., 1]), -1)
+
+        def noise_gain(self, x):
+            return torch.tensor([[0.0], [1.0]], dtype=x.dtype).expand(*x.shape[:-1], 2, 1)
+
+        def noise_psd(self):
+            return torch.eye(1, dtype=torch.float64)
+
+    B, N = 3, 4
+    m0 = torch.arange(6, dtype=torch.float64).reshape(B, 2)
+    P0 = torch.eye(2, dtype=torch.float64).expand(B, 2, 2)
+    w = torch.full((B, N), 1.0 / N, dtype=torch.float64)
+    model = Oscillator()
+    filt = GaussianSumFilter(model)
+    views = GaussianMixture(weights=w, means=m0[:, None].expand(B, N, 2), covs=P0[:, None].expand(B, N, 2, 2))
+    copies = GaussianMixture(weights=w, means=m0[:, None].repeat(1, N, 1), covs=P0[:, None].repeat(1, N, 1, 1))
+    a, b = filt.predict(views, None, 0.1), GaussianSumFilter(model).predict(copies, None, 0.1)
+    assert torch.equal(a.means, b.means) and torch.equal(a.covs, b.covs)

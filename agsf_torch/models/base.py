@@ -76,6 +76,17 @@ def _covers(lead: torch.Size, batch: torch.Size) -> bool:
         return False
 
 
+def elementwise_probe(x: Tensor) -> Tensor:
+    """States to call a model's function on once, to check that it acts on ``x [..., n]`` elementwise over the
+    leading dims: ``x`` under two new leading dims, ``[1, n + 1, *x.shape]`` (``x``'s own leading dims, which
+    per-trajectory parameters broadcast against, kept in place).  A function that indexes ``x[:, i]`` instead of
+    ``x[..., i]`` drops the new ``n + 1`` axis, which no state size equals, and so returns another shape even where
+    the filters' own shapes cannot tell (``[N, B, n]`` with ``B = n``).  ``n + 1`` copies of ``x``: meant for one
+    call per model, not per step."""
+    n = x.shape[-1]
+    return x.unsqueeze(0).unsqueeze(0).expand(1, n + 1, *x.shape).clone()
+
+
 def batched_jacobian(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
     """Jacobian of an elementwise-batched function by forward-mode AD.
 
@@ -202,16 +213,34 @@ class ContinuousModel(nn.Module):
         and integrated).  The filters call it once, at their first ``predict`` with this model, before anything
         changes; a subclass may extend it."""
         name, n = type(self).__name__, self.state_dim
-        f = self.drift(x, u)
-        if not isinstance(f, Tensor) or f.dim() < 1 or f.shape[-1] != n or not _covers(f.shape[:-1], x.shape[:-1]):
-            got = tuple(f.shape) if isinstance(f, Tensor) else type(f).__name__
-            raise ValueError(
-                f"{name}.drift must return [..., n] = {(*x.shape[:-1], n)} for x {tuple(x.shape)}, got {got}"
-            )
-        g = self.noise_gain(x)
-        if not isinstance(g, Tensor) or g.dim() < 2 or g.shape[-2] != n or not _covers(g.shape[:-2], x.shape[:-1]):
-            got = tuple(g.shape) if isinstance(g, Tensor) else type(g).__name__
-            raise ValueError(f"{name}.noise_gain must return [..., n, q] = {(*x.shape[:-1], n, 'q')}, got {got}")
+        hint = "index the state as x[..., i], not x[:, i]: the filters pass [..., n]"
+        for states in (x, elementwise_probe(x)):  # the filters' shape, then one no state size can be mistaken for
+            if states is not x:
+                hint = f"called on every state of x alike, {hint}"
+            f = self.drift(states, u)
+            if (
+                not isinstance(f, Tensor)
+                or f.dim() < 1
+                or f.shape[-1] != n
+                or not _covers(f.shape[:-1], states.shape[:-1])
+            ):
+                got = tuple(f.shape) if isinstance(f, Tensor) else type(f).__name__
+                raise ValueError(
+                    f"{name}.drift must return [..., n] = {(*states.shape[:-1], n)} for x {tuple(states.shape)}, "
+                    f"got {got} ({hint})"
+                )
+            g = self.noise_gain(states)
+            if (
+                not isinstance(g, Tensor)
+                or g.dim() < 2
+                or g.shape[-2] != n
+                or not _covers(g.shape[:-2], states.shape[:-1])
+            ):
+                got = tuple(g.shape) if isinstance(g, Tensor) else type(g).__name__
+                raise ValueError(
+                    f"{name}.noise_gain must return [..., n, q] = {(*states.shape[:-1], n, 'q')} for x "
+                    f"{tuple(states.shape)}, got {got} ({hint})"
+                )
         q = g.shape[-1]
         Q = self.noise_psd()
         if not isinstance(Q, Tensor) or Q.shape != (q, q):

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ..finite import check_finite
 from ..shapes import broadcast_shapes
-from .base import MeasurementModel, check_measurement_batch
+from .base import MeasurementModel, check_measurement_batch, elementwise_probe
 
 __all__ = ["FunctionMeasurement"]
 
@@ -65,6 +65,7 @@ class FunctionMeasurement(MeasurementModel):
                 ) from None
         self.fn = fn
         self._jacobian = jacobian
+        self._probed: set[tuple[str, int]] = set()  # (function, state size n) whose elementwise probe passed
         self.register_buffer("R", R)
         self.register_buffer("_mask", mask)
 
@@ -73,28 +74,52 @@ class FunctionMeasurement(MeasurementModel):
         """``d``, the size of ``y`` (``noise_cov``'s)."""
         return self.R.shape[-1]
 
-    def _check_output(self, name: str, value: Tensor, trailing: tuple[int, ...]) -> Tensor:
-        if (
-            not torch.is_tensor(value)
-            or value.dim() < len(trailing)
-            or tuple(value.shape[-len(trailing) :]) != trailing
-        ):
+    def _check_output(self, name: str, value: Tensor, lead: torch.Size, trailing: tuple[int, ...]) -> Tensor:
+        """``value`` if it is ``[*lead, *trailing]``: the leading dims of the states it was called with (a function
+        that indexes ``x[:, i]`` instead of ``x[..., i]`` returns other leading dims), else a ``ValueError``."""
+        if not torch.is_tensor(value) or tuple(value.shape) != (*lead, *trailing):
             got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
-            want = ", ".join(map(str, trailing))
+            want = ", ".join(map(str, (*lead, *trailing)))
             raise ValueError(
-                f"{name} must return [..., {want}] (d = {self.measurement_dim}, noise_cov's size), got {got}"
+                f"{name} must return [{want}] for states x [{', '.join(map(str, (*lead, 'n')))}]: x's leading "
+                f"dims, then d = {self.measurement_dim} (noise_cov's size){', n' if len(trailing) == 2 else ''}; "
+                f"got {got} (index the state as x[..., i], not x[:, i]: the filters pass [..., n])"
             )
         return value
 
+    def _probe(self, name: str, function: Callable[[Tensor], Tensor], x: Tensor, trailing: tuple[int, ...]) -> None:
+        """Once per state size ``n``: call ``function`` on :func:`~.base.elementwise_probe` states, whose leading dims no
+        state size can be mistaken for (the filters' own, ``[N, B, n]``, are ``[N, n, n]`` when ``B = n``: a function
+        indexing ``x[:, i]`` then returns the right shape and wrong numbers)."""
+        n = x.shape[-1]
+        if (name, n) in self._probed or x.numel() == 0:
+            return
+        probe = elementwise_probe(x)
+        value = function(probe)
+        want = (*probe.shape[:-1], *trailing)
+        if not torch.is_tensor(value) or tuple(value.shape) != want:
+            got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
+            raise ValueError(
+                f"{name} must act on every state of x [..., n] alike (elementwise over the leading dims): on states "
+                f"[{', '.join(map(str, (*probe.shape[:-1], 'n')))}] it returned {got}, not {want} (index the state "
+                "as x[..., i], not x[:, i]: the filters pass [..., n])"
+            )
+        self._probed.add((name, n))
+
     def predict(self, x: Tensor) -> Tensor:
-        return self._check_output("fn", self.fn(x), (self.measurement_dim,))
+        h = self._check_output("fn", self.fn(x), x.shape[:-1], (self.measurement_dim,))
+        self._probe("fn", self.fn, x, (self.measurement_dim,))
+        return h
 
     def noise_cov(self) -> Tensor:
         return self.R
 
     def jacobian(self, x: Tensor) -> Tensor:
         if self._jacobian is not None:
-            return self._check_output("jacobian", self._jacobian(x), (self.measurement_dim, x.shape[-1]))
+            trailing = (self.measurement_dim, x.shape[-1])
+            H = self._check_output("jacobian", self._jacobian(x), x.shape[:-1], trailing)
+            self._probe("jacobian", self._jacobian, x, trailing)
+            return H
         return super().jacobian(x)
 
     def check_measurement(self, y: Tensor) -> Tensor:

@@ -116,13 +116,40 @@ def test_function_measurement_of_the_wrong_size_is_refused_before_the_update():
         match=r"y has shape \(2, 3\): 3 entries but the measurement model predicts 1 \(d = noise_cov's size\)",
     ):
         filt.update(mix, torch.zeros(2, 3, dtype=torch.float64), small_R)
-    with pytest.raises(ValueError, match=r"fn must return \[\.\.\., 1\] \(d = 1, noise_cov's size\), got \(2, 3\)"):
+    with pytest.raises(ValueError, match=r"fn must return \[2, 1\] for states x \[2, n\]: .*d = 1 .*got \(2, 3\)"):
         small_R.predict(torch.zeros(2, 3, dtype=torch.float64))
     closed = FunctionMeasurement(
         lambda x: x, torch.eye(3, dtype=torch.float64), jacobian=lambda x: torch.ones(*x.shape[:-1], 3, 2)
     )
-    with pytest.raises(ValueError, match=r"jacobian must return \[\.\.\., 3, 3\]"):
+    with pytest.raises(ValueError, match=r"jacobian must return \[2, 3, 3\]"):
         closed.jacobian(torch.zeros(2, 3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("batch", [2, 4])
+def test_a_measurement_function_that_indexes_the_batch_dim_is_refused_even_where_the_shapes_agree(batch):
+    """``x[:, i]`` instead of ``x[..., i]``: the filters pass ``[N, B, n]``, so with ``B = n`` the wrong function
+    returns the right shape (and had given posterior means off by 1.5, silently); a probe at leading dims no state
+    size can be mistaken for refuses it, before the update changes anything, whatever ``B``."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    model = LinearModel(torch.zeros(2, 2), torch.eye(2), torch.eye(2))
+    mix = GaussianMixture.from_gaussian(
+        torch.full((batch, 2), 3.0, dtype=torch.float64), 0.1 * torch.eye(2, dtype=torch.float64).expand(batch, 2, 2), 3
+    )
+    filt = GaussianSumFilter(model)
+    wrong = FunctionMeasurement(
+        lambda x: torch.atan2(x[:, 1], x[:, 0]).unsqueeze(-1), 1e-2 * torch.eye(1, dtype=torch.float64)
+    )
+    y = torch.full((batch, 1), 0.5, dtype=torch.float64)
+    # B = 4: the filters' own shapes tell; B = 2 = n: only the probe does
+    probe = r"act on every state of x \[\.\.\., n\] alike .*on states \[1, 3, 3, 2, n\] it returned \(1, 3, 2, 2, 1\)"
+    message = r"return \[3, 4, 1\] for states x \[3, 4, n\]" if batch == 4 else probe
+    with pytest.raises(ValueError, match=rf"fn must {message}.*index the state as x\[\.\.\., i\], not x\[:, i\]"):
+        filt.update(mix, y, wrong)
+    right = FunctionMeasurement(lambda x: torch.atan2(x[..., 1], x[..., 0]).unsqueeze(-1), wrong.R)
+    posterior = filt.update(mix, y, right)  # the same function written elementwise is accepted
+    assert torch.isfinite(posterior.means).all()
 
 
 def test_model_input_size_is_checked_when_declared():
@@ -275,3 +302,42 @@ def test_a_noise_covariance_symmetric_to_rounding_is_accepted_and_one_that_is_no
     R[0, 1] += 0.5
     with pytest.raises(ValueError, match=r"_Direct\.noise_cov is not symmetric"):
         GaussianSumFilter(Plane()).update(mix, y, _Direct(R))
+
+
+@pytest.mark.parametrize("components", [2, 3])
+def test_a_drift_that_indexes_the_component_dim_is_refused_even_where_the_shapes_agree(components):
+    """Van der Pol written with ``x[:, i]``: the filters pass means ``[B, N, n]``, so with ``N = n`` the wrong drift
+    returns the right shape (and had propagated means off by 1.6, silently); the contract check's probe refuses it
+    at the first ``predict``, before anything changes, for every ``N``."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    class VanDerPol(ContinuousModel):
+        state_dim = 2
+
+        def __init__(self, index) -> None:
+            super().__init__()
+            self.index = index
+
+        def drift(self, x, u=None):
+            x1, x2 = self.index(x, 0), self.index(x, 1)
+            return torch.stack([x2, (1 - x1**2) * x2 - x1], -1)
+
+        def noise_gain(self, x):
+            return torch.stack([torch.zeros_like(x[..., 0]), torch.ones_like(x[..., 0])], -1).unsqueeze(-1)
+
+        def noise_psd(self):
+            return torch.tensor([[0.2]], dtype=torch.float64)
+
+    mix = GaussianMixture.from_gaussian(
+        torch.full((4, 2), 2.0, dtype=torch.float64),
+        0.1 * torch.eye(2, dtype=torch.float64).expand(4, 2, 2),
+        components,
+    )
+    wrong = GaussianSumFilter(VanDerPol(lambda x, i: x[:, i]))
+    with pytest.raises(
+        ValueError, match=r"VanDerPol.drift must return .*index the state as x\[\.\.\., i\], not x\[:, i\]"
+    ):
+        wrong.predict(mix, None, 0.05)
+    right = GaussianSumFilter(VanDerPol(lambda x, i: x[..., i])).predict(mix, None, 0.05)
+    assert torch.isfinite(right.means).all()
