@@ -59,19 +59,21 @@ class _Shear(ContinuousModel):
 
 def test_a_step_rk4_cannot_follow_is_refused_naming_the_component_and_the_substeps_that_can():
     """At x = 16.4 the drift's slope is 1 − 3·16.4² = −805.9 1/s: one RK4 step of 0.1 s (|λh| = 80.6) sent the
-    moments to 1e45 and 1e95, finite and wrong.  It is refused, naming the component and the substeps needed
-    (|λ|·dt / 2 = 40.3 → 41); with them the step is stable, and more substeps converge on the exact mean at
-    RK4's order."""
+    moments to 1e45 and 1e95, finite and wrong.  It is refused, naming the component and the substeps needed by
+    the covariance's mode 2λ = −1612 1/s (|2λ|·dt / 2 = 80.6 → 81); with them the step is stable, and more substeps
+    converge on the exact mean at RK4's order."""
     model = CubicDrift()
     mean = torch.tensor([[[1.0], [16.4]], [[0.5], [-1.0]]], dtype=torch.float64)  # [B = 2, N = 2, 1]
     cov = torch.full((2, 2, 1, 1), 0.01, dtype=torch.float64)
-    with pytest.raises(ValueError, match=r"at batch index \(0, 1\).*eigenvalue -805\.9.*use at least substeps=41"):
+    with pytest.raises(
+        ValueError, match=r"at batch index \(0, 1\): the covariance's mode .* = -1612.*use at least substeps=81"
+    ):
         propagate_moments(model, mean, cov, None, dt=0.1, substeps=1)
     # the mean's ODE ẋ = x − x³ (the moment equations' mean follows it) has the solution x² = 1 / (1 − c e^{−2t})
     x0, t = 16.4, 0.1
     exact = 1.0 / np.sqrt(1.0 - (1.0 - 1.0 / x0**2) * np.exp(-2.0 * t))
     errors = []
-    for substeps in (41, 82, 164):
+    for substeps in (81, 162, 324):
         m, P = propagate_moments(model, mean, cov, None, dt=0.1, substeps=substeps)
         assert torch.isfinite(m).all() and torch.isfinite(P).all() and bool((P > 0).all())
         errors.append(abs(float(m[0, 1, 0]) - exact) / exact)
@@ -101,3 +103,32 @@ def test_the_step_check_names_the_component_in_chunked_batches(monkeypatch):
     cov = torch.full((3, 5, 1, 1), 0.01, dtype=torch.float64)
     with pytest.raises(ValueError, match=r"at batch index \(2, 3\)"):
         propagation.propagate_moments(CubicDrift(), mean, cov, None, dt=0.1, substeps=1)
+
+
+def test_a_stiff_linear_model_is_refused_at_the_covariances_modes_and_converges_from_the_substeps_named():
+    """A damped oscillator with eigenvalues −6.06 and −593.9 1/s, dt = 0.1 s: the covariance's noise integral has
+    the mode 2λ = −1188 1/s, so 30 substeps (|λ|h = 1.98 but |2λ|h = 3.96) leave RK4's stability region; they had
+    been suggested and then failed with a non-positive-definite covariance.  They are refused, naming 60; from 60
+    substeps on the covariance converges on the exact one (the Lyapunov solution and the matrix exponential,
+    scipy) at RK4's order."""
+    import scipy.linalg
+
+    from agsf_torch.models import LinearModel
+
+    w, zeta, q = 60.0, 5.0, 0.5
+    A = np.array([[0.0, 1.0], [-(w**2), -2 * zeta * w]])
+    G = np.array([[0.0], [1.0]])
+    model = LinearModel(torch.tensor(A), torch.tensor(G), torch.tensor([[q]]))
+    mean = torch.zeros(1, 2, dtype=torch.float64)
+    P0 = np.diag([1e-2, 1.0])
+    cov = torch.tensor(P0)[None]
+    with pytest.raises(ValueError, match=r"mode λᵢ \+ λⱼ = -1188.*use at least substeps=60 for dt=0\.1 s"):
+        propagate_moments(model, mean, cov, None, dt=0.1, substeps=30)
+    Phi = scipy.linalg.expm(A * 0.1)
+    P_inf = scipy.linalg.solve_continuous_lyapunov(A, -G @ G.T * q)  # stationary: A P + P Aᵀ + G q Gᵀ = 0
+    exact = Phi @ P0 @ Phi.T + P_inf - Phi @ P_inf @ Phi.T
+    errors = []
+    for substeps in (60, 120, 240):
+        P = propagate_moments(model, mean, cov, None, dt=0.1, substeps=substeps)[1][0].numpy()
+        errors.append(np.linalg.norm(P - exact) / np.linalg.norm(exact))
+    assert errors[0] < 1e-2 and errors[1] < errors[0] / 8 and errors[2] < errors[1] / 8, errors

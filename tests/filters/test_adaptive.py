@@ -311,7 +311,7 @@ def test_a_step_rk4_cannot_follow_on_a_users_model_is_refused_before_anything_ch
 
     filt = build(1)
     before = filt.state_dict() if kind != "gsf" else None
-    with pytest.raises(ValueError, match=r"at batch index \(0, 2\).*use at least substeps=41 for dt=0\.1 s") as exc:
+    with pytest.raises(ValueError, match=r"at batch index \(0, 2\).*use at least substeps=81 for dt=0\.1 s") as exc:
         filt.predict(mix, None, 0.1)
     if before is not None:
         assert filt.state_dict() == before
