@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from ...fpke import fpke_matrix, fused_fpke_matrix
+from ...fpke.rounding import without_rounding_rows
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...qp import solve_simplex_qp
@@ -38,7 +39,10 @@ class PenaltyWeightUpdate(QuadratureUpdate):
         scaling: ``"trace"`` (default) solves with ``L / (tr L / N)`` so that λ is
             dimensionless — with star-camera covariances the raw ``L`` is
             astronomically large and the penalty would vanish; ``"none"`` uses the
-            raw ``L`` (the paper's ``L + I``).
+            raw ``L`` (the paper's ``L + I``).  Either way, on the generic route the rows of components whose
+            residual is zero to rounding (a linear model's, say) are set to zero first
+            (:func:`agsf_torch.fpke.rounding.without_rounding_rows`): scaled by its own trace, rounding would
+            move the weights at random.
         weight_ref: ``"update"`` (default, the paper's ``w_{k|k}``) — the weights
             after the last measurement update (the initial weights before the
             first); ``"previous"`` — the weights of the previous step.
@@ -136,6 +140,7 @@ class PenaltyWeightUpdate(QuadratureUpdate):
             Lmat = fpke_matrix(
                 model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
             )
+            Lmat = without_rounding_rows(Lmat, comp.with_precision())
         bad = ~torch.isfinite(Lmat.scaled).flatten(-2).all(-1) | ~torch.isfinite(Lmat.log_scale)
         if bool(bad.any()):
             idx = bad.nonzero()[0].tolist()
