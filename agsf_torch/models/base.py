@@ -467,4 +467,16 @@ class MeasurementModel(nn.Module):
                 f"{name}.noise_cov must be a covariance, with a non-negative diagonal, "
                 f"got diagonal {diagonal.detach().flatten()[:8].tolist()}"
             )
+        if d:  # positive semidefinite to rounding: R + τ·max|Rᵢᵢ|·I has a Cholesky factor (τ as the QP's convexity)
+            Rd = R.detach()
+            tol = max(1e-10, 100 * torch.finfo(Rd.dtype).eps)
+            scale = diagonal.detach().amax(-1).clamp_min(torch.finfo(Rd.dtype).tiny)[..., None, None]
+            eye = torch.eye(d, dtype=Rd.dtype, device=Rd.device)
+            if bool((torch.linalg.cholesky_ex(Rd + tol * scale * eye).info != 0).any()):
+                worst = torch.linalg.eigvalsh(Rd).amin(-1).flatten()
+                raise ValueError(
+                    f"{name}.noise_cov must be a covariance, positive semidefinite, got a matrix with the "
+                    f"eigenvalue {float(worst.min()):.3g} (with a non-negative diagonal: an off-diagonal entry is "
+                    "larger than the variances allow)"
+                )
         return y

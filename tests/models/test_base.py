@@ -281,6 +281,27 @@ def test_a_measurement_subclass_with_a_bad_noise_covariance_is_refused_naming_it
         GaussianSumFilter(CubicDrift()).update(mix, torch.zeros(2, 1, dtype=torch.float64), _Direct(R))
 
 
+def test_an_indefinite_noise_covariance_with_a_non_negative_diagonal_is_refused_and_a_singular_one_accepted():
+    """``R`` with eigenvalues −0.06 and 0.14 (variances 0.04 and 0.04, covariance 0.1): blamed on the state covariance
+    ('not positive definite in the measurement update … repair_covariance'), and with the repair accepted, returning
+    a posterior eigenvalue of 1e-13.  It is refused, naming noise_cov and its eigenvalue, before the state moves; a
+    positive semidefinite singular R (an exact measurement of one combination) and R = 0 still pass the check."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    model = LinearModel(torch.zeros(2, 2), torch.eye(2), torch.eye(2))
+    mix = GaussianMixture.from_gaussian(torch.zeros(2, 2, dtype=torch.float64), torch.eye(2).expand(2, 2, 2), 2)
+    y = torch.zeros(2, 2, dtype=torch.float64)
+    indefinite = torch.tensor([[0.04, 0.1], [0.1, 0.04]], dtype=torch.float64)
+    for repair in (False, True):
+        with pytest.raises(
+            ValueError, match=r"_Direct\.noise_cov must be a covariance, positive semidefinite, .* -0\.06"
+        ):
+            GaussianSumFilter(model, repair_covariance=repair).update(mix, y, _Direct(indefinite))
+    for R in (torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)):
+        assert torch.equal(_Direct(R).check_measurement(y), y)
+
+
 def test_a_noise_covariance_symmetric_to_rounding_is_accepted_and_one_that_is_not_refused(gen):
     """``R = AAᵀ`` as a user computes it is symmetric only to rounding: accepted; an asymmetric one is not."""
     from agsf_torch import GaussianMixture
