@@ -16,6 +16,7 @@ and all mixture components in one call.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -74,6 +75,24 @@ def _covers(lead: torch.Size, batch: torch.Size) -> bool:
         return broadcast_shapes(lead, batch) == lead
     except RuntimeError:
         return False
+
+
+@contextlib.contextmanager
+def _dtype_named(model: nn.Module, x: Tensor):
+    """Re-raise a ``RuntimeError`` from the model's own code as a ``ValueError`` naming the dtypes, where the model
+    holds floating-point tensors of another dtype than the states ``x`` (a user's float64 matrix against a float32
+    mixture fails inside torch with 'expected m1 and m2 to have the same dtype'); anything else passes through."""
+    try:
+        yield
+    except RuntimeError as exc:
+        held = sorted({str(t.dtype) for t in (*model.parameters(), *model.buffers()) if t.is_floating_point()})
+        if any(d != str(x.dtype) for d in held):
+            raise ValueError(
+                f"{type(model).__name__} failed on the mixture's {x.dtype} states while holding {', '.join(held)} "
+                f"tensors ({type(exc).__name__}: {exc}); build the mixture in float64 (the library's convention) or "
+                f"convert the model (model.to({x.dtype}))"
+            ) from exc
+        raise
 
 
 def elementwise_probe(x: Tensor) -> Tensor:
@@ -212,6 +231,24 @@ class ContinuousModel(nn.Module):
         whose ``Q`` is not a finite symmetric positive semidefinite matrix (a negative density was accepted
         and integrated).  The filters call it once, at their first ``predict`` with this model, before anything
         changes; a subclass may extend it."""
+        name = type(self).__name__
+        with _dtype_named(self, x):
+            q = self._check_shapes(x, u)
+        Q = self.noise_psd()
+        if not isinstance(Q, Tensor) or Q.shape != (q, q):
+            got = tuple(Q.shape) if isinstance(Q, Tensor) else type(Q).__name__
+            raise ValueError(f"{name}.noise_psd must return [q, q] = {(q, q)} (q: noise_gain's last dim), got {got}")
+        check_symmetric(f"{name}.noise_psd", Q.detach())
+        eigenvalues = torch.linalg.eigvalsh(Q.detach().to(torch.float64))
+        if q and float(eigenvalues[0]) < -1e-12 * float(eigenvalues.abs().max()):
+            raise ValueError(
+                f"{name}.noise_psd must be positive semidefinite (a spectral density), got eigenvalues "
+                f"{eigenvalues.tolist()}"
+            )
+
+    def _check_shapes(self, x: Tensor, u: Tensor | None) -> int:
+        """:meth:`check_contract`'s shape checks of :meth:`drift` and :meth:`noise_gain` at ``x``, then at
+        :func:`elementwise_probe` states; returns ``q``, the noise gain's last dim."""
         name, n = type(self).__name__, self.state_dim
         hint = "index the state as x[..., i], not x[:, i]: the filters pass [..., n]"
         for states in (x, elementwise_probe(x)):  # the filters' shape, then one no state size can be mistaken for
@@ -241,18 +278,7 @@ class ContinuousModel(nn.Module):
                     f"{name}.noise_gain must return [..., n, q] = {(*states.shape[:-1], n, 'q')} for x "
                     f"{tuple(states.shape)}, got {got} ({hint})"
                 )
-        q = g.shape[-1]
-        Q = self.noise_psd()
-        if not isinstance(Q, Tensor) or Q.shape != (q, q):
-            got = tuple(Q.shape) if isinstance(Q, Tensor) else type(Q).__name__
-            raise ValueError(f"{name}.noise_psd must return [q, q] = {(q, q)} (q: noise_gain's last dim), got {got}")
-        check_symmetric(f"{name}.noise_psd", Q.detach())
-        eigenvalues = torch.linalg.eigvalsh(Q.detach().to(torch.float64))
-        if q and float(eigenvalues[0]) < -1e-12 * float(eigenvalues.abs().max()):
-            raise ValueError(
-                f"{name}.noise_psd must be positive semidefinite (a spectral density), got eigenvalues "
-                f"{eigenvalues.tolist()}"
-            )
+        return g.shape[-1]
 
     # ----------------------------------------------------------- derived terms
     def drift_jacobian(self, x: Tensor, u: Tensor | None) -> Tensor:

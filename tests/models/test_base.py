@@ -362,3 +362,38 @@ def test_a_drift_that_indexes_the_component_dim_is_refused_even_where_the_shapes
         wrong.predict(mix, None, 0.05)
     right = GaussianSumFilter(VanDerPol(lambda x, i: x[..., i])).predict(mix, None, 0.05)
     assert torch.isfinite(right.means).all()
+
+
+def test_a_model_holding_float64_tensors_given_a_float32_mixture_is_refused_naming_the_dtypes():
+    """A user's model with a float64 matrix and a mixture built in float32 (``torch.zeros`` without a dtype) failed
+    inside torch ('expected m1 and m2 to have the same dtype'); the contract check names both dtypes and the two
+    fixes.  The library's own models cast their parameters and run in float32 as before."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    class Matrix(ContinuousModel):
+        state_dim = 2
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.register_buffer("A", torch.tensor([[0.0, 1.0], [-1.0, -0.1]], dtype=torch.float64))
+
+        def drift(self, x, u=None):
+            return x @ self.A.T
+
+        def noise_gain(self, x):
+            return torch.ones(*x.shape[:-1], 2, 1, dtype=x.dtype)
+
+        def noise_psd(self):
+            return torch.eye(1, dtype=torch.float64)
+
+    mix32 = GaussianMixture.from_gaussian(torch.zeros(3, 2), torch.eye(2).expand(3, 2, 2), 2)
+    with pytest.raises(
+        ValueError,
+        match=r"Matrix failed on the mixture's torch\.float32 states while holding torch\.float64 tensors .*"
+        r"build the mixture in float64 .* or convert the model \(model\.to\(torch\.float32\)\)",
+    ):
+        GaussianSumFilter(Matrix()).predict(mix32, None, 0.1)
+    assert GaussianSumFilter(Matrix().to(torch.float32)).predict(mix32, None, 0.1).means.dtype == torch.float32
+    linear = LinearModel(torch.tensor([[0.0, 1.0], [-1.0, -0.1]]), torch.ones(2, 1), torch.eye(1))
+    assert GaussianSumFilter(linear).predict(mix32, None, 0.1).means.dtype == torch.float32
