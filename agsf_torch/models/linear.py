@@ -19,7 +19,8 @@ class LinearModel(ContinuousModel):
 
     Args:
         A: ``[n, n]``; G: ``[n, q]``; Q: ``[q, q]`` symmetric PSD;
-        B: optional input matrix ``[n, m]``.
+        B: optional input matrix ``[n, m]``.  With it the model declares :attr:`input_dim` ``= m``, so the filters
+            require ``u [..., m]`` (a zero input is given as zeros); without it an input is refused, not ignored.
     """
 
     def __init__(self, A: Tensor, G: Tensor, Q: Tensor, B: Tensor | None = None) -> None:
@@ -40,10 +41,20 @@ class LinearModel(ContinuousModel):
                 raise ValueError(f"B must be [n, m] with n = {n}, got {tuple(B.shape)}")
             check_finite("B", B)
         self.state_dim = n
+        self.input_dim = None if B is None else B.shape[1]
         self.register_buffer("A", A)
         self.register_buffer("G", G)
         self.register_buffer("Q", Q)
         self.register_buffer("B", B)
+
+    def check_input(self, u: Tensor | None) -> None:
+        """:meth:`ContinuousModel.check_input` with ``input_dim = m`` of ``B``; without ``B``, ``u`` must be ``None``."""
+        if self.B is None and u is not None:
+            raise ValueError(
+                f"LinearModel has no input matrix B, got an input u of shape {tuple(torch.as_tensor(u).shape)} "
+                "(it would be ignored): give B=[n, m] or pass u=None"
+            )
+        super().check_input(u)
 
     def drift(self, x: Tensor, u: Tensor | None = None) -> Tensor:
         """``A x + B u`` → ``[..., n]``."""

@@ -397,3 +397,23 @@ def test_a_model_holding_float64_tensors_given_a_float32_mixture_is_refused_nami
     assert GaussianSumFilter(Matrix().to(torch.float32)).predict(mix32, None, 0.1).means.dtype == torch.float32
     linear = LinearModel(torch.tensor([[0.0, 1.0], [-1.0, -0.1]]), torch.ones(2, 1), torch.eye(1))
     assert GaussianSumFilter(linear).predict(mix32, None, 0.1).means.dtype == torch.float32
+
+
+def test_the_linear_models_input_is_refused_without_b_and_checked_against_b():
+    """Without an input matrix an input was ignored without a word (u = 100 moved nothing); with ``B [n, m]`` a
+    wrong-sized input was a raw matmul error.  Now the first is refused, the second names ``m``, and ``B u`` is the
+    drift's input term."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import ExtendedKalmanFilter
+
+    A, G, Q = [[0.0, 1.0], [-4.0, -0.4]], [[0.0], [1.0]], [[0.5]]
+    mix = GaussianMixture.from_gaussian(torch.zeros(3, 2, dtype=torch.float64), torch.eye(2).expand(3, 2, 2), 1)
+    with pytest.raises(ValueError, match=r"LinearModel has no input matrix B, got an input u of shape \(3, 1\)"):
+        ExtendedKalmanFilter(LinearModel(A, G, Q)).predict(mix, torch.full((3, 1), 100.0), 0.1)
+    driven = LinearModel(A, G, Q, B=[[0.0], [1.0]])
+    assert driven.input_dim == 1
+    with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 1\] \(LinearModel's input\), got \(3, 2\)"):
+        ExtendedKalmanFilter(driven).predict(mix, torch.ones(3, 2), 0.1)
+    x, u = torch.tensor([[1.0, 2.0]], dtype=torch.float64), torch.tensor([[3.0]], dtype=torch.float64)
+    expected = torch.tensor([[2.0, -4.0 - 0.8 + 3.0]], dtype=torch.float64)
+    torch.testing.assert_close(driven.drift(x, u), expected, rtol=1e-15, atol=0)
