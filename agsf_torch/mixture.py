@@ -253,8 +253,14 @@ class GaussianMixture:
         """
         mean = as_real_tensor("mean", mean)
         cov = as_real_tensor("cov", cov, mean.dtype, mean.device)
-        if mean.dim() < 1 or cov.shape[-2:] != (mean.shape[-1],) * 2:
+        if mean.dim() < 1 or cov.dim() < 2 or cov.shape[-2:] != (mean.shape[-1],) * 2:
             raise ValueError(f"mean [..., n] and cov [..., n, n] do not match: {tuple(mean.shape)}, {tuple(cov.shape)}")
+        if mean.shape[:-1] != cov.shape[:-2]:
+            raise ValueError(
+                f"mean {tuple(mean.shape)} and cov {tuple(cov.shape)} must have the same leading (trajectory) dims, "
+                "one Gaussian per trajectory (not broadcast; for one shared by every trajectory, expand it: "
+                "mean.expand(*batch, n), cov.expand(*batch, n, n))"
+            )
         if not bool(torch.isfinite(mean).all()):
             raise ValueError("mean must be finite")
         check_covariance("cov", cov)

@@ -213,3 +213,13 @@ def test_a_mixture_of_expanded_views_filters_as_one_of_copies():
     copies = GaussianMixture(weights=w, means=m0[:, None].repeat(1, N, 1), covs=P0[:, None].repeat(1, N, 1, 1))
     a, b = filt.predict(views, None, 0.1), GaussianSumFilter(model).predict(copies, None, 0.1)
     assert torch.equal(a.means, b.means) and torch.equal(a.covs, b.covs)
+
+
+@pytest.mark.parametrize(("mean_shape", "cov_shape"), [((4, 2), (3, 2, 2)), ((2,), (3, 2, 2)), ((3, 2), (2, 2))])
+def test_from_gaussian_refuses_a_mean_and_a_covariance_of_different_trajectories(mean_shape, cov_shape):
+    """Leading dims that differ (or would broadcast) had been raw torch errors deep in the split; they are refused
+    naming both shapes and how to share one Gaussian between trajectories."""
+    mean = torch.zeros(mean_shape, dtype=torch.float64)
+    cov = torch.eye(2, dtype=torch.float64).expand(cov_shape)
+    with pytest.raises(ValueError, match=r"must have the same leading \(trajectory\) dims.*expand it"):
+        GaussianMixture.from_gaussian(mean, cov, 3)
