@@ -81,6 +81,7 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
             )
         super().__init__(model, **options)
         update = make_weight_update(weight_update)
+        update.claim(self)
         update.bind(model, fused=self.fused, compile_fused=self.compile_fused)
         self.weight_update = update
         self.adapt = bool(adapt)

@@ -319,3 +319,26 @@ def test_a_step_rk4_cannot_follow_on_a_users_model_is_refused_before_anything_ch
     out = build(substeps).predict(mix, None, 0.1)
     assert bool(torch.isfinite(out.means).all() and torch.isfinite(out.covs).all())
     assert bool(torch.isfinite(out.log_weights).all()) and float(out.means[0, 2, 0]) < 3.0  # 16.4 falls to 2.33
+
+
+def test_one_weight_update_object_serves_one_filter():
+    """A second filter given the same update had shared the first's reference weights and counter (its weights off
+    by 0.12 from a fresh filter's) and rebound the update to its own model; it is refused, naming the fix, and a
+    copy by ``dataclasses.replace`` (a fresh run state) or a filter that is gone frees the way."""
+    import dataclasses
+    import gc
+
+    from tests.helpers import CubicDrift
+
+    update = PenaltyWeightUpdate(reg=0.5)
+    first = AdaptiveGaussianSumFilter(CubicDrift(), weight_update=update)
+    with pytest.raises(
+        ValueError, match=r"this PenaltyWeightUpdate already serves another filter .*dataclasses\.replace"
+    ):
+        AdaptiveGaussianSumFilter(CubicDrift(), weight_update=update)
+    copy = dataclasses.replace(update)
+    assert copy.reg == 0.5 and copy.run is not update.run
+    AdaptiveGaussianSumFilter(CubicDrift(), weight_update=copy)
+    del first
+    gc.collect()
+    AdaptiveGaussianSumFilter(CubicDrift(), weight_update=update)

@@ -7,6 +7,7 @@ its evaluation).  See :mod:`agsf_torch.filters.weight_updates`.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -70,8 +71,9 @@ class WeightUpdate:
 
     Subclasses implement :meth:`compute`; this base class runs it every ``cadence``-th
     interval and keeps the counter.  One object serves one filter: its run state
-    (:attr:`run`) is that filter's (passing the same object to two filters shares it, and
-    :meth:`bind` rebinds it to the last filter's model).  State changes only after a step
+    (:attr:`run`) is that filter's, and a second filter given the same object is refused
+    (:meth:`claim`; it had shared the first's reference weights and counter, and rebound it to its
+    own model).  State changes only after a step
     succeeds: an error leaves the update as it was (:meth:`check` runs before the interval
     is counted, :meth:`compute` must not change the run state before it can no longer fail).
 
@@ -97,6 +99,22 @@ class WeightUpdate:
 
     def __post_init__(self) -> None:
         positive_int("cadence", self.cadence)
+
+    def claim(self, filt: object) -> None:
+        """Make this update ``filt``'s (held by a weak reference: a filter that is gone frees it).
+
+        Raises:
+            ValueError: the update already serves another filter that still exists.
+        """
+        owner = getattr(self, "_owner", None)
+        current = None if owner is None else owner()
+        if current is not None and current is not filt:
+            raise ValueError(
+                f"this {type(self).__name__} already serves another filter (its run state, the reference weights and "
+                f"the cadence counter, is that filter's): give each filter its own, e.g. dataclasses.replace(update) "
+                f"or {type(self).__name__}(...) again"
+            )
+        object.__setattr__(self, "_owner", weakref.ref(filt))
 
     @property
     def diagnostic_keys(self) -> tuple[str, ...]:
