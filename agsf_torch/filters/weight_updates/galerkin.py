@@ -56,7 +56,8 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         cadence, quadrature, chunk_size, compile: :class:`WeightUpdate`, :class:`QuadratureUpdate`.
 
     Diagnostics: ``galerkin_residual_change [...]`` (``∫e²`` after minus before,
-    exact and cheap: ``[(w − w⁻)ᵀM(w − w⁻) + 2Δt(w − w⁻)ᵀKw⁻]/Δt²``, ≤ 0),
+    exact and cheap: ``[(w − w⁻)ᵀM(w − w⁻) + 2Δt(w − w⁻)ᵀKw⁻]/Δt²``, ≤ 0 to rounding: a step that leaves the
+    weights where they were may read +1e-16),
     ``qp_kkt_residual [...]`` (of the problem without the proximal term),
     ``qp_iterations``; with ``residual_diagnostics`` also the two errors.
 
