@@ -248,6 +248,11 @@ def _seed_int(owner: str, value: Any, where: str) -> int:
     return v
 
 
+def _seed_forms(num_envs: int) -> str:
+    """What a seed may be, for messages: "an integer" (one trajectory) or "an integer or B integers"."""
+    return "an integer" if num_envs == 1 else f"an integer or {num_envs} integers (one per trajectory)"
+
+
 def check_seeds(owner: str, seed: Any, num_envs: int) -> list[int]:
     """The episode seeds of ``num_envs`` trajectories from ``seed``: an integer ``s`` (Python or NumPy;
     trajectory ``i`` gets ``s + i``) or a sequence of ``num_envs`` integers (list, tuple, array or integer
@@ -269,7 +274,7 @@ def check_seeds(owner: str, seed: Any, num_envs: int) -> list[int]:
     elif isinstance(seed, (list, tuple)):
         values = list(seed)
     else:
-        raise ValueError(f"{owner}: seed must be an integer or {num_envs} integers, got {type(seed).__name__} {seed!r}")
+        raise ValueError(f"{owner}: seed must be {_seed_forms(num_envs)}, got {type(seed).__name__} {seed!r}")
     if values is None or len(values) != num_envs:
-        raise ValueError(f"{owner}: seed must be an integer or {num_envs} integers, got {seed!r}")
+        raise ValueError(f"{owner}: seed must be {_seed_forms(num_envs)}, got {seed!r}")
     return [_seed_int(owner, v, f"seed[{i}]") for i, v in enumerate(values)]

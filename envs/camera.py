@@ -93,8 +93,11 @@ class StarCamera:
         max_stars: M, the number of brightest visible stars reported, in ``[1, 117 955]``.
         sigma: σ (rad per axis), in ``[0, 1]``.
         noise: ``"focal_plane"`` or ``"unit_vector"`` (module docstring).
-        principal_point: ``(x₀, y₀)`` (m), within the imaged field (``|x₀| ≤ f tan(fov_x/2)``,
-            likewise y); the ranges are explained in :func:`envs._checks.check_camera_bounds`.
+        principal_point: ``(x₀, y₀)`` (m), where the boresight meets the focal plane, within the imaged field
+            (``|x₀| ≤ f tan(fov_x/2)``, likewise y); the ranges are explained in
+            :func:`envs._checks.check_camera_bounds`.  A calibrated camera: the tracker knows ``(x₀, y₀)`` and
+            subtracts it, so it shifts the pixel coordinates but not the star vectors (nor which stars are
+            seen); a miscalibration (a boresight error) is not modelled.
         index: ``"grid"`` (cube-map sky index, default) or ``"dense"`` (test every star).
 
     Raises:

@@ -7,8 +7,10 @@ its interval, a star frame to the time it is taken).  Kinds:
 ``"misidentified_star"``
     In every star frame of the window, the star reported in slot ``slot`` carries a
     **wrong catalogue vector**: its inertial vector is replaced by that of the
-    catalogue star nearest to the true one (the typical identification error of a
-    star tracker: a close neighbour).  The measured body vector is untouched, so the
+    star nearest to the true one in the tracker's magnitude-cut catalogue (``max_magnitude``; the typical
+    identification error of a star tracker: a neighbour it can also see).  Among the bright stars that neighbour
+    lies 0.03° to 2° away (16 frames measured: up to a third of the field of view), not necessarily the nearest
+    star of the full catalogue.  The measured body vector is untouched, so the
     measurement is an outlier of the size of that angular separation.
 ``"star_outage"``
     No star frames in the window (mask false, vectors zero).

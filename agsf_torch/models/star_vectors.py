@@ -175,6 +175,12 @@ class StarVectorMeasurement(MeasurementModel):
             ``(y [..., 3M], measurement)``; valid star vectors are checked (and, within
             :data:`UNIT_TOLERANCE`, normalised) as :func:`unit_vectors`.
         """
+        missing = [key for key in ("star_body", "star_inertial", "star_mask") if key not in obs]
+        if missing:
+            raise ValueError(
+                f"the observation has no {', '.join(missing)}: a star frame needs star_body, star_inertial and "
+                f"star_mask (the environment's keys), got keys {sorted(obs)}"
+            )
         body = torch.as_tensor(obs["star_body"])
         inertial = torch.as_tensor(obs["star_inertial"])
         if body.shape != inertial.shape:

@@ -420,10 +420,10 @@ def test_envs_imports_only_the_rotations_module_of_agsf_torch():
         ([3, -7], r"seed\[1\] must lie in \[0, 2\*\*63 - 1\], got -7"),
         ([3, 2**64 + 3], r"seed\[1\] must lie in \[0, 2\*\*63 - 1\]"),  # wrapped: two trajectories alike
         (2**63 - 1, r"seed 9223372036854775807 \+ 1 .* exceeds 2\*\*63 - 1"),
-        ("37", r"seed must be an integer or 2 integers, got str"),
+        ("37", r"seed must be an integer or 2 integers \(one per trajectory\), got str"),
         ([3.0, 4.0], r"seed\[0\] must be an integer, got float"),
-        (2.5, r"seed must be an integer or 2 integers, got float"),
-        (True, r"seed must be an integer or 2 integers, got bool"),
+        (2.5, r"seed must be an integer or 2 integers \(one per trajectory\), got float"),
+        (True, r"seed must be an integer or 2 integers \(one per trajectory\), got bool"),
         (torch.tensor([1.0, 2.0]), r"seed must hold integers, got a torch.float32 tensor"),
     ],
 )
@@ -451,6 +451,8 @@ def test_every_integer_type_gives_the_same_episodes(seed):
         assert np.array_equal(one["gyro"], ref["gyro"][0].numpy())
     with pytest.raises(ValueError, match="seed must be an integer"):
         single.reset(seed=True)
+    with pytest.raises(ValueError, match=r"seed must be an integer, got \[1, 2\]"):  # not "or 1 integers"
+        single.reset(seed=[1, 2])
 
 
 def _steps(venv, n: int, seed: int) -> list:

@@ -58,6 +58,8 @@ def test_from_observation(gen):
     y, meas = StarVectorMeasurement.from_observation(obs, sigma=1e-5)
     assert y.shape == (2, 9)
     torch.testing.assert_close(y.reshape(2, 3, 3), r.flip(-1))
+    with pytest.raises(ValueError, match=r"the observation has no star_mask: a star frame needs .* got keys"):
+        StarVectorMeasurement.from_observation({k: v for k, v in obs.items() if k != "star_mask"}, sigma=1e-5)
 
 
 @pytest.mark.parametrize(
