@@ -95,6 +95,26 @@ def _dtype_named(model: nn.Module, x: Tensor):
         raise
 
 
+def _check_returned(what: str, value: Any, states: Tensor, event: tuple, hint: str) -> Tensor:
+    """``value`` if it is a tensor ``[..., *event]`` whose leading dims cover ``states``' (``"q"`` in ``event``: any
+    size), else a ``ValueError`` naming ``what``, the shape expected for ``states`` and the one returned."""
+    k = len(event)
+    fits = (
+        isinstance(value, Tensor)
+        and value.dim() >= k
+        and all(want == "q" or have == want for have, want in zip(value.shape[-k:], event))
+        and _covers(value.shape[:-k], states.shape[:-1])
+    )
+    if not fits:
+        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        shape = "..., n, q" if k == 2 else "..., n"
+        raise ValueError(
+            f"{what} must return [{shape}] = {(*states.shape[:-1], *event)} for x {tuple(states.shape)}, got {got} "
+            f"({hint})"
+        )
+    return value
+
+
 def elementwise_probe(x: Tensor) -> Tensor:
     """States to call a model's function on once, to check that it acts on ``x [..., n]`` elementwise over the
     leading dims: ``x`` under two new leading dims, ``[1, n + 1, *x.shape]`` (``x``'s own leading dims, which
@@ -254,30 +274,8 @@ class ContinuousModel(nn.Module):
         for states in (x, elementwise_probe(x)):  # the filters' shape, then one no state size can be mistaken for
             if states is not x:
                 hint = f"called on every state of x alike, {hint}"
-            f = self.drift(states, u)
-            if (
-                not isinstance(f, Tensor)
-                or f.dim() < 1
-                or f.shape[-1] != n
-                or not _covers(f.shape[:-1], states.shape[:-1])
-            ):
-                got = tuple(f.shape) if isinstance(f, Tensor) else type(f).__name__
-                raise ValueError(
-                    f"{name}.drift must return [..., n] = {(*states.shape[:-1], n)} for x {tuple(states.shape)}, "
-                    f"got {got} ({hint})"
-                )
-            g = self.noise_gain(states)
-            if (
-                not isinstance(g, Tensor)
-                or g.dim() < 2
-                or g.shape[-2] != n
-                or not _covers(g.shape[:-2], states.shape[:-1])
-            ):
-                got = tuple(g.shape) if isinstance(g, Tensor) else type(g).__name__
-                raise ValueError(
-                    f"{name}.noise_gain must return [..., n, q] = {(*states.shape[:-1], n, 'q')} for x "
-                    f"{tuple(states.shape)}, got {got} ({hint})"
-                )
+            _check_returned(f"{name}.drift", self.drift(states, u), states, (n,), hint)
+            g = _check_returned(f"{name}.noise_gain", self.noise_gain(states), states, (n, "q"), hint)
         return g.shape[-1]
 
     # ----------------------------------------------------------- derived terms

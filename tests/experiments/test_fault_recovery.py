@@ -33,10 +33,9 @@ SCENARIOS = {
 }
 
 
-@cache
-def _run(faults: tuple = (), gate: float = 0.9999):
-    cfg = BASE.replace(faults=[dict(f) for f in faults], gate_probability=gate)
-    res = run_monte_carlo(
+def _simulate(cfg: ExperimentConfig):
+    """The configuration's Monte Carlo run (every filter it names)."""
+    return run_monte_carlo(
         make_env(cfg),
         make_filters(cfg),
         num_steps=cfg.num_steps,
@@ -44,6 +43,11 @@ def _run(faults: tuple = (), gate: float = 0.9999):
         sigma_s=cfg.sigma_s,
         seed=cfg.seed,
     )
+
+
+@cache
+def _run(faults: tuple = (), gate: float = 0.9999):
+    res = _simulate(BASE.replace(faults=[dict(f) for f in faults], gate_probability=gate))
     return res.time, res.traces["GSF"]
 
 
@@ -111,14 +115,7 @@ def test_a_short_gyro_gap_bridged_by_the_hold_leaves_the_filter_consistent():
         compile=False,
         compile_fused=False,
     )
-    res = run_monte_carlo(
-        make_env(cfg),
-        make_filters(cfg),
-        num_steps=cfg.num_steps,
-        prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s,
-        seed=cfg.seed,
-    )
+    res = _simulate(cfg)
     trace = res.traces["EKF"]
     assert trace.extra["gyro_held"].sum() == runs * 50  # every sample of [5, 10) s bridged
     window = _window(res.time, 5.0, 20.0)
