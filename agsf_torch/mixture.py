@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from .finite import all_finite
+from .shapes import broadcast_shapes
 
 __all__ = ["GaussianMixture", "split_gaussian", "check_covariance", "check_symmetric", "as_real_tensor"]
 
@@ -246,7 +247,8 @@ class GaussianMixture:
         ``cov`` every axis is principal, and the eigensolver's choice among them is used).
 
         Args:
-            mean: ``[..., n]``; cov: ``[..., n, n]`` symmetric positive definite.
+            mean: ``[..., n]``; cov: ``[..., n, n]`` symmetric positive definite; their leading dims broadcast (a
+                covariance ``[n, n]`` shared by every trajectory's mean, say).
             num_components: ``N ≥ 1`` (1: the Gaussian itself).
             spread: in ``(0, 1)``, the share of the principal variance carried by the spacing of the means
                 (each component keeps ``1 − spread`` of it; :func:`split_gaussian`).
@@ -255,12 +257,15 @@ class GaussianMixture:
         cov = as_real_tensor("cov", cov, mean.dtype, mean.device)
         if mean.dim() < 1 or cov.dim() < 2 or cov.shape[-2:] != (mean.shape[-1],) * 2:
             raise ValueError(f"mean [..., n] and cov [..., n, n] do not match: {tuple(mean.shape)}, {tuple(cov.shape)}")
-        if mean.shape[:-1] != cov.shape[:-2]:
+        try:
+            lead = broadcast_shapes(mean.shape[:-1], cov.shape[:-2])
+        except RuntimeError:
             raise ValueError(
-                f"mean {tuple(mean.shape)} and cov {tuple(cov.shape)} must have the same leading (trajectory) dims, "
-                "one Gaussian per trajectory (not broadcast; for one shared by every trajectory, expand it: "
-                "mean.expand(*batch, n), cov.expand(*batch, n, n))"
-            )
+                f"mean {tuple(mean.shape)} and cov {tuple(cov.shape)} have leading (trajectory) dims that do not "
+                "broadcast: give one of each per trajectory, or one shared by every trajectory"
+            ) from None
+        n = mean.shape[-1]
+        mean, cov = mean.expand(*lead, n), cov.expand(*lead, n, n)
         if not bool(torch.isfinite(mean).all()):
             raise ValueError("mean must be finite")
         check_covariance("cov", cov)

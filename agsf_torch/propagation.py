@@ -16,7 +16,9 @@ the moment equations at a component's mean has ``|λ|h`` beyond :data:`RK4_STABI
 component far out where the drift is steep), RK4 amplifies a mode the dynamics damp and the moments run off to
 1e45 and beyond within a few steps, finite and wrong.  The modes are the eigenvalues ``λᵢ`` of the drift's
 Jacobian ``A`` for the mean and ``Φ``, and their sums ``λᵢ + λⱼ`` for the noise integral ``Ṡ = AS + SAᵀ + gQgᵀ``:
-up to twice the largest, so a stiff model needs twice the substeps its mean alone would.  The check costs one
+up to twice the largest, so a stiff model needs twice the substeps its mean alone would.  (``S`` restarts from 0
+each step; its one-step increment ``h φ₁(h(λᵢ + λⱼ)) gQgᵀ``, ``φ₁(z) = 1 + z/2 + z²/6 + z³/24``, turns indefinite
+where ``φ₁`` changes sign, at exactly ``z = −2.785`` on the real axis: the same limit.)  The check costs one
 ``‖A‖∞`` per RK4 step (``2‖A‖∞`` bounds every ``|λᵢ + λⱼ|``); the eigenvalues are computed only where that bound
 exceeds the limit.
 """

@@ -215,11 +215,22 @@ def test_a_mixture_of_expanded_views_filters_as_one_of_copies():
     assert torch.equal(a.means, b.means) and torch.equal(a.covs, b.covs)
 
 
-@pytest.mark.parametrize(("mean_shape", "cov_shape"), [((4, 2), (3, 2, 2)), ((2,), (3, 2, 2)), ((3, 2), (2, 2))])
-def test_from_gaussian_refuses_a_mean_and_a_covariance_of_different_trajectories(mean_shape, cov_shape):
-    """Leading dims that differ (or would broadcast) had been raw torch errors deep in the split; they are refused
-    naming both shapes and how to share one Gaussian between trajectories."""
-    mean = torch.zeros(mean_shape, dtype=torch.float64)
-    cov = torch.eye(2, dtype=torch.float64).expand(cov_shape)
-    with pytest.raises(ValueError, match=r"must have the same leading \(trajectory\) dims.*expand it"):
-        GaussianMixture.from_gaussian(mean, cov, 3)
+def test_from_gaussian_broadcasts_a_shared_mean_or_covariance_and_refuses_shapes_that_do_not():
+    """A covariance ``[n, n]`` (or ``[1, n, n]``) shared by every trajectory's mean, or one mean for every
+    covariance, gives the split of the expanded Gaussians bit for bit; leading dims that do not broadcast had been
+    raw torch errors inside the split and are refused naming both shapes."""
+    gen = torch.Generator().manual_seed(3)
+    mean = torch.randn(3, 2, generator=gen, dtype=torch.float64)
+    cov = torch.tensor([[1.0, 0.3], [0.3, 0.5]], dtype=torch.float64)
+    full = GaussianMixture.from_gaussian(mean, cov.expand(3, 2, 2), 3)
+    for shared in (cov, cov[None]):
+        got = GaussianMixture.from_gaussian(mean, shared, 3)
+        assert torch.equal(got.means, full.means) and torch.equal(got.covs, full.covs)
+    one_mean = GaussianMixture.from_gaussian(mean[0], cov.expand(3, 2, 2), 3)
+    assert torch.equal(
+        one_mean.means, GaussianMixture.from_gaussian(mean[0].expand(3, 2), cov.expand(3, 2, 2), 3).means
+    )
+    with pytest.raises(
+        ValueError, match=r"mean \(4, 2\) and cov \(3, 2, 2\) have leading \(trajectory\) dims that do not broadcast"
+    ):
+        GaussianMixture.from_gaussian(torch.zeros(4, 2, dtype=torch.float64), cov.expand(3, 2, 2), 3)

@@ -13,7 +13,7 @@ turns the attitude by ``δω · jΔt``, so the angle variance grows by
 at the ``j``-th held step (per axis, in the body frame).  In the MRP chart of a component with mean ``p`` the
 error angle maps as ``δp = ¼ B(p) δθ`` with ``B Bᵀ = (1 + |p|²)² I``
 (:mod:`agsf_torch.filters.multiplicative`), so the MRP covariance grows by that variance times
-``(1 + |p|²)² / 16``: a quarter of it at ``p = 0``, up to four times that at ``|p| = 1``.  The default ``σ_h = σ_v / √Δt`` is the noise of one gyro
+``(1 + |p|²)² / 16``: 1/16 of it at ``p = 0``, up to 1/4 at ``|p| = 1``.  The default ``σ_h = σ_v / √Δt`` is the noise of one gyro
 sample, right for a constant or slowly varying rate; a manoeuvring spacecraft
 needs ``σ_h`` of its rate change over the gap.  Without this inflation a filter
 that holds the rate for a minute becomes overconfident and its innovation gate

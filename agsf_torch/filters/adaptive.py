@@ -81,8 +81,9 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
             )
         super().__init__(model, **options)
         update = make_weight_update(weight_update)
-        update.claim(self)
+        update.check_free(self)  # before it is rebound to this filter's model
         update.bind(model, fused=self.fused, compile_fused=self.compile_fused)
+        update.claim(self)
         self.weight_update = update
         self.adapt = bool(adapt)
 
@@ -95,6 +96,7 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
     def check_mixture(self, mixture: GaussianMixture) -> None:
         """As the GSF's, and the weight update's own limits (e.g. ``N ≤ MAX_COMPONENTS``), before any work."""
         super().check_mixture(mixture)
+        self.weight_update.claim(self)  # a copied or unpickled filter claims its update; a shallow copy is refused
         if self.adapt:
             self.weight_update.check(mixture)
 

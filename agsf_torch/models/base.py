@@ -109,21 +109,33 @@ def _check_returned(what: str, value: Any, states: Tensor, event: tuple, hint: s
         got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
         shape = "..., n, q" if k == 2 else "..., n"
         raise ValueError(
-            f"{what} must return [{shape}] = {(*states.shape[:-1], *event)} for x {tuple(states.shape)}, got {got} "
-            f"({hint})"
+            f"{what} must return [{shape}] = {(*states.shape[:-1], *event)} for x {tuple(states.shape)}, got {got}{hint}"
         )
     return value
 
 
 def elementwise_probe(x: Tensor) -> Tensor:
     """States to call a model's function on once, to check that it acts on ``x [..., n]`` elementwise over the
-    leading dims: ``x`` under two new leading dims, ``[1, n + 1, *x.shape]`` (``x``'s own leading dims, which
-    per-trajectory parameters broadcast against, kept in place).  A function that indexes ``x[:, i]`` instead of
-    ``x[..., i]`` drops the new ``n + 1`` axis, which no state size equals, and so returns another shape even where
-    the filters' own shapes cannot tell (``[N, B, n]`` with ``B = n``).  ``n + 1`` copies of ``x``: meant for one
-    call per model, not per step."""
-    n = x.shape[-1]
-    return x.unsqueeze(0).unsqueeze(0).expand(1, n + 1, *x.shape).clone()
+    leading dims: ``x`` under two new leading dims, ``[1, s, *x.shape]`` with ``s = 2`` (3 where ``x``'s first dim
+    is 2), ``x``'s own leading dims, which per-trajectory parameters broadcast against, kept in place.  A function
+    that indexes ``x[:, i]`` instead of ``x[..., i]`` picks along the new ``s`` axis and returns another shape, even
+    where the filters' own shapes cannot tell (``[N, B, n]`` with ``B = n``).  ``s`` copies of ``x``: one call per
+    model, not per step."""
+    s = 3 if x.dim() and x.shape[0] == 2 else 2
+    return x.unsqueeze(0).unsqueeze(0).expand(1, s, *x.shape).clone()
+
+
+def call_on_probe(what: str, function: Callable[[Tensor], Any], probe: Tensor) -> Any:
+    """``function(probe)``, a failure re-raised as a ``ValueError`` naming ``what`` and the probe's shape (a function
+    written for the filters' exact shapes, ``[B, N, n]`` say, rather than elementwise)."""
+    try:
+        return function(probe)
+    except (RuntimeError, IndexError) as exc:
+        raise ValueError(
+            f"{what} failed on states [{', '.join(map(str, (*probe.shape[:-1], 'n')))}] ({type(exc).__name__}: "
+            f"{exc}): it must act on every state of x [..., n] alike, whatever the leading dims (index the state "
+            "as x[..., i], let parameters broadcast)"
+        ) from exc
 
 
 def batched_jacobian(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
@@ -270,12 +282,19 @@ class ContinuousModel(nn.Module):
         """:meth:`check_contract`'s shape checks of :meth:`drift` and :meth:`noise_gain` at ``x``, then at
         :func:`elementwise_probe` states; returns ``q``, the noise gain's last dim."""
         name, n = type(self).__name__, self.state_dim
-        hint = "index the state as x[..., i], not x[:, i]: the filters pass [..., n]"
-        for states in (x, elementwise_probe(x)):  # the filters' shape, then one no state size can be mistaken for
-            if states is not x:
-                hint = f"called on every state of x alike, {hint}"
-            _check_returned(f"{name}.drift", self.drift(states, u), states, (n,), hint)
-            g = _check_returned(f"{name}.noise_gain", self.noise_gain(states), states, (n, "q"), hint)
+        hint = (
+            " (elementwise over the leading dims: index the state as x[..., i], not x[:, i]; the filters pass [..., n])"
+        )
+        _check_returned(f"{name}.drift", self.drift(x, u), x, (n,), hint)
+        g = _check_returned(f"{name}.noise_gain", self.noise_gain(x), x, (n, "q"), hint)
+        # then once at states no state size can be mistaken for (a function indexing x[:, i] returns another shape)
+        probe = elementwise_probe(x)
+        _check_returned(
+            f"{name}.drift", call_on_probe(f"{name}.drift", lambda z: self.drift(z, u), probe), probe, (n,), hint
+        )
+        _check_returned(
+            f"{name}.noise_gain", call_on_probe(f"{name}.noise_gain", self.noise_gain, probe), probe, (n, "q"), hint
+        )
         return g.shape[-1]
 
     # ----------------------------------------------------------- derived terms
@@ -491,12 +510,14 @@ class MeasurementModel(nn.Module):
                 f"{name}.noise_cov must be a covariance, with a non-negative diagonal, "
                 f"got diagonal {diagonal.detach().flatten()[:8].tolist()}"
             )
-        if d:  # positive semidefinite to rounding: R + τ·max|Rᵢᵢ|·I has a Cholesky factor (τ as the QP's convexity)
+        if d:  # positive semidefinite to rounding: R / max Rᵢᵢ + τ·I has a Cholesky factor (τ as the QP's convexity)
             Rd = R.detach()
             tol = max(1e-10, 100 * torch.finfo(Rd.dtype).eps)
-            scale = diagonal.detach().amax(-1).clamp_min(torch.finfo(Rd.dtype).tiny)[..., None, None]
+            scale = diagonal.detach().amax(-1)[..., None, None]
+            # a zero diagonal: R must be 0 (the off-diagonal entries, unscaled, then fail the factorisation)
+            unit = torch.where(scale > 0, Rd / torch.where(scale > 0, scale, 1.0), Rd)
             eye = torch.eye(d, dtype=Rd.dtype, device=Rd.device)
-            if bool((torch.linalg.cholesky_ex(Rd + tol * scale * eye).info != 0).any()):
+            if bool((torch.linalg.cholesky_ex(unit + tol * eye).info != 0).any()):
                 worst = torch.linalg.eigvalsh(Rd).amin(-1).flatten()
                 raise ValueError(
                     f"{name}.noise_cov must be a covariance, positive semidefinite, got a matrix with the "

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ..finite import check_finite
 from ..shapes import broadcast_shapes
-from .base import MeasurementModel, check_measurement_batch, elementwise_probe
+from .base import MeasurementModel, call_on_probe, check_measurement_batch, elementwise_probe
 
 __all__ = ["FunctionMeasurement"]
 
@@ -95,7 +95,7 @@ class FunctionMeasurement(MeasurementModel):
         if (name, n) in self._probed or x.numel() == 0:
             return
         probe = elementwise_probe(x)
-        value = function(probe)
+        value = call_on_probe(name, function, probe)
         want = (*probe.shape[:-1], *trailing)
         if not torch.is_tensor(value) or tuple(value.shape) != want:
             got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__

@@ -67,7 +67,8 @@ def test_the_inflation_is_the_covariance_of_the_mrp_error_a_held_rate_makes(norm
     frame), held over ``j`` steps, turns the attitude by ``δθ = δω jΔt`` (``C = exp(−[δθ×]) C(q̂)``, scipy's
     rotations); the covariance of the resulting MRP error equals what :meth:`GyroHold.step` accumulates and
     :meth:`GyroHold.inflate` adds, each entry within 5 standard errors ``sqrt((PᵢᵢPⱼⱼ + Pᵢⱼ²)/N)``.  The
-    angles (~1e-4 rad) keep the linearisation's error (~1e-4 relative) far below the standard error (~0.5 %)."""
+    angles (~1e-3 rad) keep the linearisation's error (~1e-3 relative, second order in the angle) below the
+    standard error (~0.5 %)."""
     from scipy.spatial.transform import Rotation
 
     sigma_h, dt, held, N = 1e-3, 0.1, 10, 100_000

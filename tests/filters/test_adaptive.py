@@ -339,6 +339,21 @@ def test_one_weight_update_object_serves_one_filter():
     copy = dataclasses.replace(update)
     assert copy.reg == 0.5 and copy.run is not update.run
     AdaptiveGaussianSumFilter(CubicDrift(), weight_update=copy)
+    # a filter pickles and deep-copies with its own update (the owner is not state); a shallow copy shares the
+    # update and is refused at its first step
+    import copy as copying
+    import pickle
+
+    mix = GaussianMixture.from_gaussian(
+        torch.tensor([[0.2], [1.0]], dtype=F64), torch.full((2, 1, 1), 0.05, dtype=F64), 3
+    )
+    first.predict(mix, None, 0.05)
+    for make in (lambda f: pickle.loads(pickle.dumps(f)), copying.deepcopy):
+        clone = make(first)  # the same run state: the same next step
+        assert clone.weight_update is not update
+        assert torch.equal(clone.predict(mix, None, 0.05).weights, first.predict(mix, None, 0.05).weights)
+    with pytest.raises(ValueError, match="already serves another filter"):
+        copying.copy(first).predict(mix, None, 0.05)
     del first
     gc.collect()
     AdaptiveGaussianSumFilter(CubicDrift(), weight_update=update)

@@ -143,7 +143,7 @@ def test_a_measurement_function_that_indexes_the_batch_dim_is_refused_even_where
     )
     y = torch.full((batch, 1), 0.5, dtype=torch.float64)
     # B = 4: the filters' own shapes tell; B = 2 = n: only the probe does
-    probe = r"act on every state of x \[\.\.\., n\] alike .*on states \[1, 3, 3, 2, n\] it returned \(1, 3, 2, 2, 1\)"
+    probe = r"act on every state of x \[\.\.\., n\] alike .*on states \[1, 2, 3, 2, n\] it returned \(1, 3, 2, 2, 1\)"
     message = r"return \[3, 4, 1\] for states x \[3, 4, n\]" if batch == 4 else probe
     with pytest.raises(ValueError, match=rf"fn must {message}.*index the state as x\[\.\.\., i\], not x\[:, i\]"):
         filt.update(mix, y, wrong)
@@ -298,8 +298,16 @@ def test_an_indefinite_noise_covariance_with_a_non_negative_diagonal_is_refused_
             ValueError, match=r"_Direct\.noise_cov must be a covariance, positive semidefinite, .* -0\.06"
         ):
             GaussianSumFilter(model, repair_covariance=repair).update(mix, y, _Direct(indefinite))
-    for R in (torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)):
-        assert torch.equal(_Direct(R).check_measurement(y), y)
+    for dtype in (torch.float64, torch.float32):  # R = 0 in float32 too (a floor of tiny had been flushed to 0)
+        for R in (
+            torch.tensor([[1.0, 1.0], [1.0, 1.0]]),
+            torch.zeros(2, 2),
+            torch.zeros(2, 2, 2),
+            1e-30 * torch.eye(2),
+        ):
+            assert torch.equal(_Direct(R.to(dtype)).check_measurement(y.to(dtype)), y.to(dtype))
+    with pytest.raises(ValueError, match=r"positive semidefinite"):  # a zero diagonal with off-diagonal entries
+        _Direct(torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=torch.float64)).check_measurement(y)
 
 
 def test_a_noise_covariance_symmetric_to_rounding_is_accepted_and_one_that_is_not_refused(gen):
@@ -417,3 +425,32 @@ def test_the_linear_models_input_is_refused_without_b_and_checked_against_b():
     x, u = torch.tensor([[1.0, 2.0]], dtype=torch.float64), torch.tensor([[3.0]], dtype=torch.float64)
     expected = torch.tensor([[2.0, -4.0 - 0.8 + 3.0]], dtype=torch.float64)
     torch.testing.assert_close(driven.drift(x, u), expected, rtol=1e-15, atol=0)
+
+
+def test_a_drift_written_for_the_filters_exact_shapes_is_refused_naming_the_probe():
+    """A drift that only works on ``[B, N, n]`` (an einsum over named dims with per-trajectory matrices) fails on the
+    probe's states: a ``ValueError`` naming the method, the probe's shape and the rule, not a raw einsum error."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    class Exact(ContinuousModel):
+        state_dim = 2
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.register_buffer("A", -torch.eye(2, dtype=torch.float64).expand(4, 2, 2).clone())
+
+        def drift(self, x, u=None):
+            return torch.einsum("bij,bnj->bni", self.A, x)
+
+        def noise_gain(self, x):
+            return torch.ones(*x.shape[:-1], 2, 1, dtype=x.dtype)
+
+        def noise_psd(self):
+            return torch.eye(1, dtype=torch.float64)
+
+    mix = GaussianMixture.from_gaussian(torch.zeros(4, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), 3)
+    with pytest.raises(
+        ValueError, match=r"Exact\.drift failed on states \[1, 2, 4, 3, n\] \(RuntimeError: .*act on every state"
+    ):
+        GaussianSumFilter(Exact()).predict(mix, None, 0.1)

@@ -100,13 +100,9 @@ class WeightUpdate:
     def __post_init__(self) -> None:
         positive_int("cadence", self.cadence)
 
-    def claim(self, filt: object) -> None:
-        """Make this update ``filt``'s (held by a weak reference: a filter that is gone frees it).
-
-        Raises:
-            ValueError: the update already serves another filter that still exists.
-        """
-        owner = getattr(self, "_owner", None)
+    def check_free(self, filt: object) -> None:
+        """Raise ``ValueError`` if this update serves another filter than ``filt`` that still exists."""
+        owner = self.__dict__.get("_owner")
         current = None if owner is None else owner()
         if current is not None and current is not filt:
             raise ValueError(
@@ -114,7 +110,18 @@ class WeightUpdate:
                 f"the cadence counter, is that filter's): give each filter its own, e.g. dataclasses.replace(update) "
                 f"or {type(self).__name__}(...) again"
             )
+
+    def claim(self, filt: object) -> None:
+        """Make this update ``filt``'s (:meth:`check_free` first).  The owner is held by a weak reference (a filter
+        that is gone frees its update) and is not part of the update's state: a pickled or deep-copied update has
+        none until its filter next checks a mixture."""
+        self.check_free(filt)
         object.__setattr__(self, "_owner", weakref.ref(filt))
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_owner", None)  # a weak reference does not pickle, and names a filter of this process
+        return state
 
     @property
     def diagnostic_keys(self) -> tuple[str, ...]:

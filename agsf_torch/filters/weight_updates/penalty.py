@@ -140,7 +140,7 @@ class PenaltyWeightUpdate(QuadratureUpdate):
             Lmat = fpke_matrix(
                 model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
             )
-            Lmat = without_rounding_rows(Lmat, comp.with_precision())
+            Lmat = without_rounding_rows(Lmat, comp.with_precision(), model)
         bad = ~torch.isfinite(Lmat.scaled).flatten(-2).all(-1) | ~torch.isfinite(Lmat.log_scale)
         if bool(bad.any()):
             idx = bad.nonzero()[0].tolist()
