@@ -41,6 +41,11 @@ def _gh_1d(m: int) -> tuple[np.ndarray, np.ndarray]:
     return x, w / math.sqrt(2.0 * math.pi)
 
 
+#: Largest tensor-product rule :func:`gauss_hermite` builds (40 points per axis in 6 dimensions, 4.1e9 nodes, had
+#: tried to allocate 30 GiB): beyond it a rule is refused before anything is allocated.
+MAX_PRODUCT_NODES = 2_000_000
+
+
 def gauss_hermite(
     points: int | tuple[int, ...], dim: int | None = None, dtype=torch.float64, device=None
 ) -> QuadratureRule:
@@ -60,6 +65,12 @@ def gauss_hermite(
     points = tuple(int(m) for m in points)
     if any(m < 1 for m in points):
         raise ValueError(f"points per axis must be ≥ 1, got {points}")
+    K = math.prod(points)
+    if K > MAX_PRODUCT_NODES:
+        raise ValueError(
+            f"a tensor-product Gauss–Hermite rule with {points} points per axis has {K:,} nodes, more than "
+            f"{MAX_PRODUCT_NODES:,}: use fewer points per axis or a sparse rule (smolyak_gauss_hermite)"
+        )
     rules = [_gh_1d(m) for m in points]
     grids = np.meshgrid(*[r[0] for r in rules], indexing="ij")
     wgrids = np.meshgrid(*[r[1] for r in rules], indexing="ij")

@@ -55,3 +55,15 @@ def test_node_counts_and_bad_groups():
         product_rule((((0, 1), 2),), 3)
     with pytest.raises(ValueError, match="degrees must be integers ≥ 0"):
         product_rule((((0, 1, 2), -1),), 3)
+
+
+def test_a_tensor_product_rule_too_large_to_build_is_refused_before_allocating():
+    """40 points per axis in 6 dimensions (4.1e9 nodes) had tried to allocate 30 GiB; it is refused naming the size,
+    and an adaptive filter given it is refused when built."""
+    from agsf_torch.filters import AdaptiveGaussianSumFilter, PenaltyWeightUpdate
+    from agsf_torch.models import AttitudeModel
+    from agsf_torch.quadrature import MAX_PRODUCT_NODES, gauss_hermite
+
+    with pytest.raises(ValueError, match=r"has 4,096,000,000 nodes, more than 2,000,000: use fewer points per axis"):
+        AdaptiveGaussianSumFilter(AttitudeModel(estimate_bias=True), weight_update=PenaltyWeightUpdate(quadrature=40))
+    assert gauss_hermite(11, 6)[0].shape == (11**6, 6) and 11**6 <= MAX_PRODUCT_NODES
