@@ -16,7 +16,6 @@ and all mixture components in one call.
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -25,8 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from ..finite import check_finite
-from ..mixture import check_symmetric
-from ..shapes import broadcast_shapes
+from .contract import check_measurement_batch, check_model_contract, check_noise_cov
 
 __all__ = [
     "check_measurement_batch",
@@ -55,87 +53,6 @@ def check_nonnegative(name: str, value) -> Tensor:
     if bool((t < 0).any()):
         raise ValueError(f"{name} must be non-negative, got {t.tolist()}")
     return t
-
-
-def check_measurement_batch(name: str, lead: tuple[int, ...], y: Tensor) -> None:
-    """Raise ``ValueError`` unless a measurement model's part ``name`` with leading dims ``lead`` is one per
-    trajectory (``lead`` equal to ``y [..., d]``'s leading dims) or one for all (``lead = ()``): a model built
-    for one trajectory and given a batch's ``y`` applied that trajectory's stars (or mask, or noise) to all."""
-    lead, want = tuple(lead), tuple(y.shape[:-1])
-    if lead not in ((), want):
-        raise ValueError(
-            f"the measurement's {name} has leading dims {lead}, y has {want}: build the measurement model from "
-            f"the same trajectories as y (one per trajectory, {want}, or one for all, no leading dims)"
-        )
-
-
-def _covers(lead: torch.Size, batch: torch.Size) -> bool:
-    """Whether an output's leading dims ``lead`` are ``batch`` broadcast with others (the shape contract)."""
-    try:
-        return broadcast_shapes(lead, batch) == lead
-    except RuntimeError:
-        return False
-
-
-@contextlib.contextmanager
-def _dtype_named(model: nn.Module, x: Tensor):
-    """Re-raise a ``RuntimeError`` from the model's own code as a ``ValueError`` naming the dtypes, where the model
-    holds floating-point tensors of another dtype than the states ``x`` (a user's float64 matrix against a float32
-    mixture fails inside torch with 'expected m1 and m2 to have the same dtype'); anything else passes through."""
-    try:
-        yield
-    except RuntimeError as exc:
-        held = sorted({str(t.dtype) for t in (*model.parameters(), *model.buffers()) if t.is_floating_point()})
-        if any(d != str(x.dtype) for d in held):
-            raise ValueError(
-                f"{type(model).__name__} failed on the mixture's {x.dtype} states while holding {', '.join(held)} "
-                f"tensors ({type(exc).__name__}: {exc}); build the mixture in float64 (the library's convention) or "
-                f"convert the model (model.to({x.dtype}))"
-            ) from exc
-        raise
-
-
-def _check_returned(what: str, value: Any, states: Tensor, event: tuple, hint: str) -> Tensor:
-    """``value`` if it is a tensor ``[..., *event]`` whose leading dims cover ``states``' (``"q"`` in ``event``: any
-    size), else a ``ValueError`` naming ``what``, the shape expected for ``states`` and the one returned."""
-    k = len(event)
-    fits = (
-        isinstance(value, Tensor)
-        and value.dim() >= k
-        and all(want == "q" or have == want for have, want in zip(value.shape[-k:], event))
-        and _covers(value.shape[:-k], states.shape[:-1])
-    )
-    if not fits:
-        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-        shape = "..., n, q" if k == 2 else "..., n"
-        raise ValueError(
-            f"{what} must return [{shape}] = {(*states.shape[:-1], *event)} for x {tuple(states.shape)}, got {got}{hint}"
-        )
-    return value
-
-
-def elementwise_probe(x: Tensor) -> Tensor:
-    """States to call a model's function on once, to check that it acts on ``x [..., n]`` elementwise over the
-    leading dims: ``x`` under two new leading dims, ``[1, s, *x.shape]`` with ``s = 2`` (3 where ``x``'s first dim
-    is 2), ``x``'s own leading dims, which per-trajectory parameters broadcast against, kept in place.  A function
-    that indexes ``x[:, i]`` instead of ``x[..., i]`` picks along the new ``s`` axis and returns another shape, even
-    where the filters' own shapes cannot tell (``[N, B, n]`` with ``B = n``).  ``s`` copies of ``x``: one call per
-    model, not per step."""
-    s = 3 if x.dim() and x.shape[0] == 2 else 2
-    return x.unsqueeze(0).unsqueeze(0).expand(1, s, *x.shape).clone()
-
-
-def call_on_probe(what: str, function: Callable[[Tensor], Any], probe: Tensor) -> Any:
-    """``function(probe)``, a failure re-raised as a ``ValueError`` naming ``what`` and the probe's shape (a function
-    written for the filters' exact shapes, ``[B, N, n]`` say, rather than elementwise)."""
-    try:
-        return function(probe)
-    except (RuntimeError, IndexError) as exc:
-        raise ValueError(
-            f"{what} failed on states [{', '.join(map(str, (*probe.shape[:-1], 'n')))}] ({type(exc).__name__}: "
-            f"{exc}): it must act on every state of x [..., n] alike, whatever the leading dims (index the state "
-            "as x[..., i], let parameters broadcast)"
-        ) from exc
 
 
 def batched_jacobian(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
@@ -259,43 +176,12 @@ class ContinuousModel(nn.Module):
 
     def check_contract(self, x: Tensor, u: Tensor | None) -> None:
         """Refuse (``ValueError`` naming the method, the shape expected and the one returned) a model whose
-        :meth:`drift`, :meth:`noise_gain` or :meth:`noise_psd` breaks the shape contract at ``x [..., n]``, or
-        whose ``Q`` is not a finite symmetric positive semidefinite matrix (a negative density was accepted
-        and integrated).  The filters call it once, at their first ``predict`` with this model, before anything
-        changes; a subclass may extend it."""
-        name = type(self).__name__
-        with _dtype_named(self, x):
-            q = self._check_shapes(x, u)
-        Q = self.noise_psd()
-        if not isinstance(Q, Tensor) or Q.shape != (q, q):
-            got = tuple(Q.shape) if isinstance(Q, Tensor) else type(Q).__name__
-            raise ValueError(f"{name}.noise_psd must return [q, q] = {(q, q)} (q: noise_gain's last dim), got {got}")
-        check_symmetric(f"{name}.noise_psd", Q.detach())
-        eigenvalues = torch.linalg.eigvalsh(Q.detach().to(torch.float64))
-        if q and float(eigenvalues[0]) < -1e-12 * float(eigenvalues.abs().max()):
-            raise ValueError(
-                f"{name}.noise_psd must be positive semidefinite (a spectral density), got eigenvalues "
-                f"{eigenvalues.tolist()}"
-            )
-
-    def _check_shapes(self, x: Tensor, u: Tensor | None) -> int:
-        """:meth:`check_contract`'s shape checks of :meth:`drift` and :meth:`noise_gain` at ``x``, then at
-        :func:`elementwise_probe` states; returns ``q``, the noise gain's last dim."""
-        name, n = type(self).__name__, self.state_dim
-        hint = (
-            " (elementwise over the leading dims: index the state as x[..., i], not x[:, i]; the filters pass [..., n])"
-        )
-        _check_returned(f"{name}.drift", self.drift(x, u), x, (n,), hint)
-        g = _check_returned(f"{name}.noise_gain", self.noise_gain(x), x, (n, "q"), hint)
-        # then once at states no state size can be mistaken for (a function indexing x[:, i] returns another shape)
-        probe = elementwise_probe(x)
-        _check_returned(
-            f"{name}.drift", call_on_probe(f"{name}.drift", lambda z: self.drift(z, u), probe), probe, (n,), hint
-        )
-        _check_returned(
-            f"{name}.noise_gain", call_on_probe(f"{name}.noise_gain", self.noise_gain, probe), probe, (n, "q"), hint
-        )
-        return g.shape[-1]
+        :meth:`drift`, :meth:`noise_gain` or :meth:`noise_psd` breaks the shape contract at ``x [..., n]`` (also at
+        :func:`~.contract.elementwise_probe` states), or whose ``Q`` is not a finite symmetric positive semidefinite
+        matrix (a negative density was accepted and integrated): :func:`~.contract.check_model_contract`.  The
+        filters call it once, at their first ``predict`` with this model, before anything changes; a subclass may
+        extend it."""
+        check_model_contract(self, x, u)
 
     # ----------------------------------------------------------- derived terms
     def drift_jacobian(self, x: Tensor, u: Tensor | None) -> Tensor:
@@ -483,8 +369,8 @@ class MeasurementModel(nn.Module):
 
         Called by the filters before anything changes.  The default checks that :meth:`mask`,
         if any, has ``d`` entries, that the mask and the noise are one per trajectory of ``y`` or one for all
-        (:func:`check_measurement_batch`), and that :meth:`noise_cov` is a finite symmetric ``[d, d]`` or
-        ``[..., d, d]`` matrix (:func:`~agsf_torch.mixture.check_symmetric`) with a non-negative diagonal (a negative variance was reported as a
+        (:func:`~.contract.check_measurement_batch`), and that :meth:`noise_cov` is a finite symmetric ``[d, d]`` or
+        ``[..., d, d]`` positive semidefinite matrix (:func:`~.contract.check_noise_cov`; a negative variance was reported as a
         component covariance losing definiteness, a wrong size as a raw solver error); subclasses add their
         own checks (the size ``d``, unit vectors…) and may return a corrected ``y`` (e.g. normalised).
 
@@ -503,25 +389,5 @@ class MeasurementModel(nn.Module):
         if mask is not None:
             check_measurement_batch("mask", mask.shape[:-1], y)
         check_measurement_batch(f"{name}.noise_cov", R.shape[:-2], y)
-        check_symmetric(f"{name}.noise_cov", R.detach())
-        diagonal = R.diagonal(dim1=-2, dim2=-1)
-        if not bool((diagonal >= 0).all()):
-            raise ValueError(
-                f"{name}.noise_cov must be a covariance, with a non-negative diagonal, "
-                f"got diagonal {diagonal.detach().flatten()[:8].tolist()}"
-            )
-        if d:  # positive semidefinite to rounding: R / max Rᵢᵢ + τ·I has a Cholesky factor (τ as the QP's convexity)
-            Rd = R.detach()
-            tol = max(1e-10, 100 * torch.finfo(Rd.dtype).eps)
-            scale = diagonal.detach().amax(-1)[..., None, None]
-            # a zero diagonal: R must be 0 (the off-diagonal entries, unscaled, then fail the factorisation)
-            unit = torch.where(scale > 0, Rd / torch.where(scale > 0, scale, 1.0), Rd)
-            eye = torch.eye(d, dtype=Rd.dtype, device=Rd.device)
-            if bool((torch.linalg.cholesky_ex(unit + tol * eye).info != 0).any()):
-                worst = torch.linalg.eigvalsh(Rd).amin(-1).flatten()
-                raise ValueError(
-                    f"{name}.noise_cov must be a covariance, positive semidefinite, got a matrix with the "
-                    f"eigenvalue {float(worst.min()):.3g} (with a non-negative diagonal: an off-diagonal entry is "
-                    "larger than the variances allow)"
-                )
+        check_noise_cov(f"{name}.noise_cov", R)
         return y

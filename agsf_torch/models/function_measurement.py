@@ -11,7 +11,8 @@ from torch import Tensor
 
 from ..finite import check_finite
 from ..shapes import broadcast_shapes
-from .base import MeasurementModel, call_on_probe, check_measurement_batch, elementwise_probe
+from .base import MeasurementModel
+from .contract import call_on_probe, check_measurement_batch, elementwise_probe
 
 __all__ = ["FunctionMeasurement"]
 
@@ -88,7 +89,7 @@ class FunctionMeasurement(MeasurementModel):
         return value
 
     def _probe(self, name: str, function: Callable[[Tensor], Tensor], x: Tensor, trailing: tuple[int, ...]) -> None:
-        """Once per state size ``n``: call ``function`` on :func:`~.base.elementwise_probe` states, whose leading dims no
+        """Once per state size ``n``: call ``function`` on :func:`~.contract.elementwise_probe` states, whose leading dims no
         state size can be mistaken for (the filters' own, ``[N, B, n]``, are ``[N, n, n]`` when ``B = n``: a function
         indexing ``x[:, i]`` then returns the right shape and wrong numbers)."""
         n = x.shape[-1]
