@@ -30,6 +30,7 @@ from ..finite import all_finite
 from ..gating import chi2_threshold, innovation_gate
 from ..mixture import GaussianMixture, as_real_tensor
 from ..models.base import ContinuousModel, MeasurementModel
+from ..models.contract import check_measurement_elementwise
 from ..update import ComponentUpdate, kalman_update
 from .options import FilterOptions
 from .step_diagnostics import StepDiagnostics
@@ -327,7 +328,7 @@ class BaseFilter:
             raise TypeError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
         y = as_real_tensor("y", y, mixture.means.dtype, mixture.means.device)
         check_batched("y", y, mixture.batch_shape)
-        return measurement.check_measurement(y)  # the model's own checks (size d, unit vectors…)
+        return check_measurement_elementwise(measurement, mixture.means, measurement.check_measurement(y))
 
     def _update_frame(self, mixture: GaussianMixture, measurement: MeasurementModel) -> UpdateFrame:
         """The coordinates of the Kalman step; by default the mixture itself."""

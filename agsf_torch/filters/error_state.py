@@ -147,6 +147,9 @@ class ErrorStateMeasurement(MeasurementModel):
     and :func:`~agsf_torch.gating.innovation_gate` run on it unchanged.
     """
 
+    #: Not probed by :func:`~agsf_torch.models.contract.check_measurement_elementwise` (checked otherwise).
+    elementwise_checked = True
+
     def __init__(self, measurement: MeasurementModel, quat: Tensor, bias: Tensor) -> None:
         super().__init__()
         self.inner = measurement

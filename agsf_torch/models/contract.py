@@ -4,8 +4,9 @@
   and ``[..., n, q]``, and ``Q`` is a finite symmetric positive semidefinite ``[q, q]``
   (:func:`check_model_contract`, once per filter and model), also on :func:`elementwise_probe` states, which catch
   a function indexing ``x[:, i]`` where the filters' own shapes cannot;
-* a measurement's parts are one per trajectory or one for all (:func:`check_measurement_batch`) and its noise
-  covariance is positive semidefinite (:func:`check_noise_cov`).
+* a measurement's parts are one per trajectory or one for all (:func:`check_measurement_batch`), its noise
+  covariance is positive semidefinite (:func:`check_noise_cov`) and its ``predict`` acts on every state alike
+  (:func:`check_measurement_elementwise`, once per measurement object).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ __all__ = [
     "check_model_contract",
     "check_measurement_batch",
     "check_noise_cov",
+    "check_measurement_elementwise",
     "elementwise_probe",
     "call_on_probe",
 ]
@@ -170,3 +172,31 @@ def check_noise_cov(name: str, R: Tensor) -> None:
             f"{float(worst.min()):.3g} (with a non-negative diagonal: an off-diagonal entry is larger than the "
             "variances allow)"
         )
+
+
+def check_measurement_elementwise(measurement: nn.Module, means: Tensor, y: Tensor) -> Tensor:
+    """``y [..., d]`` (the measurement's own checks passed), after, once per measurement object, its ``predict`` on
+    :func:`elementwise_probe` states built from the components' means ``[..., N, n]`` as the filters pass them
+    (components first, ``[N, ..., n]``) returned ``[*probe_lead, d]``; a ``predict`` indexing ``x[:, i]`` returns another shape, even where ``B = n`` makes the
+    filters' own call look right.  A class that sets ``elementwise_checked = True`` (the library's own, whose tests
+    check them; :class:`~.function_measurement.FunctionMeasurement`, which probes its function itself) is skipped.
+
+    Raises:
+        ValueError: naming the class, the probe's shape and what it returned.
+    """
+    if getattr(measurement, "elementwise_checked", False) or means.numel() == 0:
+        return y
+    d = y.shape[-1]
+    probe = elementwise_probe(means.movedim(-2, 0))
+    name = f"{type(measurement).__name__}.predict"
+    value = call_on_probe(name, measurement.predict, probe)
+    want = (*probe.shape[:-1], d)
+    if not isinstance(value, Tensor) or tuple(value.shape) != want:
+        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(
+            f"{name} must act on every state of x [..., n] alike (elementwise over the leading dims): on states "
+            f"[{', '.join(map(str, (*probe.shape[:-1], 'n')))}] it returned {got}, not {want} (index the state as "
+            "x[..., i], not x[:, i]: the filters pass [N, B, n])"
+        )
+    measurement.elementwise_checked = True
+    return y

@@ -33,6 +33,9 @@ class FunctionMeasurement(MeasurementModel):
     mismatch is a ``ValueError`` naming the argument, never a broadcast.
     """
 
+    #: Not probed by :func:`~agsf_torch.models.contract.check_measurement_elementwise` (checked otherwise).
+    elementwise_checked = True
+
     def __init__(
         self,
         fn: Callable[[Tensor], Tensor],

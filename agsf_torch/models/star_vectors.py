@@ -108,6 +108,9 @@ class StarVectorMeasurement(MeasurementModel):
     (:meth:`check_measurement`; module docstring).
     """
 
+    #: Not probed by :func:`~agsf_torch.models.contract.check_measurement_elementwise` (checked otherwise).
+    elementwise_checked = True
+
     block_size = 3  # one star: gated as a whole
 
     def __init__(

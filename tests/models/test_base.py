@@ -454,3 +454,33 @@ def test_a_drift_written_for_the_filters_exact_shapes_is_refused_naming_the_prob
         ValueError, match=r"Exact\.drift failed on states \[1, 2, 4, 3, n\] \(RuntimeError: .*act on every state"
     ):
         GaussianSumFilter(Exact()).predict(mix, None, 0.1)
+
+
+@pytest.mark.parametrize("batch", [2, 4])
+def test_a_measurement_subclass_whose_predict_indexes_the_batch_dim_is_refused_once(batch):
+    """A user's ``MeasurementModel`` subclass with ``predict`` written as ``x[:, 0]``: with ``B = n`` the filters' own
+    call returns the right shape and wrong numbers; the first update probes ``predict`` once per measurement object
+    and refuses it naming the fix, before anything changes; the elementwise one passes and is not probed again."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    class Position(MeasurementModel):
+        def __init__(self, index) -> None:
+            super().__init__()
+            self.index = index
+
+        def predict(self, x):
+            return self.index(x).unsqueeze(-1)
+
+        def noise_cov(self):
+            return torch.full((1, 1), 0.01, dtype=torch.float64)
+
+    model = LinearModel(torch.zeros(2, 2), torch.eye(2), torch.eye(2))
+    mix = GaussianMixture.from_gaussian(torch.ones(batch, 2, dtype=torch.float64), torch.eye(2).expand(batch, 2, 2), 3)
+    y = torch.zeros(batch, 1, dtype=torch.float64)
+    filt = GaussianSumFilter(model)
+    with pytest.raises(ValueError, match=r"Position\.predict (must act on every state|failed on states)"):
+        filt.update(mix, y, Position(lambda x: x[:, 0]))
+    right = Position(lambda x: x[..., 0])
+    filt.update(mix, y, right)
+    assert right.elementwise_checked is True
