@@ -145,6 +145,10 @@ def _check_shapes(model: nn.Module, x: Tensor, u: Tensor | None) -> int:
     _check_returned(
         f"{name}.noise_gain", call_on_probe(f"{name}.noise_gain", model.noise_gain, probe), probe, (n, "q"), hint
     )
+    if type(model).drift_jacobian.__qualname__ != "ContinuousModel.drift_jacobian":  # a closed form of the model's own
+        what = f"{name}.drift_jacobian"
+        _check_returned(what, model.drift_jacobian(x, u), x, (n, n), hint)
+        _check_returned(what, call_on_probe(what, lambda z: model.drift_jacobian(z, u), probe), probe, (n, n), hint)
     return g.shape[-1]
 
 
@@ -188,15 +192,20 @@ def check_measurement_elementwise(measurement: nn.Module, means: Tensor, y: Tens
         return y
     d = y.shape[-1]
     probe = elementwise_probe(means.movedim(-2, 0))
-    name = f"{type(measurement).__name__}.predict"
-    value = call_on_probe(name, measurement.predict, probe)
-    want = (*probe.shape[:-1], d)
-    if not isinstance(value, Tensor) or tuple(value.shape) != want:
-        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-        raise ValueError(
-            f"{name} must act on every state of x [..., n] alike (elementwise over the leading dims): on states "
-            f"[{', '.join(map(str, (*probe.shape[:-1], 'n')))}] it returned {got}, not {want} (index the state as "
-            "x[..., i], not x[:, i]: the filters pass [N, B, n])"
-        )
+    n = means.shape[-1]
+    checks = [("predict", (d,))]
+    if type(measurement).jacobian.__qualname__ != "MeasurementModel.jacobian":  # a closed form of the model's own
+        checks.append(("jacobian", (d, n)))
+    for method, event in checks:
+        name = f"{type(measurement).__name__}.{method}"
+        value = call_on_probe(name, getattr(measurement, method), probe)
+        want = (*probe.shape[:-1], *event)
+        if not isinstance(value, Tensor) or tuple(value.shape) != want:
+            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            raise ValueError(
+                f"{name} must act on every state of x [..., n] alike (elementwise over the leading dims): on states "
+                f"[{', '.join(map(str, (*probe.shape[:-1], 'n')))}] it returned {got}, not {want} (index the state as "
+                "x[..., i], not x[:, i]: the filters pass [N, B, n])"
+            )
     measurement.elementwise_checked = True
     return y

@@ -484,3 +484,45 @@ def test_a_measurement_subclass_whose_predict_indexes_the_batch_dim_is_refused_o
     right = Position(lambda x: x[..., 0])
     filt.update(mix, y, right)
     assert right.elementwise_checked is True
+
+
+def test_closed_form_jacobians_are_probed_like_the_functions_they_differentiate():
+    """A drift Jacobian or a measurement Jacobian written in closed form with ``x[:, i]`` (the functions themselves
+    elementwise) linearised every component at the wrong state where the shapes coincide (``N = n``, ``B = n``);
+    both are refused at their first use, before anything changes."""
+    from agsf_torch import GaussianMixture
+    from agsf_torch.filters import GaussianSumFilter
+
+    class Pendulum2(ContinuousModel):
+        state_dim = 2
+
+        def drift(self, x, u=None):
+            return torch.stack((x[..., 1], -torch.sin(x[..., 0])), -1)
+
+        def drift_jacobian(self, x, u=None):
+            zero, one = torch.zeros_like(x[:, 0]), torch.ones_like(x[:, 0])  # x[:, 0]: the wrong axis
+            return torch.stack((zero, one, -torch.cos(x[:, 0]), zero), -1).unflatten(-1, (2, 2))
+
+        def noise_gain(self, x):
+            return torch.ones(*x.shape[:-1], 2, 1, dtype=x.dtype)
+
+        def noise_psd(self):
+            return torch.eye(1, dtype=torch.float64)
+
+    class Angle(MeasurementModel):
+        def predict(self, x):
+            return x[..., :1]
+
+        def jacobian(self, x):
+            return torch.stack((torch.ones_like(x[:, 0]), torch.zeros_like(x[:, 0])), -1).unsqueeze(-2)
+
+        def noise_cov(self):
+            return torch.full((1, 1), 0.01, dtype=torch.float64)
+
+    mix = GaussianMixture.from_gaussian(torch.ones(2, 2, dtype=torch.float64), torch.eye(2).expand(2, 2, 2), 2)
+    with pytest.raises(ValueError, match=r"Pendulum2\.drift_jacobian"):
+        GaussianSumFilter(Pendulum2()).predict(mix, None, 0.1)
+    with pytest.raises(ValueError, match=r"Angle\.jacobian must act on every state"):
+        GaussianSumFilter(LinearModel(torch.zeros(2, 2), torch.eye(2), torch.eye(2))).update(
+            mix, torch.zeros(2, 1, dtype=torch.float64), Angle()
+        )
