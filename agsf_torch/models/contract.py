@@ -26,6 +26,7 @@ __all__ = [
     "check_measurement_batch",
     "check_noise_cov",
     "check_measurement_elementwise",
+    "check_elementwise",
     "elementwise_probe",
     "call_on_probe",
 ]
@@ -112,6 +113,25 @@ def call_on_probe(what: str, function: Callable[[Tensor], Any], probe: Tensor) -
         ) from exc
 
 
+def check_elementwise(name: str, function: Callable[[Tensor], Any], x: Tensor, event: tuple[int, ...]) -> None:
+    """Call ``function`` (a measurement's ``predict`` or ``jacobian``, say) on :func:`elementwise_probe` states built
+    from ``x [..., n]`` and require exactly ``[*probe_lead, *event]`` back.
+
+    Raises:
+        ValueError: naming ``name``, the probe's shape and what it returned (or why the call failed).
+    """
+    probe = elementwise_probe(x)
+    value = call_on_probe(name, function, probe)
+    want = (*probe.shape[:-1], *event)
+    if not isinstance(value, Tensor) or tuple(value.shape) != want:
+        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(
+            f"{name} must act on every state of x [..., n] alike (elementwise over the leading dims): on states "
+            f"[{', '.join(map(str, (*probe.shape[:-1], 'n')))}] it returned {got}, not {want} (index the state as "
+            "x[..., i], not x[:, i]: the filters pass [..., n])"
+        )
+
+
 def check_model_contract(model: nn.Module, x: Tensor, u: Tensor | None) -> None:
     """:meth:`~.base.ContinuousModel.check_contract`: the drift's and noise gain's shapes at ``x`` and at
     :func:`elementwise_probe` states (a failure there, or in any call while the model holds tensors of another dtype
@@ -191,21 +211,13 @@ def check_measurement_elementwise(measurement: nn.Module, means: Tensor, y: Tens
     if getattr(measurement, "elementwise_checked", False) or means.numel() == 0:
         return y
     d = y.shape[-1]
-    probe = elementwise_probe(means.movedim(-2, 0))
     n = means.shape[-1]
     checks = [("predict", (d,))]
     if type(measurement).jacobian.__qualname__ != "MeasurementModel.jacobian":  # a closed form of the model's own
         checks.append(("jacobian", (d, n)))
-    for method, event in checks:
-        name = f"{type(measurement).__name__}.{method}"
-        value = call_on_probe(name, getattr(measurement, method), probe)
-        want = (*probe.shape[:-1], *event)
-        if not isinstance(value, Tensor) or tuple(value.shape) != want:
-            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-            raise ValueError(
-                f"{name} must act on every state of x [..., n] alike (elementwise over the leading dims): on states "
-                f"[{', '.join(map(str, (*probe.shape[:-1], 'n')))}] it returned {got}, not {want} (index the state as "
-                "x[..., i], not x[:, i]: the filters pass [N, B, n])"
-            )
+    for method, event in checks:  # the states as the filters pass them: components first
+        check_elementwise(
+            f"{type(measurement).__name__}.{method}", getattr(measurement, method), means.movedim(-2, 0), event
+        )
     measurement.elementwise_checked = True
     return y

@@ -12,7 +12,7 @@ from torch import Tensor
 from ..finite import check_finite
 from ..shapes import broadcast_shapes
 from .base import MeasurementModel
-from .contract import call_on_probe, check_measurement_batch, elementwise_probe
+from .contract import check_elementwise, check_measurement_batch
 
 __all__ = ["FunctionMeasurement"]
 
@@ -98,16 +98,7 @@ class FunctionMeasurement(MeasurementModel):
         n = x.shape[-1]
         if (name, n) in self._probed or x.numel() == 0:
             return
-        probe = elementwise_probe(x)
-        value = call_on_probe(name, function, probe)
-        want = (*probe.shape[:-1], *trailing)
-        if not torch.is_tensor(value) or tuple(value.shape) != want:
-            got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
-            raise ValueError(
-                f"{name} must act on every state of x [..., n] alike (elementwise over the leading dims): on states "
-                f"[{', '.join(map(str, (*probe.shape[:-1], 'n')))}] it returned {got}, not {want} (index the state "
-                "as x[..., i], not x[:, i]: the filters pass [..., n])"
-            )
+        check_elementwise(name, function, x, trailing)
         self._probed.add((name, n))
 
     def predict(self, x: Tensor) -> Tensor:
