@@ -93,6 +93,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         force=args.force,
         writers=args.writers,
         threads=args.threads,
+        jobs=args.jobs,
     )
     print(table)
     print(f"results: {args.out}/ — tables {args.out}/results.md, numbers {args.out}/summary.json")

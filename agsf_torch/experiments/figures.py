@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..storage.files import save_figure
+from .figure_layout import fit_grid
 from .file_writer import FileWriter
 
 __all__ = [
@@ -130,7 +131,7 @@ def rms_figure(summary: dict[str, Any]) -> Any:
         handles.append(star)
         labels.append("star frame")
     ax.legend(handles, labels, fontsize=8)
-    fig.tight_layout()
+    fit_grid(fig, [[ax]])
     return fig
 
 
@@ -257,7 +258,7 @@ def axes_figure(summary: dict[str, Any]) -> Any:
         fontsize=11,
     )
     rows_of_legend = -(-len(labels) // ncol)
-    fig.tight_layout(rect=(0, (0.25 + 0.22 * rows_of_legend) / fig.get_figheight(), 1, 1))
+    fit_grid(fig, grid, bottom_band=0.25 + 0.22 * rows_of_legend)
     return fig
 
 
@@ -320,7 +321,7 @@ def weights_figure(summary: dict[str, Any]) -> Any:
         "(stacked: each band's thickness is one component's weight)",
         fontsize=11,
     )
-    fig.tight_layout(rect=(0, (0.4 if ncomp <= 7 else 0.7) / fig.get_figheight(), 1, 1))
+    fit_grid(fig, grid, bottom_band=0.4 if ncomp <= 7 else 0.7)
     return fig
 
 
@@ -374,7 +375,7 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
             va="center",
             transform=ax.transAxes,
         )
-    fig.tight_layout()
+    fit_grid(fig, [[ax]])
     return fig
 
 

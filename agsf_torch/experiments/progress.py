@@ -13,12 +13,29 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
-__all__ = ["progress_bar", "LOG_INTERVAL_S", "LOG_FRACTION"]
+__all__ = ["progress_bar", "bars_side_by_side", "at_position", "LOG_INTERVAL_S", "LOG_FRACTION"]
 
 #: Seconds between two progress lines when stderr is not a terminal.
 LOG_INTERVAL_S = 10.0
 #: Fraction of the work between two progress lines when stderr is not a terminal.
 LOG_FRACTION = 0.05
+#: The terminal line (0: the first) of this process's bars, when processes show bars side by side.
+_position: int | None = None
+
+
+def bars_side_by_side() -> None:
+    """Prepare this process's children to draw bars at once (:func:`at_position`): tqdm's lock, created here, is the
+    one every forked child then takes to move the cursor, so that their redraws do not cut into each other."""
+    from tqdm.auto import tqdm
+
+    tqdm.get_lock()
+
+
+def at_position(position: int) -> None:
+    """Draw this process's bars on terminal line ``position`` (a forked child's, beside its siblings': tqdm's
+    ``position``; elsewhere each line is whole and names its bar)."""
+    global _position
+    _position = position
 
 
 class _Lines:
@@ -74,7 +91,7 @@ def progress_bar(
     from tqdm.auto import tqdm
 
     if disable or _is_terminal():
-        return tqdm(iterable, desc=desc, unit=unit, total=total, disable=disable, leave=leave)
+        return tqdm(iterable, desc=desc, unit=unit, total=total, disable=disable, leave=leave, position=_position)
     lines = _Lines(max(1, int(LOG_FRACTION * total)) if total else 1)
     bar = tqdm(
         iterable,

@@ -17,15 +17,18 @@ import json
 from pathlib import Path
 
 from ..filters.registry import ADAPTIVE_FILTERS
+from ..processes import available_cpus
 from ..storage.files import write_json, write_text
 from .config import load_config
-from .experiment import prepare_output, run_experiment
-from .file_writer import check_writers, writing_beside
-from .resources import available_memory, check_memory, writer_memory
+from .experiment import make_filters, prepare_output, run_experiment
+from .file_writer import PRELOAD_MODULES, check_writers, writing_beside
+from .forked import fork_available, run_forked
+from .progress import at_position, bars_side_by_side
+from .resources import available_memory, check_memory, check_memory_side_by_side, writer_memory
 from .statistics import WINDOW_TEXT, minus_gsf_key
 from .tensorboard_log import hparam_domains, write_hparams_session
 
-__all__ = ["reproduce", "results_table"]
+__all__ = ["reproduce", "results_table", "default_jobs", "check_jobs"]
 
 
 def reproduce(
@@ -37,6 +40,7 @@ def reproduce(
     force: bool = False,
     writers: int | None = None,
     threads: int | None = None,
+    jobs: int | None = None,
 ) -> str:
     """Run ``case{k}`` presets (with ``overrides``) under ``out/case{k}``; write the
     combined ``summary.json`` and ``results.md``; return the Markdown table.  Every case is
@@ -48,11 +52,23 @@ def reproduce(
     this process helps with what is left.  The cases run with
     ``threads`` torch threads (default: torch's, capped so that they and the writers fit the CPUs), restored
     afterwards.  The memory check counts the writers (:func:`~.resources.writer_memory`).  The files are
-    the same with and without writers (byte for byte; the event files' records)."""
+    the same with and without writers (byte for byte; the event files' records).
+
+    With ``jobs`` > 1 the cases instead run side by side, ``jobs`` at once, each in a process forked from this one
+    that runs it end to end and writes its files (:mod:`.forked`; ``threads`` torch threads each, default the CPUs
+    shared out, at least 1; no writers: ``writers`` must be None or 0); their numbers and files are those of the
+    cases run one after another.  Default (``None``): every case at once where fork is available and the process
+    may use two CPUs or more (:func:`default_jobs`), else 1.  The memory check then counts the cases that run at
+    once (:func:`~.resources.check_memory_side_by_side`)."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
-    writers = check_writers(writers, threads)
-    for cfg in configs.values():
-        check_memory(cfg, force=force, budget=available_memory() - writer_memory(cfg, writers))
+    jobs = check_jobs(jobs, len(configs), writers)
+    if jobs > 1:
+        check_writers(0, threads)
+        check_memory_side_by_side(list(configs.values()), jobs, force=force)
+    else:
+        writers = check_writers(writers, threads)
+        for cfg in configs.values():
+            check_memory(cfg, force=force, budget=available_memory() - writer_memory(cfg, writers))
     digest = hashlib.sha256(
         json.dumps({k: c.digest() for k, c in configs.items()}, sort_keys=True).encode()
     ).hexdigest()[:16]
@@ -60,17 +76,73 @@ def reproduce(
     hparams = {name: case_hparams(name, cfg.to_dict()) for name, cfg in configs.items()}
     domains = hparam_domains(hparams.values())
     combined = {}
-    with writing_beside(writers, threads) as writer:
-        for name, cfg in configs.items():
-            summary = run_experiment(
-                cfg, out / name, progress=progress, kind="reproduce-case", force=force, writer=writer
-            )
-            combined[name] = _case_summary(cfg, summary)
-            write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(combined[name]), domains)
+    if jobs > 1:
+        each = threads or max(1, available_cpus() // jobs)
+        if progress:
+            bars_side_by_side()
+        tasks = [
+            (_run_case, (cfg, out / name, progress, force, each, i)) for i, (name, cfg) in enumerate(configs.items())
+        ]
+        make_filters(next(iter(configs.values())))  # the rules and tables every case's filters share, built once
+        done = run_forked(tasks, jobs, names=list(configs), preload=CASE_MODULES)
+        for name, case in zip(configs, done):
+            combined[name] = case
+            write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(case), domains)
+    else:
+        with writing_beside(writers, threads) as writer:
+            for name, cfg in configs.items():
+                summary = run_experiment(
+                    cfg, out / name, progress=progress, kind="reproduce-case", force=force, writer=writer
+                )
+                combined[name] = _case_summary(cfg, summary)
+                write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(combined[name]), domains)
     write_json(out / "summary.json", combined, indent=2)
     table = results_table(combined)
     write_text(out / "results.md", table + "\n")
     return table
+
+
+#: What a case's process imports to write its files (:func:`reproduce` imports them before forking, once).
+CASE_MODULES = (*PRELOAD_MODULES, "tensorboard.compat.proto.event_pb2", "google_crc32c", "scipy.special")
+
+
+def default_jobs(cases: int) -> int:
+    """Cases at once by default: all of them where fork is available (:func:`.forked.fork_available`) and the process
+    may use two CPUs or more (three cases on two cores take turns on both, which balances better than two at once
+    then one), else 1."""
+    return cases if cases > 1 and fork_available() and available_cpus() >= 2 else 1
+
+
+def check_jobs(jobs: int | None, cases: int, writers: int | None) -> int:
+    """Validate ``jobs`` (before anything is created) and return it (``None``: :func:`default_jobs`).
+
+    Raises:
+        ValueError: ``jobs`` not a positive integer; more than 1 where fork is absent; more than 1 with ``writers``
+            (each case's process writes its own files: writers apply to cases run one after another).
+    """
+    if jobs is None:
+        return 1 if writers else default_jobs(cases)
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
+    jobs = min(jobs, max(1, cases))
+    if jobs > 1 and not fork_available():
+        raise ValueError("cases run side by side in forked processes, which this system lacks: use jobs=1")
+    if jobs > 1 and writers:
+        raise ValueError(
+            "writers apply to cases run one after another (jobs=1); cases run side by side write their own files"
+        )
+    return jobs
+
+
+def _run_case(cfg, out: Path, progress: bool, force: bool, threads: int, position: int) -> dict:
+    """A case run end to end in a forked process (:func:`reproduce`): ``threads`` torch threads, its progress bar on
+    terminal line ``position``; returns its entry of the combined summary."""
+    import torch
+
+    torch.set_num_threads(threads)
+    at_position(position)
+    summary = run_experiment(cfg, out, progress=progress, kind="reproduce-case", force=force)
+    return _case_summary(cfg, summary)
 
 
 def _case_summary(cfg, summary: dict) -> dict:

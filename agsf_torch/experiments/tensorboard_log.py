@@ -43,10 +43,12 @@ its curves.  :func:`run_name` names such a directory by its parameters.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
 import shutil
+import struct
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -175,26 +177,33 @@ def filter_events(data: dict[str, np.ndarray], summary: dict[str, Any]) -> dict[
 
 def write_filter_run(run: Path, events: dict[str, Any]) -> None:
     """Write one filter's run ``run`` (a folder) from its :func:`filter_events` entry: the ``time_axis`` text at step
-    0, each tag's scalars, then the weight histograms.  The event file is written in a hidden folder beside ``run``
-    (``.{name}.{hex}.tmp``) and moved into ``run`` when whole, in place of any event file ``run`` held (a task written
-    again after its worker died leaves one run, not two): an interrupted run leaves no truncated curves."""
-    from torch.utils.tensorboard import SummaryWriter
+    0, one event per step holding every tag's scalar at that step, then the weight histograms.  The event file is
+    written in a hidden folder beside ``run`` (``.{name}.{hex}.tmp``) and moved into ``run`` when whole, in place of
+    any event file ``run`` held (a task written again after its worker died leaves one run, not two): an interrupted
+    run leaves no truncated curves.
+
+    The records are those of :class:`torch.utils.tensorboard.SummaryWriter` (its text and histogram summaries, its
+    histogram buckets, ``simple_value`` scalars), written in this thread: one event per step for all the scalar tags,
+    not one per value through a queue to a writer thread (measured on a 100-run case of four filters, 12,000
+    scalars: 0.37 s that way, 0.05 s this)."""
+    from torch.utils.tensorboard.summary import histogram, text
 
     run = Path(run)
     tmp = temporary_name(run)
     try:
-        writer = SummaryWriter(str(tmp))
-        try:
-            writer.add_text("time_axis", events["text"], 0)
+        tmp.mkdir(parents=True)
+        with _EventFile(tmp) as out:
+            out.write(text("time_axis", events["text"]), 0)
+            by_step: dict[int, list[Any]] = {}
             for key, (steps, values) in events["scalars"].items():
-                for k in range(len(values)):
-                    writer.add_scalar(key, float(values[k]), int(steps[k]))
+                for step, value in zip(np.asarray(steps).tolist(), np.asarray(values, dtype=np.float64).tolist()):
+                    by_step.setdefault(int(step), []).append((key, value))
+            for step in sorted(by_step):
+                out.write_scalars(by_step[step], step)
             if events["histograms"] is not None:
                 steps, values = events["histograms"]
                 for k in range(len(steps)):
-                    writer.add_histogram("weights/all_runs", values[k], int(steps[k]))
-        finally:
-            writer.close()
+                    out.write(histogram("weights/all_runs", values[k], _HISTOGRAM_BUCKETS), int(steps[k]))
         run.mkdir(parents=True, exist_ok=True)
         for earlier in run.glob("events.out.tfevents.*"):  # a retaken task's first write: the run is this one
             earlier.unlink()
@@ -204,6 +213,70 @@ def write_filter_run(run: Path, events: dict[str, Any]) -> None:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _tensorflow_buckets() -> list[float]:
+    """The histogram bucket edges :class:`torch.utils.tensorboard.SummaryWriter` uses (TensorFlow's: ±1e-12 growing by
+    10 % to ±1e20, and 0)."""
+    v, buckets = 1e-12, []
+    while v < 1e20:
+        buckets.append(v)
+        v *= 1.1
+    return [-b for b in reversed(buckets)] + [0.0] + buckets
+
+
+_HISTOGRAM_BUCKETS = _tensorflow_buckets()
+
+
+class _EventFile:
+    """One TensorBoard event file in ``folder``, written in this thread: a ``file_version`` event, then
+    :meth:`write`'s (``wall_time`` the clock time of each)."""
+
+    def __init__(self, folder: Path) -> None:
+        import socket
+
+        from tensorboard.compat.proto.event_pb2 import Event
+
+        self._event = Event
+        name = f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}.{os.getpid()}.{next(_EVENT_FILES)}"
+        self._file = open(Path(folder) / name, "wb")  # noqa: SIM115 - closed by __exit__
+        self._put(Event(wall_time=time.time(), file_version="brain.Event:2"))
+
+    def _put(self, event: Any) -> None:
+        """One record: the length (``uint64``), its masked CRC-32C, the serialised event, its masked CRC-32C."""
+        data = event.SerializeToString()
+        header = struct.pack("<Q", len(data))
+        self._file.write(header + _masked_crc(header) + data + _masked_crc(data))
+
+    def write(self, summary: Any, step: int) -> None:
+        """One event of ``summary`` (a ``Summary`` proto) at ``step``."""
+        self._put(self._event(summary=summary, step=int(step), wall_time=time.time()))
+
+    def write_scalars(self, values: list[tuple[str, float]], step: int) -> None:
+        """One event of the scalars ``(tag, value)`` at ``step`` (``simple_value``, as ``add_scalar`` writes them)."""
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        summary = Summary(value=[Summary.Value(tag=tag, simple_value=value) for tag, value in values])
+        self.write(summary, step)
+
+    def __enter__(self) -> _EventFile:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._file.close()
+
+
+_EVENT_FILES = itertools.count()
+
+
+def _masked_crc(data: bytes) -> bytes:
+    """The masked CRC-32C of a TensorBoard record (TFRecord framing), little-endian: ``crc`` rotated right by 15
+    bits plus ``0xa282ead8``, modulo 2³².  The checksum is google-crc32c's (hardware CRC-32C where the CPU has it;
+    TensorBoard's own writer computes it in Python, byte by byte, 0.1 s a 100-run case)."""
+    import google_crc32c
+
+    crc = google_crc32c.value(data)
+    return struct.pack("<I", (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF)
 
 
 # ----------------------------------------------------------------------------
