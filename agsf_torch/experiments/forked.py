@@ -19,6 +19,7 @@ interrupted too (each removes its unfinished temporary files) and the interrupti
 
 from __future__ import annotations
 
+import gc
 import importlib
 import multiprocessing
 import multiprocessing.connection
@@ -94,6 +95,7 @@ def run_forked(
     running: dict[int, tuple[Any, Any]] = {}  # task → (process, its reply connection)
     for stream in (sys.stdout, sys.stderr):  # a child must not write this process's buffered output again
         stream.flush()
+    gc.freeze()  # this process's objects (torch's and matplotlib's modules) left out of the children's collections
     try:
         while waiting or running:
             while waiting and len(running) < jobs:
@@ -120,6 +122,8 @@ def run_forked(
     except BaseException:
         _interrupt([process for process, _ in running.values()])
         raise
+    finally:
+        gc.unfreeze()
     if failures:
         first = failures[min(failures)]
         if isinstance(first, KeyboardInterrupt):

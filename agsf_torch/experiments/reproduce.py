@@ -136,12 +136,18 @@ def check_jobs(jobs: int | None, cases: int, writers: int | None) -> int:
 
 def _run_case(cfg, out: Path, progress: bool, force: bool, threads: int, position: int) -> dict:
     """A case run end to end in a forked process (:func:`reproduce`): ``threads`` torch threads, its progress bar on
-    terminal line ``position``; returns its entry of the combined summary."""
+    terminal line ``position``; returns its entry of the combined summary.
+
+    The case runs in :func:`torch.inference_mode` (no autograd bookkeeping on any tensor: 9 % of a case's filter
+    loop, measured on 2 cores), which is safe here and nowhere else in the package: no tensor outlives the process,
+    whereas in a process that goes on, a cache filled in inference mode (a quadrature rule, say) could not take part
+    in a later autograd computation."""
     import torch
 
     torch.set_num_threads(threads)
     at_position(position)
-    summary = run_experiment(cfg, out, progress=progress, kind="reproduce-case", force=force)
+    with torch.inference_mode():
+        summary = run_experiment(cfg, out, progress=progress, kind="reproduce-case", force=force)
     return _case_summary(cfg, summary)
 
 
