@@ -14,7 +14,9 @@ thread count.  Fork is Linux's (:func:`fork_available`); elsewhere the cases run
 :func:`run_forked` runs the tasks, returns their results in order and raises the first failure (the child's own
 exception, or one naming the task when its child died without a reply) once every other task has ended, so that
 an earlier case's files are complete whatever a later one does.  Interrupted (Ctrl-C), the children are
-interrupted too (each removes its unfinished temporary files) and the interruption propagates.
+interrupted too (each removes its unfinished temporary files) and the interruption propagates.  A child's progress
+bars are drawn by the parent, each child's on a line of its own (:func:`.progress.report_to`): processes that each
+redraw a terminal line move one another's cursor.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ import signal
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any
+
+from .progress import ParentBars
 
 __all__ = ["fork_available", "run_forked", "TaskDied"]
 
@@ -46,17 +50,24 @@ def fork_available() -> bool:
 
 
 def _child(conn: Any, index: int, task: Callable[..., Any], args: tuple) -> None:
-    """A child's body: run the task, send ``(True, result)`` or ``(False, exception)``."""
+    """A child's body: run the task, its progress bars reported to the parent (``("progress", desc, unit, total,
+    n)``), then send ``("done", True, result)`` or ``("done", False, exception)``."""
+    from .progress import report_to
+
+    report_to(lambda *bar: conn.send(("progress", *bar)))
     try:
-        reply = (True, task(*args))
+        reply = ("done", True, task(*args))
     except BaseException as exc:  # noqa: BLE001 - sent to the parent, which raises it
-        reply = (False, exc)
+        reply = ("done", False, exc)
+    report_to(None)
     try:
         conn.send(reply)
     except Exception as unsent:  # noqa: BLE001 - a result or exception that cannot be pickled
-        ok, value = reply
+        _, ok, value = reply
         what = "result" if ok else f"{type(value).__name__}: {value}"
-        conn.send((False, TaskDied(f"task {index} could not send its {what} ({type(unsent).__name__}: {unsent})")))
+        conn.send(
+            ("done", False, TaskDied(f"task {index} could not send its {what} ({type(unsent).__name__}: {unsent})"))
+        )
     finally:
         conn.close()
 
@@ -92,6 +103,7 @@ def run_forked(
     results: list[Any] = [None] * len(tasks)
     failures: dict[int, BaseException] = {}
     waiting = list(range(len(tasks)))
+    bars = ParentBars()  # the children's progress bars, drawn here on a line each
     running: dict[int, tuple[Any, Any]] = {}  # task → (process, its reply connection)
     for stream in (sys.stdout, sys.stderr):  # a child must not write this process's buffered output again
         stream.flush()
@@ -107,14 +119,23 @@ def run_forked(
                 running[index] = (process, receive)
             ready = multiprocessing.connection.wait([conn for _, conn in running.values()])
             for index in [i for i, (_, conn) in running.items() if conn in ready]:
-                process, conn = running.pop(index)
+                process, conn = running[index]
                 try:
-                    ok, value = conn.recv()
+                    message = conn.recv()
                 except (EOFError, OSError):
                     process.join()
-                    ok, value = False, TaskDied(f"{names[index]} ended without a reply (exit code {process.exitcode})")
+                    message = (
+                        "done",
+                        False,
+                        TaskDied(f"{names[index]} ended without a reply (exit code {process.exitcode})"),
+                    )
+                if message[0] == "progress":
+                    bars.update(index, *message[1:])
+                    continue
+                del running[index]
                 conn.close()
                 process.join()
+                _, ok, value = message
                 if ok:
                     results[index] = value
                 else:
@@ -124,6 +145,7 @@ def run_forked(
         raise
     finally:
         gc.unfreeze()
+        bars.close()
     if failures:
         first = failures[min(failures)]
         if isinstance(first, KeyboardInterrupt):

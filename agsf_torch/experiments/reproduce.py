@@ -23,7 +23,6 @@ from .config import load_config
 from .experiment import make_filters, prepare_output, run_experiment
 from .file_writer import PRELOAD_MODULES, check_writers, writing_beside
 from .forked import fork_available, run_forked
-from .progress import at_position, bars_side_by_side
 from .resources import available_memory, check_memory, check_memory_side_by_side, writer_memory
 from .statistics import WINDOW_TEXT, minus_gsf_key
 from .tensorboard_log import hparam_domains, write_hparams_session
@@ -78,11 +77,7 @@ def reproduce(
     combined = {}
     if jobs > 1:
         each = threads or max(1, available_cpus() // jobs)
-        if progress:
-            bars_side_by_side()
-        tasks = [
-            (_run_case, (cfg, out / name, progress, force, each, i)) for i, (name, cfg) in enumerate(configs.items())
-        ]
+        tasks = [(_run_case, (cfg, out / name, progress, force, each)) for name, cfg in configs.items()]
         make_filters(next(iter(configs.values())))  # the rules and tables every case's filters share, built once
         done = run_forked(tasks, jobs, names=list(configs), preload=CASE_MODULES)
         for name, case in zip(configs, done):
@@ -119,24 +114,28 @@ def check_jobs(jobs: int | None, cases: int, writers: int | None) -> int:
     Raises:
         ValueError: ``jobs`` not a positive integer; more than 1 where fork is absent; more than 1 with ``writers``
             (each case's process writes its own files: writers apply to cases run one after another).
+
+    ``writers`` given (0 included) and ``jobs`` not: the cases run one after another, with those writers.
     """
     if jobs is None:
-        return 1 if writers else default_jobs(cases)
+        return 1 if writers is not None else default_jobs(cases)
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
     jobs = min(jobs, max(1, cases))
     if jobs > 1 and not fork_available():
-        raise ValueError("cases run side by side in forked processes, which this system lacks: use jobs=1")
+        raise ValueError(
+            "cases run side by side in forked processes, which this system lacks: run them one after another (jobs=1, --jobs 1)"
+        )
     if jobs > 1 and writers:
         raise ValueError(
-            "writers apply to cases run one after another (jobs=1); cases run side by side write their own files"
+            "writers apply to cases run one after another (jobs=1, --jobs 1); cases run side by side write their own files"
         )
     return jobs
 
 
-def _run_case(cfg, out: Path, progress: bool, force: bool, threads: int, position: int) -> dict:
-    """A case run end to end in a forked process (:func:`reproduce`): ``threads`` torch threads, its progress bar on
-    terminal line ``position``; returns its entry of the combined summary.
+def _run_case(cfg, out: Path, progress: bool, force: bool, threads: int) -> dict:
+    """A case run end to end in a forked process (:func:`reproduce`): ``threads`` torch threads (its progress bar drawn
+    by the parent); returns its entry of the combined summary.
 
     The case runs in :func:`torch.inference_mode` (no autograd bookkeeping on any tensor: 9 % of a case's filter
     loop, measured on 2 cores), which is safe here and nowhere else in the package: no tensor outlives the process,
@@ -145,7 +144,6 @@ def _run_case(cfg, out: Path, progress: bool, force: bool, threads: int, positio
     import torch
 
     torch.set_num_threads(threads)
-    at_position(position)
     with torch.inference_mode():
         summary = run_experiment(cfg, out, progress=progress, kind="reproduce-case", force=force)
     return _case_summary(cfg, summary)

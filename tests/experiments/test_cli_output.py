@@ -296,3 +296,32 @@ def test_a_full_disk_while_claiming_the_output_folder_leaves_no_folder(tmp_path,
     code, _, err = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(out)])
     assert code == 3 and "experiment.json" in err
     assert not out.exists()
+
+
+class _Exited(Exception):
+    """``os._exit`` called (in place of leaving the test process)."""
+
+
+@pytest.mark.parametrize(("argv", "fast"), [(["reproduce", "--case", "1"], True), (["simulate", "--runs", "1"], False)])
+def test_the_agsf_command_leaves_without_teardown_after_reproduce_and_run_only(tmp_path, monkeypatch, argv, fast):
+    """``entry`` (the console script) exits with ``main``'s code: through ``os._exit`` after ``reproduce`` and ``run``
+    (streams flushed first: nothing printed is lost), through ``sys.exit`` after any other command."""
+    exited = []
+
+    def fake_exit(code):
+        exited.append(code)
+        raise _Exited
+
+    monkeypatch.setattr(os, "_exit", fake_exit)
+    monkeypatch.setattr(cli, "main", lambda args: 0 if args == [*argv, "--out", str(tmp_path)] else 5)
+    monkeypatch.setattr(sys, "argv", ["agsf", *argv, "--out", str(tmp_path)])
+    flushed = []
+    monkeypatch.setattr(sys.stdout, "flush", lambda: flushed.append("stdout"), raising=False)
+    if fast:
+        with pytest.raises(_Exited):
+            cli.entry()
+        assert exited == [0] and "stdout" in flushed
+    else:
+        with pytest.raises(SystemExit) as info:
+            cli.entry()
+        assert info.value.code == 0 and exited == []

@@ -245,3 +245,53 @@ def test_a_figure_drawn_by_a_worker_follows_the_callers_matplotlib_settings(summ
     for name in ("rms.png", "axes.png", "weights.png", "fpke.png"):
         assert (worker / name).read_bytes() == (here / name).read_bytes(), name
     assert (here / "rms.png").read_bytes() != (plain / "rms.png").read_bytes()
+
+
+def _overlap(a, b, slack: float = 1.0) -> bool:
+    """Whether two display boxes (pixels) overlap by more than ``slack`` pixels each way."""
+    return min(a.x1, b.x1) - max(a.x0, b.x0) > slack and min(a.y1, b.y1) - max(a.y0, b.y0) > slack
+
+
+def _inside(box, fig_box, slack: float = 1.0) -> bool:
+    return (
+        box.x0 >= fig_box.x0 - slack
+        and box.y0 >= fig_box.y0 - slack
+        and box.x1 <= fig_box.x1 + slack
+        and (box.y1 <= fig_box.y1 + slack)
+    )
+
+
+@pytest.mark.parametrize("n", [3, 6])
+@pytest.mark.parametrize("figure", [axes_figure, rms_figure, weights_figure, fpke_figure])
+def test_every_text_is_inside_the_figure_and_clear_of_the_other_panels(figure, n, summary3, summary6):
+    """Placed without a layout engine (:func:`~agsf_torch.experiments.figure_layout.fit_grid`): each panel's tick
+    labels, axis labels and title, the figure legend and the figure title lie inside the figure, and none runs into
+    another panel or, for the figure's title and legend, into any panel's texts."""
+    fig = figure(summary3 if n == 3 else summary6)
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+    fig_box = fig.bbox
+    texts = {}
+    for ax in fig.axes:
+        boxes = [ax.yaxis.get_tightbbox(renderer), ax.xaxis.get_tightbbox(renderer)]
+        if ax.get_title():
+            boxes.append(ax.title.get_window_extent(renderer))
+        texts[ax] = [b for b in boxes if b is not None and b.width > 0]
+        for box in texts[ax]:
+            assert _inside(box, fig_box), (figure.__name__, ax.get_title(), box, fig_box)
+    for ax, boxes in texts.items():
+        for other in fig.axes:
+            if other is not ax:
+                assert not any(_overlap(box, other.get_window_extent(renderer)) for box in boxes), (
+                    figure.__name__,
+                    ax.get_title(),
+                    other.get_title(),
+                )
+    figure_texts = [leg.get_window_extent(renderer) for leg in fig.legends]
+    if fig._suptitle is not None:
+        figure_texts.append(fig._suptitle.get_window_extent(renderer))
+    for box in figure_texts:
+        assert _inside(box, fig_box), (figure.__name__, box)
+        for ax, boxes in texts.items():
+            assert not _overlap(box, ax.get_window_extent(renderer)), (figure.__name__, ax.get_title())
+            assert not any(_overlap(box, b) for b in boxes), (figure.__name__, ax.get_title())

@@ -248,3 +248,38 @@ def test_a_conflict_names_what_differs_and_how_much_more(tmp_path):
         check_output(out, "run", "bbbb", many)
     with pytest.raises(OutputConflict, match=r"\(run aaaa\); choose"):  # another kind: no configuration to compare
         check_output(out, "sweep", "aaaa", {"runs": 2})
+
+
+def test_runs_npz_is_what_numpy_reads_with_only_the_arrays_that_shrink_by_half_deflated(tmp_path):
+    """``save_npz``: every array back as it went in (dtype, shape, NaN), flags and counts deflated, the filters'
+    float64 noise stored, and the same bytes for the same arrays (entries dated 1980, as ``np.savez`` dates them)."""
+    import zipfile
+
+    import numpy as np
+
+    from agsf_torch.experiments.outputs import save_npz
+
+    rng = np.random.default_rng(0)
+    nis = np.full((50, 300), np.nan)
+    nis[:, 9::10] = rng.chisquare(15, size=(50, 30))
+    data = {
+        "time": 0.1 * np.arange(1, 301),
+        "star_frame": np.arange(300) % 10 == 9,
+        "GSF/cov": rng.normal(size=(50, 300, 3, 3)),
+        "GSF/nis": nis,
+        "GSF/gyro_held": np.zeros((50, 300), np.int64),
+        "GSF/weights": rng.dirichlet(np.ones(5), size=(50, 300)),
+        "empty": np.zeros((0, 3)),
+        "units": np.array(json.dumps({"time": "s"})),
+    }
+    first, second = save_npz(tmp_path / "a.npz", data), save_npz(tmp_path / "b.npz", data)
+    assert first.read_bytes() == second.read_bytes()
+    with np.load(first) as back:
+        assert sorted(back.files) == sorted(data)
+        for key, value in data.items():
+            assert back[key].dtype == value.dtype and back[key].shape == value.shape
+            np.testing.assert_array_equal(back[key], value)
+    stored = {i.filename[:-4]: i.compress_type for i in zipfile.ZipFile(first).infolist()}
+    assert stored["GSF/gyro_held"] == stored["GSF/nis"] == stored["star_frame"] == zipfile.ZIP_DEFLATED
+    assert stored["GSF/cov"] == stored["GSF/weights"] == zipfile.ZIP_STORED
+    assert all(i.date_time == (1980, 1, 1, 0, 0, 0) for i in zipfile.ZipFile(first).infolist())

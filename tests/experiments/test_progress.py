@@ -43,3 +43,41 @@ def test_sweep_progress_names_each_configuration(tmp_path):
         run_sweep(base, parse_grid(["seed=3,5"], base), tmp_path / "sweep", progress=True)
     names = {line.split(":")[0] for line in err.getvalue().splitlines() if "%" in line}
     assert names == {"case1 seed=3", "case1 seed=5"}
+
+
+def test_a_forked_childs_bars_are_reported_and_its_parent_draws_each_childs_on_its_own_line(monkeypatch):
+    """``report_to``: a child's bar sends ``(desc, unit, total, n)`` when it starts, every 1 % of the work and at the
+    end instead of drawing; ``ParentBars`` draws child ``k``'s bar on line ``k`` (tqdm's ``position``)."""
+    import tqdm.auto
+
+    sent = []
+    progress.report_to(lambda *bar: sent.append(bar))
+    try:
+        assert list(progress_bar(range(250), desc="case2", unit="step", total=250)) == list(range(250))
+    finally:
+        progress.report_to(None)
+    assert sent[0] == ("case2", "step", 250, 0) and sent[-1] == ("case2", "step", 250, 250)
+    assert [n for *_, n in sent] == sorted({n for *_, n in sent}) and len(sent) == 2 + 250 // 2 - 1
+    made = []
+
+    class Bar:
+        def __init__(self, *a, **kw):
+            made.append(kw)
+            self.n, self.closed = 0, False
+
+        def update(self, k):
+            self.n += k
+
+        def close(self):
+            self.closed = True
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Bar)
+    monkeypatch.setattr(progress, "_is_terminal", lambda: True)
+    bars = progress.ParentBars()
+    for child, desc, n in ((2, "case3", 0), (0, "case1", 0), (2, "case3", 40), (0, "case1", 10)):
+        bars.update(child, desc, "step", 300, n)
+    assert [kw["position"] for kw in made] == [2, 0]
+    assert {key: bar.n for key, bar in bars._bars.items()} == {(2, "case3"): 40, (0, "case1"): 10}
+    drawn = list(bars._bars.values())
+    bars.close()
+    assert all(bar.closed for bar in drawn)

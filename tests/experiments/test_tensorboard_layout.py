@@ -351,3 +351,49 @@ def test_a_filter_run_written_again_holds_one_event_file(tmp_path):
     write_filter_run(tmp_path / "GSF", events)
     assert len(list((tmp_path / "GSF").glob("events.out.tfevents.*"))) == 1
     assert event_records(tmp_path) == once and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_filter_run_holds_the_records_summary_writer_writes_with_valid_checksums(tmp_path):
+    """``write_filter_run`` writes one event per step for all the scalar tags, with CRC-32C from google-crc32c: a
+    reader sees exactly what ``SummaryWriter`` (one event per value, TensorBoard's own checksums) writes of the same
+    events, and TensorBoard's own masked CRC agrees on every record."""
+    import os
+    import struct
+
+    from tensorboard.compat.tensorflow_stub.pywrap_tensorflow import masked_crc32c
+    from torch.utils.tensorboard import SummaryWriter
+
+    from agsf_torch.experiments.tensorboard_log import _masked_crc, write_filter_run
+    from tests.helpers import event_records
+
+    for size in (0, 1, 7, 8, 100, 4097):  # the checksum against TensorBoard's own, byte by byte in Python
+        data = os.urandom(size)
+        assert _masked_crc(data) == struct.pack("<I", masked_crc32c(data))
+    rng = np.random.default_rng(1)
+    steps = np.arange(100, 3100, 100)
+    events = {
+        "text": "step = simulated time in ms",
+        "scalars": {
+            "rms_deg": (steps, rng.lognormal(size=30)),
+            "nis": (steps[9::10], rng.chisquare(3, size=3)),
+            "weights/component_0": (steps, rng.uniform(size=30)),
+        },
+        "histograms": (steps[::10], rng.dirichlet(np.ones(4), size=(3, 8)).reshape(3, -1)),
+    }
+    write_filter_run(tmp_path / "ours" / "GSF", events)
+    with SummaryWriter(str(tmp_path / "reference" / "GSF")) as writer:
+        writer.add_text("time_axis", events["text"], 0)
+        for key, (s, values) in events["scalars"].items():
+            for step, value in zip(s, values):
+                writer.add_scalar(key, float(value), int(step))
+        for step, values in zip(*events["histograms"]):
+            writer.add_histogram("weights/all_runs", values, int(step))
+    assert event_records(tmp_path / "ours") == event_records(tmp_path / "reference")
+    (event_file,) = (tmp_path / "ours" / "GSF").glob(EVENTS_GLOB)
+    raw, records = event_file.read_bytes(), 0
+    while raw:  # every record's framing checked with TensorBoard's checksum
+        (length,) = struct.unpack("<Q", raw[:8])
+        assert raw[8:12] == struct.pack("<I", masked_crc32c(raw[:8]))
+        assert raw[12 + length : 16 + length] == struct.pack("<I", masked_crc32c(raw[12 : 12 + length]))
+        raw, records = raw[16 + length :], records + 1
+    assert records == 1 + 1 + len(steps) + 3  # the file version, the text, one per step, the histograms

@@ -1,0 +1,138 @@
+"""Tasks in forked processes (:mod:`agsf_torch.experiments.forked`): results in order, every task run to its end
+before the first failure is raised as the task raised it, a child that dies named, an interruption passed on."""
+
+from __future__ import annotations
+
+import gc
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from agsf_torch.experiments.forked import TaskDied, fork_available, run_forked
+
+pytestmark = pytest.mark.skipif(not fork_available(), reason="forked tasks need fork (Linux)")
+
+
+def _square(x: int) -> tuple[int, int]:
+    return x * x, os.getpid()
+
+
+def _write_then(path: str, error: BaseException | None) -> str:
+    time.sleep(0.05)
+    Path(path).write_text("done")
+    if error is not None:
+        raise error
+    return path
+
+
+def _die(code: int) -> None:
+    os._exit(code)
+
+
+def _unpicklable() -> object:
+    return lambda: None
+
+
+def _slow(path: str) -> None:
+    Path(path).write_text(str(os.getpid()))
+    while True:
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize("jobs", [1, 2, 5])
+def test_results_come_back_in_task_order_each_from_a_child(jobs):
+    results = run_forked([(_square, (k,)) for k in range(5)], jobs)
+    assert [r[0] for r in results] == [0, 1, 4, 9, 16]
+    assert os.getpid() not in {pid for _, pid in results}
+    assert gc.get_freeze_count() == 0  # the parent's objects are collected again afterwards
+
+
+def test_a_failure_is_raised_as_the_task_raised_it_once_every_other_task_has_ended(tmp_path):
+    tasks = [
+        (_write_then, (str(tmp_path / "a"), None)),
+        (_write_then, (str(tmp_path / "b"), ValueError("bad input in b"))),
+        (_write_then, (str(tmp_path / "c"), OSError(28, "No space left on device", "c.npz"))),
+        (_write_then, (str(tmp_path / "d"), None)),
+    ]
+    with pytest.raises(ValueError, match="^bad input in b$"):  # the first failure in task order
+        run_forked(tasks, 2)
+    assert all((tmp_path / name).read_text() == "done" for name in "abcd")
+
+
+def test_an_os_error_keeps_its_errno_and_file():
+    with pytest.raises(OSError) as info:
+        run_forked([(_write_then, ("/dev/null", OSError(28, "No space left on device", "runs.npz")))], 1)
+    assert (info.value.errno, info.value.filename) == (28, "runs.npz")
+
+
+def test_a_child_that_dies_without_a_reply_is_named_with_its_exit_code():
+    with pytest.raises(TaskDied, match=r"^case2 ended without a reply \(exit code 9\)$"):
+        run_forked([(_square, (1,)), (_die, (9,))], 2, names=["case1", "case2"])
+
+
+def test_a_result_that_cannot_be_sent_is_a_failure_naming_the_task():
+    with pytest.raises(TaskDied, match="task 0 could not send its result"):
+        run_forked([(_unpicklable, ())], 1)
+
+
+def test_modules_named_to_preload_are_imported_before_the_children_start():
+    with pytest.raises(ModuleNotFoundError):  # imported here first: a missing module fails before any child
+        run_forked([(_square, (1,))], 1, preload=["agsf_torch_no_such_module"])
+    sys.modules.pop("tabnanny", None)
+    run_forked([(_square, (1,))], 1, preload=["tabnanny"])
+    assert "tabnanny" in sys.modules
+
+
+@pytest.mark.parametrize("jobs", [0, -1, 1.5, True, "2"])
+def test_bad_job_counts_are_refused(jobs):
+    with pytest.raises(ValueError, match="jobs must be a positive integer"):
+        run_forked([(_square, (1,))], jobs)
+
+
+def test_an_interruption_interrupts_the_children_and_propagates(tmp_path):
+    """Ctrl-C in the parent: the children are interrupted (then killed if they linger) and none outlives the call."""
+    marks = [tmp_path / f"child{k}" for k in range(2)]
+
+    def interrupt_when_started() -> None:
+        while not all(m.exists() for m in marks):
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=interrupt_when_started, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        run_forked([(_slow, (str(m),)) for m in marks], 2)
+    for mark in marks:
+        pid = int(mark.read_text())
+        with pytest.raises(ProcessLookupError):  # reaped: no such process any more
+            os.kill(pid, 0)
+
+
+def _counting(total: int) -> int:
+    from agsf_torch.experiments.progress import progress_bar
+
+    return sum(1 for _ in progress_bar(range(total), desc=f"count{total}", unit="step", total=total))
+
+
+def test_the_childrens_progress_bars_are_drawn_by_the_parent_on_a_line_each(monkeypatch):
+    from agsf_torch.experiments import forked
+
+    seen = []
+
+    class Recorder:
+        def update(self, child, desc, unit, total, n):
+            seen.append((child, desc, total, n))
+
+        def close(self):
+            seen.append("closed")
+
+    monkeypatch.setattr(forked, "ParentBars", Recorder)
+    assert run_forked([(_counting, (100,)), (_counting, (300,))], 2) == [100, 300]
+    assert seen[-1] == "closed"
+    for child, total in ((0, 100), (1, 300)):
+        mine = [n for c, desc, t, n in seen[:-1] if c == child and desc == f"count{total}" and t == total]
+        assert mine[0] == 0 and mine[-1] == total and mine == sorted(mine)

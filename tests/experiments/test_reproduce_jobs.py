@@ -1,0 +1,107 @@
+"""``agsf reproduce`` with its cases side by side in forked processes (``jobs``): the same tables and files as one
+after another, refusals before anything is created, a failing case raised once the others are complete."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from agsf_torch.experiments import reproduce as reproduce_module
+from agsf_torch.experiments.forked import fork_available
+from agsf_torch.experiments.reproduce import check_jobs, default_jobs, reproduce
+from agsf_torch.experiments.resources import TooLarge
+from tests.experiments.test_cli_failures import _assert_refused
+from tests.helpers import EAGER, TINY_CLI, event_records, file_digests
+
+needs_fork = pytest.mark.skipif(not fork_available(), reason="cases side by side need fork (Linux)")
+SMALL = ["runs=3", "duration=2.0", "components=2", *EAGER]
+
+
+@needs_fork
+@pytest.mark.parametrize("jobs", [2, 3])
+def test_cases_side_by_side_write_what_one_after_another_writes_and_the_threads_are_restored(tmp_path, jobs):
+    threads = torch.get_num_threads()
+    tables = {
+        label: reproduce([1, 2, 3], tmp_path / label, SMALL, progress=False, **kw)
+        for label, kw in (("sequential", {"jobs": 1, "writers": 0}), ("forked", {"jobs": jobs}))
+    }
+    assert torch.get_num_threads() == threads
+    assert tables["forked"] == tables["sequential"]
+    forked, sequential = file_digests(tmp_path / "forked"), file_digests(tmp_path / "sequential")
+    assert {f"case{k}/{name}" for k in (1, 2, 3) for name in ("runs.npz", "axes.png", "fpke.png")} <= set(forked)
+    assert forked == sequential  # byte for byte: the same numbers, figures and summaries
+    assert event_records(tmp_path / "forked") == event_records(tmp_path / "sequential")
+
+
+@needs_fork
+def test_a_failing_case_is_raised_once_the_other_cases_are_written(tmp_path, monkeypatch):
+    run = reproduce_module.run_experiment
+
+    def failing_case2(cfg, out, **kw):  # inherited by the forked processes
+        if out.name == "case2":
+            raise ValueError("case 2's recording is unreadable")
+        return run(cfg, out, **kw)
+
+    monkeypatch.setattr(reproduce_module, "run_experiment", failing_case2)
+    with pytest.raises(ValueError, match="^case 2's recording is unreadable$"):
+        reproduce([1, 2, 3], tmp_path / "out", SMALL, progress=False, jobs=3)
+    for case in ("case1", "case3"):  # complete, whatever case 2 did
+        assert {"runs.npz", "summary.json", "axes.png", "rms.png", "weights.png", "fpke.png"} <= {
+            p.name for p in (tmp_path / "out" / case).iterdir()
+        }
+    assert not (tmp_path / "out" / "results.md").exists()
+
+
+@pytest.mark.parametrize(
+    ("jobs", "writers", "match"),
+    [
+        (0, None, "jobs must be a positive integer, got 0"),
+        (1.5, None, "jobs must be a positive integer"),
+        (True, None, "jobs must be a positive integer"),
+        (2, 1, r"writers apply to cases run one after another \(jobs=1, --jobs 1\)"),
+    ],
+)
+def test_bad_job_counts_are_refused_before_anything_is_created(tmp_path, jobs, writers, match):
+    with pytest.raises(ValueError, match=match):
+        reproduce([1, 2], tmp_path / "out", list(EAGER), progress=False, jobs=jobs, writers=writers)
+    assert not (tmp_path / "out").exists()
+
+
+def test_without_fork_cases_run_one_after_another_by_default_and_side_by_side_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr(reproduce_module, "fork_available", lambda: False)
+    assert default_jobs(3) == 1
+    with pytest.raises(ValueError, match="which this system lacks"):
+        reproduce([1, 2], tmp_path / "out", list(EAGER), progress=False, jobs=2)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("cpus", "cases", "expected"), [(1, 3, 1), (2, 3, 3), (8, 3, 3), (2, 1, 1)])
+def test_by_default_every_case_runs_at_once_on_two_cpus_or_more(monkeypatch, cpus, cases, expected):
+    monkeypatch.setattr(reproduce_module, "fork_available", lambda: True)
+    monkeypatch.setattr(reproduce_module, "available_cpus", lambda: cpus)
+    assert default_jobs(cases) == expected
+    assert check_jobs(None, cases, None) == expected
+
+
+def test_writers_given_alone_run_the_cases_one_after_another_and_jobs_are_capped_by_the_cases():
+    assert check_jobs(None, 3, 0) == 1
+    assert check_jobs(None, 3, 1) == 1
+    if fork_available():
+        assert check_jobs(7, 3, None) == 3
+    assert check_jobs(5, 1, 1) == 1  # one case: nothing side by side, the writers apply
+
+
+def test_cases_side_by_side_that_do_not_fit_in_memory_are_refused_naming_jobs_1(tmp_path, monkeypatch):
+    from agsf_torch.experiments import resources
+
+    monkeypatch.setattr(reproduce_module, "fork_available", lambda: True)
+    monkeypatch.setattr(resources, "available_memory", lambda: 700 * 2**20)  # one case fits, three do not
+    with pytest.raises(TooLarge, match=r"3 configurations side by side need an estimated .* \(--jobs 1\)"):
+        reproduce([1, 2, 3], tmp_path / "out", list(EAGER), progress=False, jobs=3)
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_cli_refuses_jobs_with_writers_in_one_line_exit_2(tmp_path):
+    out = tmp_path / "out"
+    _assert_refused(["reproduce", "--out", str(out), "--jobs", "2", "--writers", "1", *TINY_CLI], tmp_path, "--jobs 1")
+    _assert_refused(["reproduce", "--out", str(out), "--jobs", "0", *TINY_CLI], tmp_path, "--jobs")
