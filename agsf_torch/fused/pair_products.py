@@ -415,19 +415,20 @@ def attitude_penalty_pairs(
     first, second = first[order], second[order]
     split = T * (P - N)
 
-    def side(t: Tensor, index: Tensor) -> Tensor:
-        return t[:, index].transpose(0, 1).reshape(P * T, *t.shape[2:])
+    def side(t: Tensor, index: Tensor) -> Tensor:  # [T, N, …] → the pairs' side, pair-major [P·T, …] (one gather)
+        return t.transpose(0, 1)[index].reshape(P * T, *t.shape[2:])
 
     u = rate.unsqueeze(0).expand(P, T, 3).reshape(P * T, 3)
     sv2, su2 = (sigma_v**2).to(means), (sigma_u**2).to(means)
+    mu_i, mu_j = side(means, first), side(means, second)
     m, L, rate_i, Pdot_i, rate_j, Pdot_j, log_z = run_in_chunks(
         attitude_pair_moments_kernel,
-        (side(means, first), side(covs, first), side(means, second), side(covs, second), u),
+        (mu_i, side(covs, first), mu_j, side(covs, second), u),
         shared=(sv2, su2),
         compile=compile,
         key=("attitude pair moments", n),
     )
-    mu_i, Pi_i, mu_j, Pi_j = side(means, first), side(prec, first), side(means, second), side(prec, second)
+    Pi_i, Pi_j = side(prec, first), side(prec, second)
     both = (m, L, mu_i, Pi_i, rate_i, Pdot_i, mu_j, Pi_j, rate_j, Pdot_j, u)
     acc_off = _pair_values(tuple(t[:split] for t in both), sigma_v, sigma_u, compile)
     one = (m, L, mu_i, Pi_i, rate_i, Pdot_i, u)
