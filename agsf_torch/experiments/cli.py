@@ -256,6 +256,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--no-compile", action="store_true", help="skip the compiled penalty kernel's first-step measurement"
     )
+    p.add_argument(
+        "--main-job-reference",
+        default=None,
+        metavar="DIR",
+        help="a checkout of earlier code (a git worktree, say) whose main job is timed alternately with this one's: "
+        "the main job's speed-up target is measured against it",
+    )
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     p.set_defaults(func=_bench)
     return parser

@@ -175,8 +175,10 @@ def _bench(args: argparse.Namespace) -> int:
 
     _threads(args)
     from ..storage.files import write_text
+    from .bench.run import check_reference
 
-    report = run_bench(Path(args.out), compile=not args.no_compile, quick=args.quick)
+    reference = check_reference(args.main_job_reference)  # refused before anything runs
+    report = run_bench(Path(args.out), compile=not args.no_compile, quick=args.quick, main_job_reference=reference)
     table = format_table(report)
     write_text(Path(args.out) / "bench.md", table + "\n")
     print(table)

@@ -119,7 +119,16 @@ def test_table_marks_targets():
             "vs_filterpy": 2.5,
         },
         "compile": {"cold_s": 50.0, "warm_s": 3.0, "sequential_cold_s": 90.0, "sequential_warm_s": 3.0},
-        "main_job": {"seconds": 12.0, "sequential_seconds": 20.0, "generic_seconds": 48.0},
+        "main_job": {
+            "seconds": 12.0,
+            "sequential_seconds": 20.0,
+            "generic_seconds": 30.0,
+            "reference_seconds": 48.0,
+            "rounds_seconds": [11.0, 12.0],
+            "reference_rounds_seconds": [47.0, 48.0],
+            "reference": "/tmp/filed",
+            "reference_commit": "abc1234",
+        },
         "adaptive": [adaptive, big, {**adaptive, "state_dim": 3, "B": 1024}],
         "first_step": [{"update": "galerkin", "compile": False, "first_process_s": 3.0, "second_process_s": 2.5}],
         "qp": [qp],
@@ -161,15 +170,21 @@ def test_table_marks_targets():
     assert met["peak RSS, galerkin adaptive step at B=8192 (GB)"] == "no"
     assert met["first galerkin step in a new process (s)"] == "yes"
     main = (
-        "main job (agsf reproduce --case all): speed-up over the generic path with the cases one after another "
-        "(fused=false, --jobs 1)"
+        "main job (agsf reproduce --case all): speed-up over the reference code (abc1234), medians of alternated rounds"
     )
     assert met[main] == "no" and rows[main][1].startswith("the cases side by side take turns")  # 48 / 12 = 4 < 5
     assert (
         "main job (agsf reproduce --case all) in a new process: 12.0 s as shipped (cases side by side), 20.0 s with "
-        "the cases one after another (--jobs 1), 48.0 s on the generic path one after another (--set fused=false "
+        "the cases one after another (--jobs 1), 30.0 s on the generic path one after another (--set fused=false "
         "--jobs 1)" in table
     )
+    assert (
+        "main job, alternated with the reference code (abc1234): 11.0 s against 47.0 s, 12.0 s against 48.0 s" in table
+    )
+    del report["main_job"]["reference_seconds"]  # without a reference: no target row, and a line saying how to get it
+    report["targets"] = bench.targets(report)
+    table = bench.format_table(report)
+    assert main not in table and "agsf bench --main-job-reference DIR" in table
     assert "20.0 % of the float64 matmul peak" in table
     lines = table.splitlines()
     for k, line in enumerate(lines[1:], 1):  # every Markdown table: a rule with one cell per header cell
@@ -187,3 +202,12 @@ def test_peak_memory_is_the_processs_own_not_its_parents_at_the_fork():
     ballast.add_(1.0)
     child = int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
     assert 2**20 < child < 2**29  # torch's import: tens to a few hundred MiB, far below the parent's GiB
+
+
+def test_a_main_job_reference_that_is_not_a_checkout_is_refused_naming_it(tmp_path):
+    import pytest
+
+    with pytest.raises(ValueError, match=f"--main-job-reference {tmp_path} is not a checkout of agsf-torch"):
+        bench.check_reference(tmp_path)
+    assert bench.check_reference(None) is None
+    assert bench.check_reference(bench.PROJECT_ROOT) == bench.PROJECT_ROOT.resolve()

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from ...storage.files import write_json
@@ -103,6 +104,7 @@ def bench_adaptive(
 _FIRST_STEP_SCRIPT = """
 import time, sys
 t0 = time.perf_counter()
+import numpy as np
 import torch
 sys.path.insert(0, {root!r})
 from agsf_torch.experiments.bench.harness import attitude_mixture
@@ -182,38 +184,83 @@ def _peak_rss(module_args: list[str]) -> dict[str, Any]:
     return {**json.loads(out.stdout.strip().splitlines()[-1]), "seconds": time.perf_counter() - t}
 
 
-def bench_main_job() -> dict[str, Any]:
-    """Wall seconds of the main job, ``agsf reproduce --case all`` (100 runs × 30 s per case, every figure and
-    event file), each in a new process running the ``agsf`` command into a temporary folder, one after the other in
-    the same run: on the generic path with the cases one after another (``--set fused=false --jobs 1``: every
-    filter and weight update as before the fused kernels, each case's files written beside the next case, the
-    reference), as shipped but with the cases one after another (``--jobs 1``), and as shipped (the fused paths,
-    the cases side by side in forked processes on a machine of two CPUs or more)."""
+def check_reference(reference: str | Path | None) -> Path | None:
+    """Validate ``agsf bench --main-job-reference``: a checkout of the package (a folder holding
+    ``agsf_torch/experiments/cli.py``), or None.
+
+    Raises:
+        ValueError: naming the folder and what it lacks.
+    """
+    if reference is None:
+        return None
+    folder = Path(reference).resolve()
+    if not (folder / "agsf_torch" / "experiments" / "cli.py").is_file():
+        raise ValueError(
+            f"--main-job-reference {reference} is not a checkout of agsf-torch (no agsf_torch/experiments/cli.py there)"
+        )
+    return folder
+
+
+def _main_job_seconds(extra: list[str], env: dict[str, str]) -> float:
+    """Wall seconds of ``agsf reproduce --case all`` in a new process with the environment ``env`` (whose
+    ``PYTHONPATH`` chooses the code), into a temporary folder."""
     import tempfile
 
-    variants = {
-        "generic_seconds": ["--set", "fused=false", "--jobs", "1"],
-        "sequential_seconds": ["--jobs", "1"],
-        "seconds": [],
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        subprocess.run(
+            [sys.executable, "-m", "agsf_torch.experiments.cli", "reproduce"]
+            + ["--case", "all", "--out", str(Path(tmp) / "reproduce"), "--quiet", *extra],
+            capture_output=True,
+            text=True,
+            check=True,
+            env=env,
+        )
+        return time.perf_counter() - t
+
+
+def bench_main_job(reference: Path | None = None, rounds: int = 3) -> dict[str, Any]:
+    """Wall seconds of the main job, ``agsf reproduce --case all`` (100 runs × 30 s per case, every figure and
+    event file), each in a new process running the ``agsf`` command into a temporary folder, in the same run: on
+    the generic path with the cases one after another (``--set fused=false --jobs 1``: every filter and weight
+    update as before the fused kernels, each case's files written beside the next case), as shipped but with the
+    cases one after another (``--jobs 1``), and as shipped (the fused paths, the cases side by side in forked
+    processes on a machine of two CPUs or more).  With ``reference`` (a checkout of earlier code, a git worktree
+    say) its main job and this one's, as shipped, alternate ``rounds`` times, and each is the median of its
+    rounds (``reference_seconds``, ``seconds``; ``reference_commit`` names it if it is a git checkout)."""
+    result: dict[str, Any] = {
+        "generic_seconds": _main_job_seconds(["--set", "fused=false", "--jobs", "1"], _source_env()),
+        "sequential_seconds": _main_job_seconds(["--jobs", "1"], _source_env()),
     }
-    seconds = {}
-    for name, extra in variants.items():
-        with tempfile.TemporaryDirectory() as tmp:
-            t = time.perf_counter()
-            subprocess.run(
-                [sys.executable, "-m", "agsf_torch.experiments.cli", "reproduce"]
-                + ["--case", "all", "--out", str(Path(tmp) / "reproduce"), "--quiet", *extra],
-                capture_output=True,
-                text=True,
-                check=True,
-                env=_source_env(),
-            )
-            seconds[name] = time.perf_counter() - t
-    return seconds
+    if reference is None:
+        result["seconds"] = _main_job_seconds([], _source_env())
+        return result
+    theirs_env = {**os.environ, "PYTHONPATH": str(reference) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    ours, theirs = [], []
+    for _ in range(rounds):
+        theirs.append(_main_job_seconds([], theirs_env))
+        ours.append(_main_job_seconds([], _source_env()))
+    commit = subprocess.run(
+        ["git", "-C", str(reference), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    )
+    result |= {
+        "seconds": float(np.median(ours)),
+        "rounds_seconds": ours,
+        "reference_seconds": float(np.median(theirs)),
+        "reference_rounds_seconds": theirs,
+        "reference": str(reference),
+        "reference_commit": commit.stdout.strip() if commit.returncode == 0 else None,
+    }
+    return result
 
 
-def run_bench(out: Path | None = None, *, compile: bool = True, quick: bool = False) -> dict[str, Any]:
-    """Run every measurement; write ``bench.json`` under ``out`` if given (``quick``: small sizes, a smoke run)."""
+def run_bench(
+    out: Path | None = None, *, compile: bool = True, quick: bool = False, main_job_reference: Path | None = None
+) -> dict[str, Any]:
+    """Run every measurement; write ``bench.json`` under ``out`` if given (``quick``: small sizes, a smoke run;
+    ``main_job_reference``: a checkout of earlier code whose main job is timed beside this one's,
+    :func:`bench_main_job`)."""
+    main_job_reference = check_reference(main_job_reference)
     t0 = time.perf_counter()
     report: dict[str, Any] = {
         "machine": {
@@ -246,7 +293,7 @@ def run_bench(out: Path | None = None, *, compile: bool = True, quick: bool = Fa
     if compile and not quick:
         report["compile"] = bench_compile()
     if not quick:
-        report["main_job"] = bench_main_job()
+        report["main_job"] = bench_main_job(main_job_reference)
     report["memory_sweep"] = _peak_rss(
         ["gsf", "--batch", str(4096 if quick else 65536), "--chunk", "4096" if quick else "16384"]
     )
