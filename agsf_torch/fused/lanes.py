@@ -51,6 +51,7 @@ __all__ = [
     "EAGER_MIN_LANES",
     "kernel_cache_dir",
     "compiling_in_parallel",
+    "compile_lock",
 ]
 
 
@@ -228,17 +229,30 @@ def _load(
     path = _package_path(kernel, key, inputs, shared, serial)
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
     if not path.is_file():
-        logger.info(
-            "compiling the fused kernel %r ahead of time (once per machine and torch version: about 10–60 s on 2 cores; later "
-            "processes load it from %s in about a second)",
-            name,
-            path.parent,
-        )
-        t0 = time.perf_counter()
-        with torch_internal_deprecations_hidden():  # torch's warnings about its own internals, not the user's
-            _compile_ahead_of_time(kernel, inputs, shared, path, serial, _variant_threads(serial))
-        logger.info("compiled the fused kernel %r in %.1f s", name, time.perf_counter() - t0)
+        with compile_lock(path):  # another process compiling it: wait for its package instead of compiling again
+            if not path.is_file():
+                logger.info(
+                    "compiling the fused kernel %r ahead of time (once per machine and torch version: about 10–60 s on "
+                    "2 cores; later processes load it from %s in about a second)",
+                    name,
+                    path.parent,
+                )
+                t0 = time.perf_counter()
+                with torch_internal_deprecations_hidden():  # torch's warnings about its own internals, not the user's
+                    _compile_ahead_of_time(kernel, inputs, shared, path, serial, _variant_threads(serial))
+                logger.info("compiled the fused kernel %r in %.1f s", name, time.perf_counter() - t0)
     return _load_package(path)
+
+
+def compile_lock(path: Path):
+    """The lock a process holds while it compiles the package ``path`` (a file lock beside it, ``….pt2.lock``):
+    processes started together (``agsf reproduce``'s cases side by side, a sweep's tasks, test workers) compile each
+    kernel once, the others waiting for its package or, inside :func:`compiling_in_parallel`, leaving it to the
+    process that holds it."""
+    from filelock import FileLock
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return FileLock(f"{path}.lock")
 
 
 def _load_package(path: Path) -> Callable:
@@ -393,6 +407,8 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
     import subprocess
     import sys
 
+    from filelock import Timeout
+
     workers = max(1, min(len(jobs), processes or available_cpus()))
     logger.info(
         "compiling the fused kernels %s ahead of time, %d at once (once per machine and torch version: about "
@@ -409,6 +425,16 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
             while queue or running:
                 while queue and len(running) < workers:
                     path, (name, kernel, inputs, shared, serial, threads) = queue.pop(0)
+                    lock = compile_lock(path)
+                    try:
+                        lock.acquire(timeout=0)
+                    except Timeout:  # another process compiles it; this one's first call waits for its package
+                        logger.info("the fused kernel %r is being compiled by another process", name)
+                        continue
+                    if path.is_file():  # compiled by another process meanwhile
+                        lock.release()
+                        done += 1
+                        continue
                     job = Path(scratch) / f"job{len(queue)}"
                     try:
                         job.with_suffix(".pkl").write_bytes(
@@ -417,15 +443,17 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
                         cmd = [sys.executable, "-m", "agsf_torch.fused.compile_worker", str(job.with_suffix(".pkl"))]
                         # output to files, not pipes: a worker never waits for the parent to read it
                         with open(job.with_suffix(".out"), "w") as out, open(job.with_suffix(".err"), "w") as err:
-                            running.append((name, subprocess.Popen(cmd, env=env, stdout=out, stderr=err), job))
+                            running.append((name, subprocess.Popen(cmd, env=env, stdout=out, stderr=err), job, lock))
                     except Exception as exc:  # noqa: BLE001 - e.g. a local function, which cannot be sent
+                        lock.release()
                         _compile_failed(name, exc)
                 finished = [r for r in running if r[1].poll() is not None]
                 if not finished:
                     time.sleep(0.05)
                     continue
-                for name, proc, job in finished:  # a free slot for the next job as soon as any worker ends
-                    running.remove((name, proc, job))
+                for name, proc, job, lock in finished:  # a free slot for the next job as soon as any worker ends
+                    running.remove((name, proc, job, lock))
+                    lock.release()
                     said = job.with_suffix(".out").read_text().split()
                     if proc.returncode == 0 and said:
                         done += 1
@@ -434,9 +462,10 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
                         last = (job.with_suffix(".err").read_text().strip().splitlines() or ["no message"])[-1]
                         _compile_failed(name, RuntimeError(f"worker exit code {proc.returncode}: {last}"))
         finally:  # interrupted: no worker outlives the call
-            for _, proc, _ in running:
+            for _, proc, _, lock in running:
                 proc.kill()
                 proc.wait()
+                lock.release()
     logger.info("compiled %d of %d fused kernels in %.1f s", done, len(jobs), time.perf_counter() - t0)
 
 

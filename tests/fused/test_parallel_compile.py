@@ -59,7 +59,8 @@ def test_inside_the_block_missing_kernels_run_eagerly_and_are_compiled_together_
         assert path.parent == lanes.kernel_cache_dir() and path.name.startswith(kernel.__name__ + "-")
         # the export sample is what a first call would have compiled: a full chunk for the threaded variant
         assert inputs[0].shape[0] == (x.shape[0] if serial else lanes.COMPILED_CHUNK)
-        assert threads == torch.get_num_threads()  # the worker compiles for the caller's threads, not its own
+        # the worker compiles for the caller's threads, not its own (the serial variant: one, whatever the caller's)
+        assert threads == (1 if serial else torch.get_num_threads())
 
 
 def test_a_kernel_already_in_the_cache_is_not_noted(gen, empty_cache, monkeypatch):
@@ -144,3 +145,52 @@ def test_a_batch_of_kernels_none_of_which_can_be_sent_ends_without_a_worker(gen,
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING][0].startswith(
         "compiling the fused kernel 'lambda (serial)' ahead of time failed"
     )
+
+
+def _hold_then_write(path, held, release):
+    """Another process's compilation: hold ``path``'s compile lock, then write its package and let go."""
+    with lanes.compile_lock(path):
+        held.set()
+        release.wait(10)
+        path.write_bytes(b"package")
+
+
+def test_a_kernel_another_process_is_compiling_is_waited_for_and_loaded_not_compiled_again(gen, monkeypatch, tmp_path):
+    """Processes started together (reproduce's cases side by side) compile a kernel once: the first call of a kernel
+    whose lock another holder has waits for its package (a thread stands in for the other process: the lock is a
+    file lock, held per open file)."""
+    import threading
+
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
+    x, y = _inputs(gen)
+    path = lanes._package_path(_kernel, (), [x, y], [], True)
+    held, release = threading.Event(), threading.Event()
+    other = threading.Thread(target=_hold_then_write, args=(path, held, release))
+    other.start()
+    held.wait(10)
+    monkeypatch.setattr(lanes, "_compile_ahead_of_time", lambda *a: pytest.fail("compiled again"))
+    monkeypatch.setattr(lanes, "_load_package", lambda p: ("loaded", p.read_bytes()))
+    threading.Timer(0.2, release.set).start()
+    assert lanes._load(_kernel, (), [x, y], [], serial=True) == ("loaded", b"package")
+    other.join()
+
+
+def test_side_by_side_a_kernel_another_process_is_compiling_is_left_to_it(gen, monkeypatch, tmp_path, caplog):
+    import subprocess
+    import threading
+
+    monkeypatch.setattr(lanes, "_compile_pending", _COMPILE_PENDING)
+    caplog.set_level(logging.INFO, logger="agsf_torch")
+    x, y = _inputs(gen, 4)
+    path = tmp_path / "a.pt2"
+    held, release = threading.Event(), threading.Event()
+    other = threading.Thread(target=_hold_then_write, args=(path, held, release))
+    other.start()
+    held.wait(10)
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: pytest.fail("a worker was started"))
+    try:
+        lanes._compile_pending({path: ("_kernel (serial)", _kernel, [x, y], [], True, 1)}, processes=1)
+    finally:
+        release.set()
+        other.join()
+    assert "the fused kernel '_kernel (serial)' is being compiled by another process" in caplog.text
