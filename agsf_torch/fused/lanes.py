@@ -419,7 +419,7 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
     )
     t0 = time.perf_counter()
     env = interpreter_env()  # the caller's imports, in a new interpreter
-    queue, running, done = list(jobs.items()), [], 0
+    queue, running, done, elsewhere = list(jobs.items()), [], 0, []
     with tempfile.TemporaryDirectory(prefix="agsf-kernels-") as scratch:
         try:
             while queue or running:
@@ -429,7 +429,7 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
                     try:
                         lock.acquire(timeout=0)
                     except Timeout:  # another process compiles it; this one's first call waits for its package
-                        logger.info("the fused kernel %r is being compiled by another process", name)
+                        elsewhere.append(name)
                         continue
                     if path.is_file():  # compiled by another process meanwhile
                         lock.release()
@@ -466,6 +466,11 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
                 proc.kill()
                 proc.wait()
                 lock.release()
+    if elsewhere:
+        logger.info(
+            "the fused kernels %s are being compiled by another process (their first calls wait for them)",
+            ", ".join(repr(name) for name in elsewhere),
+        )
     logger.info("compiled %d of %d fused kernels in %.1f s", done, len(jobs), time.perf_counter() - t0)
 
 

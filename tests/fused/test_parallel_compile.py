@@ -193,4 +193,4 @@ def test_side_by_side_a_kernel_another_process_is_compiling_is_left_to_it(gen, m
     finally:
         release.set()
         other.join()
-    assert "the fused kernel '_kernel (serial)' is being compiled by another process" in caplog.text
+    assert "the fused kernels '_kernel (serial)' are being compiled by another process" in caplog.text
