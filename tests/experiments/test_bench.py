@@ -211,3 +211,17 @@ def test_a_main_job_reference_that_is_not_a_checkout_is_refused_naming_it(tmp_pa
         bench.check_reference(tmp_path)
     assert bench.check_reference(None) is None
     assert bench.check_reference(bench.PROJECT_ROOT) == bench.PROJECT_ROOT.resolve()
+
+
+def test_the_main_job_of_a_reference_checkout_runs_that_checkouts_code(tmp_path):
+    """``python -m`` puts the working folder first on the path: the reference's job runs there, or it would
+    silently time this checkout's code (as a first version of the option did)."""
+    package = tmp_path / "agsf_torch" / "experiments"
+    package.mkdir(parents=True)
+    (tmp_path / "agsf_torch" / "__init__.py").write_text("")
+    (package / "__init__.py").write_text("")
+    marker = tmp_path / "ran"
+    (package / "cli.py").write_text(f"import sys\nopen({str(marker)!r}, 'w').write(' '.join(sys.argv[1:]))\n")
+    seconds = bench._main_job_seconds(["--jobs", "1"], bench.check_reference(tmp_path))
+    assert seconds > 0 and marker.read_text().startswith("reproduce --case all --out ")
+    assert marker.read_text().endswith("--quiet --jobs 1")

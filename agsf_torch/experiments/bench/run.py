@@ -201,11 +201,13 @@ def check_reference(reference: str | Path | None) -> Path | None:
     return folder
 
 
-def _main_job_seconds(extra: list[str], env: dict[str, str]) -> float:
-    """Wall seconds of ``agsf reproduce --case all`` in a new process with the environment ``env`` (whose
-    ``PYTHONPATH`` chooses the code), into a temporary folder."""
+def _main_job_seconds(extra: list[str], code: Path = PROJECT_ROOT) -> float:
+    """Wall seconds of ``agsf reproduce --case all`` in a new process running the checkout ``code`` (its working
+    folder and the first entry of its ``PYTHONPATH``: ``python -m`` puts the working folder first, so another
+    checkout's package would not be found), into a temporary folder."""
     import tempfile
 
+    env = {**os.environ, "PYTHONPATH": str(code) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
         subprocess.run(
@@ -215,6 +217,7 @@ def _main_job_seconds(extra: list[str], env: dict[str, str]) -> float:
             text=True,
             check=True,
             env=env,
+            cwd=code,
         )
         return time.perf_counter() - t
 
@@ -229,17 +232,16 @@ def bench_main_job(reference: Path | None = None, rounds: int = 3) -> dict[str, 
     say) its main job and this one's, as shipped, alternate ``rounds`` times, and each is the median of its
     rounds (``reference_seconds``, ``seconds``; ``reference_commit`` names it if it is a git checkout)."""
     result: dict[str, Any] = {
-        "generic_seconds": _main_job_seconds(["--set", "fused=false", "--jobs", "1"], _source_env()),
-        "sequential_seconds": _main_job_seconds(["--jobs", "1"], _source_env()),
+        "generic_seconds": _main_job_seconds(["--set", "fused=false", "--jobs", "1"]),
+        "sequential_seconds": _main_job_seconds(["--jobs", "1"]),
     }
     if reference is None:
-        result["seconds"] = _main_job_seconds([], _source_env())
+        result["seconds"] = _main_job_seconds([])
         return result
-    theirs_env = {**os.environ, "PYTHONPATH": str(reference) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     ours, theirs = [], []
     for _ in range(rounds):
-        theirs.append(_main_job_seconds([], theirs_env))
-        ours.append(_main_job_seconds([], _source_env()))
+        theirs.append(_main_job_seconds([], reference))
+        ours.append(_main_job_seconds([]))
     commit = subprocess.run(
         ["git", "-C", str(reference), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
     )
