@@ -67,6 +67,7 @@ from .cli_terminal import (
     seed,
     tensorboard_command,
 )
+from .forked import TaskDied
 
 __all__ = ["main", "tensorboard_command"]
 
@@ -278,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the ``agsf`` command; refused input (a bad configuration, file or output folder)
     prints one line ``agsf: error: …`` and returns 2, having created nothing; an I/O failure of the
     machine (a full disk, a failing or read-only device) prints ``agsf: I/O failure (file): …`` and returns
-    :data:`EXIT_IO_FAILURE`; Ctrl-C prints one line and returns 130.  Long steps
+    :data:`EXIT_IO_FAILURE`, as does a case's process that died (``agsf: failure: …``); Ctrl-C prints one line and returns 130.  Long steps
     (the FPKE kernel's compilation) are announced on stderr unless ``--quiet``."""
     args = build_parser().parse_args(argv)
     set_mmap_threshold()  # a step's buffers reused from the heap, not mapped afresh (agsf_torch.allocator)
@@ -295,6 +296,9 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as exc:
             print(f"agsf: error: {one_line(exc)}", file=sys.stderr)
             return 2
+        except TaskDied as exc:  # a case's process was killed (out of memory, say): the machine's failure
+            print(f"agsf: failure: {one_line(exc)}", file=sys.stderr)
+            return EXIT_IO_FAILURE
         except KeyboardInterrupt:
             out = getattr(args, "out", None)
             kept = f"; what was written is in {out}" if out else ""
@@ -328,9 +332,10 @@ def entry() -> None:
     import logging
     import os
 
+    from .forked import _flush_standard_streams
+
     logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        stream.flush()
+    _flush_standard_streams()  # a closed stream, or one whose reader is gone, is skipped
     os._exit(code)
 
 

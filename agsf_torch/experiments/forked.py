@@ -26,8 +26,12 @@ import importlib
 import multiprocessing
 import multiprocessing.connection
 import os
+import pickle
 import signal
 import sys
+import threading
+import time
+import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -40,33 +44,72 @@ INTERRUPT_GRACE_S = 5.0
 
 
 class TaskDied(RuntimeError):
-    """A forked task's process ended without a reply (killed, or out of memory)."""
+    """A forked task's process ended without a reply (killed, or out of memory), or its reply could not be read."""
+
+
+class ChildTraceback(Exception):
+    """The traceback of a task's exception in its child (the ``__cause__`` of the exception :func:`run_forked`
+    raises, as :mod:`concurrent.futures` attaches it)."""
 
 
 def fork_available() -> bool:
     """Whether tasks can run in forked children: on Linux (elsewhere fork is absent, or unsafe with the system's
-    frameworks)."""
-    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+    frameworks), from the main thread (Ctrl-C reaches the main thread, which passes it on to the children)."""
+    return (
+        sys.platform.startswith("linux")
+        and "fork" in multiprocessing.get_all_start_methods()
+        and threading.current_thread() is threading.main_thread()
+    )
+
+
+def _interrupted_once(signum: int, frame: Any) -> None:
+    """A child's SIGINT handler: the first interrupts the task; later ones (a terminal's Ctrl-C reaches the whole
+    process group, then the parent passes it on) are ignored, so that the task's clean-up is not cut short."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+def _sendable(exc: BaseException) -> BaseException:
+    """``exc`` if it survives a pickle round trip, else the nearest builtin exception with its message (an
+    ``OSError`` keeps its errno, message and file name), so that the parent raises what the task raised."""
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc
+    except Exception:  # noqa: BLE001 - any failure to pickle or to rebuild it
+        pass
+    text = f"{type(exc).__name__}: {exc}"
+    if isinstance(exc, OSError):
+        return OSError(exc.errno, exc.strerror or str(exc), exc.filename) if exc.errno else OSError(text)
+    for kind in (ValueError, KeyboardInterrupt, RuntimeError):
+        if isinstance(exc, kind):
+            return kind(str(exc)) if kind is not RuntimeError else RuntimeError(text)
+    return RuntimeError(text)
 
 
 def _child(conn: Any, index: int, task: Callable[..., Any], args: tuple) -> None:
     """A child's body: run the task, its progress bars reported to the parent (``("progress", desc, unit, total,
-    n)``), then send ``("done", True, result)`` or ``("done", False, exception)``."""
-    from .progress import report_to
+    n)``), then send ``("done", True, result, None)`` or ``("done", False, exception, traceback text)``."""
+    from .progress import forget_parent_bars, report_to
 
+    signal.signal(signal.SIGINT, _interrupted_once)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked by the parent around the fork
+    forget_parent_bars()
     report_to(lambda *bar: conn.send(("progress", *bar)))
     try:
-        reply = ("done", True, task(*args))
+        reply = ("done", True, task(*args), None)
     except BaseException as exc:  # noqa: BLE001 - sent to the parent, which raises it
-        reply = ("done", False, exc)
+        reply = ("done", False, _sendable(exc), traceback.format_exc())
     report_to(None)
     try:
         conn.send(reply)
-    except Exception as unsent:  # noqa: BLE001 - a result or exception that cannot be pickled
-        _, ok, value = reply
-        what = "result" if ok else f"{type(value).__name__}: {value}"
+    except Exception as unsent:  # noqa: BLE001 - a result that cannot be pickled
         conn.send(
-            ("done", False, TaskDied(f"task {index} could not send its {what} ({type(unsent).__name__}: {unsent})"))
+            (
+                "done",
+                False,
+                TaskDied(f"task {index} could not send its result ({type(unsent).__name__}: {unsent})"),
+                None,
+            )
         )
     finally:
         conn.close()
@@ -77,36 +120,43 @@ def run_forked(
     jobs: int,
     names: Sequence[str] | None = None,
     preload: Sequence[str] = (),
+    on_result: Callable[[int, Any], None] | None = None,
 ) -> list:
     """Run every ``task(*args)`` of ``tasks`` in a forked child, at most ``jobs`` at once in the order given, and
-    return their results in that order (module docstring).
+    return their results in that order (module docstring).  Call it from the main thread (:func:`fork_available`)
+    before this process has run a parallel torch operation: a child inherits OpenMP's state without its threads,
+    so a task should run one torch thread (``agsf reproduce`` sets that in each case's process).
 
     Args:
-        tasks: ``(function, arguments)`` pairs; each result and exception must pickle (they return through a pipe).
+        tasks: ``(function, arguments)`` pairs; each result must pickle (it returns through a pipe); an exception
+            that does not is raised as the nearest builtin exception with its message.
         jobs: children at once, a positive integer.
         names: what a failure calls each task (default ``task 0``, ``task 1``, …).
         preload: modules imported here first, once, that every child would otherwise import for itself (for
             ``agsf reproduce`` matplotlib and TensorBoard's protocol buffers: 0.3 s a child).
+        on_result: called here with ``(task index, result)`` as each task succeeds (``agsf reproduce`` writes the
+            case's HParams session then, so that a later case's failure leaves the earlier ones complete).
 
     Raises:
-        the first failed task's exception (in task order) once every task has ended; :class:`TaskDied` for a child
-        that ended without a reply, naming the task and its exit code.
+        the first failed task's exception (in task order; its traceback in the child as its ``__cause__``) once
+        every task has ended; :class:`TaskDied` for a child that ended without a reply, naming the task and its
+        exit code.
     """
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
     if not fork_available():
-        raise RuntimeError("run_forked needs fork (Linux); run the tasks one after another instead")
+        raise RuntimeError("run_forked needs fork (Linux) and the main thread; run the tasks one after another instead")
     names = list(names) if names is not None else [f"task {i}" for i in range(len(tasks))]
     for module in preload:
         importlib.import_module(module)
     context = multiprocessing.get_context("fork")
     results: list[Any] = [None] * len(tasks)
-    failures: dict[int, BaseException] = {}
+    failures: dict[int, tuple[BaseException, str | None]] = {}
     waiting = list(range(len(tasks)))
     bars = ParentBars()  # the children's progress bars, drawn here on a line each
     running: dict[int, tuple[Any, Any]] = {}  # task → (process, its reply connection)
-    for stream in (sys.stdout, sys.stderr):  # a child must not write this process's buffered output again
-        stream.flush()
+    _flush_standard_streams()  # a child must not write this process's buffered output again
+    frozen_before = gc.get_freeze_count() > 0
     gc.freeze()  # this process's objects (torch's and matplotlib's modules) left out of the children's collections
     try:
         while waiting or running:
@@ -114,7 +164,13 @@ def run_forked(
                 index = waiting.pop(0)
                 receive, send = context.Pipe(duplex=False)
                 process = context.Process(target=_child, args=(send, index, *tasks[index]), name=names[index])
-                process.start()
+                # SIGINT held back across the fork: the child installs its own handler first (a Ctrl-C meanwhile
+                # is delivered here once unblocked, and passed on)
+                signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+                try:
+                    process.start()
+                finally:
+                    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
                 send.close()
                 running[index] = (process, receive)
             ready = multiprocessing.connection.wait([conn for _, conn in running.values()])
@@ -122,49 +178,64 @@ def run_forked(
                 process, conn = running[index]
                 try:
                     message = conn.recv()
-                except (EOFError, OSError):
+                except Exception as exc:  # noqa: BLE001 - no reply (EOF), or one that cannot be read
                     process.join()
-                    message = (
-                        "done",
-                        False,
-                        TaskDied(f"{names[index]} ended without a reply (exit code {process.exitcode})"),
+                    why = (
+                        "ended without a reply"
+                        if isinstance(exc, EOFError)
+                        else f"sent a reply that cannot be read ({type(exc).__name__}: {exc})"
                     )
+                    message = ("done", False, TaskDied(f"{names[index]} {why} (exit code {process.exitcode})"), None)
                 if message[0] == "progress":
                     bars.update(index, *message[1:])
                     continue
                 del running[index]
                 conn.close()
                 process.join()
-                _, ok, value = message
+                _, ok, value, trace = message
                 if ok:
                     results[index] = value
+                    if on_result is not None:
+                        on_result(index, value)
                 else:
-                    failures[index] = value
+                    failures[index] = (value, trace)
     except BaseException:
         _interrupt([process for process, _ in running.values()])
         raise
     finally:
-        gc.unfreeze()
+        if not frozen_before:  # a caller's own freeze is left as it was
+            gc.unfreeze()
         bars.close()
     if failures:
-        first = failures[min(failures)]
+        first, trace = failures[min(failures)]
         if isinstance(first, KeyboardInterrupt):
             raise KeyboardInterrupt
-        raise first
+        raise first from (ChildTraceback(f"in {names[min(failures)]}'s process:\n{trace}") if trace else None)
     return results
 
 
+def _flush_standard_streams() -> None:
+    """Flush stdout and stderr where they are open (a closed stream, or one whose reader is gone, is skipped)."""
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+
+
 def _interrupt(processes: list) -> None:
-    """Interrupt ``processes`` (SIGINT: each removes its temporary files), kill those still running after
-    :data:`INTERRUPT_GRACE_S`, and wait for them."""
+    """Interrupt ``processes`` (one SIGINT: each removes its temporary files), kill those still running
+    :data:`INTERRUPT_GRACE_S` after, and wait for them."""
     for process in processes:
         if process.is_alive() and process.pid is not None:
             try:
                 os.kill(process.pid, signal.SIGINT)
             except ProcessLookupError:
                 pass
+    deadline = time.monotonic() + INTERRUPT_GRACE_S
     for process in processes:
-        process.join(INTERRUPT_GRACE_S)
+        process.join(max(0.0, deadline - time.monotonic()))
         if process.is_alive():
             process.kill()
             process.join()

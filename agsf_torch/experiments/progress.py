@@ -13,7 +13,15 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-__all__ = ["progress_bar", "report_to", "ParentBars", "LOG_INTERVAL_S", "LOG_FRACTION", "REPORT_FRACTION"]
+__all__ = [
+    "progress_bar",
+    "report_to",
+    "forget_parent_bars",
+    "ParentBars",
+    "LOG_INTERVAL_S",
+    "LOG_FRACTION",
+    "REPORT_FRACTION",
+]
 
 #: Seconds between two progress lines when stderr is not a terminal.
 LOG_INTERVAL_S = 10.0
@@ -34,6 +42,16 @@ def report_to(send: Callable[[str, str, int | None, int], None] | None) -> None:
 
 #: Fraction of the work between two reports of a forked child's bar.
 REPORT_FRACTION = 0.01
+
+
+def forget_parent_bars() -> None:
+    """In a forked child: drop the bars and the lock its parent's tqdm held at the fork (a child forked while the
+    parent draws its siblings' bars would otherwise redraw copies of them, or wait on a lock held at the fork)."""
+    from tqdm.auto import tqdm
+
+    tqdm._instances.clear()
+    if hasattr(tqdm, "_lock"):
+        del tqdm._lock
 
 
 class _Reported:

@@ -54,15 +54,21 @@ def reproduce(
     the same with and without writers (byte for byte; the event files' records).
 
     With ``jobs`` > 1 the cases instead run side by side, ``jobs`` at once, each in a process forked from this one
-    that runs it end to end and writes its files (:mod:`.forked`; ``threads`` torch threads each, default the CPUs
-    shared out, at least 1; no writers: ``writers`` must be None or 0); their numbers and files are those of the
-    cases run one after another.  Default (``None``): every case at once where fork is available and the process
+    that runs it end to end with one torch thread and writes its files (:mod:`.forked`; ``threads`` must be None or
+    1, ``writers`` None or 0); their numbers and files are those of the cases run one after another with one torch
+    thread (byte for byte; with more threads a threaded kernel may round differently in the last bits), and each
+    case's HParams session is written as it completes.  Default (``None``): every case at once where fork is available and the process
     may use two CPUs or more (:func:`default_jobs`), else 1.  The memory check then counts the cases that run at
     once (:func:`~.resources.check_memory_side_by_side`)."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
     jobs = check_jobs(jobs, len(configs), writers)
     if jobs > 1:
         check_writers(0, threads)
+        if threads not in (None, 1):
+            raise ValueError(
+                f"cases side by side run one torch thread each, got threads={threads} (a forked process cannot use "
+                "OpenMP threads safely); run them one after another (jobs=1, --jobs 1) for more threads"
+            )
         check_memory_side_by_side(list(configs.values()), jobs, force=force)
     else:
         writers = check_writers(writers, threads)
@@ -76,13 +82,18 @@ def reproduce(
     domains = hparam_domains(hparams.values())
     combined = {}
     if jobs > 1:
-        each = threads or max(1, available_cpus() // jobs)
-        tasks = [(_run_case, (cfg, out / name, progress, force, each)) for name, cfg in configs.items()]
+        names = list(configs)
+
+        def finished(index: int, case: dict) -> None:  # each case's session as it completes, whatever a later one does
+            combined[names[index]] = case
+            write_hparams_session(
+                out / names[index] / "tensorboard", hparams[names[index]], case_metrics(case), domains
+            )
+
+        tasks = [(_run_case, (cfg, out / name, progress, force)) for name, cfg in configs.items()]
         make_filters(next(iter(configs.values())))  # the rules and tables every case's filters share, built once
-        done = run_forked(tasks, jobs, names=list(configs), preload=CASE_MODULES)
-        for name, case in zip(configs, done):
-            combined[name] = case
-            write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(case), domains)
+        run_forked(tasks, jobs, names=names, preload=CASE_MODULES, on_result=finished)
+        combined = {name: combined[name] for name in names}
     else:
         with writing_beside(writers, threads) as writer:
             for name, cfg in configs.items():
@@ -133,9 +144,10 @@ def check_jobs(jobs: int | None, cases: int, writers: int | None) -> int:
     return jobs
 
 
-def _run_case(cfg, out: Path, progress: bool, force: bool, threads: int) -> dict:
-    """A case run end to end in a forked process (:func:`reproduce`): ``threads`` torch threads (its progress bar drawn
-    by the parent); returns its entry of the combined summary.
+def _run_case(cfg, out: Path, progress: bool, force: bool) -> dict:
+    """A case run end to end in a forked process (:func:`reproduce`) with one torch thread (OpenMP does not survive a
+    fork: a child of a process that had run a parallel operation would hang at its first), its progress bar drawn by
+    the parent; returns its entry of the combined summary.
 
     The case runs in :func:`torch.inference_mode` (no autograd bookkeeping on any tensor: 9 % of a case's filter
     loop, measured on 2 cores), which is safe here and nowhere else in the package: no tensor outlives the process,
@@ -143,7 +155,7 @@ def _run_case(cfg, out: Path, progress: bool, force: bool, threads: int) -> dict
     in a later autograd computation."""
     import torch
 
-    torch.set_num_threads(threads)
+    torch.set_num_threads(1)
     with torch.inference_mode():
         summary = run_experiment(cfg, out, progress=progress, kind="reproduce-case", force=force)
     return _case_summary(cfg, summary)

@@ -229,7 +229,7 @@ def _load(
     path = _package_path(kernel, key, inputs, shared, serial)
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
     if not path.is_file():
-        with compile_lock(path):  # another process compiling it: wait for its package instead of compiling again
+        with _held(compile_lock(path), name):  # another process compiling it: wait for its package, not compile again
             if not path.is_file():
                 logger.info(
                     "compiling the fused kernel %r ahead of time (once per machine and torch version: about 10–60 s on "
@@ -242,6 +242,22 @@ def _load(
                     _compile_ahead_of_time(kernel, inputs, shared, path, serial, _variant_threads(serial))
                 logger.info("compiled the fused kernel %r in %.1f s", name, time.perf_counter() - t0)
     return _load_package(path)
+
+
+@contextlib.contextmanager
+def _held(lock, name: str):
+    """``lock`` acquired, announcing the wait when another process holds it (it compiles kernel ``name``)."""
+    from filelock import Timeout
+
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        logger.info("waiting for another process compiling the fused kernel %r (%s)", name, lock.lock_file)
+        lock.acquire()
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 def compile_lock(path: Path):

@@ -94,22 +94,38 @@ def test_bad_job_counts_are_refused(jobs):
         run_forked([(_square, (1,))], jobs)
 
 
-def test_an_interruption_interrupts_the_children_and_propagates(tmp_path):
-    """Ctrl-C in the parent: the children are interrupted (then killed if they linger) and none outlives the call."""
+def _slow_clean(path: str) -> None:
+    """Loop until interrupted, then take 0.3 s to clean up (a second SIGINT must not cut it short)."""
+    Path(path).write_text(str(os.getpid()))
+    try:
+        while True:
+            time.sleep(0.01)
+    finally:
+        time.sleep(0.3)
+        Path(path + ".cleaned").write_text("yes")
+
+
+@pytest.mark.parametrize("whole_group", [False, True])
+def test_an_interruption_interrupts_the_children_once_and_propagates(tmp_path, whole_group):
+    """Ctrl-C: to the parent alone, or at a terminal to the whole process group (each child then gets it twice: the
+    terminal's and the parent's); each child's clean-up runs to its end and none outlives the call."""
     marks = [tmp_path / f"child{k}" for k in range(2)]
 
     def interrupt_when_started() -> None:
         while not all(m.exists() for m in marks):
             time.sleep(0.01)
+        if whole_group:
+            for m in marks:
+                os.kill(int(m.read_text()), signal.SIGINT)
         os.kill(os.getpid(), signal.SIGINT)
 
     threading.Thread(target=interrupt_when_started, daemon=True).start()
     with pytest.raises(KeyboardInterrupt):
-        run_forked([(_slow, (str(m),)) for m in marks], 2)
+        run_forked([(_slow_clean, (str(m),)) for m in marks], 2)
     for mark in marks:
-        pid = int(mark.read_text())
+        assert Path(str(mark) + ".cleaned").read_text() == "yes"
         with pytest.raises(ProcessLookupError):  # reaped: no such process any more
-            os.kill(pid, 0)
+            os.kill(int(mark.read_text()), 0)
 
 
 def _counting(total: int) -> int:
@@ -136,3 +152,53 @@ def test_the_childrens_progress_bars_are_drawn_by_the_parent_on_a_line_each(monk
     for child, total in ((0, 100), (1, 300)):
         mine = [n for c, desc, t, n in seen[:-1] if c == child and desc == f"count{total}" and t == total]
         assert mine[0] == 0 and mine[-1] == total and mine == sorted(mine)
+
+
+class _NeedsWhy(ValueError):
+    """An exception that pickles but cannot be rebuilt (a keyword-only argument its ``args`` lack)."""
+
+    def __init__(self, path, *, why):
+        super().__init__(f"{path}: {why}")
+
+
+def _raise_needs_why() -> None:
+    raise _NeedsWhy("case2.npz", why="unreadable")
+
+
+def test_an_exception_that_cannot_be_rebuilt_is_raised_as_its_builtin_kind_and_the_others_finish(tmp_path):
+    tasks = [(_write_then, (str(tmp_path / "a"), None)), (_raise_needs_why, ())]
+    with pytest.raises(ValueError, match="^case2.npz: unreadable$") as info:
+        run_forked(tasks, 2)
+    assert type(info.value) is ValueError and (tmp_path / "a").read_text() == "done"
+    assert "_raise_needs_why" in str(info.value.__cause__)  # the child's traceback, as the cause
+
+
+def test_each_result_is_handed_over_as_its_task_succeeds_and_a_callers_freeze_is_kept():
+    got = []
+    gc.freeze()
+    try:
+        run_forked([(_square, (k,)) for k in range(3)], 3, on_result=lambda i, r: got.append((i, r[0])))
+        assert gc.get_freeze_count() > 0  # the caller's freeze left as it was
+    finally:
+        gc.unfreeze()
+    assert sorted(got) == [(0, 0), (1, 1), (2, 4)]
+
+
+def test_closed_standard_streams_are_skipped(monkeypatch):
+    monkeypatch.setattr(sys, "stdout", None)
+    assert run_forked([(_square, (3,))], 1)[0][0] == 9
+
+
+def test_from_another_thread_tasks_are_refused():
+    errors = []
+
+    def call():
+        try:
+            run_forked([(_square, (1,))], 1)
+        except RuntimeError as exc:
+            errors.append(str(exc))
+
+    worker = threading.Thread(target=call)
+    worker.start()
+    worker.join()
+    assert errors and "the main thread" in errors[0]

@@ -45,10 +45,11 @@ def test_a_failing_case_is_raised_once_the_other_cases_are_written(tmp_path, mon
     monkeypatch.setattr(reproduce_module, "run_experiment", failing_case2)
     with pytest.raises(ValueError, match="^case 2's recording is unreadable$"):
         reproduce([1, 2, 3], tmp_path / "out", SMALL, progress=False, jobs=3)
-    for case in ("case1", "case3"):  # complete, whatever case 2 did
+    for case in ("case1", "case3"):  # complete, whatever case 2 did, their HParams sessions included
         assert {"runs.npz", "summary.json", "axes.png", "rms.png", "weights.png", "fpke.png"} <= {
             p.name for p in (tmp_path / "out" / case).iterdir()
         }
+        assert list((tmp_path / "out" / case / "tensorboard").glob("events.out.tfevents.*"))
     assert not (tmp_path / "out" / "results.md").exists()
 
 
@@ -59,11 +60,14 @@ def test_a_failing_case_is_raised_once_the_other_cases_are_written(tmp_path, mon
         (1.5, None, "jobs must be a positive integer"),
         (True, None, "jobs must be a positive integer"),
         (2, 1, r"writers apply to cases run one after another \(jobs=1, --jobs 1\)"),
+        (2, "threads=2", r"cases side by side run one torch thread each, got threads=2"),
     ],
 )
-def test_bad_job_counts_are_refused_before_anything_is_created(tmp_path, jobs, writers, match):
+def test_bad_job_counts_are_refused_before_anything_is_created(tmp_path, monkeypatch, jobs, writers, match):
+    monkeypatch.setattr(reproduce_module, "fork_available", lambda: True)
+    kw = {"threads": 2} if writers == "threads=2" else {"writers": writers}
     with pytest.raises(ValueError, match=match):
-        reproduce([1, 2], tmp_path / "out", list(EAGER), progress=False, jobs=jobs, writers=writers)
+        reproduce([1, 2], tmp_path / "out", list(EAGER), progress=False, jobs=jobs, **kw)
     assert not (tmp_path / "out").exists()
 
 
@@ -105,3 +109,16 @@ def test_the_cli_refuses_jobs_with_writers_in_one_line_exit_2(tmp_path):
     out = tmp_path / "out"
     _assert_refused(["reproduce", "--out", str(out), "--jobs", "2", "--writers", "1", *TINY_CLI], tmp_path, "--jobs 1")
     _assert_refused(["reproduce", "--out", str(out), "--jobs", "0", *TINY_CLI], tmp_path, "--jobs")
+
+
+def test_a_cases_process_that_dies_is_a_one_line_failure_exit_3(tmp_path, monkeypatch):
+    """A case's process killed (out of memory, say) is the machine's failure, not a traceback."""
+    from agsf_torch.experiments.forked import TaskDied
+    from tests.experiments.test_cli_failures import _agsf
+
+    def died(*a, **kw):
+        raise TaskDied("case2 ended without a reply (exit code -9)")
+
+    monkeypatch.setattr(reproduce_module, "reproduce", died)
+    code, err = _agsf(["reproduce", "--out", str(tmp_path / "out"), *TINY_CLI])
+    assert code == 3 and err == "agsf: failure: case2 ended without a reply (exit code -9)\n"

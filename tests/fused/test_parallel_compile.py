@@ -155,7 +155,9 @@ def _hold_then_write(path, held, release):
         path.write_bytes(b"package")
 
 
-def test_a_kernel_another_process_is_compiling_is_waited_for_and_loaded_not_compiled_again(gen, monkeypatch, tmp_path):
+def test_a_kernel_another_process_is_compiling_is_waited_for_and_loaded_not_compiled_again(
+    gen, monkeypatch, tmp_path, caplog
+):
     """Processes started together (reproduce's cases side by side) compile a kernel once: the first call of a kernel
     whose lock another holder has waits for its package (a thread stands in for the other process: the lock is a
     file lock, held per open file)."""
@@ -171,8 +173,10 @@ def test_a_kernel_another_process_is_compiling_is_waited_for_and_loaded_not_comp
     monkeypatch.setattr(lanes, "_compile_ahead_of_time", lambda *a: pytest.fail("compiled again"))
     monkeypatch.setattr(lanes, "_load_package", lambda p: ("loaded", p.read_bytes()))
     threading.Timer(0.2, release.set).start()
+    caplog.set_level(logging.INFO, logger="agsf_torch")
     assert lanes._load(_kernel, (), [x, y], [], serial=True) == ("loaded", b"package")
     other.join()
+    assert "waiting for another process compiling the fused kernel '_kernel (serial)'" in caplog.text
 
 
 def test_side_by_side_a_kernel_another_process_is_compiling_is_left_to_it(gen, monkeypatch, tmp_path, caplog):
