@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from agsf_torch.fused import algebra, lanes
+from agsf_torch.fused import algebra, kernel_cache, lanes
 from agsf_torch.fused.lanes import entries, run_in_chunks, stack_entries
 from tests.helpers import F64
 
@@ -142,13 +142,13 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
 
 def test_the_cache_key_follows_what_the_compiled_code_depends_on(gen):
     x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
-    name = lanes._package_name(_kernel, ("a",), (x, y), ())
-    assert lanes._package_name(_kernel, ("a",), (x[:2], y[:2]), ()) == name  # the lane count is dynamic
-    assert lanes._package_name(_kernel, ("b",), (x, y), ()) != name  # the static configuration
-    assert lanes._package_name(_kernel, ("a",), (x.float(), y), ()) != name  # dtypes
-    assert lanes._package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
-    assert lanes._package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
-    assert lanes._package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
+    name = kernel_cache._package_name(_kernel, ("a",), (x, y), ())
+    assert kernel_cache._package_name(_kernel, ("a",), (x[:2], y[:2]), ()) == name  # the lane count is dynamic
+    assert kernel_cache._package_name(_kernel, ("b",), (x, y), ()) != name  # the static configuration
+    assert kernel_cache._package_name(_kernel, ("a",), (x.float(), y), ()) != name  # dtypes
+    assert kernel_cache._package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
+    assert kernel_cache._package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
+    assert kernel_cache._package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
 
 
 def test_the_kernel_cache_lives_where_the_environment_says(monkeypatch, tmp_path):
