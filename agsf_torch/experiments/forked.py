@@ -41,6 +41,8 @@ __all__ = ["fork_available", "run_forked", "TaskDied"]
 
 #: Seconds an interrupted child has to remove its temporary files before it is killed.
 INTERRUPT_GRACE_S = 5.0
+#: Seconds between two looks at pending signals while the children run.
+WAKE_S = 0.1
 
 
 class TaskDied(RuntimeError):
@@ -173,7 +175,9 @@ def run_forked(
                     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
                 send.close()
                 running[index] = (process, receive)
-            ready = multiprocessing.connection.wait([conn for _, conn in running.values()])
+            # with a timeout: a Ctrl-C that the kernel hands to another thread of this process is raised here only
+            # when this thread runs Python again (a wait without one would sleep through it)
+            ready = multiprocessing.connection.wait([conn for _, conn in running.values()], timeout=WAKE_S)
             for index in [i for i, (_, conn) in running.items() if conn in ready]:
                 process, conn = running[index]
                 try:
