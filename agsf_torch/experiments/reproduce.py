@@ -135,7 +135,7 @@ def check_jobs(jobs: int | None, cases: int, writers: int | None) -> int:
     jobs = min(jobs, max(1, cases))
     if jobs > 1 and not fork_available():
         raise ValueError(
-            "cases run side by side in forked processes, which this system lacks: run them one after another (jobs=1, --jobs 1)"
+            "cases run side by side in forked processes, which need Linux and the main thread: run them one after another (jobs=1, --jobs 1)"
         )
     if jobs > 1 and writers:
         raise ValueError(
