@@ -82,9 +82,9 @@ def _sendable(exc: BaseException) -> BaseException:
     text = f"{type(exc).__name__}: {exc}"
     if isinstance(exc, OSError):
         return OSError(exc.errno, exc.strerror or str(exc), exc.filename) if exc.errno else OSError(text)
-    for kind in (ValueError, KeyboardInterrupt, RuntimeError):
+    for kind in (ValueError, KeyboardInterrupt):
         if isinstance(exc, kind):
-            return kind(str(exc)) if kind is not RuntimeError else RuntimeError(text)
+            return kind(str(exc))
     return RuntimeError(text)
 
 

@@ -61,14 +61,8 @@ def reproduce(
     may use two CPUs or more (:func:`default_jobs`), else 1.  The memory check then counts the cases that run at
     once (:func:`~.resources.check_memory_side_by_side`)."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
-    jobs = check_jobs(jobs, len(configs), writers)
+    jobs = check_jobs(jobs, len(configs), writers, threads)
     if jobs > 1:
-        check_writers(0, threads)
-        if threads not in (None, 1):
-            raise ValueError(
-                f"cases side by side run one torch thread each, got threads={threads} (a forked process cannot use "
-                "OpenMP threads safely); run them one after another (jobs=1, --jobs 1) for more threads"
-            )
         check_memory_side_by_side(list(configs.values()), jobs, force=force)
     else:
         writers = check_writers(writers, threads)
@@ -81,27 +75,24 @@ def reproduce(
     hparams = {name: case_hparams(name, cfg.to_dict()) for name, cfg in configs.items()}
     domains = hparam_domains(hparams.values())
     combined = {}
+    names = list(configs)
+
+    def record(name: str, case: dict) -> None:  # each case's session as it completes, whatever a later one does
+        combined[name] = case
+        write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(case), domains)
+
     if jobs > 1:
-        names = list(configs)
-
-        def finished(index: int, case: dict) -> None:  # each case's session as it completes, whatever a later one does
-            combined[names[index]] = case
-            write_hparams_session(
-                out / names[index] / "tensorboard", hparams[names[index]], case_metrics(case), domains
-            )
-
         tasks = [(_run_case, (cfg, out / name, progress, force)) for name, cfg in configs.items()]
         make_filters(next(iter(configs.values())))  # the rules and tables every case's filters share, built once
-        run_forked(tasks, jobs, names=names, preload=CASE_MODULES, on_result=finished)
-        combined = {name: combined[name] for name in names}
+        run_forked(tasks, jobs, names=names, preload=CASE_MODULES, on_result=lambda i, case: record(names[i], case))
     else:
         with writing_beside(writers, threads) as writer:
             for name, cfg in configs.items():
                 summary = run_experiment(
                     cfg, out / name, progress=progress, kind="reproduce-case", force=force, writer=writer
                 )
-                combined[name] = _case_summary(cfg, summary)
-                write_hparams_session(out / name / "tensorboard", hparams[name], case_metrics(combined[name]), domains)
+                record(name, _case_summary(cfg, summary))
+    combined = {name: combined[name] for name in names}  # in case order, whichever finished first
     write_json(out / "summary.json", combined, indent=2)
     table = results_table(combined)
     write_text(out / "results.md", table + "\n")
@@ -119,17 +110,20 @@ def default_jobs(cases: int) -> int:
     return cases if cases > 1 and fork_available() and available_cpus() >= 2 else 1
 
 
-def check_jobs(jobs: int | None, cases: int, writers: int | None) -> int:
-    """Validate ``jobs`` (before anything is created) and return it (``None``: :func:`default_jobs`).
+def check_jobs(jobs: int | None, cases: int, writers: int | None, threads: int | None = None) -> int:
+    """Validate ``jobs`` with the ``writers`` and ``threads`` they run with (before anything is created) and return
+    it (``None``: :func:`default_jobs`).
 
     Raises:
         ValueError: ``jobs`` not a positive integer; more than 1 where fork is absent; more than 1 with ``writers``
-            (each case's process writes its own files: writers apply to cases run one after another).
+            (each case's process writes its own files: writers apply to cases run one after another) or with
+            ``threads`` above 1 (each case's process runs one torch thread); ``threads`` not a positive integer.
 
     ``writers`` given (0 included) and ``jobs`` not: the cases run one after another, with those writers.
     """
     if jobs is None:
-        return 1 if writers is not None else default_jobs(cases)
+        jobs = 1 if writers is not None else default_jobs(cases)
+        return jobs if jobs == 1 else check_jobs(jobs, cases, writers, threads)
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
     jobs = min(jobs, max(1, cases))
@@ -141,6 +135,13 @@ def check_jobs(jobs: int | None, cases: int, writers: int | None) -> int:
         raise ValueError(
             "writers apply to cases run one after another (jobs=1, --jobs 1); cases run side by side write their own files"
         )
+    if jobs > 1:
+        check_writers(0, threads)
+        if threads not in (None, 1):
+            raise ValueError(
+                f"cases side by side run one torch thread each, got threads={threads} (a forked process cannot use "
+                "OpenMP threads safely); run them one after another (jobs=1, --jobs 1) for more threads"
+            )
     return jobs
 
 

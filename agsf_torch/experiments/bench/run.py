@@ -104,7 +104,6 @@ def bench_adaptive(
 _FIRST_STEP_SCRIPT = """
 import time, sys
 t0 = time.perf_counter()
-import numpy as np
 import torch
 sys.path.insert(0, {root!r})
 from agsf_torch.experiments.bench.harness import attitude_mixture
@@ -118,9 +117,9 @@ print(time.perf_counter() - t0)
 """
 
 
-def _source_env() -> dict[str, str]:
-    """The environment of a subprocess that imports this checkout's package first."""
-    return {**os.environ, "PYTHONPATH": str(PROJECT_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+def _source_env(root: Path = PROJECT_ROOT) -> dict[str, str]:
+    """The environment of a subprocess that imports the package of the checkout ``root`` (this one by default) first."""
+    return {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 
 def bench_first_step(cases: tuple[tuple[str, bool], ...]) -> list[dict[str, Any]]:
@@ -207,7 +206,6 @@ def _main_job_seconds(extra: list[str], code: Path = PROJECT_ROOT) -> float:
     checkout's package would not be found), into a temporary folder."""
     import tempfile
 
-    env = {**os.environ, "PYTHONPATH": str(code) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
         subprocess.run(
@@ -216,7 +214,7 @@ def _main_job_seconds(extra: list[str], code: Path = PROJECT_ROOT) -> float:
             capture_output=True,
             text=True,
             check=True,
-            env=env,
+            env=_source_env(code),
             cwd=code,
         )
         return time.perf_counter() - t
