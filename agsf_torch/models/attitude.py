@@ -20,8 +20,9 @@ from torch import Tensor
 
 from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
-from .attitude_fused import FusedAttitudePaths
+from .attitude_fused import ATTITUDE_DYNAMICS, FusedAttitudePaths
 from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative, sum_last
+from .derived import derived_from
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
 
@@ -41,6 +42,10 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
     The input ``u = ω̃`` must have shape ``[..., 3]`` (one rate per body axis): any other
     last dimension, ``[..., 1]`` included, is a ``ValueError`` (:meth:`check_input`), never a
     rate broadcast over the three axes.
+
+    The closed forms and the fused kernels hold for these dynamics (``drift``, ``noise_gain``, ``noise_psd``):
+    a subclass that overrides any of them gets ``torch.func`` derivatives, the generic quadrature and the
+    unfused path (:mod:`~agsf_torch.models.derived`), unless it overrides the derivations too.
     """
 
     input_dim = 3
@@ -112,6 +117,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
             return torch.diag(sv2)
         return torch.diag(torch.cat((sv2, self.sigma_u**2 * torch.ones_like(sv2))))
 
+    @derived_from("drift", "_rate", "_mrp_rate", generic=ContinuousModel.drift_jacobian)
     def drift_jacobian(self, x: Tensor, u: Tensor) -> Tensor:
         """Closed form ``A = [[F, −¼B(p)], [0, 0]]`` with ``ω = ω̃ − b``.
 
@@ -132,6 +138,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         top = torch.cat((F, -0.25 * mrp_kinematics_matrix(p)), -1)
         return torch.cat((top, torch.zeros_like(top)), -2)
 
+    @derived_from("noise_gain", "noise_psd", generic=ContinuousModel.process_noise)
     def process_noise(self, x: Tensor) -> Tensor:
         """Closed form ``g Q gᵀ``: ``(σ_v²/16)(1 + s)² I₃`` on the MRP block (``B Bᵀ = (1+s)² I``)."""
         p = x[..., :3]
@@ -153,6 +160,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
             return dp
         return torch.cat((dp, (0.5 * self.sigma_u**2) * torch.ones_like(p)), -1)
 
+    @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fokker_planck_terms)
     def fokker_planck_terms(self, x: Tensor, u: Tensor) -> FokkerPlanckTerms:
         """Closed forms (method.md §3), with ``c = σ_v²/32``, ``s = pᵀp``, ``ω = ω̃ − b``:
 
@@ -181,6 +189,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
             diffusion_second_divergence=(4.0 * c) * (3.0 + 5.0 * s.squeeze(-1)),
         )
 
+    @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fpke_quadrature_points)
     def fpke_quadrature_points(self, factors: int = 2) -> tuple[int, ...]:
         """Exact rule for ``ℓⱼ`` (``factors = 1``: 4 points per MRP axis, 2 per bias axis)
         or ``ℓᵢℓⱼ`` (``factors = 2``: 7 and 3).
@@ -200,6 +209,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         p, b = (4, 2) if factors == 1 else (7, 3)
         return (p, p, p, b, b, b) if self.estimate_bias else (p, p, p)
 
+    @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fokker_planck_moments)
     def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor) -> FokkerPlanckMoments:
         """Exact Gaussian expectations of the Fokker–Planck terms under ``x ~ N(mean, cov)``.
 
@@ -276,6 +286,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
             constant=constant,
         )
 
+    @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fpke_polynomial_space)
     def fpke_polynomial_space(self) -> tuple[tuple[tuple[int, ...], int], ...]:
         """``ℓ`` has total degree 6 in the MRP coordinates ``ξ_p`` and, for fixed ``ξ_p``, at most
         2 in the bias coordinates ``ξ_b`` (see :meth:`fpke_quadrature_points`):

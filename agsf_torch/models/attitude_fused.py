@@ -1,7 +1,9 @@
 """The attitude model's fused paths (:mod:`agsf_torch.fused`): its propagation, its Galerkin pairs and its penalty
 pairs on lanes, the hooks of :class:`~agsf_torch.models.base.ContinuousModel` that the filters take where a model
 has them.  :class:`FusedAttitudePaths` is a mixin of :class:`~agsf_torch.models.attitude.AttitudeModel`: its
-kernels evaluate that class's equations (a subclass that changes the dynamics or the noise must override them).
+kernels evaluate that class's equations, so each hook is marked as derived from them
+(:func:`~agsf_torch.models.derived.derived_from`): on a subclass that changes the dynamics or the noise
+without overriding the hook, the hook gives way to the generic path.
 """
 
 from __future__ import annotations
@@ -12,8 +14,22 @@ import torch
 from torch import Tensor
 
 from ..shapes import broadcast_shapes
+from .base import ContinuousModel
+from .derived import derived_from
 
-__all__ = ["FusedAttitudePaths"]
+__all__ = ["ATTITUDE_DYNAMICS", "FusedAttitudePaths"]
+
+#: The methods of :class:`~agsf_torch.models.attitude.AttitudeModel` that state its dynamics: its closed forms
+#: and kernels are derived from these.
+ATTITUDE_DYNAMICS = ("drift", "noise_gain", "noise_psd", "_rate", "_mrp_rate", "_gyro_rate")
+#: What the kernels evaluate besides the dynamics: the closed forms they were checked against.
+_KERNEL_PHYSICS = (
+    *ATTITUDE_DYNAMICS,
+    "drift_jacobian",
+    "process_noise",
+    "fokker_planck_terms",
+    "fokker_planck_moments",
+)
 
 
 class FusedAttitudePaths:
@@ -30,6 +46,7 @@ class FusedAttitudePaths:
     #: 240; at 3 states 2.0 against 2.5 ms for 120 pairs, 1.4 against 0.8 ms for 15).
     EAGER_MIN_PAIRS = {3: 100, 6: 400}
 
+    @derived_from(*_KERNEL_PHYSICS, generic=ContinuousModel.fpke_pair_products)
     def fpke_pair_products(self, u: Tensor | None, pairs, *, compile: bool = False) -> Tensor | None:
         """``E[ℓᵢℓⱼ]`` of every pair at 84 MRP nodes, the bias block (6 states) integrated in closed form (``ℓ`` is
         quadratic in it), a tenth of the 840 nodes of :meth:`fpke_polynomial_space`: on lanes
@@ -53,6 +70,7 @@ class FusedAttitudePaths:
 
         return attitude_pair_products(self, u, pairs)
 
+    @derived_from(*_KERNEL_PHYSICS, generic=ContinuousModel.fused_penalty_pairs)
     def fused_penalty_pairs(
         self, means: Tensor, covs: Tensor, u: Tensor | None, *, compile: bool = False
     ) -> tuple[Tensor, Tensor] | None:
@@ -75,6 +93,7 @@ class FusedAttitudePaths:
         rate = self._gyro_rate(u)
         return attitude_penalty_pairs(means, covs, rate.expand(T, 3), self.sigma_v, self.sigma_u, compile=True)
 
+    @derived_from(*_KERNEL_PHYSICS, generic=ContinuousModel.fused_propagation)
     def fused_propagation(
         self, mean: Tensor, cov: Tensor, u: Tensor, dt: float, substeps: int = 1, *, compile: bool = False
     ) -> tuple[Tensor, Tensor, Tensor]:
@@ -113,6 +132,7 @@ class FusedAttitudePaths:
         )
         return m.reshape(*lead, n), P.reshape(*lead, n, n), ok.reshape(lead)
 
+    @derived_from(*_KERNEL_PHYSICS, generic=ContinuousModel.fused_galerkin_pairs)
     def fused_galerkin_pairs(
         self, means: Tensor, covs: Tensor, u: Tensor, *, compile: bool = False
     ) -> tuple[Tensor, Tensor, Tensor] | None:

@@ -5,7 +5,9 @@ A user model subclasses :class:`ContinuousModel` (an Itô SDE
 :class:`MeasurementModel` (``y = h(x) + v``, ``v ~ N(0, R)``).  Everything a
 filter needs beyond ``f, g, Q, h, R`` — Jacobians, the diffusion matrix and the
 derivative terms of the Fokker–Planck operator — has a default computed with
-``torch.func``; a subclass may override any of them with a closed form.
+``torch.func``; a subclass may override any of them with a closed form.  A closed form or fused kernel
+is marked with the physics it was derived from (:mod:`~agsf_torch.models.derived`): a subclass of a model
+that changes that physics gets these defaults instead of its parent's derivations.
 
 Shape contract: every method is *elementwise over leading batch dims*: an input
 ``x`` of shape ``[..., n]`` gives outputs whose leading dims are the broadcast of
@@ -25,6 +27,7 @@ from torch import Tensor, nn
 
 from ..finite import check_finite
 from .contract import check_measurement_batch, check_model_contract, check_noise_cov
+from .derived import record_derivations
 
 __all__ = [
     "check_measurement_batch",
@@ -138,6 +141,11 @@ class ContinuousModel(nn.Module):
     """
 
     state_dim: int
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        record_derivations(cls)  # closed forms and kernels hold only for the physics they were derived from
+
     #: Size ``m`` of the input ``u [..., m]``; ``None``: not declared (no input, or one the model checks itself).
     input_dim: int | None = None
     #: What the input is, for error messages (e.g. ``"the gyro reading ω̃, rad/s"``), or ``None``.
@@ -329,6 +337,10 @@ class MeasurementModel(nn.Module):
     """
 
     block_size: int | None = None
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        record_derivations(cls)  # closed forms and kernels hold only for the physics they were derived from
 
     def predict(self, x: Tensor) -> Tensor:
         """Predicted measurement ``h(x)``: ``[..., n]`` → ``[..., d]``."""

@@ -203,12 +203,14 @@ def check_measurement_elementwise(measurement: nn.Module, means: Tensor, y: Tens
     :func:`elementwise_probe` states built from the components' means ``[..., N, n]`` as the filters pass them
     (components first, ``[N, ..., n]``) returned ``[*probe_lead, d]``; a ``predict`` indexing ``x[:, i]`` returns another shape, even where ``B = n`` makes the
     filters' own call look right.  A class that sets ``elementwise_checked = True`` (the library's own, whose tests
-    check them; :class:`~.function_measurement.FunctionMeasurement`, which probes its function itself) is skipped.
+    check them; :class:`~.function_measurement.FunctionMeasurement`, which probes its function itself) is skipped,
+    but not a subclass of it with a ``predict`` or ``jacobian`` of its own: the declaration holds for the functions
+    of the class that made it.
 
     Raises:
         ValueError: naming the class, the probe's shape and what it returned.
     """
-    if getattr(measurement, "elementwise_checked", False) or means.numel() == 0:
+    if _declared_elementwise(measurement) or means.numel() == 0:
         return y
     d = y.shape[-1]
     n = means.shape[-1]
@@ -221,3 +223,17 @@ def check_measurement_elementwise(measurement: nn.Module, means: Tensor, y: Tens
         )
     measurement.elementwise_checked = True
     return y
+
+
+def _declared_elementwise(measurement: nn.Module) -> bool:
+    """Whether ``measurement`` was probed already, or its class's ``elementwise_checked = True`` was declared by a
+    class whose ``predict`` and ``jacobian`` are the ones it runs."""
+    if measurement.__dict__.get("elementwise_checked", False):
+        return True
+    cls = type(measurement)
+    owner = next((c for c in cls.__mro__ if "elementwise_checked" in c.__dict__), None)
+    return bool(
+        owner is not None
+        and owner.__dict__["elementwise_checked"]
+        and all(getattr(owner, m, None) is getattr(cls, m, None) for m in ("predict", "jacobian"))
+    )

@@ -26,6 +26,7 @@ from torch import Tensor
 from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_to_dcm
 from ..shapes import broadcast_shapes
 from .base import MeasurementModel, check_finite, check_measurement_batch
+from .derived import derived_from
 
 __all__ = ["StarVectorMeasurement", "UNIT_TOLERANCE", "UNIT_ROUNDING", "unit_vectors"]
 
@@ -229,6 +230,7 @@ class StarVectorMeasurement(MeasurementModel):
         b = (C.unsqueeze(-3) @ self.r_inertial.to(x).unsqueeze(-1)).squeeze(-1)  # [..., M, 3]
         return b.flatten(-2)
 
+    @derived_from("predict", generic=MeasurementModel.jacobian)
     def jacobian(self, x: Tensor) -> Tensor:
         """Closed form ``∂(C(p) r)/∂p = 4/(1+s)² [(C r)×] B(p)ᵀ``; zero on bias states.
 
@@ -249,6 +251,7 @@ class StarVectorMeasurement(MeasurementModel):
             return Hp
         return torch.cat((Hp, Hp.new_zeros(*Hp.shape[:-1], n - 3)), -1)
 
+    @derived_from("predict", "jacobian", "noise_cov", "mask", generic=MeasurementModel.fused_update)
     def fused_update(
         self,
         log_weights: Tensor,
