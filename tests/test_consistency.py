@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 
 from agsf_torch.experiments import cli
-from tests.helpers import EAGER
+from tests.helpers import EAGER, assert_statistic
 
 SMALL = ["runs=48", "duration=20.0", "update_iterations=3", 'filters=["EKF"]', *EAGER]
 
@@ -45,12 +46,16 @@ def test_learn_command_flags_the_configured_gyro_noise(tmp_path, capsys):
     ]
     assert cli.main(["learn", "case1", "--learn", "sigma_v", "--out", str(tmp_path / "l"), *args]) == 0
     res = json.loads((tmp_path / "l" / "learn.json").read_text())
-    assert abs(res["learned"]["sigma_v"] / 2e-5 - 1) < 0.15
+    # the maximum-likelihood log σ_v is asymptotically normal about the truth, its standard error the inverse
+    # Fisher information's, which the 95 % interval exp(log σ̂ ± 1.96 se) reports (the curvature of −ℓ)
+    lo, hi = res["interval"]["sigma_v"]
+    se = math.log(hi / lo) / (2 * 1.959963984540054)
+    learned = math.log(res["learned"]["sigma_v"])
+    assert_statistic(learned, math.log(2e-5), se, "learned log σ_v", false_failure=1e-6)
     assert res["inside"]["sigma_v"] is False
     out = capsys.readouterr().out
     assert "mis-modelled" in out
     # the report shows 5 significant digits of the exact values learn.json keeps
-    lo, hi = res["interval"]["sigma_v"]
     line = f"sigma_v: learned {res['learned']['sigma_v']:.5g}, 95 % interval ({lo:.5g}, {hi:.5g}), configured 1e-05 — "
     assert line in out
 

@@ -14,7 +14,7 @@ from agsf_torch import GaussianMixture
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.qp import solve_simplex_qp
-from tests.helpers import F64, random_spd
+from tests.helpers import F64, assert_within, random_spd
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -22,9 +22,9 @@ SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[Healt
 def _assert_valid(mix: GaussianMixture) -> None:
     w = mix.weights
     assert bool(torch.isfinite(w).all()) and bool((w >= 0).all())
-    torch.testing.assert_close(w.sum(-1), torch.ones_like(w[..., 0]), rtol=0, atol=1e-12)
+    assert_within(w.sum(-1), 1.0, 1e-12, "sum of the weights")
     assert bool(torch.isfinite(mix.means).all()) and bool(torch.isfinite(mix.covs).all())
-    torch.testing.assert_close(mix.covs, mix.covs.transpose(-1, -2), rtol=0, atol=0)
+    assert torch.equal(mix.covs, mix.covs.transpose(-1, -2))
     assert bool((torch.linalg.cholesky_ex(mix.covs).info == 0).all())
 
 
@@ -44,13 +44,13 @@ def test_split_preserves_moments_and_validity(n, N, batch, log_scale, spread, se
     mix = GaussianMixture.from_gaussian(mean, cov, N, spread)
     _assert_valid(mix)
     m, P = mix.moments()
-    torch.testing.assert_close(m, mean, rtol=0, atol=1e-12 * (1 + float(mean.abs().max())))
+    assert_within(m, mean, 1e-12 * (1 + float(mean.abs().max())), "mixture mean")
     # the spread Σ wᵢdᵢdᵢᵀ comes from dᵢ = μᵢ − μ, differences of means of size |μ| that lie ~√P apart: each dᵢ
     # carries up to (N + 2)·ε·|μ| of rounding (μᵢ = μ + δᵢ, and the N-term mean), so P carries 2·max|dᵢ|·(N + 2)·ε·|μ|
     # beyond its own rounding: large against P itself for a small P about a large mean (|μ| ~ 1, P ~ 1e-8: 1e-12 P)
     eps = torch.finfo(F64).eps
     spread_rounding = 2 * float((mix.means - mean.unsqueeze(-2)).abs().max()) * (N + 2) * eps * float(mean.abs().max())
-    torch.testing.assert_close(P, cov, rtol=0, atol=1e-12 * float(cov.abs().max()) + spread_rounding)
+    assert_within(P, cov, 1e-12 * float(cov.abs().max()) + spread_rounding, "mixture covariance")
 
 
 @SETTINGS
@@ -129,7 +129,7 @@ def test_qp_solution_is_feasible_and_optimal(N, log_scale, seed):
     c = torch.randn(16, N, generator=g, dtype=F64)
     res = solve_simplex_qp(H, c)
     assert bool((res.w >= 0).all())
-    torch.testing.assert_close(res.w.sum(-1), torch.ones(16, dtype=F64), rtol=0, atol=1e-12)
+    assert_within(res.w.sum(-1), 1.0, 1e-12, "sum of the weights")
     assert float(res.kkt_residual.max()) < 1e-9
 
 

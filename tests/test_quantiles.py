@@ -11,6 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from agsf_torch.quantiles import chi2_quantile, student_t_quantile
+from tests.helpers import assert_within
 
 probabilities = st.floats(min_value=1e-6, max_value=1.0 - 1e-6)
 dofs = st.floats(min_value=0.5, max_value=1e5)
@@ -34,19 +35,24 @@ def _student_t_reference(p: str, dof: float):
 # these quantiles are well conditioned (p away from 0 and 1): 1e-13 relative is ~500 units in the last place
 @pytest.mark.parametrize(("p", "dof"), [("0.95", 1), ("0.975", 3), ("0.025", 300), ("0.5", 7.5)])
 def test_chi2_quantiles_match_the_definition(p, dof):
-    assert chi2_quantile(float(p), dof) == pytest.approx(float(_chi2_reference(p, dof)), rel=1e-13)
+    ref = float(_chi2_reference(p, dof))
+    assert_within(chi2_quantile(float(p), dof), ref, 1e-13 * ref, "χ² quantile against the definition")
 
 
 @pytest.mark.parametrize(("p", "dof"), [("0.975", 9), ("0.975", 99), ("0.9", 2.5)])
 def test_student_t_quantiles_match_the_definition(p, dof):
-    assert student_t_quantile(float(p), dof) == pytest.approx(float(_student_t_reference(p, dof)), rel=1e-13)
+    ref = float(_student_t_reference(p, dof))
+    assert_within(student_t_quantile(float(p), dof), ref, 1e-13 * ref, "Student-t quantile against the definition")
 
 
 @given(probabilities, dofs)
 def test_the_quantiles_are_scipy_stats(p, dof):
     # the same inverse functions scipy.stats evaluates; the bound allows another scipy's rounding of them
-    assert chi2_quantile(p, dof) == pytest.approx(scipy.stats.chi2.ppf(p, dof), rel=1e-12)
-    assert student_t_quantile(p, dof) == pytest.approx(scipy.stats.t.ppf(p, dof), rel=1e-12, abs=1e-300)
+    chi2 = scipy.stats.chi2.ppf(p, dof)
+    assert_within(chi2_quantile(p, dof), chi2, 1e-12 * chi2, "χ² quantile against scipy.stats")
+    # the t quantile is 0 at p = ½ (both sides exactly, by symmetry): the floor admits that one point
+    t = scipy.stats.t.ppf(p, dof)
+    assert_within(student_t_quantile(p, dof), t, 1e-12 * abs(t) + 1e-300, "Student-t quantile against scipy.stats")
 
 
 @pytest.mark.parametrize("quantile", [chi2_quantile, student_t_quantile])
