@@ -44,6 +44,23 @@ def _differences(node: ast.AST) -> bool:
     return False
 
 
+def _residuals(node: ast.AST) -> bool:
+    """Whether ``node`` reads a residual or an error angle (a distance the code under test computed: a KKT
+    residual, ``attitude_error_angle``), which a bound compares like a hand-made difference."""
+    for sub in ast.walk(node):
+        name = ""
+        if isinstance(sub, ast.Call):
+            f = sub.func
+            name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+        elif isinstance(sub, ast.Attribute):
+            name = sub.attr
+        elif isinstance(sub, ast.Constant) and isinstance(sub.value, str):
+            name = sub.value
+        if "residual" in name or name.endswith("error_angle"):
+            return True
+    return False
+
+
 def _offences(path: Path) -> list[str]:
     tree = ast.parse(path.read_text(), filename=str(path))
     found = []
@@ -59,14 +76,21 @@ def _offences(path: Path) -> list[str]:
                 name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
                 if name in _TOLERANCE_CALLS:
                     found.append(f"{path.relative_to(TESTS.parent)}:{node.lineno} calls {name}")
-            if isinstance(node, ast.Assert) and isinstance(node.test, ast.Compare):
-                ops = node.test.ops
+            tests = [node.test] if isinstance(node, ast.Assert) else []
+            if tests and isinstance(node.test, ast.BoolOp) and isinstance(node.test.op, ast.And):
+                tests = list(node.test.values)
+            for test in tests:
+                if not isinstance(test, ast.Compare):
+                    continue
+                ops = test.ops
                 if not any(isinstance(o, (ast.Lt, ast.LtE, ast.Gt, ast.GtE)) for o in ops):
                     continue
-                sides = [node.test.left, *node.test.comparators]
+                sides = [test.left, *test.comparators]
                 named = any(isinstance(n, ast.Name) and n.id in distances for s in sides for n in ast.walk(s))
                 if named or any(_differences(s) for s in sides):
                     found.append(f"{path.relative_to(TESTS.parent)}:{node.lineno} compares a difference by hand")
+                elif any(isinstance(o, (ast.Lt, ast.LtE)) for o in ops) and _residuals(test.left):
+                    found.append(f"{path.relative_to(TESTS.parent)}:{node.lineno} bounds a residual by hand")
     return sorted(set(found))
 
 
@@ -89,12 +113,15 @@ def test_the_check_finds_each_kind_of_bypass(tmp_path):
         "    assert math.isclose(x, y)\n"
         "    assert x.shape == y.shape\n"
         "    assert (x > 0).all()\n"
+        "    assert float(res.kkt_residual.max()) < 1e-12\n"
+        "    assert attitude_error_angle(x, y).max() < 1e-9\n"
+        "    assert ok and d['qp_kkt_residual'].max() < 1e-9\n"
     )
     try:
         found = _offences(sample)
     finally:
         sample.unlink()
-    assert [int(o.split(":")[1].split()[0]) for o in found] == [3, 4, 5, 6, 8, 9]
+    assert sorted(int(o.split(":")[1].split()[0]) for o in found) == [3, 4, 5, 6, 8, 9, 12, 13, 14]
 
 
 def test_a_bound_is_refused_where_it_vanishes_and_the_values_do_not():
@@ -108,7 +135,8 @@ def test_a_bound_is_refused_where_it_vanishes_and_the_values_do_not():
             assert_within(1.0, 1.0, bad, "x")
 
 
-def test_a_failure_names_the_worst_entry():
+def test_a_failure_names_the_worst_entry(monkeypatch):
+    monkeypatch.setattr(helpers.JITTER, "ulps", 0)  # the message's digits, as given
     got = torch.tensor([[1.0, 2.0], [3.0, 4.5]], dtype=torch.float64)
     want = torch.tensor([[1.0, 2.0 + 1e-3], [3.0, 4.0]], dtype=torch.float64)
     with pytest.raises(AssertionError, match=r"covariance: 2 of 4 entries .* worst at \(1, 1\): actual 4\.5, "):
