@@ -12,6 +12,9 @@ import torch
 
 import envs.catalog as catalog_mod
 from envs.catalog import DEFAULT_MAX_MAGNITUDE, StarCatalog, cache_dir, load_hipparcos_table, radec_to_unit
+from tests.helpers import assert_within
+
+EPS = np.finfo(np.float64).eps
 
 
 def _write_hip2(path: Path, rows: list[tuple[int, float, float, float]]) -> None:
@@ -36,19 +39,20 @@ def test_default_cut_and_sorting(default_catalog):
 def test_brightest_star_is_sirius(default_catalog):
     cat = default_catalog
     assert int(cat.ids[0]) == 32349  # HIP 32349 = Sirius, Hp = −1.0876
-    assert float(cat.magnitude[0]) == pytest.approx(-1.0876, abs=1e-12)
+    assert_within(cat.magnitude[0], -1.0876, 1e-12, "Sirius's magnitude as parsed")
     # Sirius at J2000: α = 101.2872°, δ = −16.7161°; hip2 is at epoch J1991.25 and
     # Sirius moves (−0.55″, −1.22″)/yr, i.e. by (+0.0014°, +0.0030°) over 8.75 yr.
-    assert math.degrees(float(cat.ra[0])) == pytest.approx(101.2872 + 0.0014, abs=3e-4)
-    assert math.degrees(float(cat.dec[0])) == pytest.approx(-16.7161 + 0.0030, abs=3e-4)
+    assert_within(math.degrees(float(cat.ra[0])), 101.2872 + 0.0014, 3e-4, "Sirius's right ascension (°)")
+    assert_within(math.degrees(float(cat.dec[0])), -16.7161 + 0.0030, 3e-4, "Sirius's declination (°)")
 
 
 def test_unit_vectors_match_radec_formula(default_catalog):
     cat = default_catalog
     ra, dec = cat.ra.numpy(), cat.dec.numpy()
     ref = np.stack((np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)), -1)
-    np.testing.assert_allclose(cat.r.numpy(), ref, rtol=0, atol=1e-15)
-    np.testing.assert_allclose(np.linalg.norm(cat.r.numpy(), axis=1), 1.0, rtol=0, atol=1e-15)
+    assert_within(cat.r, ref, 1e-15, "unit vectors against the formula")  # 2 roundings an entry on either side
+    # 2 roundings an entry, the norm 4 more (within 4ε of 1); 2× that
+    assert_within(np.linalg.norm(cat.r.numpy(), axis=1), 1.0, 8 * EPS, "norm of the unit vectors")
 
 
 def test_full_table_and_monotone_cuts():
@@ -89,10 +93,8 @@ def test_changed_source_file_is_parsed_again(tmp_path):
     assert len(list(cache.glob("hip2-*.npz"))) == 2
     cat = StarCatalog.from_hipparcos(4.0, path=src, cache=cache)
     assert cat.ids.tolist() == [2]
-    assert cat.r[0].tolist() == pytest.approx(
-        radec_to_unit(torch.tensor(1.0, dtype=torch.float64), torch.tensor(-0.5, dtype=torch.float64)).tolist(),
-        abs=1e-10,
-    )
+    want = radec_to_unit(torch.tensor(1.0, dtype=torch.float64), torch.tensor(-0.5, dtype=torch.float64))
+    assert_within(cat.r[0], want, 1e-10, "the star's unit vector from the reparsed file")
 
 
 def test_cache_dir_env_var_and_fallback(tmp_path, monkeypatch):
@@ -131,4 +133,5 @@ def test_from_vectors_keeps_order_and_directions():
     r = torch.tensor([[0.0, 0.0, 2.0], [1.0, 1.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
     cat = StarCatalog.from_vectors(r)
     assert cat.ids.tolist() == [0, 1, 2]
-    np.testing.assert_allclose(cat.r.numpy(), (r / r.norm(dim=1, keepdim=True)).numpy(), atol=1e-15)
+    # normalised, then through (α, δ) and back: a few roundings of unit entries
+    assert_within(cat.r, r / r.norm(dim=1, keepdim=True), 1e-15, "directions of a catalogue from vectors")

@@ -4,7 +4,8 @@ Variance checks use the exact sampling law of a normal sample variance,
 ``(n−1) s²/σ² ~ χ²(n−1)`` (``n s²/σ² ~ χ²(n)`` when the mean is known to be zero
 and s² is the mean square): the ratio s²/σ² must lie in the central interval of
 probability 1 − 1e-6 (for n = 600 000 pooled samples that is about ±0.9 %, per
-axis with n = 200 000 about ±1.55 %).
+axis with n = 200 000 about ±1.55 %).  Means and the correlation go through
+:func:`tests.helpers.assert_statistic` with standard errors σ/sqrt(n) and 1/sqrt(n).
 A fresh seed would fail a check with probability 1e-6.
 """
 
@@ -18,6 +19,7 @@ from scipy import stats
 
 from envs.gyro import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR, Gyro
 from envs.random import counter_normal
+from tests.helpers import assert_statistic
 
 N = 200_000  # trajectories; × 3 axes = 600 000 samples per statistic
 ALPHA = 1e-6
@@ -67,11 +69,11 @@ def test_measurement_and_bias_step_variances(sigma_v, sigma_u, dt):
     lo, hi = stats.chi2.ppf(ALPHA / 2, n) / n, stats.chi2.ppf(1 - ALPHA / 2, n) / n
     assert lo <= ratio_meas <= hi, ratio_meas
     assert lo <= ratio_bias <= hi, ratio_bias
-    # Zero means (5 standard errors) and independent noises.
-    assert abs(float(err.mean())) <= 5 * math.sqrt(var_meas / n)
-    assert abs(float(step.mean())) <= 5 * math.sqrt(var_bias / n)
+    # Zero means and independent noises.
+    assert_statistic(float(err.mean()), 0.0, math.sqrt(var_meas / n), "mean measurement error", false_failure=ALPHA)
+    assert_statistic(float(step.mean()), 0.0, math.sqrt(var_bias / n), "mean bias step", false_failure=ALPHA)
     corr = float(torch.corrcoef(torch.stack((err, step)))[0, 1])
-    assert abs(corr) <= 5 / math.sqrt(n)
+    assert_statistic(corr, 0.0, 1 / math.sqrt(n), "correlation of the two noises", false_failure=ALPHA)
     # Per axis, too.
     lo3, hi3 = variance_ratio_bounds(N)
     per_axis = (measured - omega - 0.5 * (b1 + b0)).var(0) / var_meas

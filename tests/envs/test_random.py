@@ -1,12 +1,13 @@
 """Counter-based RNG: bit-exactness, distribution statistics, independence, batching.
 
 Statistical thresholds.  Every test uses fixed seeds, so it is deterministic; the
-bounds are chosen so that a *fresh* seed would fail with probability ~1e-6 or less:
+bounds are chosen so that a *fresh* seed would fail with probability ~1e-6 or less
+(:func:`tests.helpers.assert_statistic`, a false-failure rate of 1e-6 per assertion):
 
-* means and correlations: |error| ≤ 5 standard errors (two-sided 5σ ≈ 5.7e-7);
+* means and correlations: standard errors σ/sqrt(n) and 1/sqrt(n);
 * variances: the relative error of a sample variance has standard deviation
   sqrt(2/(n−1)) for normals and sqrt(4/5/(n−1)) for U(0,1) (from the fourth moment);
-  bound 5 of those;
+* third and fourth moments of normals: standard errors sqrt(15/n) and sqrt(96/n);
 * Kolmogorov–Smirnov: the statistic D must stay below the asymptotic α = 1e-3
   critical value 1.949/sqrt(n) (and scipy's p-value above 1e-3).
 """
@@ -29,8 +30,10 @@ from envs.random import (
     mix64,
     random_bits,
 )
+from tests.helpers import assert_statistic
 
 N = 200_000
+ALPHA = 1e-6  # the false-failure rate of each statistical assertion
 KS_CRIT = 1.949  # sqrt(-ln(α/2)/2) for α = 1e-3
 _M = (1 << 64) - 1
 _G = 0x9E3779B97F4A7C15
@@ -90,8 +93,10 @@ def test_as_int64_wraps_modulo_2_pow_64():
 def test_uniform_statistics():
     u = counter_uniform(2024, 0, 0, (N,)).numpy()
     assert u.dtype == np.float64 and u.min() >= 0.0 and u.max() < 1.0
-    assert abs(u.mean() - 0.5) <= 5 * math.sqrt(1 / 12 / N)
-    assert abs(u.var(ddof=1) / (1 / 12) - 1) <= 5 * math.sqrt(0.8 / (N - 1))
+    assert_statistic(u.mean(), 0.5, math.sqrt(1 / 12 / N), "mean of uniforms", false_failure=ALPHA)
+    assert_statistic(
+        u.var(ddof=1) * 12, 1.0, math.sqrt(0.8 / (N - 1)), "variance of uniforms × 12", false_failure=ALPHA
+    )
     ks = stats.kstest(u, "uniform")
     assert ks.statistic < KS_CRIT / math.sqrt(N) and ks.pvalue > 1e-3
 
@@ -99,11 +104,11 @@ def test_uniform_statistics():
 def test_normal_statistics():
     z = counter_normal(2024, 0, 1, (N,)).numpy()
     assert np.all(np.isfinite(z))
-    assert abs(z.mean()) <= 5 / math.sqrt(N)
-    assert abs(z.var(ddof=1) - 1) <= 5 * math.sqrt(2 / (N - 1))
+    assert_statistic(z.mean(), 0.0, 1 / math.sqrt(N), "mean of normals", false_failure=ALPHA)
+    assert_statistic(z.var(ddof=1), 1.0, math.sqrt(2 / (N - 1)), "variance of normals", false_failure=ALPHA)
     # Third and fourth moments: E z³ = 0 (sd sqrt(15/n)), E z⁴ = 3 (sd sqrt(96/n)).
-    assert abs((z**3).mean()) <= 5 * math.sqrt(15 / N)
-    assert abs((z**4).mean() - 3) <= 5 * math.sqrt(96 / N)
+    assert_statistic((z**3).mean(), 0.0, math.sqrt(15 / N), "third moment of normals", false_failure=ALPHA)
+    assert_statistic((z**4).mean(), 3.0, math.sqrt(96 / N), "fourth moment of normals", false_failure=ALPHA)
     ks = stats.kstest(z, "norm")
     assert ks.statistic < KS_CRIT / math.sqrt(N) and ks.pvalue > 1e-3
 
@@ -112,8 +117,8 @@ def test_normal_cos_and_sin_branches_are_each_normal():
     z = counter_normal(5, 3, 9, (N,)).numpy()
     for half in (z[0::2], z[1::2]):
         n = half.size
-        assert abs(half.mean()) <= 5 / math.sqrt(n)
-        assert abs(half.var(ddof=1) - 1) <= 5 * math.sqrt(2 / (n - 1))
+        assert_statistic(half.mean(), 0.0, 1 / math.sqrt(n), "mean of one branch", false_failure=ALPHA)
+        assert_statistic(half.var(ddof=1), 1.0, math.sqrt(2 / (n - 1)), "variance of one branch", false_failure=ALPHA)
         assert stats.kstest(half, "norm").statistic < KS_CRIT / math.sqrt(n)
 
 
@@ -129,16 +134,18 @@ def test_streams_steps_and_seeds_are_uncorrelated(other):
     a = counter_normal(1, 0, 0, (N,)).numpy()
     b = counter_normal(other["seed"], other["step"], other["stream"], (N,)).numpy()
     assert not np.array_equal(a, b)
-    assert abs(np.corrcoef(a, b)[0, 1]) <= 5 / math.sqrt(N)
+    assert_statistic(np.corrcoef(a, b)[0, 1], 0.0, 1 / math.sqrt(N), "correlation of two streams", false_failure=ALPHA)
     # A two-sample KS test: the two streams have the same law.
     assert stats.ks_2samp(a, b).pvalue > 1e-3
 
 
 def test_neighbouring_elements_are_uncorrelated():
     z = counter_normal(3, 0, 0, (N + 1,)).numpy()
-    assert abs(np.corrcoef(z[:-1], z[1:])[0, 1]) <= 5 / math.sqrt(N)
+    lag = np.corrcoef(z[:-1], z[1:])[0, 1]
+    assert_statistic(lag, 0.0, 1 / math.sqrt(N), "lag-1 correlation of normals", false_failure=ALPHA)
     u = counter_uniform(3, 0, 0, (N + 1,)).numpy()
-    assert abs(np.corrcoef(u[:-1], u[1:])[0, 1]) <= 5 / math.sqrt(N)
+    lag = np.corrcoef(u[:-1], u[1:])[0, 1]
+    assert_statistic(lag, 0.0, 1 / math.sqrt(N), "lag-1 correlation of uniforms", false_failure=ALPHA)
 
 
 def test_batched_equals_single_and_elements_are_pure():

@@ -1,8 +1,9 @@
 """Star-tracker environments: API, timeline, truth consistency, seeding, bad configs.
 
 Statistical bounds are stated where used: chi-square central intervals of
-probability 1 − 1e-6 for variances, and 5 standard errors for means and for the
-weighted sum of squares of the star errors.
+probability 1 − 1e-6 for variances, and a false-failure rate of 1e-6 per assertion
+(:func:`tests.helpers.assert_statistic`) for means, correlations and the weighted sum
+of squares of the star errors.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from envs import (
     register_envs,
 )
 from envs.gyro import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
+from tests.helpers import assert_statistic, assert_within
 
 ALPHA = 1e-6
 
@@ -163,7 +165,7 @@ def test_simulate_equals_stepping():
     assert out["gyro"].shape == (b, 26, 3) and out["truth_mrp"].shape == (b, 26, 3)
     assert out["star_steps"].tolist() == [4, 8, 12, 16, 20, 24]
     assert out["star_body"].shape == (b, 6, 5, 3) and out["star_mask"].shape == (b, 6, 5)
-    assert torch.allclose(out["time"], torch.arange(26, dtype=torch.float64) * 0.1, rtol=0, atol=0)
+    assert torch.equal(out["time"], torch.arange(26, dtype=torch.float64) * 0.1)
     for k in range(26):
         assert torch.equal(out["gyro"][:, k], obs_hist[k]["gyro"])
         for key in ("truth_mrp", "truth_bias", "truth_rate"):
@@ -237,17 +239,19 @@ def test_reward_is_minus_the_error_angle_at_the_current_time():
     _, info = venv.reset(seed=21)
     truth = info["truth_mrp"]
     _, reward, _, _, info = venv.step(truth)  # exact estimate of the attitude at t_0
-    assert float(reward.abs().max()) <= 1e-15
+    assert_within(reward, 0.0, 1e-15, "reward of the exact estimate")  # the angle of a rounded identity
     truth = info["truth_mrp"]
     shadow = -truth / (truth * truth).sum(-1, keepdim=True)
     _, reward, _, _, info = venv.step(shadow.numpy())  # the same attitude, numpy action
-    assert float(reward.abs().max()) <= 1e-14
+    assert_within(reward, 0.0, 1e-14, "reward of the exact estimate's shadow MRP")
     truth = info["truth_mrp"]
     axis = torch.nn.functional.normalize(torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64), dim=-1)
     offset = axis * math.tan(0.1 / 4)  # a 0.1 rad rotation
     _, reward, _, _, _ = venv.step(mrp_compose(offset.expand(4, 3), truth))
-    assert torch.allclose(reward, torch.full((4,), -0.1, dtype=torch.float64), rtol=0, atol=1e-12)
-    assert torch.allclose(-reward, attitude_error_angle(mrp_compose(offset.expand(4, 3), truth), truth), atol=1e-14)
+    assert_within(reward, -0.1, 1e-12, "reward of an estimate 0.1 rad off")
+    angle = attitude_error_angle(mrp_compose(offset.expand(4, 3), truth), truth)
+    # (torch.allclose's default rtol of 1e-5 dropped: both sides are one angle of the same attitudes, to rounding)
+    assert_within(-reward, angle, 1e-14, "reward against the error angle at the current time")
 
 
 # ------------------------------------------------------------------ truth consistency
@@ -257,20 +261,22 @@ def test_truth_follows_the_held_rate_exactly():
     C = mrp_to_dcm(out["truth_mrp"])  # [B, T+1, 3, 3]
     w = out["truth_rate"][:, 1:]
     step = torch.linalg.matrix_exp(-cross_matrix(w) * 0.1)
-    assert float((step @ C[:, :-1] - C[:, 1:]).abs().max()) <= 1e-13
+    assert_within(C[:, 1:], step @ C[:, :-1], 1e-13, "attitude matrix one step on")
     t_mid = out["time"][:-1] + 0.05
-    assert torch.allclose(w, _rate_profile(t_mid)[None].expand(8, -1, -1), rtol=0, atol=1e-17)
+    # the profile at the same midpoint t_k + Δt/2 (the same float): the same rate, bit for bit (an absolute 1e-17,
+    # a few ulps of these rates, held only where both round alike)
+    assert torch.equal(w, _rate_profile(t_mid)[None].expand(8, -1, -1))
 
 
 def test_fixed_and_random_initial_attitudes():
     env = StarTrackerAttitudeEnv(initial_attitude=(0.1, -0.2, 0.3))
     _, info = env.reset(seed=0)
-    np.testing.assert_allclose(info["truth_mrp"], [0.1, -0.2, 0.3], rtol=0, atol=1e-15)
-    # Random: uniform on SO(3), so E[C] = 0 (each entry has variance 1/3); 5 standard errors.
+    assert_within(info["truth_mrp"], np.array([0.1, -0.2, 0.3]), 1e-15, "fixed initial MRP through the quaternion")
+    # Random: uniform on SO(3), so E[C] = 0 (each entry has variance 1/3).
     n = 4000
     _, info = StarTrackerAttitudeVectorEnv(n).reset(seed=99)
     mean_C = mrp_to_dcm(info["truth_mrp"]).mean(0)
-    assert float(mean_C.abs().max()) <= 5 * math.sqrt(1 / 3 / n)
+    assert_statistic(mean_C, 0.0, math.sqrt(1 / 3 / n), "mean attitude matrix", false_failure=ALPHA)
 
 
 def test_noise_free_star_vectors_are_C_r():
@@ -281,7 +287,7 @@ def test_noise_free_star_vectors_are_C_r():
     pred = torch.einsum("bfij,bfmj->bfmi", C, out["star_inertial"])
     m = out["star_mask"]
     assert int(m.sum()) > 0.99 * m.numel()
-    assert float((out["star_body"] - pred).abs().amax(-1)[m].max()) <= 1e-12
+    assert_within(out["star_body"][m], pred[m], 1e-12, "noise-free star vectors against C r")
 
 
 def test_star_noise_matches_sigma_s_in_the_env():
@@ -301,7 +307,9 @@ def test_star_noise_matches_sigma_s_in_the_env():
     sd = torch.sqrt((2 * sigma**4 * (c2**4 + c2**2)).sum())
     ratio = float((e_perp * e_perp).sum(-1).sum() / expected.sum())
     assert e.shape[0] >= 99_000
-    assert abs(ratio - 1) <= 5 * float(sd / expected.sum()), ratio
+    assert_statistic(
+        ratio, 1.0, float(sd / expected.sum()), "star errors' sum of squares / expected", false_failure=ALPHA
+    )
 
 
 def test_gyro_noise_and_bias_walk_in_the_env():
@@ -317,18 +325,19 @@ def test_gyro_noise_and_bias_walk_in_the_env():
     var_inc = DEFAULT_SIGMA_U**2 * dt
     assert lo <= float((err * err).mean()) / var_meas <= hi
     assert lo <= float((inc * inc).mean()) / var_inc <= hi
-    # Independent over time: lag-1 correlation of the measurement noise within 5/sqrt(n).
+    # Independent over time: lag-1 correlation of the measurement noise (standard error 1/sqrt(n)).
     e3 = err.reshape(b, steps, 3)
     lag = float(torch.corrcoef(torch.stack((e3[:, 1:].reshape(-1), e3[:, :-1].reshape(-1))))[0, 1])
-    assert abs(lag) <= 5 / math.sqrt(e3[:, 1:].numel())
+    se = 1 / math.sqrt(e3[:, 1:].numel())
+    assert_statistic(lag, 0.0, se, "lag-1 correlation of the gyro noise", false_failure=ALPHA)
     # The bias is a random walk: var(b_50 − b_0) = 50 σ_u² Δt (n = 12 000 samples).
     total = (bias[:, -1] - bias[:, 0]).reshape(-1)
     m = total.numel()
     lo_m, hi_m = stats.chi2.ppf(ALPHA / 2, m) / m, stats.chi2.ppf(1 - ALPHA / 2, m) / m
     assert lo_m <= float((total * total).mean()) / (steps * var_inc) <= hi_m
-    # The reset reading holds the initial bias: ω(0) + b_0 + noise.
+    # The reset reading holds the initial bias: ω(0) + b_0 + noise, each a normal draw of variance var_meas.
     e0 = out["gyro"][:, 0] - out["truth_rate"][:, 0] - bias[:, 0]
-    assert float(e0.abs().max()) <= 6 * math.sqrt(var_meas)
+    assert_statistic(e0, 0.0, math.sqrt(var_meas), "reset reading's noise", false_failure=ALPHA)
 
 
 # ------------------------------------------------------------------ configuration

@@ -8,7 +8,7 @@ import torch
 
 import agsf_torch.fused.mixture_nis as mixture_nis
 from agsf_torch.fused.mixture_nis import mixture_information_nis
-from tests.helpers import F64
+from tests.helpers import F64, assert_within
 
 EPS = torch.finfo(F64).eps
 
@@ -46,7 +46,7 @@ def test_the_mixture_nis_equals_a_dense_solve(gen, masked, sigma, spread):
     args = _inputs(gen, 64, sigma=sigma, spread=spread, masked=masked)
     got = mixture_information_nis(*args)
     want, kappa = _dense(*args)
-    assert bool((((got - want).abs() / want) <= 8 * 15 * kappa * EPS).all())
+    assert_within(got, want, 8 * 15 * kappa * EPS * want.abs(), "mixture NIS against a dense LU solve")
 
 
 def _fifty_digits(log_w, nu, HL, sigma2, valid, b):
@@ -95,7 +95,7 @@ def test_where_the_covariance_form_declines_the_information_form_matches_fifty_d
     assert len(declined) == 1 and (declined[0] == 6 if not masked else declined[0] >= 1)
     for b in range(6):  # both forms, where each is taken, within the bound
         want = _fifty_digits(*args, b)
-        assert abs(float(got[b]) - want) <= 4 * 23 * EPS * (want + 1.0)
+        assert_within(got[b], want, 4 * 23 * EPS * (want + 1.0), f"mixture NIS of trajectory {b} (50 digits)")
 
 
 def test_under_autograd_the_same_numbers_and_their_gradients(gen):
@@ -127,4 +127,4 @@ def test_innovations_and_weights_shared_by_a_batch_broadcast_against_the_square_
     repeated = (log_w[0].expand(7, -1), nu[0].expand(7, -1, -1), HL, sigma2, None)
     assert got.shape == (7,) and torch.equal(got, mixture_information_nis(*repeated))
     want, kappa = _dense(*repeated)
-    assert bool((((got - want).abs() / want) <= 8 * 15 * kappa * EPS).all())
+    assert_within(got, want, 8 * 15 * kappa * EPS * want.abs(), "mixture NIS with shared innovations")

@@ -24,7 +24,9 @@ from agsf_torch.fpke.pairs import product_gaussians
 from agsf_torch.fpke.rules import residual_rule
 from agsf_torch.models import AttitudeModel
 from agsf_torch.quadrature import gauss_hermite
+from agsf_torch.rotations import cross_matrix
 from tests.fused.test_galerkin import _components
+from tests.helpers import assert_within
 
 EPS = torch.finfo(torch.float64).eps
 
@@ -68,11 +70,13 @@ def _assert_agree(got, want, model, u, comp, log_z_ulps: int = 0):
     i, j = torch.triu_indices(comp.means.shape[-2], comp.means.shape[-2])
     # [B]: ulps of log z's terms (the largest log z, and log det Σ's n terms 2 log L_kk, |…| ≤ 128 here)
     ulps = log_z_ulps * EPS * (want.log_scale.abs() + 128.0)
-    assert bool(((got.log_scale - want.log_scale).abs() <= ulps).all())  # 0: the same product Gaussians
     if log_z_ulps:  # z̃ = exp(log z − log_scale), each of the two to that many ulps of itself
+        assert_within(got.log_scale, want.log_scale, ulps, "log scale (the largest log z)")
         log_z = z.log().clamp_min(-745.0)  # an underflowed z̃ has no digits to lose
         bound = bound + 2 * want.scaled[..., i, j].abs() * (2 * ulps[..., None] + log_z_ulps * EPS * log_z.abs())
-    assert bool(((got.scaled - want.scaled)[..., i, j].abs() <= bound).all())
+    else:  # the same product Gaussians by the same code: the same log z, bit for bit
+        assert torch.equal(got.log_scale, want.log_scale)
+    assert_within(got.scaled[..., i, j], want.scaled[..., i, j], bound, "scaled FPKE matrix L̃ (pairs i ≤ j)")
 
 
 def _assert_agree_from_components(got, want, model, u, comp):
@@ -93,14 +97,14 @@ def _assert_agree_from_components(got, want, model, u, comp):
     log_det = torch.linalg.slogdet(Sigma)[1].abs()
     tol_log_z = 64 * EPS * (n * kappa + log_det + kappa * maha + n * math.log(2 * math.pi))  # [B, P]
     tol_scale = tol_log_z.gather(-1, prod.log_z.argmax(-1, keepdim=True)).squeeze(-1)  # the largest z's own
-    assert bool(((got.log_scale - want.log_scale).abs() <= tol_scale).all())
+    assert_within(got.log_scale, want.log_scale, tol_scale, "log scale (the largest log z)")
     channels = 10 if n == 6 else 1
     k = 2 * n * n + 4 * n + 8
     terms = (4 * k + 84 + 64 * kappa) * EPS * channels * ((T[0] @ W.abs()) * T[1]).sum(-1)
     i, j = torch.triu_indices(comp.means.shape[-2], comp.means.shape[-2])
     ref = want.scaled[..., i, j]
     bound = terms * z + 2 * ref.abs() * (tol_log_z + tol_scale[..., None]) + 16 * 2.0**-1074
-    assert bool(((got.scaled - want.scaled)[..., i, j].abs() <= bound).all())
+    assert_within(got.scaled[..., i, j], ref, bound, "scaled FPKE matrix L̃ from the components (pairs i ≤ j)")
 
 
 def _batched(model, u, comp):
@@ -149,7 +153,7 @@ def test_eager_chunks_give_the_numbers_of_one_call(gen, n):
     T, _ = _node_term_scale(model, u, comp)
     _, W = pair_products._mrp_nodes_and_weights(torch.float64, torch.device("cpu"))
     bound = 2 * 84 * EPS * (10 if n == 6 else 1) * ((T[0] @ W.abs()) * T[1]).sum(-1)
-    assert bool(((whole - chunked).abs() <= bound).all())
+    assert_within(chunked, whole, bound, "E[ℓᵢℓⱼ] in chunks of 3 pairs")
     empty = product_gaussians(comp.with_precision().map(lambda t, dim: t[:0]))
     assert pair_products.attitude_pair_products(empty, rate[:0], model.sigma_v, model.sigma_u).shape == (0, 10)
 
@@ -198,7 +202,8 @@ def test_the_penalty_filter_chooses_the_same_weights_on_either_route(gen, monkey
     dH = torch.linalg.matrix_norm(H[0] - H[10**12], ord=2)
     eig = torch.linalg.eigvalsh(H[10**12])
     bound = 8 * (dH * out[0].norm(dim=-1) / eig[..., 0] + eig[..., -1] / eig[..., 0] * EPS)
-    assert bool(((out[0] - out[10**12]).norm(dim=-1) <= bound).all())
+    # every entry moves by at most the 2-norm of the move
+    assert_within(out[0], out[10**12], bound[..., None], "penalty weights on lanes against the batched route")
 
 
 def _from_components(model, u, comp, compile: bool = False):
@@ -230,12 +235,45 @@ def _eager_as_compiled(monkeypatch, seen=None):
     monkeypatch.setattr(lanes, "_COMPILED", {})
 
 
+def _jacobian_term_scale(mu, u_p, n):
+    """The sum of the magnitudes of the terms of each entry of ``A = ∂f/∂x`` ``[Q, n, n]`` as both routes form it
+    (:meth:`AttitudeModel.drift_jacobian`, :func:`~agsf_torch.fused.propagation.attitude_rates`): with
+    ``ω = ω̃ − b`` taken as ``|ω̃| + |b|`` (its own rounding), ``F = ½(pωᵀ − ωpᵀ − [ω×] + (ωᵀp)I)`` term by term,
+    and ``−¼B(p)``, ``B = (1 − s)I + 2[p×] + 2ppᵀ``, as ``¼((1 + s)I + 2|[p×]| + 2|p||p|ᵀ)``; the bias rows are
+    structural zeros on both routes.  An entry of ``A`` may cancel among its terms (``ωᵀp`` on the diagonal), so
+    ``|A|`` itself does not bound its rounding; this does."""
+    p = mu[:, :3].abs()
+    w = u_p.abs() + (mu[:, 3:].abs() if n == 6 else 0.0)
+    eye = torch.eye(3, dtype=mu.dtype)
+    F = 0.5 * (
+        p[:, :, None] * w[:, None, :]
+        + w[:, :, None] * p[:, None, :]
+        + cross_matrix(w).abs()
+        + (p * w).sum(-1)[:, None, None] * eye
+    )
+    if n == 3:
+        return F
+    s = (p * p).sum(-1)[:, None, None]
+    B = (1.0 + s) * eye + 2.0 * cross_matrix(p).abs() + 2.0 * p[:, :, None] * p[:, None, :]
+    top = torch.cat((F, 0.25 * B), -1)
+    return torch.cat((top, torch.zeros_like(top)), -2)
+
+
 def _assert_moments_agree(model, u, comp, run=None):
     """The moments kernel's outputs (run by ``run(inputs, shared)``; default: eagerly) against
     :func:`product_gaussians` and :func:`moment_derivatives`, each to its own conditioning: the solves with
     ``Σ = Pᵢ + Pⱼ`` are backward stable, so ``m = μᵢ − Pᵢy`` and ``S = Pᵢ − PᵢΣ⁻¹Pᵢ`` agree to ``O(nκ(Σ)ε)`` of their
     terms, ``LLᵀ`` is ``S`` to ``O(nε‖S‖)`` (Cholesky), ``log z`` as in :mod:`tests.fused.test_galerkin`; the rates
-    ``f(μ)``, ``AP + PAᵀ + gQgᵀ`` are short sums of products, ``O(nε)`` of their terms' magnitudes."""
+    ``f(μ)``, ``AP + PAᵀ + gQgᵀ`` are short sums of products, a few ε of their terms' magnitudes.
+
+    ``Ṗ``: each route forms ``A`` to ``c_A = 8`` roundings of its terms' magnitudes ``|A|ₜ``
+    (:func:`_jacobian_term_scale`; ``ω`` one, a product one, the sums of up to four terms three, ``ωᵀp`` and
+    ``s = pᵀp`` three more on the diagonals), sums ``n`` products for each entry of ``AP`` (``n`` roundings, in any
+    order: BLAS or the kernel's unrolled sums) and adds ``(AP)ᵀ`` and ``gQgᵀ`` (2; ``gQgᵀ = (σ_v²/16)(1 + s)²`` to 7
+    of its value), so each is within ``(n + c_A + 2)ε·(|A|ₜ|P| + |P||A|ₜᵀ + |gQgᵀ|)`` of the exact rate, and the two
+    within twice that.  Every term counts: on the bias rows ``A`` is zero but ``PAᵀ`` is not
+    (``Ṗ_bp = P_bb(−¼B)ᵀ + P_bp Fᵀ``), so a bound ``2|A||P|`` vanished there where the rates, rounded differently
+    by another BLAS (MKL's AVX-512 path), differed by an ulp."""
     from agsf_torch.propagation import moment_derivatives
 
     n = model.state_dim
@@ -255,26 +293,31 @@ def _assert_moments_agree(model, u, comp, run=None):
     Sigma = flat(prod.first.covs + prod.second.covs)
     kappa = torch.linalg.cond(Sigma)
     Pi, y = flat(prod.first.covs), flat(prod.y)
+    # the 2-norm bounds below bound every entry
     tol_m = 64 * n * kappa * EPS * (norm(sides[0][0]) + norm(Pi) * norm(y))
-    assert bool((norm(m - flat(prod.mean)) <= tol_m).all())
+    assert_within(m, flat(prod.mean), tol_m[:, None], "product Gaussian mean m")
     tol_S = 64 * n * kappa * EPS * norm(Pi) * (1 + norm(flat(prod.gain)))
     S = flat(prod.cov)
-    assert bool((norm(L @ L.transpose(-1, -2) - S) <= tol_S + 64 * n * EPS * norm(S)).all())
+    tol_LL = tol_S + 64 * n * EPS * norm(S)
+    assert_within(L @ L.transpose(-1, -2), S, tol_LL[:, None, None], "product Gaussian covariance S as LLᵀ")
     assert bool((L.triu(1) == 0).all())
     d = sides[0][0] - sides[1][0]
     maha = (y * d).sum(-1).abs()
     log_det = torch.linalg.slogdet(Sigma)[1].abs()
     tol_z = 64 * EPS * (n * kappa + log_det + kappa * maha + n * math.log(2 * math.pi))
-    assert bool(((log_z - flat(prod.log_z)).abs() <= tol_z).all())
-    for (mu, cov), mean_rate, cov_rate in ((sides[0], rate_i, Pdot_i), (sides[1], rate_j, Pdot_j)):
+    assert_within(log_z, flat(prod.log_z), tol_z, "product Gaussian log z")
+    for side, ((mu, cov), mean_rate, cov_rate) in enumerate(((sides[0], rate_i, Pdot_i), (sides[1], rate_j, Pdot_j))):
         want = moment_derivatives(model, mu, cov, gyro)
-        A = model.drift_jacobian(mu, gyro)
-        scale_P = 2 * (A.abs() @ cov.abs()).abs() + model.process_noise(mu).abs()
-        assert bool(((cov_rate - want.cov_rate).abs() <= 64 * n * EPS * scale_P).all())
+        A_t = _jacobian_term_scale(mu, u_p, n)
+        scale_P = A_t @ cov.abs() + cov.abs() @ A_t.transpose(-1, -2) + model.process_noise(mu).abs()
+        rounds = n + 8 + 2  # AP's n, A's c_A = 8, then (AP)ᵀ and gQgᵀ: each route's, to the two routes' twice
+        assert_within(cov_rate, want.cov_rate, 2 * rounds * EPS * scale_P, f"covariance rate Ṗ of side {side}")
+        # f = ¼B(p)ω: an entry of B sums terms of magnitude ≤ 3(1 + s) (the diagonal 1 + s + 2pₖ², the others
+        # 2|pᵢpⱼ| + 2|pₖ| ≤ 2(1 + s)), to ~9 roundings a route with ω's; 64ε·(1 + s)Σ|ω| covers both routes'
         p = mu[:, :3]
         w = (u_p - mu[:, 3:]) if n == 6 else u_p
         scale_f = (1 + (p * p).sum(-1, keepdim=True)) * w.abs().sum(-1, keepdim=True)
-        assert bool(((mean_rate - want.mean_rate).abs() <= 64 * EPS * scale_f).all())
+        assert_within(mean_rate, want.mean_rate, 64 * EPS * scale_f, f"mean rate f(μ) of side {side}")
 
 
 @pytest.mark.parametrize(
@@ -428,7 +471,8 @@ def test_the_penalty_update_takes_the_fused_route_with_the_same_weights(gen, mon
     dH = torch.linalg.matrix_norm(H[True] - H[False], ord=2)
     eig = torch.linalg.eigvalsh(H[False])
     bound = 8 * (dH * out[True].norm(dim=-1) / eig[..., 0] + eig[..., -1] / eig[..., 0] * EPS)
-    assert bool(((out[True] - out[False]).norm(dim=-1) <= bound).all())
+    # every entry moves by at most the 2-norm of the move
+    assert_within(out[True], out[False], bound[..., None], "penalty weights on the fused route against fpke_matrix's")
 
 
 @pytest.mark.parametrize("n", [3, 6])
