@@ -43,6 +43,7 @@ import errno
 import sys
 
 from ..allocator import set_mmap_threshold
+from ..storage.files import files_written
 from .cli_commands import (
     _adaptation,
     _bench,
@@ -57,6 +58,8 @@ from .cli_commands import (
 from .cli_terminal import (
     FORCE_HELP,
     Parser,
+    ending_signals,
+    interruption,
     key_value,
     messages,
     nonnegative_float,
@@ -269,8 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: Exit code of a command the machine could not complete (a full disk, a read-only or failing device),
-#: apart from 2, refused input.
+#: Exit code of a command the machine could not complete (a full disk, a read-only or failing device), or that a
+#: file error stopped after it had begun writing (a permission denied halfway), apart from 2, refused input (nothing
+#: written).
 EXIT_IO_FAILURE = 3
 _IO_FAILURES = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS}
 
@@ -278,16 +282,21 @@ _IO_FAILURES = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS}
 def main(argv: list[str] | None = None) -> int:
     """Run the ``agsf`` command; refused input (a bad configuration, file or output folder)
     prints one line ``agsf: error: …`` and returns 2, having created nothing; an I/O failure of the
-    machine (a full disk, a failing or read-only device) prints ``agsf: I/O failure (file): …`` and returns
-    :data:`EXIT_IO_FAILURE`, as does a case's process that died (``agsf: failure: …``); Ctrl-C prints one line and returns 130.  Long steps
-    (the FPKE kernel's compilation) are announced on stderr unless ``--quiet``."""
+    machine (a full disk, a failing or read-only device), and any file error once the command has written a file
+    (:func:`~agsf_torch.storage.files.files_written`: a permission denied halfway, after other files were replaced),
+    prints ``agsf: I/O failure (file): …`` and returns :data:`EXIT_IO_FAILURE`, as does a case's process that died
+    (``agsf: failure: …``); Ctrl-C prints one line and returns 130, and SIGTERM and SIGHUP end the command the same
+    way and return 128 + the signal (143, 129: :func:`.cli_terminal.ending_signals`).  Long steps (the FPKE kernel's
+    compilation) are announced on stderr unless ``--quiet``."""
     args = build_parser().parse_args(argv)
     set_mmap_threshold()  # a step's buffers reused from the heap, not mapped afresh (agsf_torch.allocator)
-    with messages(quiet=getattr(args, "quiet", False)):
+    written = files_written()
+    with ending_signals(), messages(quiet=getattr(args, "quiet", False)):
         try:
             return args.func(args)
         except OSError as exc:
-            if exc.errno in _IO_FAILURES:  # the machine failed a write or read: not the user's input
+            # the machine failed a write or read, or the command had begun writing: not a refusal, which writes nothing
+            if exc.errno in _IO_FAILURES or files_written() != written:
                 where = f" ({exc.filename})" if exc.filename else ""
                 print(f"agsf: I/O failure{where}: {exc.strerror or one_line(exc)}", file=sys.stderr)
                 return EXIT_IO_FAILURE
@@ -300,10 +309,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"agsf: failure: {one_line(exc)}", file=sys.stderr)
             return EXIT_IO_FAILURE
         except KeyboardInterrupt:
+            status, how = interruption()
             out = getattr(args, "out", None)
             kept = f"; what was written is in {out}" if out else ""
-            print(f"\nagsf: interrupted{kept} (files are written whole or not at all)", file=sys.stderr)
-            return 130
+            print(f"\nagsf: {how}{kept} (files are written whole or not at all)", file=sys.stderr)
+            return status
         finally:
             from .outputs import release_outputs
 

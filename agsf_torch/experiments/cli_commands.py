@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cli_terminal import tensorboard_command
+from .cli_terminal import interruption, tensorboard_command
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -149,13 +149,14 @@ def _sweep(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         from ..storage.files import read_json_lines
 
+        status, how = interruption()
         results = Path(args.out) / "results.jsonl"
         done = len(read_json_lines(results))
         print(
-            f"\nagsf: interrupted; {done} finished configurations are in {results}: rerun the same command to resume",
+            f"\nagsf: {how}; {done} finished configurations are in {results}: rerun the same command to resume",
             file=sys.stderr,
         )
-        return 130
+        return status
     from ..storage.files import write_text
     from .sweep import results_table
 

@@ -4,7 +4,8 @@ Argument types refuse bad values with argparse's one-line error; :class:`Parser`
 every argument error as one line (exit 2), like every other refusal; :func:`one_line`
 folds an exception into one line naming the file; :func:`messages` shows the package's
 INFO messages on stderr (through ``tqdm.write``, so progress bars stay intact) and
-filters the dependencies' warnings that are not the user's concern.
+filters the dependencies' warnings that are not the user's concern; :func:`ending_signals` makes SIGTERM and
+SIGHUP end a command as Ctrl-C does, and :func:`interruption` says which of them ended it.
 """
 
 from __future__ import annotations
@@ -12,7 +13,9 @@ from __future__ import annotations
 import argparse
 import logging
 import shlex
+import signal
 import sys
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -31,6 +34,9 @@ __all__ = [
     "one_line",
     "messages",
     "tensorboard_command",
+    "ENDING_SIGNALS",
+    "ending_signals",
+    "interruption",
 ]
 
 
@@ -174,3 +180,55 @@ def messages(quiet: bool):
         warnings.showwarning = shown
         logger.removeHandler(handler)
         logger.setLevel(level)
+
+
+#: Signals that end a command as Ctrl-C does: SIGTERM (what ``timeout``, a CI cancellation and a service manager
+#: send) and SIGHUP (a closed terminal).
+ENDING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+#: The ending signal the running command received first, if any (:func:`interruption`).
+_received: list[int] = []
+
+
+def _interrupt_as_ctrl_c(signum: int, frame) -> None:
+    """An ending signal's handler: the first runs this process's Ctrl-C handler (the default raises
+    ``KeyboardInterrupt``; a sweep's also latches it), so that the command ends by the one path Ctrl-C takes
+    (case processes interrupted, unfinished files removed, the output folder let go).  Later ones are ignored:
+    ``timeout`` signals the command and then its whole process group, and a second interruption would cut the
+    first one's clean-up short (the sender's next step is SIGKILL; Ctrl-C still interrupts it)."""
+    if _received:
+        return
+    _received.append(signum)
+    handler = signal.getsignal(signal.SIGINT)
+    if callable(handler):
+        handler(signal.SIGINT, frame)
+    raise KeyboardInterrupt  # SIGINT ignored (a background job of a shell) or a handler that returned
+
+
+@contextmanager
+def ending_signals():
+    """While the command runs, SIGTERM and SIGHUP raise ``KeyboardInterrupt`` as Ctrl-C does (remembered for
+    :func:`interruption`); their handlers are restored afterwards.  A signal the process was started ignoring
+    stays ignored (``nohup agsf …`` outlives its terminal), and outside the main thread, where Python runs no
+    signal handler, nothing changes."""
+    _received.clear()
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {}
+    try:
+        for signum in ENDING_SIGNALS:
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                previous[signum] = signal.signal(signum, _interrupt_as_ctrl_c)
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+
+
+def interruption() -> tuple[int, str]:
+    """The exit status and the words of the interruption that ended the command (its ``KeyboardInterrupt``): 130
+    and ``interrupted`` for Ctrl-C, 128 + the signal and ``stopped by SIGTERM`` (143) or ``stopped by SIGHUP`` (129)
+    for an ending signal (:func:`ending_signals`), the conventional statuses of a command ended by a signal."""
+    if not _received:
+        return 128 + signal.SIGINT, "interrupted"
+    return 128 + _received[0], f"stopped by {signal.Signals(_received[0]).name}"

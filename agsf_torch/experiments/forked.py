@@ -14,9 +14,10 @@ thread count.  Fork is Linux's (:func:`fork_available`); elsewhere the cases run
 :func:`run_forked` runs the tasks, returns their results in order and raises the first failure (the child's own
 exception, or one naming the task when its child died without a reply) once every other task has ended, so that
 an earlier case's files are complete whatever a later one does.  Interrupted (Ctrl-C), the children are
-interrupted too (each removes its unfinished temporary files) and the interruption propagates.  A child's progress
-bars are drawn by the parent, each child's on a line of its own (:func:`.progress.report_to`): processes that each
-redraw a terminal line move one another's cursor.
+interrupted too (each removes its unfinished temporary files) and the interruption propagates.  A child takes
+SIGTERM and SIGHUP as it takes Ctrl-C (``timeout`` and a service manager signal every process of the command).
+A child's progress bars are drawn by the parent, each child's on a line of its own (:func:`.progress.report_to`):
+processes that each redraw a terminal line move one another's cursor.
 """
 
 from __future__ import annotations
@@ -64,10 +65,21 @@ def fork_available() -> bool:
     )
 
 
+#: The signals that interrupt a child's task: Ctrl-C's, and SIGTERM and SIGHUP, which end the ``agsf`` command as
+#: Ctrl-C does (:func:`.cli_terminal.ending_signals`).
+_INTERRUPTING = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: In a child, the signal that interrupted its task (empty in the parent, so every child starts without one).
+_interrupted_by: list[int] = []
+
+
 def _interrupted_once(signum: int, frame: Any) -> None:
-    """A child's SIGINT handler: the first interrupts the task; later ones (a terminal's Ctrl-C reaches the whole
-    process group, then the parent passes it on) are ignored, so that the task's clean-up is not cut short."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    """A child's handler of :data:`_INTERRUPTING`: the first signal interrupts the task; later ones (a terminal's
+    Ctrl-C, or ``timeout``'s SIGTERM, reaches the whole process group, then the parent passes it on) are ignored,
+    so that the task's clean-up is not cut short.  Ignored here rather than by ``SIG_IGN``: a signal already pending
+    when its handler is set to ``SIG_IGN`` is reported by Python as one "ignored due to race condition"."""
+    if _interrupted_by:
+        return
+    _interrupted_by.append(signum)
     raise KeyboardInterrupt
 
 
@@ -93,8 +105,11 @@ def _child(conn: Any, index: int, task: Callable[..., Any], args: tuple) -> None
     n)``), then send ``("done", True, result, None)`` or ``("done", False, exception, traceback text)``."""
     from .progress import forget_parent_bars, report_to
 
-    signal.signal(signal.SIGINT, _interrupted_once)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked by the parent around the fork
+    for interrupting in _INTERRUPTING:
+        # a signal the command was started ignoring stays ignored (SIGHUP under nohup)
+        if interrupting == signal.SIGINT or signal.getsignal(interrupting) is not signal.SIG_IGN:
+            signal.signal(interrupting, _interrupted_once)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _INTERRUPTING)  # blocked by the parent around the fork
     forget_parent_bars()
     report_to(lambda *bar: conn.send(("progress", *bar)))
     try:
@@ -166,13 +181,13 @@ def run_forked(
                 index = waiting.pop(0)
                 receive, send = context.Pipe(duplex=False)
                 process = context.Process(target=_child, args=(send, index, *tasks[index]), name=names[index])
-                # SIGINT held back across the fork: the child installs its own handler first (a Ctrl-C meanwhile
-                # is delivered here once unblocked, and passed on)
-                signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+                # the interrupting signals held back across the fork: the child installs its own handlers first (a
+                # signal meanwhile is delivered here once unblocked, and passed on)
+                signal.pthread_sigmask(signal.SIG_BLOCK, _INTERRUPTING)
                 try:
                     process.start()
                 finally:
-                    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+                    signal.pthread_sigmask(signal.SIG_UNBLOCK, _INTERRUPTING)
                 send.close()
                 running[index] = (process, receive)
             # with a timeout: a Ctrl-C that the kernel hands to another thread of this process is raised here only

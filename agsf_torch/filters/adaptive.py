@@ -120,6 +120,11 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
         """The run state: ``{"weight_update": …}`` (tensors and numbers only)."""
         return {"weight_update": self.weight_update.state_dict()}
 
+    def checkpoint_options(self) -> dict[str, Any]:
+        """The GSF's options, ``adapt`` and the weight update's (its kind and options:
+        :meth:`~agsf_torch.filters.weight_updates.WeightUpdate.checkpoint_options`)."""
+        return {**super().checkpoint_options(), "adapt": self.adapt, **self.weight_update.checkpoint_options()}
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict` (validated before anything changes)."""
         if not isinstance(state, dict) or set(state) != {"weight_update"}:

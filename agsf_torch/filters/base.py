@@ -443,6 +443,19 @@ class BaseFilter:
         """The filter's run state, for checkpoints (``{}`` for a filter without one)."""
         return {}
 
+    def checkpoint_options(self) -> dict[str, Any]:
+        """The options the filter's numbers depend on, by their constructor's names: a checkpoint records them
+        beside :meth:`state_dict`, and a run resumes (bit for bit) only under the options it was saved with
+        (:func:`~agsf_torch.storage.checkpoint.load_checkpoint` refuses others)."""
+        return {
+            "update_iterations": self.update_iterations,
+            "gate_probability": self.gate_probability,
+            "fused": self.fused,
+            "compile_fused": self.compile_fused,
+            "repair_covariance": self.repair_covariance,
+            "min_eigenvalue": self.min_eigenvalue,
+        }
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict` (validated before anything changes)."""
         if state != {}:

@@ -55,6 +55,10 @@ class GaussianSumFilter(BaseFilter):
         self.substeps = int(substeps)
         self._contract_checked: ContinuousModel | None = None  # the model check_contract passed for
 
+    def checkpoint_options(self) -> dict[str, Any]:
+        """The base filter's options and ``substeps`` (:meth:`BaseFilter.checkpoint_options`)."""
+        return {**super().checkpoint_options(), "substeps": self.substeps}
+
     def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
         """As the base class's, the model's shape contract at the first ``predict`` with it
         (``ContinuousModel.check_contract``) and its check of the interval (``ContinuousModel.check_step``)."""

@@ -160,6 +160,15 @@ class MultiplicativeEKF(BaseFilter):
         self.discrete_noise = discrete_noise
         self.covariance_reset = bool(covariance_reset)
 
+    def checkpoint_options(self) -> dict[str, Any]:
+        """The base filter's options, ``discrete_noise`` and ``covariance_reset``
+        (:meth:`~agsf_torch.filters.base.BaseFilter.checkpoint_options`)."""
+        return {
+            **super().checkpoint_options(),
+            "discrete_noise": self.discrete_noise,
+            "covariance_reset": self.covariance_reset,
+        }
+
     # ------------------------------------------------------------ error state
     def _to_error_state(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor, Tensor, int]:
         """``(q̂ [..., 4], b̂ [..., 3 or 0], P_δ [..., n, n], repairs)`` of a one-component belief."""

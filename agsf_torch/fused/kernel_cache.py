@@ -4,6 +4,10 @@ A compiled kernel is an AOTInductor package in :func:`kernel_cache_dir`, named b
 depends on (:func:`_package_path`: the kernel, its static configuration, the variant and its thread count, the
 input dtypes and trailing shapes, the torch version and the source of the package's fused kernels).  A process
 compiling one holds its :func:`compile_lock`, so that processes started together compile each kernel once.
+Packages are written atomically and, like any new file, readable as the umask allows (``0666`` less the umask),
+so that a cache shared by a group serves all its users.  A package that cannot be loaded is judged
+(:func:`package_damage`): a damaged one (empty, cut short, a foreign or corrupt archive) is replaced by a new
+compilation, a whole one is kept.
 """
 
 from __future__ import annotations
@@ -12,13 +16,14 @@ import contextlib
 import hashlib
 import logging
 import os
+import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-__all__ = ["kernel_cache_dir", "compile_lock"]
+__all__ = ["kernel_cache_dir", "compile_lock", "package_damage"]
 
 logger = logging.getLogger(__name__)
 
@@ -89,3 +94,33 @@ def compile_lock(path: Path):
 
     path.parent.mkdir(parents=True, exist_ok=True)
     return FileLock(f"{path}.lock")
+
+
+#: A package's members as the compiler writes them (a PT2 archive: one root folder holding ``archive_format``, whose
+#: text is ``pt2``, and the compiled model ``model`` under ``data/aotinductor/model/``).
+_FORMAT_MEMBER, _FORMAT, _MODEL_FOLDER = "archive_format", b"pt2", "data/aotinductor/model/"
+
+
+def package_damage(path: Path) -> str | None:
+    """What is wrong with the package file ``path``, in words, or ``None`` for a whole compiled-kernel package (or a
+    file that cannot be read to judge it: another user's, say).
+
+    A package is a zip archive (a PT2 archive): damaged when empty, cut short (no central directory), a member
+    failing its checksum (the loader checks none), or an archive that is not a compiled kernel's."""
+    try:
+        if path.stat().st_size == 0:
+            return "empty"
+        with zipfile.ZipFile(path) as archive:
+            names = archive.namelist()
+            corrupt = archive.testzip()
+            formats = [name for name in names if name.split("/", 1)[-1] == _FORMAT_MEMBER]
+            package_format = archive.read(formats[0]) if formats else None
+    except OSError:
+        return None
+    except Exception as exc:  # noqa: BLE001 - zipfile's errors for a cut-short or corrupt archive vary
+        return f"not a whole zip archive: {type(exc).__name__}: {exc}"
+    if corrupt is not None:
+        return f"its member {corrupt} fails its checksum"
+    if package_format != _FORMAT or not any(name.split("/", 1)[-1].startswith(_MODEL_FOLDER) for name in names):
+        return "a zip archive that holds no compiled kernel"
+    return None

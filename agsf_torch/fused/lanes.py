@@ -17,7 +17,9 @@ variant, the input dtypes and trailing shapes, the torch version and the source 
 fused kernels; a later process loads them in milliseconds instead of tracing the kernel again, and
 each call skips dynamo's guards (~75 µs a call instead of ~300 µs).  Each compilation is announced on
 the ``agsf_torch`` logger (INFO) when it starts and ends.  A compilation or compiled-run failure falls
-back to the eager kernel with one warning; the numbers are the eager ones.
+back to the eager kernel with one warning (naming the package when it is one that cannot be loaded); the numbers
+are the eager ones.  A package in the cache that is damaged (:func:`~.kernel_cache.package_damage`: empty, cut
+short, a foreign or corrupt archive) is named in a warning, removed and compiled again by the call that found it.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import contextvars
 import logging
 import math
 import os
+import secrets
+import stat
 import tempfile
 import time
 import warnings
@@ -45,6 +49,7 @@ from .kernel_cache import (
     _variant_threads,
     compile_lock,
     kernel_cache_dir,
+    package_damage,
 )
 
 __all__ = [
@@ -159,10 +164,11 @@ def _compile_ahead_of_time(
     serial: bool = False,
     threads: int | None = None,
 ) -> None:
-    """Export ``kernel`` and compile it into the package ``path`` (written atomically): for the lane count of
-    ``inputs`` (threaded code for ``threads`` OpenMP threads, by default this process's torch threads), or with
-    ``serial`` for any lane count ≥ 2 (code without OpenMP threads).  The compiler writes the thread count into
-    the code (one thread: no parallel region at all), so it is part of the package's name (:func:`_package_path`)."""
+    """Export ``kernel`` and compile it into the package ``path`` (written atomically, with the permissions of any
+    new file: ``0666`` less the umask): for the lane count of ``inputs`` (threaded code for ``threads`` OpenMP
+    threads, by default this process's torch threads), or with ``serial`` for any lane count ≥ 2 (code without
+    OpenMP threads).  The compiler writes the thread count into the code (one thread: no parallel region at all),
+    so it is part of the package's name (:func:`_package_path`)."""
     from torch._inductor import config as inductor_config
     from torch.export import Dim
 
@@ -176,15 +182,19 @@ def _compile_ahead_of_time(
         dynamic = (tuple({0: lanes} for _ in inputs) + tuple(None for _ in shared),)
     program = torch.export.export(Kernel(), (*inputs, *shared), dynamic_shapes=dynamic, strict=False)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=path.parent)
-    os.close(fd)
+    tmp = path.with_name(f".{path.stem}.{secrets.token_hex(6)}.tmp.pt2")  # the compiler takes a name ending .pt2
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        mode = stat.S_IMODE(os.fstat(fd).st_mode)  # 0666 less the umask, as for any new file (mkstemp's is 0600)
+    finally:
+        os.close(fd)
     try:
         with inductor_config.patch({"cpp.threads": 1 if serial else threads or _variant_threads(serial)}):
-            torch._inductor.aoti_compile_and_package(program, package_path=tmp)
+            torch._inductor.aoti_compile_and_package(program, package_path=str(tmp))
+        os.chmod(tmp, mode)  # the compiler may have written a file of its own in the name's place
         os.replace(tmp, path)
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        tmp.unlink(missing_ok=True)
 
 
 def _load(
@@ -194,8 +204,24 @@ def _load(
     first (announced)."""
     path = _package_path(kernel, key, inputs, shared, serial)
     name = _kernel_name(kernel) + (" (serial)" if serial else "")
-    if not path.is_file():
+    damaged = False
+    if path.is_file():
+        try:
+            return _load_package(path)
+        except Exception as exc:  # noqa: BLE001 - the loader's errors name neither the file nor what is wrong with it
+            damage = package_damage(path)
+            if damage is None:  # whole, but not loadable here: compiling it again would fail alike
+                raise RuntimeError(f"cannot load {path} ({type(exc).__name__}: {exc})") from exc
+            warnings.warn(
+                f"the compiled kernel package {path} is damaged ({damage}): removed, compiling it again",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            damaged = True
+    if damaged or not path.is_file():
         with _held(compile_lock(path), name):  # another process compiling it: wait for its package, not compile again
+            if damaged and path.is_file() and package_damage(path) is not None:  # not yet replaced by another process
+                path.unlink(missing_ok=True)
             if not path.is_file():
                 logger.info(
                     "compiling the fused kernel %r ahead of time (once per machine and torch version: about 10–60 s on "
@@ -304,8 +330,9 @@ def run_in_chunks(
         return run_in_chunks(kernel, inputs, shared=shared, compile=False, chunk=chunk)
     except Exception as exc:  # noqa: BLE001 - any compiler or runtime failure: the eager path, never a wrong number
         _FAILED.add(cache_key)
+        why = " ".join(str(exc).split())  # the loader's messages run over several lines
         warnings.warn(
-            f"compiled kernel {_kernel_name(kernel)} failed ({type(exc).__name__}: {exc}); running it eagerly",
+            f"compiled kernel {_kernel_name(kernel)} failed ({type(exc).__name__}: {why}); running it eagerly",
             RuntimeWarning,
             stacklevel=2,
         )

@@ -2,15 +2,21 @@
 
 A checkpoint is a ``torch.save`` file holding only tensors, numbers, strings,
 lists and dicts, so it loads with ``torch.load(weights_only=True)`` (no code
-execution).  It holds, per filter, the mixture (log-weights, means, covariances)
-and the filter's run state (``filter.state_dict()``: the adaptive filter's
-weight-update counter and reference weights), plus any caller state (for example an environment's ``state_dict()`` and a
-:class:`~agsf_torch.attitude.gyro_hold.GyroHold`'s).  Restoring it
-and continuing gives the same numbers, bit for bit, as never stopping.
+execution).  It holds, per filter, the mixture (log-weights, means, covariances),
+the filter's run state (``filter.state_dict()``: the adaptive filter's
+weight-update counter and reference weights) and its options (``filter.checkpoint_options()``: the filter's and its
+weight update's), plus any caller state (for example an environment's ``state_dict()`` and a
+:class:`~agsf_torch.attitude.gyro_hold.GyroHold`'s).  Restoring it into filters of the same options
+and continuing gives the same numbers, bit for bit, as never stopping.  A filter whose options differ is refused,
+naming each option and its two values, but for :data:`MAY_DIFFER`: the options that choose how the same arithmetic
+runs (compiled or eager, fused or generic, in chunks: the numbers then agree to rounding) and the Galerkin update's
+residual diagnostics (which change no number).
 """
 
 from __future__ import annotations
 
+import hashlib
+import warnings
 from collections.abc import Mapping
 from pathlib import Path, PurePath
 from typing import Any
@@ -21,9 +27,15 @@ from ..filters.base import Filter
 from ..mixture import GaussianMixture
 from .files import atomic_open
 
-__all__ = ["save_checkpoint", "load_checkpoint", "FORMAT"]
+__all__ = ["save_checkpoint", "load_checkpoint", "FORMAT", "MAY_DIFFER"]
 
-FORMAT = "agsf-checkpoint-2"
+FORMAT = "agsf-checkpoint-3"
+#: The format before checkpoints recorded their filters' options: still read, with a warning that they go unchecked.
+_FORMAT_WITHOUT_OPTIONS = "agsf-checkpoint-2"
+#: The options a checkpoint may be loaded under with other values than it was saved with: how the same arithmetic
+#: runs (compiled or eager, the fused path or the generic one, the quadrature in chunks), which moves the numbers at
+#: most by rounding, and the Galerkin update's residual diagnostics, which move none.
+MAY_DIFFER = ("fused", "compile_fused", "compile", "chunk_size", "residual_diagnostics")
 
 
 def _mixture_state(m: GaussianMixture) -> dict[str, Any]:
@@ -51,7 +63,12 @@ def save_checkpoint(
     state = {
         "format": FORMAT,
         "filters": {
-            name: {"mixture": _mixture_state(mixtures[name]), "filter": filters[name].state_dict()} for name in mixtures
+            name: {
+                "mixture": _mixture_state(mixtures[name]),
+                "filter": filters[name].state_dict(),
+                "options": _options(filters[name]),
+            }
+            for name in mixtures
         },
         "extra": dict(extra or {}),
     }
@@ -63,6 +80,89 @@ def save_checkpoint(
 
 #: Python types a checkpoint stores as they are (and reads back with ``torch.load(weights_only=True)``).
 _PLAIN = (bool, int, float, str, type(None))
+#: An option one side has and the other has not (filters of different kinds).
+_ABSENT = object()
+
+
+def _options(filt: Filter) -> dict[str, Any]:
+    """The filter's options as a checkpoint stores them (:func:`_option_value`); none for a filter that declares no
+    ``checkpoint_options``."""
+    declared = getattr(filt, "checkpoint_options", None)
+    return {} if declared is None else {str(k): _option_value(v) for k, v in declared().items()}
+
+
+def _option_value(value: Any) -> Any:
+    """An option in a form :func:`torch.load` reads back with ``weights_only=True``: a 0-d tensor (a learned λ) as
+    its number, another tensor (a quadrature rule's nodes) detached on the CPU, sequences as tuples; an object of any
+    other kind (a user's weight update's option) by its ``repr``."""
+    if torch.is_tensor(value):
+        value = value.detach().cpu()
+        return value.item() if value.dim() == 0 else value.clone()
+    if type(value) in _PLAIN:
+        return value
+    if isinstance(value, (list, tuple)):
+        return tuple(_option_value(v) for v in value)
+    if isinstance(value, dict) and all(type(k) is str for k in value):
+        return {k: _option_value(v) for k, v in value.items()}
+    return repr(value)
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Whether two stored options are the same: tensors of one dtype, shape and value; sequences and dicts entry by
+    entry; numbers by value (``2`` and ``2.0`` are one cadence), but a bool only as a bool."""
+    if torch.is_tensor(a) or torch.is_tensor(b):
+        return (
+            torch.is_tensor(a)
+            and torch.is_tensor(b)
+            and a.dtype == b.dtype
+            and a.shape == b.shape
+            and torch.equal(a, b)
+        )
+    if isinstance(a, (list, tuple)) or isinstance(b, (list, tuple)):
+        sequences = isinstance(a, (list, tuple)) and isinstance(b, (list, tuple))
+        return sequences and len(a) == len(b) and all(map(_same, a, b))
+    if isinstance(a, dict) or isinstance(b, dict):
+        return (
+            isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+        )
+    if a is _ABSENT or b is _ABSENT or isinstance(a, bool) != isinstance(b, bool):
+        return a is b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return a == b
+    return type(a) is type(b) and a == b
+
+
+def _shown(value: Any) -> str:
+    """An option as a refusal shows it: small tensors by value, larger ones by dtype, shape and a digest."""
+    if value is _ABSENT:
+        return "absent"
+    if torch.is_tensor(value):
+        if value.numel() <= 8:
+            return f"tensor({value.tolist()})"
+        digest = hashlib.sha256(repr(value.flatten().tolist()).encode()).hexdigest()[:12]
+        return f"a {value.dtype} tensor of shape {tuple(value.shape)} (sha256 {digest}…)"
+    if isinstance(value, tuple):
+        return "(" + ", ".join(map(_shown, value)) + ("," if len(value) == 1 else "") + ")"
+    return repr(value)
+
+
+def _check_options(saved: Any, current: dict[str, Any]) -> None:
+    """Refuse a filter whose options differ from those its checkpoint entry was saved with (but :data:`MAY_DIFFER`),
+    naming each such option with its two values."""
+    if not isinstance(saved, dict):
+        raise ValueError(f"filter options must be a dict, got {type(saved).__name__}")
+    names = [*saved, *(name for name in current if name not in saved)]
+    differ = [
+        f"{name} is {_shown(saved.get(name, _ABSENT))} in the checkpoint, {_shown(current.get(name, _ABSENT))} in "
+        "this filter"
+        for name in names
+        if name not in MAY_DIFFER and not _same(saved.get(name, _ABSENT), current.get(name, _ABSENT))
+    ]
+    if differ:
+        may = f"{', '.join(MAY_DIFFER[:-1])} and {MAY_DIFFER[-1]}"
+        raise ValueError(
+            f"{'; '.join(differ)}: a run resumes only under the options it was saved with ({may} may differ)"
+        )
 
 
 def _check_storable(value: Any, where: str) -> None:
@@ -152,7 +252,9 @@ def load_checkpoint(
     Every mixture is validated in full (floating-point tensors of one dtype, shapes,
     finite means, symmetric positive definite covariances, log-weights) and against its
     filter (:meth:`~agsf_torch.filters.base.Filter.check_mixture`: the state dimension, the
-    number of components).  The filters'
+    number of components), and every filter's options against those its entry was saved with (the module
+    docstring: each option that differs is named with both values, but :data:`MAY_DIFFER`; a checkpoint of the
+    format before options, ``agsf-checkpoint-2``, loads with a warning that they go unchecked).  The filters'
     states are then loaded one by one; if any filter refuses its state (whatever the
     error), every filter is put back as it was before the call: a failed load changes
     nothing.
@@ -165,8 +267,15 @@ def load_checkpoint(
     path = Path(path)
     state = _read(path)
     fmt = state.get("format") if isinstance(state, dict) else None
-    if fmt != FORMAT:
+    if fmt not in (FORMAT, _FORMAT_WITHOUT_OPTIONS):
         raise ValueError(f"{path} is not an {FORMAT} file (format {fmt!r})")
+    if fmt == _FORMAT_WITHOUT_OPTIONS:
+        warnings.warn(
+            f"{path} records no filter options (format {fmt!r}, written before checkpoints recorded them): the "
+            "filters' options go unchecked, and the run resumes bit for bit only under the options it was saved with",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     name = None
     try:
         entries, extra = state["filters"], state["extra"]
@@ -179,6 +288,8 @@ def load_checkpoint(
                 raise ValueError(f"entry must be a dict, got {type(s).__name__}")
             mixtures[name] = _mixture(s["mixture"])
             filters[name].check_mixture(mixtures[name])  # state dimension, components: fits its filter
+            if fmt == FORMAT:
+                _check_options(s["options"], _options(filters[name]))
             restored[name] = s["filter"]
             _check_reference(restored[name], mixtures[name])
         name = None

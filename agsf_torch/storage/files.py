@@ -16,6 +16,8 @@ Every file the package writes goes through here, so that an interruption
 * :func:`read_json` raises ``ValueError`` naming the file for unreadable JSON.
 * :func:`json_text` is the one serialiser: strict JSON (RFC 8259), an undefined number
   (NaN, ±inf) written as ``null``, never as the bare ``NaN`` other parsers refuse.
+* :func:`files_written` counts the files this process has put into place and the lines it has appended: a
+  command that fails tells by it whether it had begun writing (the ``agsf`` command's exit status).
 """
 
 from __future__ import annotations
@@ -44,7 +46,23 @@ __all__ = [
     "read_json",
     "read_json_lines",
     "repair_json_lines",
+    "files_written",
 ]
+
+#: Files :func:`atomic_open` has put into place and lines :func:`append_line` has appended, in this process.
+_written = 0
+
+
+def files_written() -> int:
+    """How many files (:func:`atomic_open` and the functions built on it) this process has put into place and how
+    many lines (:func:`append_line`) it has appended: a caller compares two counts to tell whether anything was
+    written between them."""
+    return _written
+
+
+def _count_written() -> None:
+    global _written
+    _written += 1
 
 
 def temporary_name(path: str | Path) -> Path:
@@ -84,6 +102,7 @@ def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO]:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+        _count_written()
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -141,6 +160,7 @@ def append_line(path: str | Path, line: str) -> None:
         if written != len(data):  # a short write (full disk): the reader treats it as a torn last line
             raise OSError(f"{path}: short write ({written} of {len(data)} bytes)")
         os.fsync(fd)
+        _count_written()
     finally:
         os.close(fd)
 

@@ -12,7 +12,7 @@ import envs
 from agsf_torch import GaussianMixture
 from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
-from agsf_torch.storage.checkpoint import load_checkpoint, save_checkpoint
+from agsf_torch.storage.checkpoint import FORMAT, load_checkpoint, save_checkpoint
 from tests.helpers import F64
 
 
@@ -71,7 +71,7 @@ def test_bad_checkpoints(tmp_path):
     with pytest.raises(ValueError, match="same filters"):
         save_checkpoint(tmp_path / "x.pt", {"gsf": mix}, filters)
     torch.save({"format": "other"}, tmp_path / "y.pt")
-    with pytest.raises(ValueError, match="not an agsf-checkpoint-2"):
+    with pytest.raises(ValueError, match=f"not an {FORMAT} file"):
         load_checkpoint(tmp_path / "y.pt", filters)
     path = save_checkpoint(tmp_path / "z.pt", {"gsf": mix, "agsf": mix}, filters)
     with pytest.raises(ValueError, match="holds filters"):

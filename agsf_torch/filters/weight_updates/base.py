@@ -7,6 +7,7 @@ its evaluation).  See :mod:`agsf_torch.filters.weight_updates`.
 
 from __future__ import annotations
 
+import dataclasses
 import weakref
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -18,6 +19,7 @@ from ...fpke import ComponentRates, residual_rule
 from ...fpke.matrices import check_chunk_size
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
+from ...models.derived import provides
 from ...propagation import moment_derivatives
 from ...qp import MAX_COMPONENTS
 from ..options import option, positive_int
@@ -40,8 +42,8 @@ def component_rates(model: ContinuousModel, mixture: GaussianMixture, u: Tensor 
 
 
 def has_gaussian_moments(model: ContinuousModel) -> bool:
-    """Whether ``model`` gives closed-form Gaussian moments of its Fokker–Planck terms."""
-    return type(model).fokker_planck_moments is not ContinuousModel.fokker_planck_moments
+    """Whether ``model`` gives closed-form Gaussian moments of its Fokker–Planck terms (derived for its physics)."""
+    return provides(model, "fokker_planck_moments", ContinuousModel)
 
 
 def check_finite_matrix(name: str, value: Tensor) -> None:
@@ -191,6 +193,14 @@ class WeightUpdate:
     def state_dict(self) -> dict[str, Any]:
         """The update's run state (numbers, strings and tensors only), tagged with its ``kind``."""
         return {"kind": self.name, "step": self.run.step, "elapsed": self.run.elapsed}
+
+    def checkpoint_options(self) -> dict[str, Any]:
+        """The update's kind (``weight_update``: :attr:`name`) and its options (its fields), which a checkpoint
+        records beside its filter's run state (:meth:`~agsf_torch.filters.base.BaseFilter.checkpoint_options`)."""
+        return {
+            "weight_update": self.name,
+            **{f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init},
+        }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`; validated before anything changes."""
