@@ -55,6 +55,7 @@ import torch
 from torch import Tensor
 
 from .models.base import MeasurementModel
+from .models.derived import provides
 from .shapes import broadcast_shapes
 
 __all__ = [
@@ -418,6 +419,10 @@ def kalman_update(
     log_lik = torch.logsumexp(joint, -1)
     new_log_weights = joint - log_lik.unsqueeze(-1)
     nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :]) if mixture_nis else None
+    if provides(measurement, "data_log_likelihood", MeasurementModel):
+        # the data's own degrees of freedom (a unit vector's two), whatever R the gain spreads the noise over
+        HL = H @ torch.linalg.cholesky(0.5 * (covs + covs.transpose(-1, -2)))
+        log_lik = measurement.data_log_likelihood(log_weights, nu, HL, y.squeeze(-2), valid)
 
     # trajectories without a valid entry are left exactly as they were
     any_valid = dof[..., 0] > 0

@@ -25,6 +25,7 @@ from agsf_torch.filters import ExtendedKalmanFilter, MultiplicativeEKF
 from agsf_torch.gating import innovation_gate
 from agsf_torch.mixture import GaussianMixture
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
+from agsf_torch.models.star_vectors import tangent_basis
 from agsf_torch.update import evaluate_measurement, kalman_update
 from tests.helpers import EAGER, F64, assert_within, random_mrps
 
@@ -55,11 +56,22 @@ def _mp(t: torch.Tensor) -> mpmath.matrix:
     return mpmath.matrix(t.tolist())
 
 
-def _exact(P, H, R, nu):
-    """50-digit textbook update of one component: ``(δx, P⁺, νᵀS⁻¹ν, log det S)`` as float64 tensors."""
+def _exact(P, H, R, nu, T=None):
+    """50-digit textbook update of one component: ``(δx, P⁺, νᵀS⁻¹ν, log det S, rounding)`` as float64 tensors,
+    and with ``T`` (the tangent bases of the measured star vectors, ``[d, 2m]``) the data's log-density
+    ``log N(Tᵀν; 0, TᵀST)``."""
     mpmath.mp.dps = 50
     P, H, R, nu = _mp(P), _mp(H), _mp(R), _mp(nu)
     S = H * P * H.T + R
+    data = None
+    if T is not None:
+        T = _mp(T)
+        S_t, v = T.T * S * T, T.T * nu
+        data = -0.5 * (
+            (v.T * mpmath.lu_solve(S_t, v))[0] + mpmath.log(mpmath.det(S_t)) + S_t.rows * mpmath.log(2 * mpmath.pi)
+        )
+        # its rounding in float64: backward-stable steps, κ(S_t)ε of the terms (bounded by the Frobenius form)
+        data = (data, float(mpmath.mnorm(S_t, "F") * mpmath.mnorm(mpmath.inverse(S_t), "F")))
     S_inv_nu = mpmath.lu_solve(S, nu)
     K = P * H.T * mpmath.inverse(S)
     dx, P_post = K * nu, P - K * S * K.T
@@ -67,7 +79,8 @@ def _exact(P, H, R, nu):
     # the rounding any float64 update makes in δx = (PHᵀ)(S⁻¹ν): the solve to κ(S)ε of ‖S⁻¹ν‖, then PHᵀ
     condition = float(mpmath.mnorm(S, "F") * mpmath.mnorm(mpmath.inverse(S), "F"))  # ≥ κ₂(S)
     rounding = torch.finfo(F64).eps * float(mpmath.mnorm(P * H.T, "F")) * condition * float(mpmath.norm(S_inv_nu))
-    return to(dx)[:, 0], to(P_post), float((nu.T * S_inv_nu)[0]), float(mpmath.log(mpmath.det(S))), rounding
+    log_det = float(mpmath.log(mpmath.det(S)))
+    return to(dx)[:, 0], to(P_post), float((nu.T * S_inv_nu)[0]), log_det, rounding, data
 
 
 def _check_against_exact(
@@ -80,9 +93,15 @@ def _check_against_exact(
     R = meas.noise_cov().expand(*means.shape[:-2], y.shape[-1], y.shape[-1])
     B, N = log_w.shape
     log_beta = torch.empty(B, N, dtype=F64)
+    log_data = torch.empty(B, N, dtype=F64)  # the data's: two degrees of freedom per star vector
+    data_condition = 1.0
     for b in range(B):
+        v = y[b].unflatten(-1, (-1, 3))
+        T = torch.block_diag(*tangent_basis(v / v.norm(dim=-1, keepdim=True)))
         for i in range(N):
-            dx, P_post, nis, log_det, rounding = _exact(covs[b, i], H[b, i], R[b], y[b] - h[b, i])
+            dx, P_post, nis, log_det, rounding, data = _exact(covs[b, i], H[b, i], R[b], y[b] - h[b, i], T)
+            log_data[b, i] = float(data[0])
+            data_condition = max(data_condition, data[1])
             sd = torch.linalg.eigvalsh(P_post)[0].sqrt()  # smallest posterior standard deviation
             bound = (mean_tol + data_tol * (1.0 + math.sqrt(nis))) * float(sd) + (
                 16 * rounding if solve_rounding else 0.0
@@ -94,7 +113,8 @@ def _check_against_exact(
             log_beta[b, i] = -0.5 * (nis + log_det + y.shape[-1] * math.log(2 * math.pi))
     joint = log_w + log_beta  # log-likelihood and weights: the NIS's accuracy on its scale
     scale = nis_tol * float(log_beta.abs().max()) + 1e-9
-    assert_within(res.log_likelihood, torch.logsumexp(joint, -1), scale, "log-likelihood")
+    data_scale = max(nis_tol, 64 * torch.finfo(F64).eps * data_condition) * float(log_data.abs().max()) + 1e-9
+    assert_within(res.log_likelihood, torch.logsumexp(log_w + log_data, -1), data_scale, "the data's log-likelihood")
     assert_within(res.log_weights, joint - torch.logsumexp(joint, -1, keepdim=True), 2 * scale, "log-weights")
     # the posterior covariances are symmetric positive definite
     assert torch.equal(res.covs, res.covs.transpose(-1, -2))

@@ -386,6 +386,12 @@ def fused_star_update(
             if N == 1
             else mixture_information_nis(log_weights, nu, HL, measurement.sigma.to(means) ** 2, entry_valid)
         )
+    entry = (
+        torch.ones_like(nu)
+        if star_valid is None
+        else star_valid.to(means.dtype).repeat_interleave(3, dim=-1).unsqueeze(-2).expand(nu.shape)
+    )
+    log_lik = measurement.data_log_likelihood(log_weights, nu, HL, y, entry)  # the data's: two dof per star
     any_valid = dof[..., 0] > 0
     if not bool(any_valid.all()):  # trajectories without a valid star keep their prior
         new_means = torch.where(any_valid[..., None, None], new_means, means)

@@ -375,6 +375,21 @@ class MeasurementModel(nn.Module):
         the filters take the generic path.  ``compile`` runs the kernel compiled ahead of time (:mod:`agsf_torch.fused.lanes`)."""
         return None
 
+    def data_log_likelihood(self, log_weights: Tensor, nu: Tensor, HL: Tensor, y: Tensor, valid: Tensor) -> Tensor | None:
+        """``log Σᵢ wᵢ p(y | component i)`` over the degrees of freedom the data has, where they are fewer than the
+        ``d`` entries the update's noise model spreads its noise over (a unit vector: 2 of its 3); ``None``
+        (default): the update's own ``log Σᵢ wᵢβᵢ`` is the data's.
+
+        Args:
+            log_weights: ``[..., N]``; nu: the innovations at the last linearisation ``[..., N, d]``; HL: ``H L``
+                there (``L`` a factor of the prior covariance, ``P = LLᵀ``) ``[..., N, d, k]``; y: ``[..., d]``;
+                valid: entry validity ``[..., N, d]`` (1 or 0).
+
+        Returns:
+            ``[...]``, or ``None``.
+        """
+        return None
+
     def check_measurement(self, y: Tensor) -> Tensor:
         """Validate a measurement vector ``y [..., d]`` against the model before an update; return
         the ``y`` to use.

@@ -278,6 +278,53 @@ class StarVectorMeasurement(MeasurementModel):
             log_weights, means, covs, y, self, iterations, mask=mask, mixture_nis=mixture_nis, compile=compile
         )
 
+    @derived_from("noise_cov", generic=MeasurementModel.data_log_likelihood)
+    def data_log_likelihood(self, log_weights: Tensor, nu: Tensor, HL: Tensor, y: Tensor, valid: Tensor) -> Tensor:
+        """The log-likelihood of the measured directions, two degrees of freedom per valid star, under either
+        noise model: the innovations across each measured unit vector ``b̃ⱼ``,
+
+        .. math:: \\log Σ_i w_i N(T^T ν_i; 0, T^T H_i P_i H_i^T T + σ_s^2 I_{2m}),
+
+        ``T`` block-diagonal with an orthonormal basis ``Tⱼ [3, 2]`` of the plane across ``b̃ⱼ`` (``Tⱼᵀ R Tⱼ =
+        σ_s² I₂`` for both noise models: the noise of a unit vector lies across it).  The isotropic model's
+        update spreads σ_s² over the third, radial axis too, where the data has no noise to show: its own
+        ``log Σ wᵢβᵢ`` makes the maximum-likelihood σ_s √(2/3) of the camera's.  Evaluated in information form,
+        ``A = TᵀHL`` (``[2m, k]``), ``G = I + AᵀA/σ²``, ``z = G⁻¹Aᵀν_t/σ²``:
+        ``ν_tᵀS_t⁻¹ν_t = |ν_t − Az|²/σ² + |z|²`` and ``log det S_t = 2m log σ² + log det G``.
+
+        Args: as :meth:`~agsf_torch.models.base.MeasurementModel.data_log_likelihood` (``d = 3M``).
+
+        Returns:
+            ``[...]``: 0 where no star is valid.
+        """
+        M = self.num_stars
+        star_valid = valid.unflatten(-1, (M, 3))[..., 0].to(nu.dtype)  # [..., N, M]
+        b = y.unflatten(-1, (M, 3))
+        # an invalid star's vector may be anything (zeros between frames): a unit vector in its place, which
+        # keeps the basis and its gradients finite, and its rows are zeroed below
+        b = torch.where(star_valid.amax(-2).unsqueeze(-1) > 0, b, torch.tensor([0.0, 0.0, 1.0]).to(b))
+        b = b / torch.linalg.vector_norm(b, dim=-1, keepdim=True)
+        T = tangent_basis(b).unsqueeze(-4)  # [..., 1, M, 3, 2]
+        nu_t = (T.transpose(-1, -2) @ nu.unflatten(-1, (M, 3)).unsqueeze(-1)).squeeze(-1)  # [..., N, M, 2]
+        nu_t = nu_t * star_valid[..., None]
+        A = T.transpose(-1, -2) @ HL.unflatten(-2, (M, 3))  # [..., N, M, 2, k]
+        A = (A * star_valid[..., None, None]).flatten(-3, -2)  # [..., N, 2M, k]
+        sigma2 = self.sigma.to(nu) ** 2
+        k = A.shape[-1]
+        G = torch.eye(k, dtype=nu.dtype, device=nu.device) + A.transpose(-1, -2) @ A / sigma2
+        g = (A.transpose(-1, -2) @ nu_t.flatten(-2).unsqueeze(-1)) / sigma2  # [..., N, k, 1]
+        L = torch.linalg.cholesky(G)
+        z = torch.cholesky_solve(g, L)  # [..., N, k, 1]: the minimiser below
+        m = star_valid.sum(-1)  # [..., N]
+        # ν_tᵀS_t⁻¹ν_t = min_z |ν_t − Az|²/σ² + |z|², a sum of squares at its minimiser (the difference
+        # |ν_t|²/σ² − gᵀG⁻¹g cancels digits where a precise camera sees a wide prior)
+        resid = nu_t.flatten(-2) - (A @ z).squeeze(-1)
+        nis = (resid * resid).sum(-1) / sigma2 + (z * z).sum((-2, -1))
+        log_det = 2.0 * m * torch.log(sigma2) + 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+        log_beta = -0.5 * (nis + log_det + 2.0 * m * math.log(2.0 * math.pi))
+        log_lik = torch.logsumexp(log_weights + log_beta, -1)
+        return torch.where(m[..., 0] > 0, log_lik, torch.zeros_like(log_lik))
+
     def noise_cov(self) -> Tensor:
         """``R``: ``σ_s² I_{3M}`` (isotropic) or block-diagonal ``[..., 3M, 3M]`` (tangent)."""
         eye = torch.eye(3 * self.num_stars, dtype=self.r_inertial.dtype, device=self.r_inertial.device)
@@ -294,6 +341,20 @@ class StarVectorMeasurement(MeasurementModel):
         if self.star_mask is None:
             return None
         return self.star_mask.repeat_interleave(3, dim=-1)
+
+
+def tangent_basis(b: Tensor) -> Tensor:
+    """An orthonormal basis ``[..., 3, 2]`` of the plane across each unit vector ``b [..., 3]``, continuous except
+    where ``b_z`` changes sign (Duff et al., *Building an orthonormal basis, revisited*, JCGT 2017): with
+    ``s = sign(b_z)``, ``a = −1/(s + b_z)``, ``c = b_x b_y a``, the columns are
+    ``(1 + s b_x² a, s c, −s b_x)`` and ``(c, s + b_y² a, −b_y)``."""
+    x, y, z = b.unbind(-1)
+    s = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    a = -1.0 / (s + z)
+    c = x * y * a
+    t1 = torch.stack((1.0 + s * x * x * a, s * c, -s * x), -1)
+    t2 = torch.stack((c, s + y * y * a, -y), -1)
+    return torch.stack((t1, t2), -1)
 
 
 def _block_diag(blocks: Tensor) -> Tensor:
