@@ -9,7 +9,9 @@ import torch
 
 from agsf_torch import rotations as rot
 from agsf_torch.models import AttitudeModel, ContinuousModel
-from tests.helpers import random_mrps
+from tests.helpers import assert_within, random_mrps, relative_bound
+
+EPS = torch.finfo(torch.float64).eps
 
 
 def _states(gen, num, estimate_bias, max_norm=1.3):
@@ -26,7 +28,7 @@ def test_drift_jacobian_matches_autograd(gen, estimate_bias):
     u = 0.1 * torch.randn(2000, 3, generator=gen, dtype=torch.float64)
     A = model.drift_jacobian(x, u)
     A_ad = ContinuousModel.drift_jacobian(model, x, u)  # the generic torch.func path
-    torch.testing.assert_close(A, A_ad, rtol=0, atol=1e-10)
+    assert_within(A, A_ad, 1e-10, "closed-form drift Jacobian against torch.func")
     assert A.shape == (2000, model.state_dim, model.state_dim)
 
 
@@ -36,10 +38,13 @@ def test_process_noise_closed_form_matches_generic(gen, estimate_bias):
     x = _states(gen, 500, estimate_bias)
     G = model.process_noise(x)
     # off-diagonal entries are exact zeros in the closed form, rounding (~1e-16 relative) in the generic one
-    torch.testing.assert_close(
-        G, ContinuousModel.process_noise(model, x), rtol=1e-12, atol=1e-12 * float(G.abs().max())
-    )
-    torch.testing.assert_close(model.diffusion(x), 0.5 * model.process_noise(x))
+    generic = ContinuousModel.process_noise(model, x)
+    assert_within(G, generic, relative_bound(generic, 1e-12, 1e-12 * float(G.abs().max())), "closed-form g Q gᵀ")
+    # D = ½ g Q gᵀ to a few roundings of each entry, and of the matrix's scale where an entry is 0 (entries are
+    # ~1e-12 and 1e-16: assert_close's default atol of 1e-7 had compared nothing)
+    half = 0.5 * model.process_noise(x)
+    bound = relative_bound(half, 16 * EPS, 16 * EPS * half.abs().amax((-1, -2), keepdim=True))
+    assert_within(model.diffusion(x), half, bound, "diffusion against ½ g Q gᵀ")
 
 
 def test_drift_is_mrp_kinematics(gen):
@@ -57,7 +62,7 @@ def test_drift_is_mrp_kinematics(gen):
         k4 = model.drift(p + h * k3, w)
         p = p + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     q_exact = rot.quat_multiply(rot.rotvec_to_quat(w * dt), rot.mrp_to_quat(p0))
-    torch.testing.assert_close(rot.mrp_to_dcm(p), rot.quat_to_dcm(q_exact), rtol=0, atol=1e-12)
+    assert_within(rot.mrp_to_dcm(p), rot.quat_to_dcm(q_exact), 1e-12, "attitude after RK4 on the MRP kinematics")
 
 
 def test_six_state_structure(gen):
@@ -66,9 +71,13 @@ def test_six_state_structure(gen):
     u = torch.randn(10, 3, generator=gen, dtype=torch.float64)
     f = model.drift(x, u)
     assert torch.equal(f[:, 3:], torch.zeros(10, 3, dtype=torch.float64))
-    torch.testing.assert_close(f[:, :3], AttitudeModel().drift(x[:, :3], u - x[:, 3:]))
+    f3 = AttitudeModel().drift(x[:, :3], u - x[:, 3:])
+    assert_within(f[:, :3], f3, relative_bound(f3, 1e-7, 1e-7), "MRP rate at the bias-corrected rate")
     Q = model.noise_psd()
-    torch.testing.assert_close(torch.diag(Q), torch.tensor([1e-12] * 3 + [1e-18] * 3, dtype=torch.float64))
+    # σ² of a rounded σ against the rounded literal: a few ε relative (assert_close's default atol of 1e-7 had
+    # compared nothing at 1e-12 and 1e-18)
+    psd = torch.tensor([1e-12] * 3 + [1e-18] * 3, dtype=torch.float64)
+    assert_within(torch.diag(Q), psd, relative_bound(psd, 16 * EPS, 0.0), "noise spectral density")
 
 
 @pytest.mark.parametrize("estimate_bias", [False, True])
@@ -83,17 +92,16 @@ def test_canonicalize_switches_to_shadow(gen, estimate_bias):
     switched = s > 1
     assert switched.any() and (~switched).any()
     assert bool(((m2[:, :3] ** 2).sum(-1) <= 1 + 1e-15).all())
-    torch.testing.assert_close(m2[~switched], x[~switched], rtol=0, atol=0)
-    torch.testing.assert_close(P2[~switched], P[~switched], rtol=0, atol=0)
+    assert torch.equal(m2[~switched], x[~switched]) and torch.equal(P2[~switched], P[~switched])  # untouched
     # switched means describe the same attitude; covariance maps with T = blockdiag(J, I)
-    torch.testing.assert_close(rot.mrp_to_dcm(m2[switched, :3]), rot.mrp_to_dcm(x[switched, :3]), rtol=0, atol=1e-12)
+    assert_within(rot.mrp_to_dcm(m2[switched, :3]), rot.mrp_to_dcm(x[switched, :3]), 1e-12, "attitude of the shadow")
     J = rot.mrp_shadow_jacobian(x[switched, :3])
     T = torch.eye(n, dtype=torch.float64).repeat(int(switched.sum()), 1, 1)
     T[:, :3, :3] = J
-    torch.testing.assert_close(P2[switched], T @ P[switched] @ T.transpose(-1, -2), rtol=1e-12, atol=1e-18)
+    mapped = T @ P[switched] @ T.transpose(-1, -2)
+    assert_within(P2[switched], mapped, relative_bound(mapped, 1e-12, 1e-18), "covariance mapped to the shadow set")
     if estimate_bias:
-        torch.testing.assert_close(P2[:, 3:, 3:], P[:, 3:, 3:], rtol=0, atol=0)
-        torch.testing.assert_close(m2[:, 3:], x[:, 3:], rtol=0, atol=0)
+        assert torch.equal(P2[:, 3:, 3:], P[:, 3:, 3:]) and torch.equal(m2[:, 3:], x[:, 3:])  # the bias untouched
 
 
 def test_state_error_uses_nearest_set(gen):
@@ -101,7 +109,7 @@ def test_state_error_uses_nearest_set(gen):
     p = random_mrps(100, gen, max_norm=0.99)
     p = p[p.norm(dim=-1) > 0.5]
     err = model.state_error(p, rot.mrp_shadow(p))
-    torch.testing.assert_close(err, torch.zeros_like(p), rtol=0, atol=1e-15)
+    assert_within(err, torch.zeros_like(p), 1e-15, "state error between an MRP and its shadow")
 
 
 @pytest.mark.parametrize(
