@@ -18,6 +18,7 @@ Parameters: ``sigma_v`` (rad/s^½), ``sigma_u`` (rad/s^{3/2}), ``sigma_s`` (rad)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -50,7 +51,9 @@ class FitResult:
         interval: name → (low, high) (per axis for ``bias``); NaN where the curvature
             is not positive definite.
         inside: name → the configured value lies in the interval (all axes for ``bias``); ``None`` (no
-            verdict) when the fit did not converge or the interval is undefined.
+            verdict) when the fit did not converge, the interval is undefined or the data do not identify it.
+        notes: name → why the data do not identify it (the curvature of ``−ℓ`` in its fitted coordinate and
+            the interval it gives), or ``None``.
         converged: L-BFGS stopped on its tolerances, not on its iteration budget, and did not diverge.
         nll: final −ℓ; history: −ℓ per iteration; message: how the fit ended.
     """
@@ -63,6 +66,7 @@ class FitResult:
     history: list = field(default_factory=list)
     converged: bool = True
     message: str = ""
+    notes: dict = field(default_factory=dict)
 
 
 def attitude_log_likelihood(
@@ -205,13 +209,17 @@ def fit_attitude_parameters(
     x_hat = last_finite if state["diverged"] or not torch.isfinite(x).all() else x.detach()
     values = unpack(x_hat)
     hess = torch.autograd.functional.hessian(nll, x_hat)
-    L, info = torch.linalg.cholesky_ex(0.5 * (hess + hess.T))
-    if int(info) == 0:
-        var = torch.cholesky_inverse(L).diagonal()
-        half = 1.959963984540054 * var.sqrt()
-    else:
-        half = torch.full_like(x_hat, float("nan"))
-    learned, interval, inside, configured_out, i = {}, {}, {}, {}, 0
+    hess = 0.5 * (hess + hess.T)
+    curvature = hess.diagonal()
+    # coordinates the data do not constrain (no positive curvature) are held at their value; the others get
+    # intervals from the inverse of their block of the Hessian
+    kept = curvature > 0
+    half = torch.full_like(x_hat, float("nan"))
+    if bool(kept.any()):
+        L, info = torch.linalg.cholesky_ex(hess[kept][:, kept])
+        if int(info) == 0:
+            half[kept] = 1.959963984540054 * torch.cholesky_inverse(L).diagonal().sqrt()
+    learned, interval, inside, configured_out, notes, i = {}, {}, {}, {}, {}, 0
     for k in learn:
         s = sizes[k]
         lo, hi = x_hat[i : i + s] - half[i : i + s], x_hat[i : i + s] + half[i : i + s]
@@ -221,7 +229,8 @@ def fit_attitude_parameters(
         learned[k] = _plain(values[k])
         configured_out[k] = _plain(base[k])
         interval[k] = (_plain(lo), _plain(hi))
-        defined = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all())
+        notes[k] = _identification(k, curvature[i : i + s], half[i : i + s])
+        defined = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all()) and notes[k] is None
         inside[k] = bool(((c >= lo) & (c <= hi)).all()) if defined else None
         i += s
     if state["diverged"]:
@@ -233,7 +242,34 @@ def fit_attitude_parameters(
     converged = not state["diverged"] and not exhausted
     if not converged:  # no verdict on parameters the fit did not settle
         inside = {k: None for k in learn}
-    return FitResult(learned, configured_out, interval, inside, float(nll(x_hat).detach()), history, converged, message)
+    nll_hat = float(nll(x_hat).detach())
+    return FitResult(learned, configured_out, interval, inside, nll_hat, history, converged, message, notes)
+
+
+#: The widest 95 % interval of a positive parameter that still counts as learned: a factor of 10 either way
+#: (in the fitted log coordinate, a half-width of log 10).
+WIDEST_LOG_INTERVAL = math.log(10.0)
+#: The widest 95 % half-width of a learned gyro bias, rad/s (1 °/h: the bias of a navigation-grade gyro is
+#: 0.01–1 °/h, so data that cannot tell 1 °/h from none do not identify it).
+WIDEST_BIAS_INTERVAL = math.pi / 180 / 3600
+
+
+def _identification(name: str, curvature: Tensor, half: Tensor) -> str | None:
+    """``None`` where the data identify ``name`` (positive curvature, a 95 % interval no wider than
+    :data:`WIDEST_LOG_INTERVAL` or :data:`WIDEST_BIAS_INTERVAL`); otherwise why not, in words, with the curvature
+    of ``−ℓ`` in the fitted coordinate (``log`` of a positive parameter)."""
+    coordinate = f"log {name}" if name in _POSITIVE else f"{name} (rad/s)"
+    curv = ", ".join(f"{float(c):.3g}" for c in curvature)
+    if not bool((curvature > 0).all()):
+        return f"not identified by these data: −log-likelihood has curvature {curv} in {coordinate} (none to fit)"
+    widest = WIDEST_LOG_INTERVAL if name in _POSITIVE else WIDEST_BIAS_INTERVAL
+    if not bool(torch.isfinite(half).all()) or float(half.max()) > widest:
+        span = f"×/÷ {math.exp(float(half.max())):.3g}" if name in _POSITIVE else f"± {float(half.max()):.3g} rad/s"
+        return (
+            f"not identified by these data: −log-likelihood has curvature {curv} in {coordinate}, a 95 % interval "
+            f"of {span}"
+        )
+    return None
 
 
 def _plain(t: Tensor):

@@ -134,7 +134,8 @@ def learn(
     lines = [f"learn ({res.message}; −log-likelihood {res.nll:.6g} after {len(res.history)} evaluations):"]
     for k in names:
         if res.inside[k] is None:
-            flag = "no verdict: " + ("the fit did not converge" if not res.converged else "the interval is undefined")
+            why = "the fit did not converge" if not res.converged else res.notes.get(k) or "the interval is undefined"
+            flag = "no verdict: " + why
         elif res.inside[k]:
             flag = "consistent with the data"
         else:
