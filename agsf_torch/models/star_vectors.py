@@ -91,10 +91,10 @@ class StarVectorMeasurement(MeasurementModel):
     * ``"tangent"``: per star ``R_j = σ_s² (I − b̃_j b̃_jᵀ) + σ_r² b̃_j b̃_jᵀ`` with the
       measured unit vector ``b̃_j`` (``body``): a camera's noise lies across the
       star direction (2 degrees of freedom per star); ``σ_r`` (``radial_sigma``,
-      fixed, not scaled with σ_s) only keeps ``R`` invertible.  Under this model the
-      likelihood's dependence on σ_s counts 2 degrees of freedom per star, so σ_s
-      is identifiable by maximum likelihood; under the isotropic one the ML σ_s is
-      √(2/3) of the camera's per-axis noise.
+      fixed, not scaled with σ_s) only keeps ``R`` invertible.
+
+    The log-likelihood a filter reports (and learning maximises) is the data's under either model,
+    2 degrees of freedom per star (:meth:`data_log_likelihood`).
 
     Args:
         r_inertial: catalogue unit vectors ``[..., M, 3]`` (leading dims are the

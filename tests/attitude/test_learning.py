@@ -10,7 +10,7 @@ import torch
 import envs
 from agsf_torch.attitude.learning import fit_attitude_parameters
 from agsf_torch.experiments.recorded import record_environment
-from tests.helpers import F64
+from tests.helpers import F64, assert_within
 
 DEG_PER_HOUR = math.pi / 180 / 3600
 BASE = dict(
@@ -40,30 +40,39 @@ def _fit(learn, configured, B=24, steps=150, noise_model="isotropic", **env_kwar
     )
 
 
+# The recordings are fixed (seed 11, not moved by --seed): each bound is the accuracy the test claims for the
+# maximum-likelihood estimate on its recording (10 %, 5 % for σ_s), relative to the truth.
+
+
 def test_learns_gyro_noise_from_twice_the_configured_value():
     r = _fit(["sigma_v"], {"sigma_v": 1e-5}, sigma_v=2e-5, star_period=5.0)
-    assert r.converged and abs(r.learned["sigma_v"] / 2e-5 - 1) < 0.10
+    assert r.converged
+    assert_within(r.learned["sigma_v"], 2e-5, 0.10 * 2e-5, "learned σ_v")
     assert r.inside["sigma_v"] is False  # the configured 1e-5 is flagged
 
 
 def test_learns_a_constant_gyro_bias():
     b = 2e-5
     r = _fit(["bias"], {"bias": [0.0, 0.0, 0.0]}, initial_bias=b, star_period=2.0)
-    assert r.converged and all(abs(v / b - 1) < 0.10 for v in r.learned["bias"])
+    assert r.converged and len(r.learned["bias"]) == 3
+    assert_within(r.learned["bias"], b, 0.10 * b, "learned gyro bias")
     assert r.inside["bias"] is False
 
 
-def test_star_noise_under_the_isotropic_unit_vector_model():
-    """The camera's noise lies in the 2 directions across the star vector; the filter's model
-    σ_s²I₃ spreads it over 3, so its maximum-likelihood σ_s is √(2/3) of the simulated one."""
+def test_learns_star_noise_from_twice_the_configured_value_with_the_isotropic_model():
+    """The camera's noise lies in the 2 directions across the star vector; the filter's gain model σ_s²I₃
+    spreads it over 3, but the likelihood learning maximises is the data's (2 per star): σ_s comes out at the
+    camera's, not at √(2/3) of it (8.2e-6)."""
     r = _fit(["sigma_s"], {"sigma_s": 5e-6}, sigma_s=1e-5)
-    assert r.converged and abs(r.learned["sigma_s"] / (math.sqrt(2 / 3) * 1e-5) - 1) < 0.05
+    assert r.converged
+    assert_within(r.learned["sigma_s"], 1e-5, 0.05 * 1e-5, "learned σ_s under the isotropic model")
     assert r.inside["sigma_s"] is False
 
 
 def test_learns_star_noise_from_twice_the_configured_value_with_the_tangent_model():
     r = _fit(["sigma_s"], {"sigma_s": 5e-6}, sigma_s=1e-5, noise_model="tangent")
-    assert r.converged and abs(r.learned["sigma_s"] / 1e-5 - 1) < 0.10
+    assert r.converged
+    assert_within(r.learned["sigma_s"], 1e-5, 0.10 * 1e-5, "learned σ_s under the tangent model")
     assert r.inside["sigma_s"] is False
 
 

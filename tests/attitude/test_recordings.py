@@ -15,7 +15,7 @@ from agsf_torch.experiments.recorded import RecordingEnv, record_environment
 from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import GaussianSumFilter
 from agsf_torch.models import AttitudeModel
-from tests.helpers import EAGER, F64
+from tests.helpers import EAGER, F64, assert_within
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def test_bad_files_name_row_and_column(recording, tmp_path):
     a["star_inertial"][b, t, m] *= 1 + 1e-5
     with pytest.warns(UserWarning, match="normalised"):
         fixed = Recording(**a)
-    assert abs(np.linalg.norm(fixed.star_inertial[b, t, m]) - 1) < 1e-15
+    assert_within(np.linalg.norm(fixed.star_inertial[b, t, m]), 1.0, 1e-15, "norm of the normalised star vector")
     np.savez(tmp_path / "off.npz", **a)  # read from a file, the warning names it
     with pytest.warns(
         UserWarning, match=r"^recording .*off\.npz: column 'star_inertial' has star vectors off unit norm"

@@ -7,13 +7,13 @@ density with scipy's Gaussian and a finite-difference Jacobian.
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 from scipy.stats import multivariate_normal
 
 from agsf_torch.density import canonical_points, density_score, mixture_log_density
 from agsf_torch.mixture import GaussianMixture
 from tests.density.conftest import f64, gaussian
+from tests.helpers import assert_within, relative_bound
 
 
 def _np_shadow(x: np.ndarray) -> np.ndarray:
@@ -36,10 +36,13 @@ def test_mrp_chart_folded_density_brute_force():
     det = np.abs(np.linalg.det(jac))
     comps = [multivariate_normal(mu[i], covs[i]) for i in range(2)]
     dens = sum(w[i] * (comps[i].pdf(x) + comps[i].pdf(_np_shadow(x)) * det) for i in range(2))
-    np.testing.assert_allclose(got, np.log(dens), rtol=1e-7, atol=1e-7)
-    # the Euclidean chart is the plain mixture density
+    # the finite difference (step 1e-6) is good to ~1e-10 relative: its error, not rounding, sets the bound
+    assert_within(got, np.log(dens), relative_bound(np.log(dens), 1e-7, 1e-7), "folded MRP log-density")
+    # the Euclidean chart is the plain mixture density; a logarithm's absolute error is its argument's relative
+    # error (a few ε of the O(10) quadratic forms), so the floor is 1e-10 where the log-density crosses 0
     plain = np.log(sum(w[i] * multivariate_normal(mu[i], covs[i]).pdf(x) for i in range(2)))
-    np.testing.assert_allclose(mixture_log_density(mix, torch.tensor(x)).numpy(), plain, rtol=1e-10)
+    got_plain = mixture_log_density(mix, torch.tensor(x)).numpy()
+    assert_within(got_plain, plain, relative_bound(plain, 1e-10, 1e-10), "Euclidean mixture log-density")
 
 
 def test_mrp_chart_scores_a_component_on_either_shadow_set_alike():
@@ -62,12 +65,17 @@ def test_mrp_chart_scores_a_component_on_either_shadow_set_alike():
     shadow = gaussian(_np_shadow(mu)[None], (J @ P @ J.T)[None])
     samples, lw = torch.tensor(y)[None], torch.zeros(1, len(y), dtype=f64)
     folded = mixture_log_density(original, samples, chart="mrp").numpy()[0]
-    np.testing.assert_allclose(folded, brute, rtol=1e-9, atol=1e-9)
+    assert_within(folded, brute, relative_bound(brute, 1e-9, 1e-9), "folded log-density across |p| = 1")
     s_orig, se = density_score(samples, lw, original, chart="mrp")
     s_shadow, _ = density_score(samples, lw, shadow, chart="mrp")
-    assert float(s_orig) == pytest.approx(brute.mean(), abs=1e-9)
-    assert abs(float(s_orig - s_shadow)) < 1e-3 < float(se)  # equal far below the Monte Carlo error
+    assert_within(s_orig, brute.mean(), 1e-9, "score of the original component")
+    # equal far below the Monte Carlo error
+    assert_within(s_shadow, s_orig, 1e-3, "score of the shadow component against the original's")
+    assert 1e-3 < float(se)
     s_plain, _ = density_score(samples, lw, original, chart="euclidean")
     assert float(s_plain) < float(s_orig) - 100.0
     # canonical_points performs the same switch
-    np.testing.assert_allclose(canonical_points(torch.tensor(x), "mrp").numpy(), y, rtol=1e-12)
+    # the shadow −x/|x|² is a quotient: relative in each entry, which vanishes only where both sides do
+    assert_within(
+        canonical_points(torch.tensor(x), "mrp").numpy(), y, relative_bound(y, 1e-12, 0.0), "canonical points"
+    )

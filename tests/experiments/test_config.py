@@ -7,6 +7,7 @@ import math
 import pytest
 
 from agsf_torch.experiments.config import ExperimentConfig, load_config, load_preset, preset_names
+from tests.helpers import assert_within
 
 
 def test_presets_carry_the_decoded_and_guessed_values():
@@ -17,8 +18,13 @@ def test_presets_carry_the_decoded_and_guessed_values():
         assert c.fov_deg == 8.0 and c.focal_length == 0.065 and c.max_stars == 5
         assert c.sigma_s == 10e-6 and c.dt == 0.1 and c.prior_var == 1e-3
         assert c.gyro_bias_deg_per_hr == 0.1 and c.rate_axes == [1.0, 1.0, 0.0]
-        assert math.isclose(c.omega0, 2 * math.pi / 100) and math.isclose(c.sigma_v, math.sqrt(10) * 1e-7)
-        assert math.isclose(c.sigma_u, math.sqrt(10) * 1e-10)
+        # math.isclose's default: 1e-9 relative (each value is one or two roundings of a nonzero constant)
+        for got, want, what in (
+            (c.omega0, 2 * math.pi / 100, "ω₀"),
+            (c.sigma_v, math.sqrt(10) * 1e-7, "σ_v"),
+            (c.sigma_u, math.sqrt(10) * 1e-10, "σ_u"),
+        ):
+            assert_within(got, want, 1e-9 * want, what)
         assert c.reg == 1.0 and c.weight_ref == "update" and not c.estimate_bias and c.runs >= 100
     wide = load_preset("wide_prior")
     assert wide.max_stars == 2 and wide.prior_var > 0.01 and wide.sigma_s == c1.sigma_s  # inherits case1

@@ -16,6 +16,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.figures import axes_figure, fpke_figure, rms_figure, weights_figure, write_figures
 from agsf_torch.experiments.statistics import summarize
+from tests.helpers import assert_within, relative_bound
 
 ARCSEC = 180.0 / math.pi * 3600.0  # rad → arcsec, written out independently of the module
 DEG_PER_HOUR = 180.0 / math.pi * 3600.0  # rad/s → deg/h
@@ -65,6 +66,15 @@ def _summary(n: int = 3, components: int = 3, runs: int = 4, steps: int = 40, fi
     return summarize(data, cfg)
 
 
+def _plotted(actual, expected, what: str, rtol: float = 1e-7) -> None:
+    """What a figure plots against the summary's data, converted independently: the data pass through unchanged
+    or through one product, so ``rtol`` relative (numpy's assert_allclose default 1e-7 unless stated); an entry 0
+    on both sides (t = 0) is exact.  An array is compared with one of its own shape."""
+    if np.ndim(expected):
+        assert np.shape(actual) == np.shape(expected), what
+    assert_within(actual, expected, relative_bound(expected, rtol, 0.0), what)
+
+
 def _lines(fig) -> dict:
     return {line.get_gid(): line for ax in fig.axes for line in ax.get_lines() if line.get_gid()}
 
@@ -93,9 +103,9 @@ def test_axes_figure_plots_the_rms_error_of_each_filter_in_arcsec_beside_3_rms_s
         err = np.array(summary3["filters"][name]["rms_error_axes_rad"])
         sig = np.array(summary3["filters"][name]["rms_sigma_axes_rad"])
         for k in range(3):
-            np.testing.assert_allclose(lines[f"{name}/rms_error/{k}"].get_xdata(), t)
-            np.testing.assert_allclose(lines[f"{name}/rms_error/{k}"].get_ydata(), err[:, k] * ARCSEC, rtol=1e-12)
-            np.testing.assert_allclose(lines[f"{name}/3sigma/{k}"].get_ydata(), 3 * sig[:, k] * ARCSEC, rtol=1e-12)
+            _plotted(lines[f"{name}/rms_error/{k}"].get_xdata(), t, "time (s)")
+            _plotted(lines[f"{name}/rms_error/{k}"].get_ydata(), err[:, k] * ARCSEC, "RMS error (arcsec)", 1e-12)
+            _plotted(lines[f"{name}/3sigma/{k}"].get_ydata(), 3 * sig[:, k] * ARCSEC, "3 × RMS σ (arcsec)", 1e-12)
     grid = np.array(fig.axes).reshape(len(FILTERS), 3)
     for row, name in enumerate(FILTERS):
         for k, axis in enumerate("xyz"):
@@ -122,7 +132,8 @@ def test_axes_figure_range_shows_every_value_with_a_label_at_every_decade(summar
         assert lo < values.min() and hi > values.max()  # one range for every filter: all values shown
         ticks = [v for v in ax.get_yticks() if lo <= v <= hi]
         exponents = np.log10(ticks)
-        np.testing.assert_allclose(np.diff(exponents), 1.0)  # every decade labelled, none skipped
+        # every decade labelled, none skipped (log10 of powers of ten, to rounding)
+        assert_within(np.diff(exponents), 1.0, 1e-7, "decades between labelled ticks")
         labels = [t.get_text() for t in ax.get_yticklabels() if lo <= t.get_position()[1] <= hi]
         assert not any("$" in s or "^" in s for s in labels), labels  # no mathtext powers like 10^0
 
@@ -135,10 +146,8 @@ def test_axes_figure_shows_the_bias_error_in_deg_per_hour_for_six_states(summary
         err = np.array(summary6["filters"][name]["rms_error_axes_rad"])
         sig = np.array(summary6["filters"][name]["rms_sigma_axes_rad"])
         for k in range(3, 6):
-            np.testing.assert_allclose(lines[f"{name}/rms_error/{k}"].get_ydata(), err[:, k] * DEG_PER_HOUR, rtol=1e-12)
-            np.testing.assert_allclose(
-                lines[f"{name}/3sigma/{k}"].get_ydata(), 3 * sig[:, k] * DEG_PER_HOUR, rtol=1e-12
-            )
+            _plotted(lines[f"{name}/rms_error/{k}"].get_ydata(), err[:, k] * DEG_PER_HOUR, "bias error (deg/h)", 1e-12)
+            _plotted(lines[f"{name}/3sigma/{k}"].get_ydata(), 3 * sig[:, k] * DEG_PER_HOUR, "3 × bias σ (deg/h)", 1e-12)
             assert "bias" in grid[row, k].get_title() and f"body {'xyz'[k - 3]}" in grid[row, k].get_title()
         assert "deg/h" in grid[row, 3].get_ylabel()
         assert "arcsec" in grid[row, 0].get_ylabel()
@@ -158,13 +167,14 @@ def test_weights_figure_stacks_the_weights_so_that_equal_ones_stay_visible(summa
         w = np.array(summary3["filters"][name]["weights_run0"])
         tops = np.stack([lines[f"{name}/weight_top/{i}"].get_ydata() for i in range(3)], axis=1)
         thickness = np.diff(np.concatenate((np.zeros((len(w), 1)), tops), axis=1), axis=1)
-        np.testing.assert_allclose(thickness, w, atol=1e-15)
-        np.testing.assert_allclose(tops[:, -1], 1.0, atol=1e-12)
+        # a difference of cumulative sums ≤ 1: 1e-15 absolute (a few ε of 1), beside numpy's default rtol 1e-7
+        assert_within(thickness, w, relative_bound(w, 1e-7, 1e-15), "band thickness against the weight")
+        assert_within(tops[:, -1], 1.0, relative_bound(1.0, 1e-7, 1e-12), "top edge of the last band")
         bands = {c.get_gid() for ax in fig.axes for c in ax.collections}
         assert {f"{name}/weight/{i}" for i in range(3)} <= bands
     frames = np.array(summary3["time_s"])[np.array(summary3["star_frame"])]
     (marks,) = [line for line in fig.axes[0].get_lines() if line.get_gid() == "star_frame"]
-    np.testing.assert_allclose(marks.get_xdata(), frames)
+    _plotted(marks.get_xdata(), frames, "star frame times (s)")
     assert fig.axes[-1].get_xlabel() == "time (s)"
     assert all("weight" in ax.get_ylabel() for ax in fig.axes)
 
@@ -182,19 +192,20 @@ def test_rms_figure_states_what_it_plots(summary3):
     assert "RMS over 4 runs" in ax.get_title() and "attitude error angle" in ax.get_title()
     lines = _lines(fig)
     prior = np.degrees(0.12)  # the fixture's prior error in every run
-    assert summary3["prior_rms_deg"] == pytest.approx(prior, rel=1e-12)
+    # the RMS of four equal values: relative (a sum of squares, no terms cancel)
+    assert_within(summary3["prior_rms_deg"], prior, relative_bound(prior, 1e-12, 0.0), "prior RMS error (deg)")
     for name in FILTERS:  # every curve starts at the prior, t = 0
-        np.testing.assert_allclose(lines[f"{name}/rms"].get_ydata(), [prior, *summary3["filters"][name]["rms_deg"]])
-        np.testing.assert_allclose(lines[f"{name}/rms"].get_xdata(), [0.0, *summary3["time_s"]])
+        _plotted(lines[f"{name}/rms"].get_ydata(), [prior, *summary3["filters"][name]["rms_deg"]], "RMS error (deg)")
+        _plotted(lines[f"{name}/rms"].get_xdata(), [0.0, *summary3["time_s"]], "time (s)")
         assert name in _legend_texts(fig)
-    np.testing.assert_allclose(lines["prior"].get_xydata(), [[0.0, prior]])
+    _plotted(lines["prior"].get_xydata(), [[0.0, prior]], "the prior's mark")
     assert "the prior (t = 0)" in _legend_texts(fig)
     # star frames as marks on the top edge (vertical lines at whole seconds would read as grid lines)
     frames = np.array(summary3["time_s"])[np.array(summary3["star_frame"])]
     marks = lines["star_frame"]
-    np.testing.assert_allclose(marks.get_xdata(), frames)
+    _plotted(marks.get_xdata(), frames, "star frame times (s)")
     assert marks.get_linestyle() == "None" and marks.get_marker() == "v"
-    np.testing.assert_allclose(marks.get_ydata(), 1.0)  # in axes coordinates: the top edge
+    _plotted(marks.get_ydata(), 1.0, "star frame marks' height")  # in axes coordinates: the top edge
     assert marks.get_transform() == ax.get_xaxis_transform()
     assert "star frame" in _legend_texts(fig)
 
@@ -205,8 +216,8 @@ def test_fpke_figure_shows_the_fraction_of_the_residual_the_update_leaves(summar
     (ax,) = fig.axes
     lines = _lines(fig)
     f = summary3["filters"]["AGSF"]
-    np.testing.assert_allclose(lines["AGSF/fpke_ratio"].get_ydata(), 0.5)
-    np.testing.assert_allclose(f["fpke_ratio_p10_p90"], 0.5)
+    _plotted(lines["AGSF/fpke_ratio"].get_ydata(), 0.5, "mean FPKE residual ratio")
+    _plotted(f["fpke_ratio_p10_p90"], 0.5, "10–90 % range of the FPKE residual ratio")
     band = next(c for c in ax.collections if c.get_gid() == "AGSF/fpke_ratio_band")
     assert band.get_paths()  # the 10–90 % band is drawn
     texts = _legend_texts(fig)
