@@ -375,7 +375,9 @@ class MeasurementModel(nn.Module):
         the filters take the generic path.  ``compile`` runs the kernel compiled ahead of time (:mod:`agsf_torch.fused.lanes`)."""
         return None
 
-    def data_log_likelihood(self, log_weights: Tensor, nu: Tensor, HL: Tensor, y: Tensor, valid: Tensor) -> Tensor | None:
+    def data_log_likelihood(
+        self, log_weights: Tensor, nu: Tensor, HL: Tensor, y: Tensor, valid: Tensor
+    ) -> Tensor | None:
         """``log Σᵢ wᵢ p(y | component i)`` over the degrees of freedom the data has, where they are fewer than the
         ``d`` entries the update's noise model spreads its noise over (a unit vector: 2 of its 3); ``None``
         (default): the update's own ``log Σᵢ wᵢβᵢ`` is the data's.

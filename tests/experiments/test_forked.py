@@ -112,7 +112,8 @@ def test_an_interruption_interrupts_the_children_once_and_propagates(tmp_path, w
     marks = [tmp_path / f"child{k}" for k in range(2)]
 
     def interrupt_when_started() -> None:
-        while not all(m.exists() for m in marks):
+        # a child creates its mark before it writes its pid there: wait for the pid itself
+        while not all(m.exists() and m.read_text().strip() for m in marks):
             time.sleep(0.01)
         if whole_group:
             for m in marks:

@@ -18,6 +18,7 @@ import pytest
 
 from agsf_torch.experiments import cli
 from agsf_torch.experiments.forked import fork_available
+from tests.experiments.test_forked import _slow_clean
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -199,17 +200,6 @@ def test_a_signal_the_command_was_started_ignoring_stays_ignored(tmp_path, monke
     finally:
         signal.signal(signal.SIGHUP, previous)
     assert code == 130 and seen == [signal.SIG_IGN]
-
-
-def _slow_clean(path: str) -> None:
-    """Loop until interrupted, then take 0.3 s to clean up (a second signal must not cut it short)."""
-    Path(path).write_text(str(os.getpid()))
-    try:
-        while True:
-            time.sleep(0.01)
-    finally:
-        time.sleep(0.3)
-        Path(path + ".cleaned").write_text("yes")
 
 
 @pytest.mark.skipif(not fork_available(), reason="forked tasks need fork (Linux)")
