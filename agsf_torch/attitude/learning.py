@@ -264,7 +264,11 @@ def _identification(name: str, curvature: Tensor, half: Tensor) -> str | None:
         return f"not identified by these data: −log-likelihood has curvature {curv} in {coordinate} (none to fit)"
     widest = WIDEST_LOG_INTERVAL if name in _POSITIVE else WIDEST_BIAS_INTERVAL
     if not bool(torch.isfinite(half).all()) or float(half.max()) > widest:
-        span = f"×/÷ {math.exp(float(half.max())):.3g}" if name in _POSITIVE else f"± {float(half.max()):.3g} rad/s"
+        h = float(half.max())
+        if name not in _POSITIVE:
+            span = f"± {h:.3g} rad/s"
+        else:  # a factor exp(h), which overflows a float beyond h ≈ 709
+            span = f"×/÷ {math.exp(h):.3g}" if h < 700 else f"×/÷ e^{h:.3g}"
         return (
             f"not identified by these data: −log-likelihood has curvature {curv} in {coordinate}, a 95 % interval "
             f"of {span}"

@@ -77,3 +77,13 @@ def test_a_parameter_the_data_cannot_identify_gets_no_verdict_and_the_curvature_
         assert r.notes[k].startswith("not identified by these data: −log-likelihood has curvature"), r.notes[k]
     assert "(none to fit)" in r.notes["bias"]
     assert "in log sigma_u" in r.notes["sigma_u"]
+
+
+def test_the_words_for_an_interval_wider_than_a_float():
+    from agsf_torch.attitude.learning import _identification
+
+    note = _identification("sigma_u", torch.tensor([1e-30], dtype=F64), torch.tensor([1e4], dtype=F64))
+    assert note.endswith("a 95 % interval of ×/÷ e^1e+04"), note
+    assert _identification("sigma_u", torch.tensor([4.0], dtype=F64), torch.tensor([0.5], dtype=F64)) is None
+    flat = _identification("bias", torch.tensor([0.0, 1.0, 1.0], dtype=F64), torch.tensor([1e-9] * 3, dtype=F64))
+    assert flat.endswith("in bias (rad/s) (none to fit)"), flat
