@@ -181,8 +181,9 @@ def test_attitude_weights_on_simplex_and_residual_reduced(gen, estimate_bias):
         assert_within(w.sum(-1), torch.ones_like(w[:, 0]), 1e-12, "sum of the Galerkin weights")
         assert_within(d["qp_kkt_residual"], 0.0, 1e-9, "KKT residual of the Galerkin QP")
         before, after, change = d["fpke_error_before"], d["fpke_error_with_rate"], d["galerkin_residual_change"]
-        assert bool((change <= 1e-12 * before).all())
-        assert bool((after >= -1e-9 * before).all())  # ∫e² ≥ 0 up to rounding
+        # the change is ≤ 0 (the QP's minimiser against w⁻) and ∫e² ≥ 0, each up to rounding of their scale
+        assert_within(change.clamp_min(0.0), 0.0, 1e-12 * before, "Galerkin residual change above 0")
+        assert_within(after.clamp_max(0.0), 0.0, 1e-9 * before, "∫e² below 0")
         if k == 1:
             mix = filt.update(mix, y, meas)
 
