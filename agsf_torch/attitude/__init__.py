@@ -4,7 +4,8 @@
 * :mod:`.gyro_hold` — bridging missing or saturated gyro samples, with the covariance they cost;
 * :mod:`.recordings` — sensor logs on disk (a user's own data), identified by content;
 * :mod:`.star_fix` — the attitude of one star frame (Wahba's problem), batched: where a replay without the truth starts;
-* :mod:`.learning` — maximum-likelihood fits of the noise model through the filter.
+* :mod:`.learning` — maximum-likelihood fits of the noise model through the filter, one data set or many at once;
+* :mod:`.autocovariance` — the autocovariance least-squares baseline for the same noise (σ_v, σ_s).
 
 The attitude *model* and the star-vector *measurement* are models like any other
 (:mod:`agsf_torch.models`), and the multiplicative EKF a filter like any other

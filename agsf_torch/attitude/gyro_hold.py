@@ -38,7 +38,8 @@ class GyroHold:
 
     Args:
         rate_sigma: ``σ_h``, per-axis 1σ error of a held reading (rad/s), ≥ 0; a float, or a
-            0-d tensor (which may require grad: the inflation is then differentiable in it).
+            0-d or ``[B]`` (one per trajectory) tensor, which may require grad: the inflation is then
+            differentiable in it.
 
     State: ``last [B, 3]`` (the last valid reading; zeros before any) and
     ``held_steps [B]`` (consecutive held samples so far), saved by
@@ -47,9 +48,9 @@ class GyroHold:
     """
 
     def __init__(self, rate_sigma: float) -> None:
-        value = float(rate_sigma.detach()) if torch.is_tensor(rate_sigma) else float(rate_sigma)
-        if not math.isfinite(value) or value < 0:
-            raise ValueError(f"rate_sigma must be finite and ≥ 0 (rad/s), got {rate_sigma!r}")
+        value = rate_sigma.detach() if torch.is_tensor(rate_sigma) else torch.tensor(float(rate_sigma))
+        if value.dim() > 1 or not bool(torch.isfinite(value).all()) or bool((value < 0).any()):
+            raise ValueError(f"rate_sigma must be finite and ≥ 0 (rad/s), a number or [B], got {rate_sigma!r}")
         self.rate_sigma = rate_sigma if torch.is_tensor(rate_sigma) else float(rate_sigma)
         self.last: Tensor | None = None
         self.held_steps: Tensor | None = None
@@ -136,7 +137,7 @@ class GyroHold:
     def state_dict(self) -> dict[str, Any]:
         """The hold's state (for checkpoints)."""
         return {
-            "rate_sigma": float(self.rate_sigma),
+            "rate_sigma": self.rate_sigma.tolist() if torch.is_tensor(self.rate_sigma) else self.rate_sigma,
             "last": None if self.last is None else self.last.clone(),
             "held_steps": None if self.held_steps is None else self.held_steps.clone(),
         }
@@ -158,8 +159,11 @@ class GyroHold:
             got = sorted(state) if isinstance(state, dict) else type(state).__name__
             raise ValueError(f"GyroHold state must have the keys ['held_steps', 'last', 'rate_sigma'], got {got}")
         sigma, last, held = state["rate_sigma"], state["last"], state["held_steps"]
-        if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 <= sigma < math.inf:
-            raise ValueError(f"GyroHold state 'rate_sigma' must be a finite number ≥ 0, got {sigma!r}")
+        values = sigma if isinstance(sigma, list) else [sigma]
+        if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < math.inf for v in values):
+            raise ValueError(
+                f"GyroHold state 'rate_sigma' must be a finite number ≥ 0 or a list of them, got {sigma!r}"
+            )
         if (last is None) != (held is None):
             raise ValueError("GyroHold state 'last' and 'held_steps' must both be None or both be tensors")
         if last is not None:
@@ -174,6 +178,6 @@ class GyroHold:
                 raise ValueError(f"GyroHold state 'held_steps' must be an integer tensor [{B}], got {got}")
             if bool((held < 0).any()):
                 raise ValueError("GyroHold state 'held_steps' must be ≥ 0")
-        self.rate_sigma = float(sigma)
+        self.rate_sigma = torch.tensor(sigma, dtype=torch.float64) if isinstance(sigma, list) else float(sigma)
         self.last = None if last is None else last.clone()
         self.held_steps = None if held is None else held.to(torch.int64).clone()

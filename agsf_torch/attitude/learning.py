@@ -1,19 +1,30 @@
 """Learning the noise model from the measurements: maximum likelihood through the filter.
 
-The whole filter is a torch program, so the measurement log-likelihood
+The whole filter is a torch program, so the log-likelihood of the measurements
 
-.. math:: \\ell(θ) = Σ_{\\text{updates}} \\log Σ_i w_i β_i
+.. math:: \\ell(θ) = Σ_{\\text{updates}} \\log Σ_i w_i N(T^T ν_i; 0, T^T S_i T)
 
-is differentiable in the model parameters θ (through propagation, the Joseph
-update and, for the adaptive filter, the weight QP).  :func:`fit_attitude_parameters`
-maximises it with L-BFGS over log-parametrised positive parameters (the gyro
-bias is unconstrained), and reports an uncertainty from the curvature: the
-inverse Hessian of ``−ℓ`` in the fitted coordinates, mapped to 95 % intervals.
-A configured value outside its interval is flagged: the data disagree with it.
+(the data's, two degrees of freedom per star:
+:meth:`~agsf_torch.models.StarVectorMeasurement.data_log_likelihood`) is differentiable in the model
+parameters θ (through propagation and the Joseph update).  :func:`fit_datasets` maximises it for ``D``
+independent data sets at once, each with its own parameters (the model's noise per trajectory), by Newton's
+method in log coordinates for the positive parameters (the gyro bias in rad/s): each data set's Hessian is one
+``p × p`` block of a block-diagonal whole, so ``p + 1`` backward passes give every block.  It reports an
+uncertainty from the curvature: the inverse Hessian of ``−ℓ`` in the fitted coordinates, mapped to 95 %
+intervals.  Verdicts are Wald tests at the 5 % level:
+
+* **each parameter**: the configured value against the learned one, ``(x̂ − x₀)ᵀ C⁻¹ (x̂ − x₀) ≤ χ²_k(0.95)``
+  with ``C`` the parameter's block of the inverse Hessian (``k = 1``, or 3 for the bias): for a scalar, the
+  configured value lies in its 95 % interval;
+* **jointly** (:attr:`FitResult.joint`): the same over every identified parameter, ``k`` their coordinates.
+  Each parameter's verdict alone flags a correct model with probability 5 %, so ``m`` of them flag at least
+  one with up to ``1 − 0.95^m``; the joint test holds the family-wise false-alarm rate at 5 %.
+
+:func:`fit_attitude_parameters` is the one-data-set case (``agsf learn``).
 
 Parameters: ``sigma_v`` (rad/s^½), ``sigma_u`` (rad/s^{3/2}), ``sigma_s`` (rad),
-``bias`` (rad/s, 3-vector, 3-state model), ``reg`` (λ, adaptive filter),
-``prior_scale`` (multiplies the prior covariance).
+``bias`` (rad/s, 3-vector, 3-state model), ``reg`` (λ, adaptive filter; one data set only: the FPKE terms
+take one noise model for all trajectories), ``prior_scale`` (multiplies the prior covariance).
 """
 
 from __future__ import annotations
@@ -28,18 +39,27 @@ from torch import Tensor
 from ..filter_loop import FilterSetup, filter_steps, initial_mixtures
 from ..filters.registry import filter_spec, make_filter
 from ..models import AttitudeModel
+from ..quantiles import chi2_quantile
 from .inputs import AttitudeInputs, recording_inputs
 from .recordings import Recording
 
-__all__ = ["PARAMETERS", "FitResult", "attitude_log_likelihood", "fit_attitude_parameters"]
+__all__ = [
+    "PARAMETERS",
+    "FitResult",
+    "DatasetFits",
+    "attitude_log_likelihood",
+    "fit_attitude_parameters",
+    "fit_datasets",
+]
 
 PARAMETERS = ("sigma_v", "sigma_u", "sigma_s", "bias", "reg", "prior_scale")
 _POSITIVE = {"sigma_v", "sigma_u", "sigma_s", "reg", "prior_scale"}
 F64 = torch.float64
-
-
-class _Diverged(Exception):
-    """The likelihood or its gradient became non-finite."""
+#: How far below its starting value (in log) a positive parameter's estimate counts as at 0: a factor e^-12.
+AT_ZERO = 12.0
+#: The level of every verdict (each parameter's and the joint one).
+LEVEL = 0.95
+_Z95 = 1.959963984540054
 
 
 @dataclass
@@ -50,11 +70,14 @@ class FitResult:
         learned / configured: name → value (float, or list of 3 for ``bias``).
         interval: name → (low, high) (per axis for ``bias``); NaN where the curvature
             is not positive definite.
-        inside: name → the configured value lies in the interval (all axes for ``bias``); ``None`` (no
-            verdict) when the fit did not converge, the interval is undefined or the data do not identify it.
+        inside: name → the configured value passes the parameter's Wald test at 5 % (a scalar: it lies in the
+            interval); ``None`` (no verdict) when the fit did not converge, the interval is undefined or the data
+            do not identify it.
         notes: name → why the data do not identify it (the curvature of ``−ℓ`` in its fitted coordinate and
             the interval it gives), or ``None``.
-        converged: L-BFGS stopped on its tolerances, not on its iteration budget, and did not diverge.
+        joint: the family-wise verdict over the identified parameters (module docstring): ``statistic``,
+            ``dof``, ``p_value``, ``consistent`` (``None`` where nothing is judged).
+        converged: Newton stopped on its tolerance, not on its iteration budget, and did not diverge.
         nll: final −ℓ; history: −ℓ per iteration; message: how the fit ended.
     """
 
@@ -67,6 +90,53 @@ class FitResult:
     converged: bool = True
     message: str = ""
     notes: dict = field(default_factory=dict)
+    joint: dict = field(default_factory=dict)
+
+
+@dataclass
+class DatasetFits:
+    """:func:`fit_datasets`'s result for ``D`` data sets (``p`` fitted coordinates).
+
+    Attributes:
+        names: the learned parameters; sizes: name → coordinates (1, or 3 for the bias).
+        learned / configured: name → ``[D]`` (``[D, 3]`` for the bias), natural units.
+        fitted: ``[D, p]`` the estimate in the fitted coordinates (``log`` of a positive parameter).
+        half_width: ``[D, p]`` 95 % half-widths there (NaN where the curvature does not define one).
+        low / high: name → the 95 % interval, natural units.
+        curvature: ``[D, p]`` the diagonal of the Hessian of ``−ℓ`` at the estimate.
+        identified: name → ``[D]`` bool: positive curvature and an interval no wider than
+            :data:`WIDEST_LOG_INTERVAL` / :data:`WIDEST_BIAS_INTERVAL`.
+        statistic: name → ``[D]`` the parameter's Wald statistic at its configured value (χ² with ``sizes[name]``
+            degrees of freedom at the truth); inside: name → ``[D]`` bool, it passes at 5 %.
+        judged: name → ``[D]`` bool: a verdict is given (converged and identified).
+        joint_statistic / joint_dof / joint_p_value: ``[D]`` the Wald test over the identified parameters;
+        joint_consistent: ``[D]`` bool (meaningful where ``joint_dof > 0`` and converged).
+        converged / diverged: ``[D]`` bool; iterations: ``[D]`` Newton iterations; nll: ``[D]`` −ℓ at the estimate;
+        history: −ℓ ``[D]`` per iteration.
+    """
+
+    names: tuple
+    sizes: dict
+    learned: dict
+    configured: dict
+    fitted: Tensor
+    half_width: Tensor
+    low: dict
+    high: dict
+    curvature: Tensor
+    identified: dict
+    statistic: dict
+    inside: dict
+    judged: dict
+    joint_statistic: Tensor
+    joint_dof: Tensor
+    joint_p_value: Tensor
+    joint_consistent: Tensor
+    converged: Tensor
+    diverged: Tensor
+    iterations: Tensor
+    nll: Tensor
+    history: list = field(default_factory=list)
 
 
 def attitude_log_likelihood(
@@ -82,6 +152,7 @@ def attitude_log_likelihood(
     noise_model: str = "isotropic",
     gyro_hold_sigma: float | Tensor | None = None,
     gate_probability: float | None = None,
+    per_trajectory: bool = False,
 ) -> Tensor:
     """``Σ_b Σ_updates log Σᵢ wᵢβᵢ`` of a recording under the parameters ``params``.
 
@@ -93,35 +164,56 @@ def attitude_log_likelihood(
 
     Args:
         rec: the recording (``B`` trajectories; sample 0 is the prior's time).
-        params: ``sigma_v``, ``sigma_u``, ``sigma_s``, ``bias``, ``reg``, ``prior_scale``
-            (tensors; any may require grad).
+        params: ``sigma_v``, ``sigma_u``, ``sigma_s``, ``bias``, ``reg``, ``prior_scale`` (tensors; any may
+            require grad), each one for all trajectories (``[]``, ``[3]`` for the bias) or one per trajectory
+            (``[B]``, ``[B, 3]``; not ``reg``, and not with the adaptive filters, whose FPKE terms take one model).
         prior_mean: ``[B, n]``; prior_cov: ``[n, n]`` (scaled by ``prior_scale``).
         filter_kind: a registered filter name (:data:`~agsf_torch.filters.registry.FILTER_NAMES`).
         num_components: components of a mixture filter (one-component filters ignore it).
         noise_model: the star-vector noise model (:class:`~agsf_torch.models.StarVectorMeasurement`).
         gate_probability: the filter's innovation gate (:mod:`agsf_torch.gating`), ``None``: off.
         gyro_hold_sigma: σ_h of the gyro hold (rad/s); default ``σ_v/√Δt`` of the first interval.
+        per_trajectory: return ``[B]``, each trajectory's log-likelihood, instead of their sum.
     """
+    B = int(torch.as_tensor(prior_mean).shape[0])
+    sigma_v, sigma_u, sigma_s, bias, prior_scale = (
+        _per_trajectory(name, params[name], B, event)
+        for name, event in (("sigma_v", 0), ("sigma_u", 0), ("sigma_s", 0), ("bias", 1), ("prior_scale", 0))
+    )
     model = AttitudeModel(
-        estimate_bias=estimate_bias, sigma_v=params["sigma_v"], sigma_u=params["sigma_u"], bias=params["bias"]
+        estimate_bias=estimate_bias,
+        sigma_v=sigma_v[:, None] if sigma_v.dim() else sigma_v,
+        sigma_u=sigma_u[:, None] if sigma_u.dim() else sigma_u,
+        bias=bias[:, None] if bias.dim() > 1 else bias,
     )
     spec = filter_spec(filter_kind)
     options = {"update_iterations": update_iterations, "gate_probability": gate_probability}
     if filter_kind == "AGSF":
         options["reg"] = params["reg"]
     setup = FilterSetup(make_filter(filter_kind, model, **options), num_components if spec.mixture else 1)
-    cov0 = params["prior_scale"] * torch.as_tensor(prior_cov, dtype=F64)
+    scale = prior_scale[:, None, None] if prior_scale.dim() else prior_scale
+    cov0 = scale * torch.as_tensor(prior_cov, dtype=F64)
     mixtures = initial_mixtures({"filter": setup}, torch.as_tensor(prior_mean, dtype=F64), cov0)
     if gyro_hold_sigma is None:
         dt0 = float(rec.time[1] - rec.time[0]) if rec.num_samples > 1 else 1.0
-        gyro_hold_sigma = params["sigma_v"] / dt0**0.5
-    adapter = AttitudeInputs(sigma_s=params["sigma_s"], gyro_hold_sigma=gyro_hold_sigma, noise_model=noise_model)
-    total = torch.zeros((), dtype=F64)
+        gyro_hold_sigma = sigma_v / dt0**0.5
+    adapter = AttitudeInputs(sigma_s=sigma_s, gyro_hold_sigma=gyro_hold_sigma, noise_model=noise_model)
+    total = torch.zeros(B, dtype=F64)
     for step in filter_steps({"filter": setup.filter}, mixtures, recording_inputs(rec, adapter)):
         ll = step.filters["filter"].log_likelihood
         if ll is not None:
-            total = total + ll.sum()
-    return total
+            total = total + ll
+    return total if per_trajectory else total.sum()
+
+
+def _per_trajectory(name: str, value, B: int, event: int) -> Tensor:
+    """``value`` as a tensor, ``[]``/``[3]`` (one for all) or ``[B]``/``[B, 3]`` (one per trajectory); any other
+    shape is refused, naming ``name``."""
+    t = torch.as_tensor(value, dtype=F64) if not isinstance(value, Tensor) else value
+    if t.dim() == event or (t.dim() == event + 1 and t.shape[0] == B):
+        return t
+    want = "[] or [B]" if event == 0 else "[3] or [B, 3]"
+    raise ValueError(f"{name} must be {want} (B = {B} trajectories), got {tuple(t.shape)}")
 
 
 def fit_attitude_parameters(
@@ -135,14 +227,100 @@ def fit_attitude_parameters(
     log: Callable[[int, float, dict], None] | None = None,
     **likelihood_kwargs,
 ) -> FitResult:
-    """Maximum-likelihood fit of the parameters in ``learn``, the others held at ``configured``.
+    """Maximum-likelihood fit of the parameters in ``learn`` on all of ``rec`` (one data set), the others held
+    at ``configured``: :func:`fit_datasets` with ``datasets = 1``.
 
     Args:
         rec: training recording.
-        configured: every parameter of :data:`PARAMETERS` (the starting point).
+        configured: every parameter of :data:`PARAMETERS` (the starting point and the values judged).
         learn: the names to fit.
-        max_iter: L-BFGS iterations (strong-Wolfe line search).
+        max_iter: Newton iterations.
         log: optional ``log(iteration, nll, values)`` (e.g. TensorBoard).
+        **likelihood_kwargs: passed to :func:`attitude_log_likelihood`.
+    """
+
+    def log_one(iteration: int, nll: Tensor, values: dict) -> None:
+        if log is not None:
+            log(iteration, float(nll[0]), {k: _plain(v[0]) for k, v in values.items()})
+
+    fits = fit_datasets(
+        rec,
+        configured,
+        learn,
+        datasets=1,
+        prior_mean=prior_mean,
+        prior_cov=prior_cov,
+        max_iter=max_iter,
+        log=log_one,
+        **likelihood_kwargs,
+    )
+    converged, diverged = bool(fits.converged[0]), bool(fits.diverged[0])
+    iterations = int(fits.iterations[0])
+    if diverged:
+        message = "diverged: stopped with the last finite parameters"
+    elif not converged:
+        message = f"not converged: Newton used all {max_iter} iterations (raise --max-iter)"
+    else:
+        message = f"converged after {iterations} Newton iterations"
+    learned, interval, inside, notes, i = {}, {}, {}, {}, 0
+    for k in fits.names:
+        s = fits.sizes[k]
+        learned[k] = _plain(fits.learned[k][0])
+        interval[k] = (_plain(fits.low[k][0]), _plain(fits.high[k][0]))
+        notes[k] = _identification(k, fits.curvature[0, i : i + s], fits.half_width[0, i : i + s])
+        inside[k] = bool(fits.inside[k][0]) if bool(fits.judged[k][0]) else None
+        i += s
+    joint = {}
+    if converged and int(fits.joint_dof[0]) > 0:
+        joint = {
+            "statistic": float(fits.joint_statistic[0]),
+            "dof": int(fits.joint_dof[0]),
+            "p_value": float(fits.joint_p_value[0]),
+            "consistent": bool(fits.joint_consistent[0]),
+        }
+    history = [float(h[0]) for h in fits.history]
+    configured_out = {k: _plain(fits.configured[k][0]) for k in fits.names}
+    return FitResult(
+        learned, configured_out, interval, inside, float(fits.nll[0]), history, converged, message, notes, joint
+    )
+
+
+def fit_datasets(
+    rec: Recording,
+    configured: Mapping[str, object],
+    learn: list[str],
+    *,
+    datasets: int,
+    prior_mean: Tensor,
+    prior_cov: Tensor,
+    max_iter: int = 40,
+    tolerance: float = 1e-6,
+    log: Callable[[int, Tensor, dict], None] | None = None,
+    **likelihood_kwargs,
+) -> DatasetFits:
+    """Maximum-likelihood fits of ``datasets`` independent data sets in one batched program.
+
+    The ``B`` trajectories of ``rec`` are grouped consecutively into ``D = datasets`` data sets of ``B / D``
+    each; data set ``d`` has its own parameters ``θ_d`` (the model's noise per trajectory), so
+    ``−ℓ(θ) = Σ_d −ℓ_d(θ_d)`` and its Hessian is block diagonal.  Each iteration forms ``g_d`` and the ``p × p``
+    blocks ``H_d`` (``p + 1`` backward passes through one forward pass), takes the Newton step
+    ``Δ_d = −V|Λ|⁻¹Vᵀg_d`` (``H_d = VΛVᵀ``, so the step descends where ``H_d`` is indefinite; at most a factor
+    ``e`` on a positive parameter, 10 °/h on the bias) and halves it, data set by data set, until
+    ``−ℓ_d`` falls by ``10⁻⁴`` of the predicted decrease.  A data set has converged when its Newton decrement
+    ``½ g_dᵀ|H_d|⁻¹g_d`` (the predicted decrease, nats, whatever the coordinates' units) is below ``tolerance``,
+    or when a positive parameter has fallen :data:`AT_ZERO` below its start in log (the maximum is at 0); it then
+    stays where it is.  A flat direction (the data do not constrain it) has a zero decrement.
+
+    Args:
+        rec: the recording (``B`` trajectories, ``B`` a multiple of ``datasets``).
+        configured: every parameter of :data:`PARAMETERS` (one value for all data sets: the starting point and
+            the value judged).
+        learn: the names to fit (not ``reg`` unless ``datasets = 1``).
+        datasets: ``D``.
+        prior_mean: ``[B, n]``; prior_cov: ``[n, n]``.
+        max_iter: Newton iterations.
+        tolerance: the Newton decrement at convergence (nats).
+        log: optional ``log(iteration, nll [D], values)``, values name → ``[D]`` / ``[D, 3]``.
         **likelihood_kwargs: passed to :func:`attitude_log_likelihood`.
     """
     unknown = [p for p in list(learn) + list(configured) if p not in PARAMETERS]
@@ -153,97 +331,235 @@ def fit_attitude_parameters(
         raise ValueError(f"configured values missing for {missing}")
     if not learn:
         raise ValueError("nothing to learn: name at least one parameter")
+    if len(set(learn)) != len(learn):
+        raise ValueError(f"a parameter is named twice in {list(learn)}")
     base = {k: torch.as_tensor(v, dtype=F64) for k, v in configured.items()}
-    for k in _POSITIVE:
+    for k in _POSITIVE & set(learn):
         if not bool((base[k] > 0).all()):
             raise ValueError(f"configured {k} must be > 0 to be log-parametrised, got {base[k].tolist()}")
-    # unconstrained coordinates: log for positive parameters, identity for the bias
-    sizes = {k: base[k].numel() for k in learn}
-    x0 = torch.cat([(base[k].log() if k in _POSITIVE else base[k]).reshape(-1) for k in learn])
+    if isinstance(datasets, bool) or not isinstance(datasets, int) or datasets < 1:
+        raise ValueError(f"datasets must be a positive integer, got {datasets!r}")
+    B = int(torch.as_tensor(prior_mean).shape[0])
+    if B % datasets:
+        raise ValueError(f"{B} trajectories do not split into {datasets} data sets of equal size")
+    if datasets > 1 and "reg" in learn:
+        raise ValueError("reg (the adaptive filter's λ) is learned from one data set at a time (datasets=1)")
+    D, per = datasets, B // datasets
+    names = tuple(learn)
+    sizes = {k: base[k].numel() for k in names}
+    p = sum(sizes.values())
+    x0 = torch.cat([(base[k].log() if k in _POSITIVE else base[k]).reshape(-1) for k in names])
+    positive = torch.cat([torch.full((sizes[k],), k in _POSITIVE) for k in names])
+    cap = torch.cat(
+        [torch.full((sizes[k],), 1.0 if k in _POSITIVE else 10.0 * WIDEST_BIAS_INTERVAL, dtype=F64) for k in names]
+    )
 
     def unpack(x: Tensor) -> dict[str, Tensor]:
-        out, i = dict(base), 0
-        for k in learn:
-            v = x[i : i + sizes[k]].reshape(base[k].shape)
+        """``x [k, p]`` → the parameters, the learned ones per data set ``[k]`` / ``[k, 3]``."""
+        out, i = {}, 0
+        for k in names:
+            v = x[:, i : i + sizes[k]].reshape(x.shape[0], *base[k].shape)
             out[k] = v.exp() if k in _POSITIVE else v
             i += sizes[k]
         return out
 
-    def nll(x: Tensor) -> Tensor:
-        return -attitude_log_likelihood(rec, unpack(x), prior_mean=prior_mean, prior_cov=prior_cov, **likelihood_kwargs)
+    mean0 = torch.as_tensor(prior_mean, dtype=F64)
 
-    x = x0.clone().requires_grad_(True)
-    opt = torch.optim.LBFGS(
-        [x], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12
-    )
-    history: list[float] = []
-    last_finite = x0.clone()
-    state = {"diverged": False}
+    def nll(x: Tensor, which: Tensor) -> Tensor:
+        """``−ℓ_d`` ``[k]`` at ``x [k, p]`` of the data sets ``which [k]`` (indices): only their trajectories run."""
+        values = unpack(x)
+        params = dict(base)
+        for k, v in values.items():
+            params[k] = v.repeat_interleave(per, 0)
+        if D == 1:  # one for all: the fused paths and the FPKE terms take it
+            params.update({k: v[0] for k, v in values.items()})
+        rows = (which[:, None] * per + torch.arange(per)).reshape(-1)
+        part = rec if len(which) == D else rec.trajectories(rows.numpy())
+        ll = attitude_log_likelihood(
+            part, params, prior_mean=mean0[rows], prior_cov=prior_cov, per_trajectory=True, **likelihood_kwargs
+        )
+        return -ll.reshape(len(which), per).sum(1)
 
-    def closure():
-        opt.zero_grad()
-        loss = nll(x)
-        if not torch.isfinite(loss):
-            raise _Diverged
-        loss.backward()
-        if not bool(torch.isfinite(x.grad).all()):
-            raise _Diverged
-        history.append(float(loss.detach()))
-        last_finite.copy_(x.detach())
+    x = x0.expand(D, p).clone()
+    active = torch.ones(D, dtype=torch.bool)
+    converged = torch.zeros(D, dtype=torch.bool)
+    diverged = torch.zeros(D, dtype=torch.bool)
+    iterations = torch.zeros(D, dtype=torch.int64)
+    f = torch.full((D,), float("nan"), dtype=F64)
+    H = torch.full((D, p, p), float("nan"), dtype=F64)
+    # a positive parameter this far below its starting value has its maximum at 0 (the data show none of it):
+    # the likelihood flattens there and Newton would creep towards it, e^-1 an iteration
+    floor = torch.where(positive, x0 - AT_ZERO, torch.full_like(x0, -math.inf))
+    history: list[Tensor] = []
+    for iteration in range(max_iter + 1):
+        which = active.nonzero().flatten()
+        fa, ga, Ha = _value_gradient_hessian(lambda z: nll(z, which), x[which])
+        f[which], H[which] = fa, Ha
+        bad = ~(torch.isfinite(fa) & torch.isfinite(ga).all(1) & torch.isfinite(Ha).flatten(1).all(1))
+        diverged[which[bad]] = True  # a point whose value was finite gave a non-finite gradient
+        history.append(f.clone())
         if log is not None:
-            log(
-                len(history),
-                float(loss.detach()),
-                {k: v.detach().tolist() for k, v in unpack(x.detach()).items() if k in learn},
-            )
-        return loss
+            log(iteration + 1, f.clone(), {k: v.detach() for k, v in unpack(x).items()})
+        step, decrement, definite = _newton_step(ga, Ha)
+        at_zero = (x[which] <= floor).any(1)
+        done = ~bad & (at_zero | (0.5 * decrement <= tolerance))
+        converged[which[done]] = True
+        active[which[bad | done]] = False
+        keep = ~(bad | done)
+        which, step, g_kept = which[keep], step[keep], ga[keep]
+        if not len(which) or iteration == max_iter:
+            break
+        scale = torch.clamp(cap / step.abs().clamp_min(1e-300), max=1.0).amin(1, keepdim=True)
+        step = step * scale
+        slope = (g_kept * step).sum(1)  # < 0: a descent direction
+        x_new, moved = _backtrack(lambda z, m: nll(z, which[m]), x[which], f[which], step, slope)
+        x[which] = x_new
+        iterations[which] += 1
+        # no decrease along a descent direction: the optimum to rounding where the decrement is small, else stuck
+        near = definite[keep] & (0.5 * decrement[keep] <= 1e3 * tolerance)
+        converged[which[~moved & near]] = True
+        active[which[~moved]] = False
+    with torch.no_grad():
+        return _summarise(names, sizes, base, x, H, unpack(x), f, converged & ~diverged, diverged, iterations, history)
 
+
+def _value_gradient_hessian(nll: Callable[[Tensor], Tensor], x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(f [D], g [D, p], H [D, p, p])`` of the block-separable ``f`` at ``x [D, p]``: ``H[:, :, j]`` is the
+    gradient of ``Σ_d g_dj`` (the blocks do not couple data sets).  An error inside the filter (a failed
+    factorisation at a wild point) gives NaN, which the caller treats as a diverged data set."""
+    x = x.detach().requires_grad_(True)
     try:
-        opt.step(closure)
-    except (_Diverged, RuntimeError, ValueError):  # non-finite likelihood, or a failed factorisation at a wild step
-        state["diverged"] = True
-    # L-BFGS stops on its own tolerances (gradient, change of −ℓ or of the step) or when its iteration
-    # budget is spent; only the former is a converged fit
-    iterations = int(opt.state[opt.param_groups[0]["params"][0]].get("n_iter", 0))
-    exhausted = iterations >= max_iter
-    x_hat = last_finite if state["diverged"] or not torch.isfinite(x).all() else x.detach()
-    values = unpack(x_hat)
-    hess = torch.autograd.functional.hessian(nll, x_hat)
-    hess = 0.5 * (hess + hess.T)
-    curvature = hess.diagonal()
-    # coordinates the data do not constrain (no positive curvature) are held at their value; the others get
-    # intervals from the inverse of their block of the Hessian
-    kept = curvature > 0
-    half = torch.full_like(x_hat, float("nan"))
-    if bool(kept.any()):
-        L, info = torch.linalg.cholesky_ex(hess[kept][:, kept])
-        if int(info) == 0:
-            half[kept] = 1.959963984540054 * torch.cholesky_inverse(L).diagonal().sqrt()
-    learned, interval, inside, configured_out, notes, i = {}, {}, {}, {}, {}, 0
-    for k in learn:
+        f = nll(x)
+        (g,) = torch.autograd.grad(f.sum(), x, create_graph=True)
+        columns = [torch.autograd.grad(g[:, j].sum(), x, retain_graph=True)[0] for j in range(x.shape[1])]
+    except (RuntimeError, ValueError):
+        nan = torch.full(x.shape[:1], float("nan"), dtype=x.dtype)
+        return nan, torch.full_like(x, float("nan")), torch.full((*x.shape, x.shape[1]), float("nan"), dtype=x.dtype)
+    H = torch.stack(columns, -1).detach()
+    return f.detach(), g.detach(), 0.5 * (H + H.transpose(-1, -2))
+
+
+def _newton_step(g: Tensor, H: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(Δ [D, p], gᵀ|H|⁻¹g [D], H positive definite [D])``: ``Δ = −V|Λ|⁻¹Vᵀg`` with the eigenvalues' magnitudes
+    floored at ``10⁻¹²·max|λ|`` (and a tiny absolute floor), a descent direction wherever ``g ≠ 0``."""
+    g0 = torch.nan_to_num(g)
+    lam, V = torch.linalg.eigh(torch.nan_to_num(H))
+    mag = lam.abs()
+    floor = (1e-12 * mag.amax(-1, keepdim=True)).clamp_min(1e-300)
+    w = (V.transpose(-1, -2) @ g0.unsqueeze(-1)).squeeze(-1) / torch.maximum(mag, floor)
+    step = -(V @ w.unsqueeze(-1)).squeeze(-1)
+    return step, -(g0 * step).sum(1), (lam > 0).all(-1)
+
+
+def _backtrack(
+    nll: Callable[[Tensor], Tensor],
+    x: Tensor,
+    f: Tensor,
+    step: Tensor,
+    slope: Tensor,
+    halvings: int = 8,
+) -> tuple[Tensor, Tensor]:
+    """Armijo backtracking per data set: ``x + αΔ`` with ``α = 1, ½, …, 2⁻⁸`` until ``f(x + αΔ) ≤ f + 10⁻⁴α gᵀΔ``;
+    returns the new ``x`` and which data sets moved.  ``nll(x_k, mask)`` evaluates the data sets ``mask``; one
+    batched evaluation per halving, of the data sets still trying a shorter step."""
+    alpha = torch.ones_like(f)
+    pending = torch.ones(f.shape, dtype=torch.bool)
+    accepted = torch.zeros_like(pending)
+    with torch.no_grad():
+        for _ in range(halvings):
+            trial = x + alpha[:, None] * step
+            ft = torch.full_like(f, float("inf"))
+            try:
+                ft[pending] = nll(trial[pending], pending)
+            except (RuntimeError, ValueError):  # a failed factorisation at a wild point: shorter steps for all
+                alpha = torch.where(pending, 0.5 * alpha, alpha)
+                continue
+            ok = pending & torch.isfinite(ft) & (ft <= f + 1e-4 * alpha * slope)
+            accepted |= ok
+            pending &= ~ok
+            if not bool(pending.any()):
+                break
+            alpha = torch.where(pending, 0.5 * alpha, alpha)
+    alpha = torch.where(accepted, alpha, torch.zeros_like(alpha))
+    return x + alpha[:, None] * step, accepted
+
+
+def _summarise(names, sizes, base, x, H, values, f, converged, diverged, iterations, history) -> DatasetFits:
+    """Intervals from the inverse Hessian of each data set's positive-curvature coordinates, the Wald verdicts and
+    the identification flags, all ``[D]``-batched."""
+    D, p = x.shape
+    curvature = H.diagonal(dim1=-2, dim2=-1)
+    kept = curvature > 0  # [D, p]: coordinates the data constrain
+    both = kept[:, :, None] & kept[:, None, :]
+    eye = torch.eye(p, dtype=x.dtype).expand(D, p, p)
+    Hk = torch.where(both, H, eye)
+    L, info = torch.linalg.cholesky_ex(Hk)
+    cov = torch.cholesky_inverse(L)
+    usable = (info == 0)[:, None] & kept
+    half = torch.where(usable, _Z95 * cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt(), float("nan"))
+    learned, configured, low, high, identified, statistic, inside, judged = ({} for _ in range(8))
+    x_conf = torch.cat([(base[k].log() if k in _POSITIVE else base[k]).reshape(-1) for k in names]).expand(D, p)
+    coordinate_ok = torch.zeros(D, p, dtype=torch.bool)
+    i = 0
+    for k in names:
         s = sizes[k]
-        lo, hi = x_hat[i : i + s] - half[i : i + s], x_hat[i : i + s] + half[i : i + s]
+        sl = slice(i, i + s)
+        lo, hi = x[:, sl] - half[:, sl], x[:, sl] + half[:, sl]
         if k in _POSITIVE:
             lo, hi = lo.exp(), hi.exp()
-        c = base[k].reshape(-1)
-        learned[k] = _plain(values[k])
-        configured_out[k] = _plain(base[k])
-        interval[k] = (_plain(lo), _plain(hi))
-        notes[k] = _identification(k, curvature[i : i + s], half[i : i + s])
-        defined = bool(torch.isfinite(lo).all() and torch.isfinite(hi).all()) and notes[k] is None
-        inside[k] = bool(((c >= lo) & (c <= hi)).all()) if defined else None
+        shape = (D, *base[k].shape)
+        learned[k], low[k], high[k] = values[k], lo.reshape(shape), hi.reshape(shape)
+        configured[k] = base[k].expand(shape)
+        widest = WIDEST_LOG_INTERVAL if k in _POSITIVE else WIDEST_BIAS_INTERVAL
+        ident = (kept[:, sl] & torch.isfinite(half[:, sl]) & (half[:, sl] <= widest)).all(1)
+        identified[k] = ident
+        coordinate_ok[:, sl] = ident[:, None]
+        statistic[k] = _wald(x[:, sl] - x_conf[:, sl], cov[:, sl, sl], usable[:, sl])
+        inside[k] = statistic[k] <= chi2_quantile(LEVEL, s)
+        judged[k] = ident & converged & torch.isfinite(statistic[k])
         i += s
-    if state["diverged"]:
-        message = "diverged: stopped with the last finite parameters"
-    elif exhausted:
-        message = f"not converged: L-BFGS used all {max_iter} iterations (raise --max-iter)"
-    else:
-        message = f"converged after {iterations} L-BFGS iterations"
-    converged = not state["diverged"] and not exhausted
-    if not converged:  # no verdict on parameters the fit did not settle
-        inside = {k: None for k in learn}
-    nll_hat = float(nll(x_hat).detach())
-    return FitResult(learned, configured_out, interval, inside, nll_hat, history, converged, message, notes)
+    joint = _wald(x - x_conf, cov, usable & coordinate_ok)
+    dof = (usable & coordinate_ok).sum(1)
+    limit = torch.tensor([chi2_quantile(LEVEL, int(k)) if k > 0 else float("nan") for k in dof.tolist()])
+    from scipy.special import gammaincc
+
+    p_value = torch.as_tensor(gammaincc(dof.to(F64).clamp_min(1).numpy() / 2, joint.numpy() / 2), dtype=F64)
+    p_value = torch.where(dof > 0, p_value, float("nan"))
+    return DatasetFits(
+        names=names,
+        sizes=sizes,
+        learned=learned,
+        configured=configured,
+        fitted=x,
+        half_width=half,
+        low=low,
+        high=high,
+        curvature=curvature,
+        identified=identified,
+        statistic=statistic,
+        inside=inside,
+        judged=judged,
+        joint_statistic=joint,
+        joint_dof=dof,
+        joint_p_value=p_value,
+        joint_consistent=(dof > 0) & (joint <= limit),
+        converged=converged,
+        diverged=diverged,
+        iterations=iterations,
+        nll=f,
+        history=history,
+    )
+
+
+def _wald(d: Tensor, cov: Tensor, use: Tensor) -> Tensor:
+    """``dᵀ C_UU⁻¹ d`` over the coordinates ``use [D, q]`` of each data set (``d [D, q]``, ``C [D, q, q]``), by a
+    Cholesky solve; 0 where none is used, NaN where ``C_UU`` is not positive definite."""
+    both = use[:, :, None] & use[:, None, :]
+    eye = torch.eye(d.shape[1], dtype=d.dtype).expand_as(cov)
+    L, info = torch.linalg.cholesky_ex(torch.where(both, cov, eye))
+    du = torch.where(use, d, torch.zeros_like(d))
+    z = torch.linalg.solve_triangular(L, du.unsqueeze(-1), upper=False).squeeze(-1)
+    return torch.where(info == 0, (z * z).sum(1), float("nan"))
 
 
 #: The widest 95 % interval of a positive parameter that still counts as learned: a factor of 10 either way

@@ -119,6 +119,12 @@ class Recording:
             "time": torch.full((B, 1), float(self.time[k]), dtype=torch.float64),
         }
 
+    def trajectories(self, rows) -> Recording:
+        """The recording of the trajectories ``rows`` (an index array, a boolean mask ``[B]`` or a slice), every
+        sample of each."""
+        arrays = {f.name: getattr(self, f.name) for f in fields(self)}
+        return Recording(**{k: v if k == "time" or v is None else v[rows] for k, v in arrays.items()})
+
     def star_frames(self) -> np.ndarray:
         """``[T]`` bool: samples at which any trajectory has a valid star."""
         return self.star_mask.any(axis=(0, 2))

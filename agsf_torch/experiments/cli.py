@@ -47,6 +47,7 @@ from ..storage.files import files_written
 from .cli_commands import (
     _adaptation,
     _bench,
+    _calibrate,
     _diagnose,
     _learn,
     _reproduce,
@@ -227,10 +228,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--recording", default=None, help="a recorded .npz file instead of simulating (needs truth for the prior)"
     )
-    p.add_argument("--max-iter", type=positive_int, default=40, help="L-BFGS iterations of the fit (default 40)")
+    p.add_argument("--max-iter", type=positive_int, default=40, help="Newton iterations of the fit (default 40)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
     p.set_defaults(func=_learn)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="measure learning's calibration: bias, interval coverage, false alarms and detection over many data sets",
+    )
+    p.add_argument("config", nargs="?", default="case1", help="TOML file or preset, the base (default case1)")
+    p.add_argument("--datasets", type=positive_int, default=200, help="data sets per setting (default 200)")
+    p.add_argument(
+        "--setting",
+        action="append",
+        default=None,
+        help="a setting of the study by its label (repeatable; default: all of them)",
+    )
+    p.add_argument("--quick", action="store_true", help="the study's few-second version (for a first look)")
+    p.add_argument("--workers", type=positive_int, default=None, help="settings side by side (default: the CPUs, ≤ 2)")
+    p.add_argument("--out", required=True, help="output folder")
+    common(p)
+    p.set_defaults(func=_calibrate)
 
     p = sub.add_parser("soak", help="a long run checking NaN, positive definiteness, 3σ consistency and flat memory")
     p.add_argument("--filter", choices=FILTER_NAMES, default="GSF", help="the filter to soak")

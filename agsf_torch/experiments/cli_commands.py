@@ -284,3 +284,32 @@ def _print_summary(name: str, summary: dict) -> None:
             lo, hi = d["ci95_deg"]
             print(f"  {label:<{width}}  {d['mean_deg']:>11.3g} deg,  95% CI [{lo:.3g}, {hi:.3g}]")
     print(f"  (window — {WINDOW_TEXT['between_frames']})")
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from ..storage.files import write_json, write_text
+    from .calibration import QUICK_STUDY, STUDY, run_study, settings_named
+    from .calibration_report import calibration_figure, calibration_markdown
+    from .config import load_config
+    from .experiment import prepare_output
+
+    cfg = load_config(args.config, args.set)
+    study = QUICK_STUDY if args.quick else STUDY
+    settings = settings_named(args.setting, study)
+    if args.datasets < 2:
+        raise ValueError(f"--datasets must be at least 2 (rates over data sets), got {args.datasets}")
+    from ..processes import available_cpus
+
+    workers = args.workers or max(1, min(2, available_cpus(), len(settings)))
+    params = {"datasets": args.datasets, "settings": [s.label for s in settings], "seed": cfg.seed}
+    out = prepare_output(Path(args.out), "calibrate", json.dumps({**params, **cfg.to_dict()}, sort_keys=True), params)
+    t0 = time.perf_counter()
+    results = run_study(cfg, settings, datasets=args.datasets, seed=cfg.seed, workers=workers, progress=not args.quiet)
+    elapsed = time.perf_counter() - t0
+    write_json(out / "calibration.json", {**params, "seconds": elapsed, "results": results}, indent=2)
+    report = calibration_markdown(results)
+    write_text(out / "calibration.md", report)
+    calibration_figure(results, out / "calibration.png")
+    print(report)
+    print(f"{len(settings)} settings × {args.datasets} data sets in {elapsed:.0f} s → {out}")
+    return 0

@@ -131,7 +131,7 @@ def learn(
         res = fit_attitude_parameters(rec, configured, names, max_iter=max_iter, log=log, **kwargs)
     finally:
         writer.close()
-    lines = [f"learn ({res.message}; −log-likelihood {res.nll:.6g} after {len(res.history)} evaluations):"]
+    lines = [f"learn ({res.message}; −log-likelihood {res.nll:.6g}):"]
     for k in names:
         if res.inside[k] is None:
             why = "the fit did not converge" if not res.converged else res.notes.get(k) or "the interval is undefined"
@@ -139,10 +139,17 @@ def learn(
         elif res.inside[k]:
             flag = "consistent with the data"
         else:
-            flag = "OUTSIDE the 95 % interval: mis-modelled"
+            flag = "OUTSIDE the 95 % interval: mis-modelled" if k != "bias" else "mis-modelled (Wald test at 5 %)"
         lines.append(
             f"  {k}: learned {_digits(res.learned[k])}, 95 % interval {_digits(res.interval[k])}, "
             f"configured {_digits(res.configured[k])} — {flag}"
+        )
+    if res.joint and len([k for k in names if res.inside[k] is not None]) > 1:
+        j = res.joint
+        verdict = "consistent with the data" if j["consistent"] else "mis-modelled"
+        lines.append(
+            f"  jointly: {verdict} (Wald χ² {j['statistic']:.3g} on {j['dof']} degrees of freedom, p = "
+            f"{j['p_value']:.3g}: it flags a correct model 5 % of the time, as each line above does on its own)"
         )
     report = "\n".join(lines)
     write_json(

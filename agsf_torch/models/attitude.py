@@ -39,6 +39,13 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
             the 3-state model, ignored by the 6-state one.  Known biases that
             differ between trajectories are subtracted from the gyro input instead.
 
+    **Noise per trajectory.**  ``sigma_v`` and ``sigma_u`` may be a number or a tensor of batch dims that
+    broadcast against the states' ``[B, N]`` from the right, ``[B, 1]`` for one value per trajectory; ``bias``
+    likewise ``[B, 1, 3]``.  Learning fits independent data sets this way in one program
+    (:func:`~agsf_torch.attitude.learning.fit_datasets`).  Propagation and the single-Gaussian and Gaussian sum
+    updates take such a model (the generic path: the fused kernels take one value for all); the FPKE terms of the
+    adaptive filters refuse it (:meth:`per_trajectory_noise`).
+
     The input ``u = ω̃`` must have shape ``[..., 3]`` (one rate per body axis): any other
     last dimension, ``[..., 1]`` included, is a ``ValueError`` (:meth:`check_input`), never a
     rate broadcast over the three axes.
@@ -63,16 +70,33 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         self.state_dim = 6 if self.estimate_bias else 3
         self.register_buffer("sigma_v", check_nonnegative("sigma_v", sigma_v))
         self.register_buffer("sigma_u", check_nonnegative("sigma_u", sigma_u))
-        b = torch.as_tensor(bias, dtype=torch.float64)
+        b = torch.as_tensor(bias, dtype=torch.float64) if not isinstance(bias, Tensor) else bias
         if b.dim() == 0:
             b = b.expand(3).clone()
-        if b.shape != (3,):
-            raise ValueError(f"bias must be a scalar or have shape [3], got {tuple(b.shape)}")
+        if b.shape[-1] != 3:
+            raise ValueError(
+                f"bias must be a scalar, [3] or [..., 3] per trajectory ([B, 1, 3]), got {tuple(b.shape)}"
+            )
         if not bool(torch.isfinite(b).all()):
             raise ValueError("bias must be finite")
         self.register_buffer("bias", b)
 
     # ------------------------------------------------------------- helpers
+    @property
+    def per_trajectory_noise(self) -> bool:
+        """Whether ``sigma_v``, ``sigma_u`` or ``bias`` holds one value per trajectory (class docstring)."""
+        return self.sigma_v.dim() > 0 or self.sigma_u.dim() > 0 or self.bias.dim() > 1
+
+    def _refuse_per_trajectory(self, what: str) -> None:
+        """``ValueError`` naming ``what`` when the noise is per trajectory: the FPKE terms integrate one density
+        over states whose batch dims are not the trajectories'."""
+        if self.per_trajectory_noise:
+            raise ValueError(
+                f"{what} take one sigma_v, sigma_u and bias for all trajectories; this model has them per trajectory "
+                f"(sigma_v {tuple(self.sigma_v.shape)}, sigma_u {tuple(self.sigma_u.shape)}, bias "
+                f"{tuple(self.bias.shape)}): use the EKF, MEKF or GSF, or one value"
+            )
+
     def _rate(self, x: Tensor, u: Tensor) -> Tensor:
         """Bias-corrected body rate ``ω = ω̃ − b`` (``[..., 3]``); ``u`` is checked to be ``[..., 3]``."""
         self.check_input(u)
@@ -112,10 +136,12 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
 
     def noise_psd(self) -> Tensor:
         """``Q = σ_v² I₃`` or ``diag(σ_v² I₃, σ_u² I₃)``."""
-        sv2 = self.sigma_v**2 * torch.ones(3, dtype=self.sigma_v.dtype, device=self.sigma_v.device)
+        one = torch.ones(3, dtype=self.sigma_v.dtype, device=self.sigma_v.device)
+        sv2 = self.sigma_v[..., None] ** 2 * one
         if not self.estimate_bias:
-            return torch.diag(sv2)
-        return torch.diag(torch.cat((sv2, self.sigma_u**2 * torch.ones_like(sv2))))
+            return torch.diag_embed(sv2)
+        sv2, su2 = torch.broadcast_tensors(sv2, self.sigma_u[..., None] ** 2 * one)
+        return torch.diag_embed(torch.cat((sv2, su2), -1))
 
     @derived_from("drift", "_rate", "_mrp_rate", generic=ContinuousModel.drift_jacobian)
     def drift_jacobian(self, x: Tensor, u: Tensor) -> Tensor:
@@ -144,16 +170,17 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         p = x[..., :3]
         s = sum_last(p * p)[..., None, None]
         eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
-        Gp = (self.sigma_v**2 / 16.0) * (1.0 + s) ** 2 * eye3
+        Gp = (self.sigma_v[..., None, None] ** 2 / 16.0) * (1.0 + s) ** 2 * eye3
         if not self.estimate_bias:
             return Gp
+        Gp, Gb = torch.broadcast_tensors(Gp, self.sigma_u[..., None, None] ** 2 * eye3)
         z = torch.zeros_like(Gp)
-        Gb = (self.sigma_u**2 * eye3).expand_as(Gp)
         return torch.cat((torch.cat((Gp, z), -1), torch.cat((z, Gb), -1)), -2)
 
     def _diffusion_diagonal(self, x: Tensor) -> Tensor:
         """Diagonal of ``D = ½gQgᵀ``: ``(σ_v²/32)(1+s)²`` on the MRP axes, ``σ_u²/2`` on the bias axes."""
         p = x[..., :3]
+        self._refuse_per_trajectory("the FPKE diffusion terms")
         s = sum_last(p * p, keepdim=True)
         dp = (self.sigma_v**2 / 32.0) * (1.0 + s) ** 2 * torch.ones_like(p)
         if not self.estimate_bias:
@@ -168,6 +195,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         ``aₖ = 4c(1+s) pₖ`` on the MRP entries (0 on the bias), ``Σ∂²D = 4c(3 + 5s)``.
         ``D`` is diagonal and is returned as its diagonal ``[..., n]``.
         """
+        self._refuse_per_trajectory("the Fokker–Planck terms")
         p = x[..., :3]
         p_b, w_b = torch.broadcast_tensors(p, self._rate(x, u))
         s = sum_last(p_b * p_b, keepdim=True)
@@ -228,6 +256,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
             mean: ``[..., n]``; cov: ``[..., n, n]``; u: ``ω̃`` ``[..., 3]``.
         """
         self.check_input(u)
+        self._refuse_per_trajectory("the Fokker–Planck moments")
         n = self.state_dim
         m = mean[..., :3]
         M = cov[..., :3, :3]

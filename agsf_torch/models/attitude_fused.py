@@ -55,6 +55,7 @@ class FusedAttitudePaths:
         or ``None`` for the 3-state model (its 84-node interpolatory rule is then the generic route)."""
         from ..fused.pair_products import attitude_pair_products as on_lanes
 
+        self._refuse_per_trajectory("the FPKE pair products")
         if u is not None:
             self.check_input(u)
             count = math.prod(pairs.mean.shape[:-1])
@@ -85,6 +86,7 @@ class FusedAttitudePaths:
         if u is None or not compile:
             return None
         self.check_input(u)
+        self._refuse_per_trajectory("the FPKE penalty pairs")
         if torch.is_grad_enabled() and any(
             t.requires_grad for t in (u, means, covs, self.sigma_v, self.sigma_u, self.bias)
         ):
@@ -100,7 +102,8 @@ class FusedAttitudePaths:
         """RK4 of ``(μ, Φ, S)`` and the congruence on lanes, unrolled with the model's structural zeros
         (:mod:`agsf_torch.fused.propagation`): the arithmetic of :func:`~agsf_torch.propagation.propagate_moments`
         in one pass over memory.  Returns ``(mean, cov, positive_definite [...] bool)``, or ``None`` (the
-        generic path) for an eager call on fewer lanes than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)."""
+        generic path) for an eager call on fewer lanes than it pays for (:func:`~agsf_torch.fused.lanes.worth_fusing`)
+        and for noise per trajectory (the kernel takes one ``σ_v``, ``σ_u`` and bias for all lanes)."""
         from ..fused.lanes import run_in_chunks, worth_fusing
         from ..fused.propagation import propagation_kernel
 
@@ -108,7 +111,7 @@ class FusedAttitudePaths:
         n = self.state_dim
         lead = broadcast_shapes(mean.shape[:-1], cov.shape[:-2], u.shape[:-1])
         count = math.prod(lead)
-        if not worth_fusing(count, compile):
+        if self.per_trajectory_noise or not worth_fusing(count, compile):
             return None
         rate = self._gyro_rate(u)
         inputs = (
@@ -145,6 +148,7 @@ class FusedAttitudePaths:
         from ..fused.lanes import DEFAULT_CHUNK, run_in_chunks, worth_fusing
 
         self.check_input(u)
+        self._refuse_per_trajectory("the Galerkin pairs")
         T, N = means.shape[:2]
         pairs = N * (N + 1) // 2
         if not worth_fusing(T * pairs, compile):

@@ -140,12 +140,22 @@ def check_model_contract(model: nn.Module, x: Tensor, u: Tensor | None) -> None:
     with _dtype_named(model, x):
         q = _check_shapes(model, x, u)
     Q = model.noise_psd()
-    if not isinstance(Q, Tensor) or Q.shape != (q, q):
+    lead = tuple(x.shape[:-1])
+    if (
+        not isinstance(Q, Tensor)
+        or Q.dim() < 2
+        or Q.shape[-2:] != (q, q)
+        or Q.dim() - 2 > len(lead)
+        or any(a != 1 and a != b for a, b in zip(reversed(Q.shape[:-2]), reversed(lead)))
+    ):
         got = tuple(Q.shape) if isinstance(Q, Tensor) else type(Q).__name__
-        raise ValueError(f"{name}.noise_psd must return [q, q] = {(q, q)} (q: noise_gain's last dim), got {got}")
+        raise ValueError(
+            f"{name}.noise_psd must return [q, q] = {(q, q)} (q: noise_gain's last dim), or [..., q, q] with batch "
+            f"dims that broadcast against the states' {lead} (one per trajectory), got {got}"
+        )
     check_symmetric(f"{name}.noise_psd", Q.detach())
     eigenvalues = torch.linalg.eigvalsh(Q.detach().to(torch.float64))
-    if q and float(eigenvalues[0]) < -1e-12 * float(eigenvalues.abs().max()):
+    if q and bool((eigenvalues[..., 0] < -1e-12 * eigenvalues.abs().amax(-1)).any()):
         raise ValueError(
             f"{name}.noise_psd must be positive semidefinite (a spectral density), got eigenvalues {eigenvalues.tolist()}"
         )

@@ -101,7 +101,8 @@ class StarVectorMeasurement(MeasurementModel):
             trajectory batch).
         mask: ``[..., M]`` bool, ``True`` for a valid star (``None``: all valid).
             Masked stars contribute nothing to an update.
-        sigma: σ_s, per-axis unit-vector noise (rad), > 0.
+        sigma: σ_s, per-axis unit-vector noise (rad), > 0: a number, or ``[B]``, one per trajectory of the
+            measurement ``y [B, 3M]`` (learning fits independent data sets this way; the fused update takes one).
         body: the measured unit vectors ``[..., M, 3]`` (needed by ``"tangent"``).
 
     Valid vectors of ``r_inertial`` and ``body`` must be unit vectors (:func:`unit_vectors`),
@@ -143,8 +144,8 @@ class StarVectorMeasurement(MeasurementModel):
             real = not (isinstance(sigma, (bool, np.bool_)) or sig.dtype == torch.bool or sig.is_complex())
         except (TypeError, ValueError, RuntimeError):
             sig, real = None, False
-        if not real or sig.dim() != 0 or not bool(sig > 0) or not bool(sig.isfinite()):
-            raise ValueError(f"sigma must be a positive finite scalar (rad), got {sigma!r}")
+        if not real or sig.dim() > 1 or not bool((sig > 0).all()) or not bool(sig.isfinite().all()):
+            raise ValueError(f"sigma must be a positive finite scalar or [B] (rad), got {sigma!r}")
         if mask is not None:
             mask = torch.as_tensor(mask, dtype=torch.bool, device=r.device)
             if mask.shape != r.shape[:-1]:
@@ -215,7 +216,8 @@ class StarVectorMeasurement(MeasurementModel):
         check_measurement_batch("r_inertial (catalogue vectors)", self.r_inertial.shape[:-2], y)
         if self.star_mask is not None:
             check_measurement_batch("star_mask", self.star_mask.shape[:-1], y)
-        radial = float(self.sigma.detach()) if self.noise_model == "isotropic" else self.radial_sigma
+        check_measurement_batch("sigma", self.sigma.shape, y)
+        radial = float(self.sigma.detach().max()) if self.noise_model == "isotropic" else self.radial_sigma
         _off_unit(
             "y (measured star vectors)",
             y.unflatten(-1, (M, 3)),
@@ -272,7 +274,12 @@ class StarVectorMeasurement(MeasurementModel):
         from ..fused.star_update import fused_star_update
 
         lanes = math.prod(broadcast_shapes(means.shape[:-1], y.shape[:-1] + (1,)))
-        if self.noise_model != "isotropic" or means.shape[-1] < 3 or not worth_fusing(lanes, compile):
+        if (
+            self.noise_model != "isotropic"
+            or self.sigma.dim()
+            or means.shape[-1] < 3
+            or not worth_fusing(lanes, compile)
+        ):
             return None
         return fused_star_update(
             log_weights, means, covs, y, self, iterations, mask=mask, mixture_nis=mixture_nis, compile=compile
@@ -309,10 +316,10 @@ class StarVectorMeasurement(MeasurementModel):
         nu_t = nu_t * star_valid[..., None]
         A = T.transpose(-1, -2) @ HL.unflatten(-2, (M, 3))  # [..., N, M, 2, k]
         A = (A * star_valid[..., None, None]).flatten(-3, -2)  # [..., N, 2M, k]
-        sigma2 = self.sigma.to(nu) ** 2
+        sigma2 = self.sigma.to(nu)[..., None] ** 2  # [..., 1] against the components [..., N]
         k = A.shape[-1]
-        G = torch.eye(k, dtype=nu.dtype, device=nu.device) + A.transpose(-1, -2) @ A / sigma2
-        g = (A.transpose(-1, -2) @ nu_t.flatten(-2).unsqueeze(-1)) / sigma2  # [..., N, k, 1]
+        G = torch.eye(k, dtype=nu.dtype, device=nu.device) + A.transpose(-1, -2) @ A / sigma2[..., None, None]
+        g = (A.transpose(-1, -2) @ nu_t.flatten(-2).unsqueeze(-1)) / sigma2[..., None, None]  # [..., N, k, 1]
         L = torch.linalg.cholesky(G)
         z = torch.cholesky_solve(g, L)  # [..., N, k, 1]: the minimiser below
         m = star_valid.sum(-1)  # [..., N]
@@ -328,12 +335,13 @@ class StarVectorMeasurement(MeasurementModel):
     def noise_cov(self) -> Tensor:
         """``R``: ``σ_s² I_{3M}`` (isotropic) or block-diagonal ``[..., 3M, 3M]`` (tangent)."""
         eye = torch.eye(3 * self.num_stars, dtype=self.r_inertial.dtype, device=self.r_inertial.device)
+        sigma = self.sigma[..., None, None]  # one per trajectory: [B, 1, 1]
         if self.noise_model == "isotropic":
-            return self.sigma**2 * eye
+            return sigma**2 * eye
         b = self.body / torch.linalg.vector_norm(self.body, dim=-1, keepdim=True).clamp_min(1e-300)
         bbT = b.unsqueeze(-1) * b.unsqueeze(-2)  # [..., M, 3, 3]
         eye3 = torch.eye(3, dtype=b.dtype, device=b.device)
-        blocks = self.sigma**2 * (eye3 - bbT) + self.radial_sigma**2 * bbT
+        blocks = sigma[..., None] ** 2 * (eye3 - bbT) + self.radial_sigma**2 * bbT
         return _block_diag(blocks)
 
     def mask(self) -> Tensor | None:

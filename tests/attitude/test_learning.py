@@ -77,7 +77,7 @@ def test_learns_star_noise_from_twice_the_configured_value_with_the_tangent_mode
 
 
 def test_a_fit_that_runs_out_of_iterations_is_not_converged_and_gives_no_verdict():
-    """max_iter = 1: L-BFGS stops on its budget, not its tolerances — reported as such, and no parameter is
+    """max_iter = 1: Newton stops on its budget, not its tolerances — reported as such, and no parameter is
     judged (the learned value is near the starting one; "consistent with the data" would be a wrong verdict)."""
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=4, max_steps=40, sigma_v=2e-5, star_period=2.0)
     rec = record_environment(env, 40, seed=11)
@@ -90,7 +90,7 @@ def test_a_fit_that_runs_out_of_iterations_is_not_converged_and_gives_no_verdict
         prior_cov=1e-8 * torch.eye(3, dtype=F64),
         max_iter=1,
     )
-    assert not r.converged and r.message.startswith("not converged: L-BFGS used all 1 iterations")
+    assert not r.converged and r.message.startswith("not converged: Newton used all 1 iterations")
     assert r.inside == {"sigma_v": None}
 
 
