@@ -33,6 +33,7 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -296,6 +297,7 @@ def fit_datasets(
     max_iter: int = 40,
     tolerance: float = 1e-6,
     log: Callable[[int, Tensor, dict], None] | None = None,
+    chunk: int | None = None,
     **likelihood_kwargs,
 ) -> DatasetFits:
     """Maximum-likelihood fits of ``datasets`` independent data sets in one batched program.
@@ -321,6 +323,8 @@ def fit_datasets(
         max_iter: Newton iterations.
         tolerance: the Newton decrement at convergence (nats).
         log: optional ``log(iteration, nll [D], values)``, values name → ``[D]`` / ``[D, 3]``.
+        chunk: fit at most this many data sets at a time, one group after another (the autograd graph of a pass
+            holds every step of every trajectory: the memory it takes); ``None``: all at once.
         **likelihood_kwargs: passed to :func:`attitude_log_likelihood`.
     """
     unknown = [p for p in list(learn) + list(configured) if p not in PARAMETERS]
@@ -345,6 +349,26 @@ def fit_datasets(
     if datasets > 1 and "reg" in learn:
         raise ValueError("reg (the adaptive filter's λ) is learned from one data set at a time (datasets=1)")
     D, per = datasets, B // datasets
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive integer or None, got {chunk!r}")
+    if chunk is not None and chunk < D:
+        parts = []
+        for start in range(0, D, chunk):  # groups of data sets, for memory: each group is batched
+            rows = np.arange(start * per, min(D, start + chunk) * per)
+            parts.append(
+                fit_datasets(
+                    rec.trajectories(rows),
+                    configured,
+                    learn,
+                    datasets=len(rows) // per,
+                    prior_mean=torch.as_tensor(prior_mean)[rows],
+                    prior_cov=prior_cov,
+                    max_iter=max_iter,
+                    tolerance=tolerance,
+                    **likelihood_kwargs,
+                )
+            )
+        return _concatenate(parts)
     names = tuple(learn)
     sizes = {k: base[k].numel() for k in names}
     p = sum(sizes.values())
@@ -421,6 +445,29 @@ def fit_datasets(
         active[which[~moved]] = False
     with torch.no_grad():
         return _summarise(names, sizes, base, x, H, unpack(x), f, converged & ~diverged, diverged, iterations, history)
+
+
+def _concatenate(parts: list[DatasetFits]) -> DatasetFits:
+    """The fits of groups of data sets as one (their histories: −ℓ per iteration, NaN once a group has stopped)."""
+    first = parts[0]
+
+    def cat(get):
+        values = [get(p) for p in parts]
+        if isinstance(values[0], dict):
+            return {k: torch.cat([v[k] for v in values]) for k in values[0]}
+        return torch.cat(values)
+
+    longest = max(len(p.history) for p in parts)
+    history = [
+        torch.cat([p.history[i] if i < len(p.history) else torch.full_like(p.history[0], float("nan")) for p in parts])
+        for i in range(longest)
+    ]
+    tensors = {
+        f: cat(lambda p, f=f: getattr(p, f))
+        for f in DatasetFits.__dataclass_fields__
+        if f not in ("names", "sizes", "history")
+    }
+    return DatasetFits(names=first.names, sizes=first.sizes, history=history, **tensors)
 
 
 def _value_gradient_hessian(nll: Callable[[Tensor], Tensor], x: Tensor) -> tuple[Tensor, Tensor, Tensor]:

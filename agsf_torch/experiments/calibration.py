@@ -34,6 +34,7 @@ from .config import ExperimentConfig
 from .experiment import make_env
 from .learn import learning_problem
 from .recorded import record_environment
+from .statistics import clopper_pearson
 
 __all__ = [
     "CalibrationSetting",
@@ -41,14 +42,18 @@ __all__ = [
     "QUICK_STUDY",
     "MIS_SCALINGS",
     "calibrate_setting",
-    "clopper_pearson",
     "run_study",
+    "verdict_study",
+    "VERDICT_SETTINGS",
     "TOLERANCE",
 ]
 
 #: The fits' Newton decrement at convergence (nats): the estimate within ``√(2·10⁻⁴) = 0.014`` of its standard
 #: error of the maximum, which moves a 95 % interval's coverage by less than 0.1 %.
 TOLERANCE = 1e-4
+#: Trajectory-steps of one batched fit (3 states; a sixth of it with 6): its autograd graph, with the Hessian's,
+#: takes about 2.6 GB (measured at 200 data sets of 600 steps; the 6-state model 6.5 times as much per step).
+GRAPH_BUDGET = 120_000
 #: The mis-scalings of the configured value whose detection is measured (and their inverses).
 MIS_SCALINGS = (1.25, 1.5, 2.0, 3.0)
 _Z95 = 1.959963984540054
@@ -78,23 +83,27 @@ class CalibrationSetting:
 #: times: the prior's 1.8° spread makes the first update's linearisation error (≈ |δθ|²/2 on each unit vector,
 #: 45 times σ_s) the largest "noise" a single-iteration EKF sees, and its likelihood would learn that instead.
 _EXACT = {"sigma_u": 0.0, "update_iterations": 3}
+#: The axes of data length and trajectories read the gyro at 1 Hz, with the star frames (``dt = 1``): ten minutes of
+#: data are then 600 steps, whose autograd graph for 200 data sets fits in memory (at 10 Hz it would not).
+_ONE_HZ = {**_EXACT, "dt": 1.0}
 STUDY = (
     CalibrationSetting("σ_s, σ_v · 60 s · isotropic", ("sigma_s", "sigma_v"), 60.0, 1, _EXACT),
     CalibrationSetting(
-        "σ_s, σ_v · 60 s · tangent",
-        ("sigma_s", "sigma_v"),
-        60.0,
-        1,
-        {**_EXACT, "star_noise_model": "tangent"},
+        "σ_s, σ_v · 60 s · tangent", ("sigma_s", "sigma_v"), 60.0, 1, {**_EXACT, "star_noise_model": "tangent"}
     ),
-    CalibrationSetting("σ_s, σ_v · 10 s", ("sigma_s", "sigma_v"), 10.0, 1, _EXACT),
-    CalibrationSetting("σ_s, σ_v · 10 s × 4", ("sigma_s", "sigma_v"), 10.0, 4, _EXACT),
-    CalibrationSetting("σ_s, σ_v · 10 s × 16", ("sigma_s", "sigma_v"), 10.0, 16, _EXACT),
     CalibrationSetting("bias · 60 s", ("bias",), 60.0, 1, _EXACT),
     CalibrationSetting("prior scale · 60 s", ("prior_scale",), 60.0, 1, _EXACT),
-    CalibrationSetting("σ_s, σ_v · 600 s", ("sigma_s", "sigma_v"), 600.0, 1, _EXACT),
+    CalibrationSetting("σ_s, σ_v · 10 s · gyro 1 Hz", ("sigma_s", "sigma_v"), 10.0, 1, _ONE_HZ),
+    CalibrationSetting("σ_s, σ_v · 60 s · gyro 1 Hz", ("sigma_s", "sigma_v"), 60.0, 1, _ONE_HZ),
+    CalibrationSetting("σ_s, σ_v · 600 s · gyro 1 Hz", ("sigma_s", "sigma_v"), 600.0, 1, _ONE_HZ),
+    CalibrationSetting("σ_s, σ_v · 10 s × 4 · gyro 1 Hz", ("sigma_s", "sigma_v"), 10.0, 4, _ONE_HZ),
+    CalibrationSetting("σ_s, σ_v · 10 s × 16 · gyro 1 Hz", ("sigma_s", "sigma_v"), 10.0, 16, _ONE_HZ),
     CalibrationSetting(
-        "σ_u · 300 s · 6 states", ("sigma_u",), 300.0, 1, {"estimate_bias": True, "update_iterations": 3}
+        "σ_u · 300 s · 6 states · gyro 1 Hz",
+        ("sigma_u",),
+        300.0,
+        1,
+        {"estimate_bias": True, "update_iterations": 3, "dt": 1.0},
     ),
 )
 #: A few seconds' version for the tests.
@@ -104,24 +113,10 @@ QUICK_STUDY = (
 )
 
 
-def clopper_pearson(successes: int, trials: int, level: float = 0.95) -> tuple[float, float]:
-    """The exact (Clopper–Pearson) ``level`` interval of a binomial proportion: the β quantiles
-    ``B⁻¹((1−level)/2; k, n−k+1)`` and ``B⁻¹((1+level)/2; k+1, n−k)`` (0 and 1 at the ends); NaNs for no trials."""
-    from scipy.special import betaincinv
-
-    k, n = int(successes), int(trials)
-    if n == 0:
-        return (math.nan, math.nan)
-    a = (1.0 - level) / 2.0
-    low = 0.0 if k == 0 else float(betaincinv(k, n - k + 1, a))
-    high = 1.0 if k == n else float(betaincinv(k + 1, n - k, 1.0 - a))
-    return low, high
-
-
 def _rate(flags: torch.Tensor) -> dict:
     """A rate over data sets with its counts and Clopper–Pearson interval."""
     k, n = int(flags.sum()), int(flags.numel())
-    low, high = clopper_pearson(k, n)
+    low, high = (float(v) for v in clopper_pearson(k, n))
     return {"rate": k / n if n else math.nan, "count": k, "datasets": n, "low": low, "high": high}
 
 
@@ -146,7 +141,10 @@ def calibrate_setting(base: ExperimentConfig, setting: CalibrationSetting, datas
     )
     rec = record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
     configured, kwargs = learning_problem(cfg, rec)
-    fits = fit_datasets(rec, configured, list(setting.learn), datasets=datasets, tolerance=TOLERANCE, **kwargs)
+    chunk = max(1, GRAPH_BUDGET // (setting.trajectories * cfg.num_steps * (6 if cfg.estimate_bias else 1)))
+    fits = fit_datasets(
+        rec, configured, list(setting.learn), datasets=datasets, tolerance=TOLERANCE, chunk=chunk, **kwargs
+    )
     result = {
         "label": setting.label,
         "learn": list(setting.learn),
@@ -155,6 +153,7 @@ def calibrate_setting(base: ExperimentConfig, setting: CalibrationSetting, datas
         "datasets": datasets,
         "seed": seed,
         "star_noise_model": cfg.star_noise_model,
+        "gyro_dt_s": cfg.dt,
         "estimate_bias": cfg.estimate_bias,
         "converged": _rate(fits.converged),
         "iterations_max": int(fits.iterations.max()),
@@ -243,6 +242,12 @@ def settings_named(labels: Sequence[str] | None, study: Sequence[CalibrationSett
     return [known[label] for label in labels]
 
 
+def _cost(setting: CalibrationSetting) -> float:
+    """Trajectory-steps of a data set, the measure of a setting's time (its gyro steps × trajectories)."""
+    dt = setting.overrides.get("dt", 0.1)
+    return setting.duration / dt * setting.trajectories * (2.0 if setting.overrides.get("estimate_bias") else 1.0)
+
+
 def _calibrate_in_worker(base: dict, setting: CalibrationSetting, datasets: int, seed: int) -> dict:
     """:func:`calibrate_setting` in a worker process: one torch thread (the settings run side by side)."""
     from .config import ExperimentConfig as Config
@@ -282,9 +287,7 @@ def run_study(
                 bar.update()
         else:
             with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
-                longest_first = sorted(
-                    range(len(settings)), key=lambda k: -settings[k].duration * settings[k].trajectories
-                )
+                longest_first = sorted(range(len(settings)), key=lambda k: -_cost(settings[k]))
                 jobs = {
                     pool.submit(_calibrate_in_worker, base.to_dict(), settings[k], datasets, seeds[k]): k
                     for k in longest_first
@@ -293,3 +296,34 @@ def run_study(
                     results[jobs[job]] = job.result()
                     bar.update()
     return [r for r in results if r is not None]
+
+
+#: The settings of ``agsf diagnose``'s verdicts (:func:`verdict_study`): label, trajectories per data set and
+#: seconds; the EKF of the base configuration with the iterated update, as the learning settings.
+VERDICT_SETTINGS = (("1 trajectory × 30 s", 1, 30.0), ("16 trajectories × 20 s", 16, 20.0))
+
+
+def verdict_study(base: ExperimentConfig, *, datasets: int, seed: int, quick: bool = False) -> list[dict]:
+    """``agsf diagnose``'s false-alarm and detection rates (:func:`.verdict_calibration.diagnose_verdict_rates`) in
+    each of :data:`VERDICT_SETTINGS` (``quick``: the first, 5 s): the EKF with the iterated update, σ_s and σ_v
+    mis-scaled by :data:`MIS_SCALINGS`.  JSON-able records: the label, the levels and the table's rows."""
+    from .verdict_calibration import diagnose_verdict_rates
+
+    out = []
+    for label, trajectories, seconds in VERDICT_SETTINGS[:1] if quick else VERDICT_SETTINGS:
+        cfg = base.replace(filters=["EKF"], update_iterations=3, duration=5.0 if quick else seconds, faults=[])
+        rates = diagnose_verdict_rates(
+            cfg, datasets=datasets, trajectories=trajectories, scales=(1.0, *MIS_SCALINGS), seed=seed, force=True
+        )
+        out.append(
+            {
+                "label": label,
+                "datasets": datasets,
+                "checks": list(rates.checks),
+                "level": rates.level,
+                "familywise_level": rates.familywise_level,
+                "whiteness_level": rates.whiteness_level.tolist(),
+                "rows": rates.rows(),
+            }
+        )
+    return out

@@ -9,7 +9,10 @@ import numpy as np
 
 from .calibration import MIS_SCALINGS
 
-__all__ = ["calibration_markdown", "calibration_figure"]
+__all__ = ["calibration_markdown", "calibration_figure", "AXIS_GYRO_DT"]
+
+#: The gyro interval (s) of the settings on the axes of data length and trajectories (:data:`.calibration.STUDY`).
+AXIS_GYRO_DT = 1.0
 
 
 def _pct(rate: dict) -> str:
@@ -23,7 +26,7 @@ def _num(x: float, digits: int = 3) -> str:
     return "—" if x is None or not math.isfinite(x) else f"{x:.{digits}g}"
 
 
-def calibration_markdown(results: list[dict], verdicts: dict | None = None) -> str:
+def calibration_markdown(results: list[dict], verdicts: list[dict] | None = None) -> str:
     """The study's tables: per setting and coordinate the estimate's bias in standard errors, RMS error against
     the mean standard error, coverage and false alarm; the detection rates; the joint verdict; the baseline beside
     ours; and, if given, the diagnose verdicts' rates (:mod:`.verdict_calibration`)."""
@@ -81,18 +84,43 @@ def calibration_markdown(results: list[dict], verdicts: dict | None = None) -> s
         "### The baseline: autocovariance least squares on the same data",
         "\n".join(baseline),
     ]
-    if verdicts is not None:
-        parts += ["### `agsf diagnose`'s verdicts", verdicts_markdown(verdicts)]
+    if verdicts:
+        parts += ["### `agsf diagnose`'s verdicts (NEES, NIS, whiteness, and any of them)", verdicts_markdown(verdicts)]
     return "\n\n".join(parts) + "\n"
 
 
-def verdicts_markdown(verdicts: dict) -> str:
-    """The diagnose verdicts' false-alarm and detection rates as a table (``verdicts``: check → scale → rate)."""
-    scales = sorted({s for rates in verdicts["rates"].values() for s in rates}, key=float)
-    lines = ["| check | " + " | ".join(f"×{s}" for s in scales) + " |", "|---|" + "---|" * len(scales)]
-    for check, rates in verdicts["rates"].items():
-        lines.append(f"| {check} | " + " | ".join(_pct(rates[s]) if s in rates else "—" for s in scales) + " |")
-    return "\n".join(lines)
+def verdicts_markdown(verdicts: list[dict]) -> str:
+    """The diagnose verdicts' rates (:func:`.calibration.verdict_study`), one table per setting: a row per check,
+    the false-alarm rate at the truth, then the detection rate at each mis-scaling of each parameter."""
+    out = []
+    for v in verdicts:
+        rows = v["rows"]
+        columns = [("false alarm", None, 1.0)] + [
+            (f"{r['parameter']} ×{r['scale']:g}", r["parameter"], r["scale"])
+            for r in rows
+            if r["check"] == "any" and r["scale"] != 1.0
+        ]
+        lines = [
+            f"**{v['label']}** ({v['datasets']} data sets; the bands at {100 * v['level']:.3g} % each, "
+            f"{100 * v['familywise_level']:.3g} % for the whole verdict)",
+            "",
+            "| check | " + " | ".join(c[0] for c in columns) + " |",
+            "|---|" + "---|" * len(columns),
+        ]
+        for check in v["checks"]:
+            cells = []
+            for _, parameter, scale in columns:
+                match = [
+                    r
+                    for r in rows
+                    if r["check"] == check
+                    and r["scale"] == scale
+                    and (parameter is None or r["parameter"] == parameter)
+                ]
+                cells.append(_pct({"rate": match[0]["rate"], "datasets": match[0]["judged"], **match[0]}))
+            lines.append(f"| {check} | " + " | ".join(cells) + " |")
+        out.append("\n".join(lines))
+    return "\n\n".join(out)
 
 
 def calibration_figure(results: list[dict], path: Path) -> Path:
@@ -111,7 +139,8 @@ def calibration_figure(results: list[dict], path: Path) -> Path:
     for name, colour in colours.items():
         pts = []
         for r in results:
-            if set(r["learn"]) != {"sigma_s", "sigma_v"} or r["star_noise_model"] != "isotropic":
+            axis = set(r["learn"]) == {"sigma_s", "sigma_v"} and r["star_noise_model"] == "isotropic"
+            if not axis or r["gyro_dt_s"] != AXIS_GYRO_DT:
                 continue
             c = next(c for c in r["coordinates"] if c["name"] == name)
             als = r.get("baseline", {}).get(name, {}).get("rms_error", math.nan)
@@ -123,7 +152,7 @@ def calibration_figure(results: list[dict], path: Path) -> Path:
         ax_err.loglog(x, se, "x:", color=colour, label=f"{name}: ML, mean standard error")
         if np.isfinite(als).any():
             ax_err.loglog(x, als, "s--", color=colour, alpha=0.6, label=f"{name}: ALS, RMS error")
-    ax_err.set_xlabel("seconds of data per data set (trajectories × duration)")
+    ax_err.set_xlabel("seconds of data per data set (trajectories × duration; gyro at 1 Hz)")
     ax_err.set_ylabel("error of log σ")
     ax_err.set_title("(a) estimate error against data")
     ax_err.legend(fontsize=7)

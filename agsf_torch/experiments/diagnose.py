@@ -27,7 +27,9 @@ def diagnose(
     """Run ``cfg`` under ``out`` (on a simulation, or replaying ``recording`` as ``agsf run --recording`` does:
     it must hold the truth or an initial estimate and ``cfg.runs`` trajectories, checked before ``out`` is
     created) and check every filter (without the truth: the NIS and its whiteness, not the NEES); writes
-    ``diagnose.json`` / ``diagnose.md``.
+    ``diagnose.json`` / ``diagnose.md``.  The checks' bands are simultaneous
+    (:func:`~agsf_torch.consistency.consistency_checks`): a consistent filter fails some check at most 5 % of the
+    time.
 
     Returns:
         ``(report text, whether every check of every filter passed)``.

@@ -13,7 +13,15 @@ from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
 from ..quantiles import student_t_quantile
 from .config import ExperimentConfig
 
-__all__ = ["summarize", "mean_ci95", "paired_difference", "minus_gsf_key", "error_windows", "WINDOW_TEXT"]
+__all__ = [
+    "summarize",
+    "mean_ci95",
+    "clopper_pearson",
+    "paired_difference",
+    "minus_gsf_key",
+    "error_windows",
+    "WINDOW_TEXT",
+]
 
 #: What each time window of the error statistics covers, in one sentence (printed under every table).
 WINDOW_TEXT = {
@@ -166,3 +174,25 @@ def paired_difference(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
     """Paired per-run difference ``a − b`` (deg): mean, Student-t 95 % interval and relative to ``mean(b)``."""
     m, lo, hi = mean_ci95(np.asarray(a) - np.asarray(b))
     return {"mean_deg": m, "ci95_deg": [lo, hi], "relative": float(m / np.mean(b))}
+
+
+def clopper_pearson(successes: np.ndarray, trials: np.ndarray, confidence: float = 0.95) -> np.ndarray:
+    """The Clopper–Pearson (exact) interval of a binomial proportion, elementwise.
+
+    ``[B⁻¹(α/2; k, n − k + 1), B⁻¹(1 − α/2; k + 1, n − k)]`` with ``B⁻¹`` the inverse regularised incomplete beta
+    function and ``α = 1 − confidence``; the low end is 0 at ``k = 0``, the high end 1 at ``k = n``.
+
+    Args:
+        successes: ``k [...]``; trials: ``n [...]`` (integers, ``0 ≤ k ≤ n``).
+
+    Returns:
+        ``[..., 2]`` (NaN where ``n = 0``).
+    """
+    from scipy.special import betaincinv
+
+    k, n = np.broadcast_arrays(np.asarray(successes, np.float64), np.asarray(trials, np.float64))
+    a = (1.0 - confidence) / 2.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        low = np.where(k > 0, betaincinv(np.maximum(k, 1.0), n - k + 1.0, a), 0.0)
+        high = np.where(k < n, betaincinv(k + 1.0, np.maximum(n - k, 1.0), 1.0 - a), 1.0)
+    return np.where((n > 0)[..., None], np.stack((low, high), -1), np.nan)

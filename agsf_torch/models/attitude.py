@@ -74,9 +74,7 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         if b.dim() == 0:
             b = b.expand(3).clone()
         if b.shape[-1] != 3:
-            raise ValueError(
-                f"bias must be a scalar, [3] or [..., 3] per trajectory ([B, 1, 3]), got {tuple(b.shape)}"
-            )
+            raise ValueError(f"bias must be a scalar, [3] or [..., 3] per trajectory ([B, 1, 3]), got {tuple(b.shape)}")
         if not bool(torch.isfinite(b).all()):
             raise ValueError("bias must be finite")
         self.register_buffer("bias", b)

@@ -79,25 +79,59 @@ def test_a_data_set_fitted_among_others_gets_the_estimate_it_gets_alone(gen):
     assert_within(both.half_width[1], alone.half_width[0], 1e-3 * alone.half_width[0], "its 95 % half-widths")
 
 
-def test_every_learnable_parameter_is_recovered_and_judged_consistent_at_the_truth(gen):
-    """16 data sets per parameter, the filter configured with the simulator's noise (the 3-state model with a
-    constant bias is exactly the simulator's): each estimate within 4.9 of its standard errors of the truth
-    (asymptotically normal, a false-failure rate of 1e-6 over all), the verdict its Wald statistic's, and the
-    count of "mis-modelled" verdicts binomial(16, 0.05): at most 6 of 16 (P(≥ 7) < 1e-6)."""
-    rec, mean0 = _recording(gen, 16, 300, star_period=1.0)
-    for name in ("sigma_s", "sigma_v", "bias", "prior_scale"):
-        fits = fit_datasets(
-            rec, BASE, [name], datasets=16, prior_mean=mean0, prior_cov=P0, update_iterations=2
-        )
-        assert bool(fits.converged.all()), name
-        assert bool(fits.identified[name].all()), name
-        truth = torch.as_tensor(BASE[name], dtype=F64).reshape(-1)
-        x_true = truth.log() if name != "bias" else truth
-        se = fits.half_width / 1.959963984540054
-        assert_statistic(fits.fitted, x_true, se, f"{name} per data set", false_failure=1e-6)
-        limit = chi2_quantile(0.95, fits.sizes[name])
-        assert torch.equal(fits.inside[name], fits.statistic[name] <= limit)
-        assert int((~fits.inside[name]).sum()) <= 6, (name, fits.statistic[name])
+#: name, seconds of data per data set, the 6-state model, and the simulated (and configured) gyro noise.  At the
+#: paper's gyro (σ_v = 3.2e-7 rad/s^½, σ_u = 3.2e-10 rad/s^{3/2}) a minute does not identify σ_v (with 4
+#: trajectories of 60 s, 1 data set in 16 puts its maximum at 0) and ten minutes do not identify σ_u (the study in
+#: docs/results/calibration.md): their cases draw a gyro 10 and 100 times noisier, which the data identify.
+LEARNABLE = [
+    pytest.param("sigma_s", 30, False, {"sigma_u": 0.0}, id="sigma_s"),
+    pytest.param("sigma_v", 60, False, {"sigma_u": 0.0, "sigma_v": 3e-6}, id="sigma_v"),
+    pytest.param("bias", 60, False, {"sigma_u": 0.0}, id="bias"),
+    pytest.param("prior_scale", 30, False, {"sigma_u": 0.0}, id="prior_scale"),
+    pytest.param("sigma_u", 300, True, {"sigma_u": 3e-8}, id="sigma_u", marks=pytest.mark.slow),
+]
+
+
+@pytest.mark.parametrize("noise_model", ["isotropic", "tangent"])
+@pytest.mark.parametrize("name, seconds, estimate_bias, gyro", LEARNABLE)
+def test_a_correctly_configured_filter_is_judged_consistent_for_every_learnable_parameter(
+    gen, noise_model, name, seconds, estimate_bias, gyro
+):
+    """16 data sets, the gyro read at 1 Hz with the star frames, the filter configured with the simulator's noise
+    (the 3-state model with a constant bias is exactly the simulator's): each estimate within 4.9 of its standard
+    errors of the truth (asymptotically normal: a false-failure rate of 1e-6 over all), each verdict its Wald
+    statistic's, and the "mis-modelled" verdicts binomial(16, 0.05): at most 6 of 16 (P(≥ 7) < 1e-6).  ``reg``,
+    the adaptive filter's λ, is a choice of the filter and not a property of the data: it has no truth to recover."""
+    D = 16
+    seed = int(torch.randint(0, 2**31 - 1, (), generator=gen))
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=D, max_steps=seconds, dt=1.0, star_period=1.0, **gyro)
+    rec = record_environment(env, seconds, seed=seed)
+    n = 6 if estimate_bias else 3
+    truth0 = torch.as_tensor(rec.truth_mrp[:, 0])
+    if estimate_bias:
+        truth0 = torch.cat((truth0, torch.as_tensor(rec.truth_bias[:, 0])), -1)
+    P = torch.diag(torch.tensor([1e-8] * 3 + [1e-14] * 3, dtype=F64)[:n])
+    mean0 = truth0 + torch.randn(D, n, generator=gen, dtype=F64) * P.diagonal().sqrt()
+    configured = {**BASE, **{k: v for k, v in gyro.items() if v > 0}}
+    fits = fit_datasets(
+        rec,
+        configured,
+        [name],
+        datasets=D,
+        prior_mean=mean0,
+        prior_cov=P,
+        update_iterations=2,
+        noise_model=noise_model,
+        estimate_bias=estimate_bias,
+    )
+    assert bool(fits.converged.all()) and bool(fits.identified[name].all()), (fits.converged, fits.half_width)
+    truth = torch.as_tensor(configured[name], dtype=F64).reshape(-1)
+    x_true = truth.log() if name != "bias" else truth
+    se = fits.half_width / 1.959963984540054
+    assert_statistic(fits.fitted, x_true, se, f"{name} per data set ({noise_model})", false_failure=1e-6)
+    assert torch.equal(fits.inside[name], fits.statistic[name] <= chi2_quantile(0.95, fits.sizes[name]))
+    assert torch.equal(fits.judged[name], torch.ones(D, dtype=torch.bool))
+    assert int((~fits.inside[name]).sum()) <= 6, (name, fits.statistic[name])
 
 
 def test_the_joint_verdict_is_the_wald_test_over_the_identified_parameters():
@@ -122,9 +156,7 @@ def test_the_joint_verdict_is_the_wald_test_over_the_identified_parameters():
 
 def test_a_one_data_set_fit_reports_the_joint_verdict(gen):
     rec, mean0 = _recording(gen, 4, 100, star_period=1.0)
-    r = fit_attitude_parameters(
-        rec, BASE, ["sigma_s", "sigma_v"], prior_mean=mean0, prior_cov=P0, update_iterations=2
-    )
+    r = fit_attitude_parameters(rec, BASE, ["sigma_s", "sigma_v"], prior_mean=mean0, prior_cov=P0, update_iterations=2)
     assert r.converged and set(r.joint) == {"statistic", "dof", "p_value", "consistent"}
     assert r.joint["dof"] == 2
     assert r.joint["consistent"] == (r.joint["statistic"] <= chi2_quantile(0.95, 2))

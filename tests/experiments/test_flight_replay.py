@@ -75,8 +75,14 @@ def test_diagnose_without_truth_judges_the_innovations_alone(recorded, tmp_path)
         which: json.loads((tmp_path / which / "diagnose.json").read_text())["filters"] for which in ("truth", "flight")
     }
     for name, checks in judged["flight"].items():
-        assert [c["name"] for c in checks] == [c["name"] for c in judged["truth"][name] if c["name"] != "nees"]
-        assert checks == [c for c in judged["truth"][name] if c["name"] != "nees"]  # the same innovations
+        with_truth = [c for c in judged["truth"][name] if c["name"] != "nees"]
+        assert [c["name"] for c in checks] == [c["name"] for c in with_truth]
+        assert [c["value"] for c in checks] == [c["value"] for c in with_truth]  # the same innovations
+        # Bonferroni over the checks made: 2 without the truth at 5 %/2 each, 3 with it at 5 %/3 (wider bands)
+        assert_within([c["level"] for c in checks], 0.05 / 2, 1e-16, "each check's level without the truth")
+        assert_within([c["level"] for c in with_truth], 0.05 / 3, 1e-16, "each check's level with the truth")
+        for c, t in zip(checks, with_truth, strict=True):
+            assert t["band"][0] < c["band"][0] and c["band"][1] < t["band"][1], c["name"]
 
 
 def test_initial_estimate_columns_are_validated_naming_them(recorded):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from agsf_torch.experiments.reproduce import results_table
-from agsf_torch.experiments.statistics import WINDOW_TEXT, error_windows
+from agsf_torch.experiments.statistics import WINDOW_TEXT, clopper_pearson, error_windows
 from tests.helpers import assert_within, relative_bound
 
 
@@ -102,3 +102,26 @@ def test_fpke_ratio_is_per_run_and_skips_steps_without_a_residual():
     p10, p90 = np.array([0.25 + 0.1 * 0.25, 0.1 + 0.1 * 0.9]), np.array([0.25 + 0.9 * 0.25, 0.1 + 0.9 * 0.9])
     assert_within(lo[:2], p10, relative_bound(p10, 1e-7, 0.0), "10th percentile of the FPKE ratio")
     assert_within(hi[:2], p90, relative_bound(p90, 1e-7, 0.0), "90th percentile of the FPKE ratio")
+
+
+def test_clopper_pearson_is_the_exact_binomial_interval():
+    """The ends solve ``P(X ≥ k | p_low) = P(X ≤ k | p_high) = 2.5 %`` (the regularised incomplete beta function
+    in 40-digit arithmetic, mpmath); 0 and 1 at ``k = 0`` and ``k = n``; no trials gives NaN."""
+    import mpmath as mp
+
+    mp.mp.dps = 40
+    n, k = 100, np.array([0, 1, 7, 50, 99, 100])
+    got = clopper_pearson(k, n)
+
+    def solve(a, b, p, start):
+        return float(mp.findroot(lambda x: mp.betainc(a, b, 0, x, regularized=True) - mp.mpf(p), mp.mpf(start)))
+
+    want = np.array(
+        [
+            (0.0 if x == 0 else solve(x, n - x + 1, "0.025", lo), 1.0 if x == n else solve(x + 1, n - x, "0.975", hi))
+            for x, (lo, hi) in zip(k.tolist(), got.tolist(), strict=True)
+        ]
+    )
+    # the inverse incomplete beta function is accurate to a few ulps here (p away from 0 and 1); 1e-12 relative
+    assert_within(got, want, relative_bound(want, 1e-12, 0.0), "Clopper–Pearson interval")
+    assert np.isnan(clopper_pearson(0, 0)).all()
