@@ -11,14 +11,18 @@ independent data sets at once, each with its own parameters (the model's noise p
 method in log coordinates for the positive parameters (the gyro bias in rad/s): each data set's Hessian is one
 ``p × p`` block of a block-diagonal whole, so ``p + 1`` backward passes give every block.  It reports an
 uncertainty from the curvature: the inverse Hessian of ``−ℓ`` in the fitted coordinates, mapped to 95 %
-intervals.  Verdicts are Wald tests at the 5 % level:
+intervals.  Verdicts are tests at the 5 % level:
 
-* **each parameter**: the configured value against the learned one, ``(x̂ − x₀)ᵀ C⁻¹ (x̂ − x₀) ≤ χ²_k(0.95)``
-  with ``C`` the parameter's block of the inverse Hessian (``k = 1``, or 3 for the bias): for a scalar, the
-  configured value lies in its 95 % interval;
-* **jointly** (:attr:`FitResult.joint`): the same over every identified parameter, ``k`` their coordinates.
-  Each parameter's verdict alone flags a correct model with probability 5 %, so ``m`` of them flag at least
-  one with up to ``1 − 0.95^m``; the joint test holds the family-wise false-alarm rate at 5 %.
+* **jointly** (:attr:`FitResult.joint`): the likelihood-ratio test of the configured values,
+  ``2(ℓ(θ̂) − ℓ(θ₀)) ≤ χ²_p(0.95)`` over all ``p`` learned coordinates (one more pass of the filter at ``θ₀``).
+  It holds the family-wise false-alarm rate at 5 %, and, unlike a test built on the curvature, it keeps its
+  level where the likelihood is far from quadratic (a weakly identified noise density whose maximum may lie near
+  0: σ_v from ten seconds, σ_u from minutes, a prior scale from one trajectory);
+* **each parameter**: the same test when it is the only one learned; among several, Wald's,
+  ``(x̂ − x₀)ᵀ C⁻¹ (x̂ − x₀) ≤ χ²_k(0.95)`` with ``C`` the parameter's block of the inverse Hessian (``k = 1``, or 3
+  for the bias): for a scalar, the configured value lies in its 95 % interval.  Each flags a correct model 5 % of
+  the time where the data identify the parameter well, so ``m`` of them flag one up to ``1 − 0.95^m``: the joint
+  verdict is the one that controls the family.
 
 :func:`fit_attitude_parameters` is the one-data-set case (``agsf learn``).
 
@@ -30,7 +34,7 @@ take one noise model for all trajectories), ``prior_scale`` (multiplies the prio
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,11 +111,14 @@ class DatasetFits:
         curvature: ``[D, p]`` the diagonal of the Hessian of ``−ℓ`` at the estimate.
         identified: name → ``[D]`` bool: positive curvature and an interval no wider than
             :data:`WIDEST_LOG_INTERVAL` / :data:`WIDEST_BIAS_INTERVAL`.
-        statistic: name → ``[D]`` the parameter's Wald statistic at its configured value (χ² with ``sizes[name]``
-            degrees of freedom at the truth); inside: name → ``[D]`` bool, it passes at 5 %.
+        statistic: name → ``[D]`` the parameter's statistic at its configured value (χ² with ``sizes[name]``
+            degrees of freedom at the truth): the likelihood ratio when it is the only one learned, else Wald's;
+            inside: name → ``[D]`` bool, it passes at 5 %.
         judged: name → ``[D]`` bool: a verdict is given (converged and identified).
-        joint_statistic / joint_dof / joint_p_value: ``[D]`` the Wald test over the identified parameters;
-        joint_consistent: ``[D]`` bool (meaningful where ``joint_dof > 0`` and converged).
+        joint_statistic / joint_dof / joint_p_value: ``[D]`` the likelihood-ratio test of the configured values,
+        ``2(ℓ(θ̂) − ℓ(θ₀))`` against χ² with ``p`` degrees of freedom (every learned coordinate);
+        joint_consistent: ``[D]`` bool (meaningful where converged).
+        alternative_ratio: ``[A, D]`` the same statistic at each of ``alternatives``.
         converged / diverged: ``[D]`` bool; iterations: ``[D]`` Newton iterations; nll: ``[D]`` −ℓ at the estimate;
         history: −ℓ ``[D]`` per iteration.
     """
@@ -137,6 +144,7 @@ class DatasetFits:
     diverged: Tensor
     iterations: Tensor
     nll: Tensor
+    alternative_ratio: Tensor
     history: list = field(default_factory=list)
 
 
@@ -259,6 +267,8 @@ def fit_attitude_parameters(
     iterations = int(fits.iterations[0])
     if diverged:
         message = "diverged: stopped with the last finite parameters"
+    elif not converged and iterations < max_iter:
+        message = "not converged: no shorter Newton step decreased −log-likelihood (flat or noisy there)"
     elif not converged:
         message = f"not converged: Newton used all {max_iter} iterations (raise --max-iter)"
     else:
@@ -298,6 +308,7 @@ def fit_datasets(
     tolerance: float = 1e-6,
     log: Callable[[int, Tensor, dict], None] | None = None,
     chunk: int | None = None,
+    alternatives: Sequence[Mapping[str, object]] = (),
     **likelihood_kwargs,
 ) -> DatasetFits:
     """Maximum-likelihood fits of ``datasets`` independent data sets in one batched program.
@@ -325,6 +336,9 @@ def fit_datasets(
         log: optional ``log(iteration, nll [D], values)``, values name → ``[D]`` / ``[D, 3]``.
         chunk: fit at most this many data sets at a time, one group after another (the autograd graph of a pass
             holds every step of every trajectory: the memory it takes); ``None``: all at once.
+        alternatives: other values of the learned parameters (name → value, one for all data sets) at which the
+            likelihood-ratio statistic is also evaluated (:attr:`DatasetFits.alternative_ratio`): how often a filter
+            configured there would be judged mis-modelled, one forward pass each.
         **likelihood_kwargs: passed to :func:`attitude_log_likelihood`.
     """
     unknown = [p for p in list(learn) + list(configured) if p not in PARAMETERS]
@@ -365,6 +379,7 @@ def fit_datasets(
                     prior_cov=prior_cov,
                     max_iter=max_iter,
                     tolerance=tolerance,
+                    alternatives=alternatives,
                     **likelihood_kwargs,
                 )
             )
@@ -417,6 +432,8 @@ def fit_datasets(
     history: list[Tensor] = []
     for iteration in range(max_iter + 1):
         which = active.nonzero().flatten()
+        if not len(which):  # every data set stopped in the last line search
+            break
         fa, ga, Ha = _value_gradient_hessian(lambda z: nll(z, which), x[which])
         f[which], H[which] = fa, Ha
         bad = ~(torch.isfinite(fa) & torch.isfinite(ga).all(1) & torch.isfinite(Ha).flatten(1).all(1))
@@ -436,15 +453,41 @@ def fit_datasets(
         scale = torch.clamp(cap / step.abs().clamp_min(1e-300), max=1.0).amin(1, keepdim=True)
         step = step * scale
         slope = (g_kept * step).sum(1)  # < 0: a descent direction
-        x_new, moved = _backtrack(lambda z, m: nll(z, which[m]), x[which], f[which], step, slope)
+        x_new, moved, nonfinite = _backtrack(lambda z, m: nll(z, which[m]), x[which], f[which], step, slope)
         x[which] = x_new
+        diverged[which[~moved & nonfinite]] = True  # every shorter step gave a non-finite likelihood
         iterations[which] += 1
         # no decrease along a descent direction: the optimum to rounding where the decrement is small, else stuck
         near = definite[keep] & (0.5 * decrement[keep] <= 1e3 * tolerance)
         converged[which[~moved & near]] = True
         active[which[~moved]] = False
+    every = torch.arange(D)
     with torch.no_grad():
-        return _summarise(names, sizes, base, x, H, unpack(x), f, converged & ~diverged, diverged, iterations, history)
+        ratio = 2.0 * (nll(x0.expand(D, p), every) - f)  # the likelihood-ratio statistic at the configured values
+        others = []
+        for values in alternatives:
+            unknown = [k for k in values if k not in names]
+            if unknown:
+                raise ValueError(f"alternatives name {unknown}, which are not learned ({list(names)})")
+            point = dict(base, **{k: torch.as_tensor(v, dtype=F64) for k, v in values.items()})
+            xa = torch.cat([(point[k].log() if k in _POSITIVE else point[k]).reshape(-1) for k in names])
+            others.append(2.0 * (nll(xa.expand(D, p), every) - f))
+        alternative = torch.stack(others) if others else torch.zeros(0, D, dtype=F64)
+        return _summarise(
+            names,
+            sizes,
+            base,
+            x,
+            H,
+            unpack(x),
+            f,
+            converged & ~diverged,
+            diverged,
+            iterations,
+            history,
+            ratio,
+            alternative,
+        )
 
 
 def _concatenate(parts: list[DatasetFits]) -> DatasetFits:
@@ -465,8 +508,9 @@ def _concatenate(parts: list[DatasetFits]) -> DatasetFits:
     tensors = {
         f: cat(lambda p, f=f: getattr(p, f))
         for f in DatasetFits.__dataclass_fields__
-        if f not in ("names", "sizes", "history")
+        if f not in ("names", "sizes", "history", "alternative_ratio")
     }
+    tensors["alternative_ratio"] = torch.cat([p.alternative_ratio for p in parts], 1)
     return DatasetFits(names=first.names, sizes=first.sizes, history=history, **tensors)
 
 
@@ -505,13 +549,14 @@ def _backtrack(
     step: Tensor,
     slope: Tensor,
     halvings: int = 8,
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """Armijo backtracking per data set: ``x + αΔ`` with ``α = 1, ½, …, 2⁻⁸`` until ``f(x + αΔ) ≤ f + 10⁻⁴α gᵀΔ``;
-    returns the new ``x`` and which data sets moved.  ``nll(x_k, mask)`` evaluates the data sets ``mask``; one
+    returns the new ``x``, which data sets moved and which met a non-finite likelihood.  ``nll(x_k, mask)`` evaluates the data sets ``mask``; one
     batched evaluation per halving, of the data sets still trying a shorter step."""
     alpha = torch.ones_like(f)
     pending = torch.ones(f.shape, dtype=torch.bool)
     accepted = torch.zeros_like(pending)
+    nonfinite = torch.zeros_like(pending)
     with torch.no_grad():
         for _ in range(halvings):
             trial = x + alpha[:, None] * step
@@ -521,6 +566,7 @@ def _backtrack(
             except (RuntimeError, ValueError):  # a failed factorisation at a wild point: shorter steps for all
                 alpha = torch.where(pending, 0.5 * alpha, alpha)
                 continue
+            nonfinite |= pending & ~torch.isfinite(ft)
             ok = pending & torch.isfinite(ft) & (ft <= f + 1e-4 * alpha * slope)
             accepted |= ok
             pending &= ~ok
@@ -528,12 +574,15 @@ def _backtrack(
                 break
             alpha = torch.where(pending, 0.5 * alpha, alpha)
     alpha = torch.where(accepted, alpha, torch.zeros_like(alpha))
-    return x + alpha[:, None] * step, accepted
+    return x + alpha[:, None] * step, accepted, nonfinite
 
 
-def _summarise(names, sizes, base, x, H, values, f, converged, diverged, iterations, history) -> DatasetFits:
-    """Intervals from the inverse Hessian of each data set's positive-curvature coordinates, the Wald verdicts and
-    the identification flags, all ``[D]``-batched."""
+def _summarise(
+    names, sizes, base, x, H, values, f, converged, diverged, iterations, history, ratio, alternative
+) -> DatasetFits:
+    """Intervals from the inverse Hessian of each data set's positive-curvature coordinates, the verdicts (the
+    likelihood ratio jointly and for a single parameter, Wald's for each of several) and the identification flags,
+    all ``[D]``-batched."""
     D, p = x.shape
     curvature = H.diagonal(dim1=-2, dim2=-1)
     kept = curvature > 0  # [D, p]: coordinates the data constrain
@@ -561,12 +610,14 @@ def _summarise(names, sizes, base, x, H, values, f, converged, diverged, iterati
         ident = (kept[:, sl] & torch.isfinite(half[:, sl]) & (half[:, sl] <= widest)).all(1)
         identified[k] = ident
         coordinate_ok[:, sl] = ident[:, None]
-        statistic[k] = _wald(x[:, sl] - x_conf[:, sl], cov[:, sl, sl], usable[:, sl])
+        single = len(names) == 1  # the likelihood ratio is the parameter's own test
+        wald = _wald(x[:, sl] - x_conf[:, sl], cov[:, sl, sl], usable[:, sl])
+        statistic[k] = ratio.clamp_min(0.0) if single else wald
         inside[k] = statistic[k] <= chi2_quantile(LEVEL, s)
         judged[k] = ident & converged & torch.isfinite(statistic[k])
         i += s
-    joint = _wald(x - x_conf, cov, usable & coordinate_ok)
-    dof = (usable & coordinate_ok).sum(1)
+    joint = ratio.clamp_min(0.0)  # below 0 only by the rounding of a converged maximum
+    dof = torch.full((D,), p, dtype=torch.int64)
     limit = torch.tensor([chi2_quantile(LEVEL, int(k)) if k > 0 else float("nan") for k in dof.tolist()])
     from scipy.special import gammaincc
 
@@ -590,6 +641,7 @@ def _summarise(names, sizes, base, x, H, values, f, converged, diverged, iterati
         joint_dof=dof,
         joint_p_value=p_value,
         joint_consistent=(dof > 0) & (joint <= limit),
+        alternative_ratio=alternative.clamp_min(0.0),
         converged=converged,
         diverged=diverged,
         iterations=iterations,

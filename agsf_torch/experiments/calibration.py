@@ -11,8 +11,10 @@ error from the curvature and ``x*`` the truth:
 * **coverage** of the 95 % interval, and the **false-alarm rate** of the parameter's verdict at the truth
   (``1 −`` coverage for a scalar; the Wald test of its block for the bias), each with its Clopper–Pearson 95 %
   interval; the **joint verdict's** false-alarm rate (the family-wise one);
-* **detection rate** of a filter configured at ``c·x*`` for ``c ∈ {1.25, 1.5, 2, 3}`` and their inverses
-  (the estimate does not depend on the configured value, so one fit judges them all);
+* **detection rate** of a filter configured at ``c·x*`` for ``c ∈ {1.25, 1.5, 2, 3}`` and their inverses (the
+  estimate does not depend on the configured value, so one fit judges them all: by the likelihood ratio at
+  ``c·x*``, one more pass of the filter each, where one parameter is learned; by Wald's test on the coordinate
+  among several);
 * beside ours, the **autocovariance least-squares** estimate of ``σ_s`` and ``σ_v`` on the same data
   (:mod:`agsf_torch.attitude.autocovariance`), where the setting is the 3-state model.
 
@@ -142,8 +144,22 @@ def calibrate_setting(base: ExperimentConfig, setting: CalibrationSetting, datas
     rec = record_environment(make_env(cfg), cfg.num_steps, cfg.seed)
     configured, kwargs = learning_problem(cfg, rec)
     chunk = max(1, GRAPH_BUDGET // (setting.trajectories * cfg.num_steps * (6 if cfg.estimate_bias else 1)))
+    factors = _factors()
+    # one parameter: its verdict is the likelihood ratio, judged at each mis-scaling by one pass of the filter
+    alternatives = (
+        [{setting.learn[0]: [float(v) * f for v in np.atleast_1d(configured[setting.learn[0]])]} for f in factors]
+        if len(setting.learn) == 1
+        else []
+    )
     fits = fit_datasets(
-        rec, configured, list(setting.learn), datasets=datasets, tolerance=TOLERANCE, chunk=chunk, **kwargs
+        rec,
+        configured,
+        list(setting.learn),
+        datasets=datasets,
+        tolerance=TOLERANCE,
+        chunk=chunk,
+        alternatives=alternatives,
+        **kwargs,
     )
     result = {
         "label": setting.label,
@@ -169,8 +185,14 @@ def calibrate_setting(base: ExperimentConfig, setting: CalibrationSetting, datas
     return result
 
 
+def _factors() -> list[float]:
+    """The mis-scalings judged: :data:`MIS_SCALINGS` and their inverses."""
+    return [f for c in MIS_SCALINGS for f in (c, 1.0 / c)]
+
+
 def _coordinates(fits: DatasetFits) -> list[dict]:
-    """Per fitted coordinate: identification, error statistics, coverage, false alarm and detection."""
+    """Per fitted coordinate: identification, error statistics, coverage, false alarm and detection (the
+    likelihood ratio's for a single parameter, Wald's on the coordinate among several)."""
     out, i = [], 0
     for name in fits.names:
         size = fits.sizes[name]
@@ -198,17 +220,28 @@ def _coordinates(fits: DatasetFits) -> list[dict]:
             }
             if size == 1:
                 entry["false_alarm"] = _rate(~fits.inside[name][judged])
-                detection = {}
-                for c in MIS_SCALINGS:
-                    for factor in (c, 1.0 / c):
-                        wrong = x_true[judged, axis] + math.log(factor) if positive else x_true[judged, axis] * factor
-                        detection[f"{factor:.4g}"] = _rate((x_hat - wrong).abs() > _Z95 * se)
-                entry["detection"] = detection
+                entry["detection"] = _detection(fits, name, judged, x_hat, se, x_true[judged, axis], positive)
             out.append(entry)
-        if size > 1:  # the parameter's verdict is its block's Wald test
+        if size > 1:  # the parameter's verdict is its block's test
             judged = fits.judged[name]
-            out[-1]["block_false_alarm"] = _rate(fits.statistic[name][judged] > chi2_quantile(0.95, size))
+            out[-1]["block_false_alarm"] = _rate(~fits.inside[name][judged])
+            out[-1]["detection"] = _detection(fits, name, judged, None, None, None, positive)
         i += size
+    return out
+
+
+def _detection(fits: DatasetFits, name: str, judged, x_hat, se, x_true, positive: bool) -> dict:
+    """The share of judged data sets whose verdict flags a filter configured at each of :func:`_factors` × the
+    truth: the likelihood ratio at that value (a single parameter: :attr:`DatasetFits.alternative_ratio`), or Wald's
+    on the coordinate (``x_hat``, ``se``, ``x_true`` of the judged data sets)."""
+    out = {}
+    for a, factor in enumerate(_factors()):
+        if len(fits.names) == 1:
+            flagged = fits.alternative_ratio[a, judged] > chi2_quantile(0.95, fits.sizes[name])
+        else:
+            wrong = x_true + math.log(factor) if positive else x_true * factor
+            flagged = (x_hat - wrong).abs() > _Z95 * se
+        out[f"{factor:.4g}"] = _rate(flagged)
     return out
 
 

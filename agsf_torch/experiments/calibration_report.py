@@ -52,7 +52,7 @@ def calibration_markdown(results: list[dict], verdicts: list[dict] | None = None
                 continue
             cells = [_pct(c["detection"][f"{f:.4g}"]) for f in MIS_SCALINGS]
             cells += [_pct(c["detection"][f"{1.0 / f:.4g}"]) for f in MIS_SCALINGS]
-            detection.append(f"| {r['label']} | {c['name']} | " + " | ".join(cells) + " |")
+            detection.append(f"| {r['label']} | {c['name'].split('[')[0]} | " + " | ".join(cells) + " |")
     joint = [
         "| setting | parameters | converged | joint verdict's false alarm | any parameter's false alarm |",
         "|---|---|---|---|---|",

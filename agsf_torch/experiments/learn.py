@@ -144,11 +144,11 @@ def learn(
             f"  {k}: learned {_digits(res.learned[k])}, 95 % interval {_digits(res.interval[k])}, "
             f"configured {_digits(res.configured[k])} — {flag}"
         )
-    if res.joint and len([k for k in names if res.inside[k] is not None]) > 1:
+    if res.joint and len(names) > 1:
         j = res.joint
         verdict = "consistent with the data" if j["consistent"] else "mis-modelled"
         lines.append(
-            f"  jointly: {verdict} (Wald χ² {j['statistic']:.3g} on {j['dof']} degrees of freedom, p = "
+            f"  jointly: {verdict} (likelihood ratio {j['statistic']:.3g}, χ² on {j['dof']} degrees of freedom, p = "
             f"{j['p_value']:.3g}: it flags a correct model 5 % of the time, as each line above does on its own)"
         )
     report = "\n".join(lines)

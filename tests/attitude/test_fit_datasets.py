@@ -134,7 +134,7 @@ def test_a_correctly_configured_filter_is_judged_consistent_for_every_learnable_
     assert int((~fits.inside[name]).sum()) <= 6, (name, fits.statistic[name])
 
 
-def test_the_joint_verdict_is_the_wald_test_over_the_identified_parameters():
+def test_the_wald_statistic_is_the_textbook_one():
     """``_wald`` against the textbook ``dᵀC⁻¹d`` on random positive definite blocks (a solve of a well-conditioned
     system: 32 ε relative to dᵀC⁻¹d's terms, |d|²/λ_min), and 0 where no coordinate is used."""
     g = torch.Generator().manual_seed(0)
