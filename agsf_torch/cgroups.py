@@ -1,11 +1,9 @@
-"""The limits a Linux control group sets on this process: its CPU quota and its memory.
+"""The memory a Linux control group still allows this process.
 
-A container or a batch scheduler (Docker ``--cpus``, Kubernetes, Slurm, systemd) often limits a process's CPU
-*time* instead of the CPUs it may run on: the process then sees every CPU of the host (its affinity, ``os.cpu_count``)
-but may use only ``quota / period`` of them; threads and worker processes sized from the CPU count then take turns
-and run slower than fewer would.  So the package reads the quota as well (:func:`cpu_limit`, used by
-:func:`agsf_torch.processes.available_cpus`), and the memory limit (:func:`memory_headroom`, used by the memory
-checks of :mod:`agsf_torch.experiments.resources`).
+A container or a batch scheduler (Docker ``--memory``, Kubernetes, Slurm, systemd) limits a process's memory below
+what the machine reports free (``MemAvailable``); the memory checks of :mod:`agsf_torch.experiments.resources` read the
+group's limit as well (:func:`memory_headroom`).  Kept by hand because no library reads it (psutil's available memory
+and ``/proc/meminfo`` are the machine's; joblib reads the CPU quota only, :func:`agsf_torch.processes.available_cpus`).
 
 Both cgroup versions are read.  This process's group comes from ``/proc/self/cgroup`` and the hierarchies' mounts
 from ``/proc/self/mountinfo`` (the mount whose root holds the group; its fields' octal escapes decoded); a limit set
@@ -24,11 +22,9 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-__all__ = ["cpu_limit", "memory_headroom"]
+__all__ = ["memory_headroom"]
 
-#: The files :func:`cpu_limit` and :func:`memory_headroom` read: v1 ``(quota, period)`` and ``(limit, usage)``, v2
-#: ``(limit, usage)`` (v2's CPU quota and period share one file, ``cpu.max``).
-_V1_CPU = ("cpu.cfs_quota_us", "cpu.cfs_period_us")
+#: The files :func:`memory_headroom` reads, ``(limit, usage)``: v1, v2.
 _V1_MEMORY = ("memory.limit_in_bytes", "memory.usage_in_bytes")
 _V2_MEMORY = ("memory.max", "memory.current")
 #: A v1 memory limit at or above this is "no limit" (the kernel reports ``PAGE_COUNTER_MAX`` pages, ~2⁶³ bytes).
@@ -91,26 +87,6 @@ def _read(folder: Path, name: str) -> list[str] | None:
         return (folder / name).read_text(errors="replace").split()
     except OSError:
         return None
-
-
-def cpu_limit(proc: Path = Path("/proc")) -> float | None:
-    """The CPUs' worth of time this process's control groups allow (``quota / period``, e.g. ``1.5``), the tightest
-    over the enclosing groups of both cgroup versions; ``None`` where no group sets a quota (or there is no
-    cgroup file system).
-
-    Args:
-        proc: the ``/proc`` to read (tests pass a fake tree).
-    """
-    limits = []
-    for folder in _groups("", proc):  # v2: "cpu.max" holds "max 100000" or "150000 100000"
-        words = _read(folder, "cpu.max")
-        if words and len(words) == 2 and words[0] != "max" and words[0].isdigit() and words[1].isdigit():
-            limits.append(int(words[0]) / max(int(words[1]), 1))
-    for folder in _groups("cpu", proc):  # v1: a quota of -1 is no limit
-        quota, period = (_read(folder, name) for name in _V1_CPU)
-        if quota and period and quota[0].lstrip("-").isdigit() and int(quota[0]) > 0 and period[0].isdigit():
-            limits.append(int(quota[0]) / max(int(period[0]), 1))
-    return min(limits) if limits else None
 
 
 def memory_headroom(proc: Path = Path("/proc")) -> int | None:

@@ -9,22 +9,20 @@ processes (compiling kernels side by side, :func:`agsf_torch.fused.lanes.compili
 
 from __future__ import annotations
 
-import math
 import os
 import sys
-
-from .cgroups import cpu_limit
 
 __all__ = ["available_cpus", "interpreter_env"]
 
 
 def available_cpus() -> int:
-    """The CPUs this process may use: those it may run on (its affinity where the system reports one, else the CPU
-    count), capped by its control groups' CPU quota (:func:`agsf_torch.cgroups.cpu_limit`; rounded up: a quota of
-    1.5 CPUs lets two threads run half the time each, as Java's and joblib's CPU counts read it), at least 1."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    quota = cpu_limit()
-    return max(1, cpus if quota is None else min(cpus, math.ceil(quota)))
+    """The CPUs this process may use, at least 1: :func:`joblib.cpu_count`, the least of the CPU count, this
+    process's affinity (``os.sched_getaffinity``), its control group's CPU quota rounded up (a quota of 1.5 CPUs lets
+    two threads run half the time each; cgroup v2 ``cpu.max`` or v1 ``cpu.cfs_quota_us`` of the group the container
+    sees as its own, as Docker ``--cpus`` and Kubernetes set it) and ``LOKY_MAX_CPU_COUNT`` where it is set."""
+    import joblib
+
+    return joblib.cpu_count(only_physical_cores=False)
 
 
 def interpreter_env(**extra: str) -> dict[str, str]:

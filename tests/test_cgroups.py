@@ -1,5 +1,5 @@
-"""Control-group limits (agsf_torch.cgroups) on fake /proc and cgroup trees, and their use by the CPU count and the
-memory budget."""
+"""Control-group memory limits (agsf_torch.cgroups) on fake /proc and cgroup trees, and their use by the memory
+budget."""
 
 from __future__ import annotations
 
@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from agsf_torch import processes
-from agsf_torch.cgroups import cpu_limit, memory_headroom
+from agsf_torch.cgroups import memory_headroom
 from agsf_torch.experiments import resources
 from tests.helpers import assert_within
 
@@ -33,48 +32,42 @@ def fake_system(tmp_path: Path, memberships: list[str], mounts: list[tuple[str, 
 V2_MOUNT = [("/", "cg", "cgroup2", "rw,nsdelegate")]
 
 
-def test_v2_quota_of_the_process_group(tmp_path):
-    proc = fake_system(tmp_path, ["0::/job/task"], V2_MOUNT, {"cg/job/task/cpu.max": "150000 100000\n"})
-    assert cpu_limit(proc) == 1.5
+def limit(folder: str, limit: int, used: int = 0) -> dict[str, str]:
+    """The files of a v2 group at ``folder`` (under tmp_path) that limits its memory to ``limit`` bytes, ``used`` in
+    use: its headroom is ``limit - used``."""
+    return {f"{folder}/memory.max": f"{limit}\n", f"{folder}/memory.current": f"{used}\n"}
 
 
-def test_v2_unlimited_and_malformed_quota_are_no_limit(tmp_path):
-    proc = fake_system(tmp_path, ["0::/job"], V2_MOUNT, {"cg/job/cpu.max": "max 100000\n", "cg/cpu.max": "garbage\n"})
-    assert cpu_limit(proc) is None
+def test_v2_limit_of_the_process_group(tmp_path):
+    proc = fake_system(tmp_path, ["0::/job/task"], V2_MOUNT, limit("cg/job/task", 150000, 50000))
+    assert memory_headroom(proc) == 100000
+
+
+def test_v2_unlimited_and_malformed_limits_are_no_limit(tmp_path):
+    files = {**limit("cg/job", 0), "cg/job/memory.max": "max\n", **limit("cg", 0), "cg/memory.max": "garbage\n"}
+    proc = fake_system(tmp_path, ["0::/job"], V2_MOUNT, files)
+    assert memory_headroom(proc) is None
 
 
 def test_the_tightest_enclosing_group_wins(tmp_path):
-    proc = fake_system(
-        tmp_path,
-        ["0::/a/b"],
-        V2_MOUNT,
-        {"cg/a/b/cpu.max": "400000 100000\n", "cg/a/cpu.max": "100000 50000\n", "cg/cpu.max": "800000 100000\n"},
-    )
-    assert cpu_limit(proc) == 2.0
-
-
-def test_v1_quota_and_its_no_limit_value(tmp_path):
-    mounts = [("/", "cpu", "cgroup", "rw,cpu,cpuacct")]
-    files = {"cpu/slurm/cpu.cfs_quota_us": "300000\n", "cpu/slurm/cpu.cfs_period_us": "100000\n"}
-    proc = fake_system(tmp_path, ["4:cpu,cpuacct:/slurm", "0::/"], mounts, files)
-    assert cpu_limit(proc) == 3.0
-    (tmp_path / "cpu/slurm/cpu.cfs_quota_us").write_text("-1\n")
-    assert cpu_limit(proc) is None
+    files = {**limit("cg/a/b", 400000), **limit("cg/a", 200000), **limit("cg", 800000)}
+    proc = fake_system(tmp_path, ["0::/a/b"], V2_MOUNT, files)
+    assert memory_headroom(proc) == 200000
 
 
 def test_a_namespaced_container_reads_its_own_mount(tmp_path):
     """The host's path of the group (``/docker/abc``) does not exist under the container's mount, which is the
     container's own group."""
-    proc = fake_system(tmp_path, ["0::/docker/abc"], V2_MOUNT, {"cg/cpu.max": "50000 100000\n"})
-    assert cpu_limit(proc) == 0.5
+    proc = fake_system(tmp_path, ["0::/docker/abc"], V2_MOUNT, limit("cg", 50000))
+    assert memory_headroom(proc) == 50000
 
 
 def test_no_cgroup_file_system(tmp_path):
     proc = tmp_path / "proc"
     proc.mkdir()
-    assert cpu_limit(proc) is None and memory_headroom(proc) is None
+    assert memory_headroom(proc) is None
     other = fake_system(tmp_path / "x", ["0::/"], [("/", "tmpfs", "tmpfs", "rw")], {})
-    assert cpu_limit(other) is None and memory_headroom(other) is None
+    assert memory_headroom(other) is None
 
 
 def test_memory_headroom_v1_and_v2_the_tightest_wins(tmp_path):
@@ -97,13 +90,6 @@ def test_memory_headroom_v1_and_v2_the_tightest_wins(tmp_path):
     assert memory_headroom(proc) is None
 
 
-@pytest.mark.parametrize(("quota", "expected"), [(None, 8), (1.5, 2), (0.2, 1), (3.0, 3), (64.0, 8)])
-def test_available_cpus_is_capped_by_the_quota_rounded_up(monkeypatch, quota, expected):
-    monkeypatch.setattr(processes.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
-    monkeypatch.setattr(processes, "cpu_limit", lambda: quota)
-    assert processes.available_cpus() == expected
-
-
 def test_available_memory_is_capped_by_the_groups_headroom(monkeypatch):
     unlimited = resources.available_memory()
     monkeypatch.setattr(resources, "memory_headroom", lambda: 1000)
@@ -115,57 +101,53 @@ def test_available_memory_is_capped_by_the_groups_headroom(monkeypatch):
 
 
 def test_this_machine_reads_without_error():
-    """Whatever this machine's groups say, the readers return a number or None, and the count is at least 1."""
-    for value in (cpu_limit(), memory_headroom()):
-        assert value is None or value >= 0
-    assert processes.available_cpus() >= 1
+    """Whatever this machine's groups say, the reader returns a number or None."""
+    value = memory_headroom()
+    assert value is None or value >= 0
 
 
 def test_escaped_mount_points_are_decoded(tmp_path):
     """The kernel writes a space in a mount point as ``\\040``."""
-    proc = fake_system(tmp_path, ["0::/"], [], {"my cg/cpu.max": "50000 100000\n"})
+    proc = fake_system(tmp_path, ["0::/"], [], limit("my cg", 50000))
     (proc / "self" / "mountinfo").write_text(f"30 23 0:28 / {tmp_path}/my\\040cg rw - cgroup2 cgroup rw\n")
-    assert cpu_limit(proc) == 0.5
+    assert memory_headroom(proc) == 50000
 
 
 def test_of_the_mounts_that_show_the_group_the_shallowest_is_read(tmp_path):
     """Every mount of a hierarchy shows the same groups: the whole tree's shows the enclosing ``machine.slice`` and its
     limit, a bind of the service's group alone does not, whatever the order of the mounts."""
     mounts = [("/machine.slice/svc", "svc-only", "cgroup2", "rw"), ("/", "whole", "cgroup2", "rw")]
-    files = {
-        "whole/machine.slice/cpu.max": "100000 100000\n",
-        "whole/machine.slice/svc/cpu.max": "max 100000\n",
-        "svc-only/cpu.max": "max 100000\n",
-    }
+    files = {**limit("whole/machine.slice", 100000), **limit("whole/machine.slice/svc", 0), **limit("svc-only", 0)}
+    files["whole/machine.slice/svc/memory.max"] = files["svc-only/memory.max"] = "max\n"
     proc = fake_system(tmp_path, ["0::/machine.slice/svc"], mounts, files)
-    assert cpu_limit(proc) == 1.0
+    assert memory_headroom(proc) == 100000
 
 
 def test_a_group_shown_by_a_deeper_mount_only_is_read_there(tmp_path):
     mounts = [("/", "whole", "cgroup2", "rw"), ("/machine.slice/svc", "svc-only", "cgroup2", "rw")]
     (tmp_path / "whole").mkdir()  # the whole tree's mount does not show the group's folder
-    proc = fake_system(tmp_path, ["0::/machine.slice/svc"], mounts, {"svc-only/cpu.max": "50000 100000\n"})
-    assert cpu_limit(proc) == 0.5
+    proc = fake_system(tmp_path, ["0::/machine.slice/svc"], mounts, limit("svc-only", 50000))
+    assert memory_headroom(proc) == 50000
 
 
 def test_a_siblings_mount_is_not_read(tmp_path):
     """A mount rooted at another group beside this process's (``/../other``) sets none of its limits."""
-    proc = fake_system(tmp_path, ["0::/"], [("/../other", "cg", "cgroup2", "rw")], {"cg/cpu.max": "50000 100000\n"})
-    assert cpu_limit(proc) is None
+    proc = fake_system(tmp_path, ["0::/"], [("/../other", "cg", "cgroup2", "rw")], limit("cg", 50000))
+    assert memory_headroom(proc) is None
 
 
 def test_a_mount_point_not_in_utf8_is_read(tmp_path):
     """Paths are bytes to the kernel; one that is not UTF-8 elsewhere in the table does not stop the reader."""
-    proc = fake_system(tmp_path, ["0::/"], V2_MOUNT, {"cg/cpu.max": "200000 100000\n"})
+    proc = fake_system(tmp_path, ["0::/"], V2_MOUNT, limit("cg", 200000))
     with open(proc / "self" / "mountinfo", "ab") as fh:
         fh.write(b"41 23 0:40 / /media/Caf\xe9 rw - vfat /dev/sdb1 rw\n")
-    assert cpu_limit(proc) == 2.0
+    assert memory_headroom(proc) == 200000
 
 
 def test_a_mount_rooted_outside_a_nested_namespace_is_read_as_an_enclosing_group(tmp_path):
     """``/..``: the mount shows a group above this namespace's; its limit applies to this process too."""
-    proc = fake_system(tmp_path, ["0::/"], [("/../..", "cg", "cgroup2", "rw")], {"cg/cpu.max": "100000 100000\n"})
-    assert cpu_limit(proc) == 1.0
+    proc = fake_system(tmp_path, ["0::/"], [("/../..", "cg", "cgroup2", "rw")], limit("cg", 100000))
+    assert memory_headroom(proc) == 100000
 
 
 @pytest.mark.parametrize(

@@ -15,6 +15,8 @@ open); :func:`write_figures` saves them:
   runs) with the propagated weights (before the weight update) and the adapted
   weights (after it).
 
+Panels, titles and the figure legends (``"outside lower center"``) are placed by matplotlib's constrained layout.
+
 Lines carry a ``gid`` naming what they plot (``"GSF/rms_error/0"``,
 ``"GSF/3sigma/0"``, ``"AGSF/weight_top/2"``, …) so that tests and notebooks can
 find them.
@@ -29,7 +31,6 @@ from typing import Any
 import numpy as np
 
 from ..storage.files import save_figure
-from .figure_layout import fit_grid
 from .file_writer import FileWriter
 
 __all__ = [
@@ -57,7 +58,7 @@ _MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*", "<", ">")
 def _figure(figsize: tuple[float, float]) -> Any:
     from matplotlib.figure import Figure
 
-    return Figure(figsize=figsize)
+    return Figure(figsize=figsize, layout="constrained")
 
 
 def _filter_colors(summary: dict[str, Any]) -> dict[str, str]:
@@ -131,7 +132,6 @@ def rms_figure(summary: dict[str, Any]) -> Any:
         handles.append(star)
         labels.append("star frame")
     ax.legend(handles, labels, fontsize=8)
-    fit_grid(fig, [[ax]])
     return fig
 
 
@@ -250,15 +250,13 @@ def axes_figure(summary: dict[str, Any]) -> Any:
         handles.append(star)
         labels.append("star frame")
     ncol = min(len(labels), 3)
-    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=9, frameon=False)
+    fig.legend(handles, labels, loc="outside lower center", ncol=ncol, fontsize=9, frameon=False)
     what = "error about the true body axes" + (" and gyro bias error" if bias else "")
     state = "" if bias else "\n(the filters' state: the attitude alone, no gyro-bias states)"
     fig.suptitle(
         f"{_label(summary)}: RMS over {runs} runs of the {what}, and 3× the RMS of each filter's σ{state}",
         fontsize=11,
     )
-    rows_of_legend = -(-len(labels) // ncol)
-    fit_grid(fig, grid, bottom_band=0.25 + 0.22 * rows_of_legend)
     return fig
 
 
@@ -315,13 +313,12 @@ def weights_figure(summary: dict[str, Any]) -> Any:
     if star is not None:
         handles.append(star)
         labels.append("star frame")
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=9, frameon=False)
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 8), fontsize=9, frameon=False)
     fig.suptitle(
         f"{_label(summary)}: component weights of each mixture filter, run 0 "
         "(stacked: each band's thickness is one component's weight)",
         fontsize=11,
     )
-    fit_grid(fig, grid, bottom_band=0.4 if ncomp <= 7 else 0.7)
     return fig
 
 
@@ -375,7 +372,6 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
             va="center",
             transform=ax.transAxes,
         )
-    fit_grid(fig, [[ax]])
     return fig
 
 

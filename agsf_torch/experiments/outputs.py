@@ -158,43 +158,15 @@ def prepare_output(out: Path, kind: str, digest: str, config: dict[str, Any], ig
     return out
 
 
-#: An array is deflated in an ``.npz`` written by :func:`save_npz` when a sample of its bytes
-#: (:data:`DEFLATE_SAMPLE_BYTES`) deflates to less than this fraction of its size.
-DEFLATE_BELOW = 0.5
-#: The bytes of an array :func:`save_npz` tries to deflate before deciding (its first ones).
-DEFLATE_SAMPLE_BYTES = 1 << 16
-
-
 def save_npz(path: Path, data: dict[str, np.ndarray]) -> Path:
-    """An ``.npz`` of ``data`` (what :func:`numpy.load` reads) written atomically to exactly ``path``: each array
-    deflated where that pays, the others stored as they are.
+    """:func:`numpy.savez` of ``data`` written atomically to exactly ``path`` (what :func:`numpy.load` reads with
+    ``allow_pickle=False``; entries dated 1980-01-01, so the file's bytes depend on ``data`` alone).
 
-    An array is deflated when the first :data:`DEFLATE_SAMPLE_BYTES` of it deflate below :data:`DEFLATE_BELOW` of
-    their size: flags, counts and one Gaussian's weights (100–1000× smaller).  The filters' float64 outputs (a
-    covariance, an estimate, an error) are rounding-level noise in their low bits and shrink by 5–30 %, for most of
-    the time the file took (measured on a 100-run case of four filters, 29 MB: ``np.savez_compressed`` 0.48 s and
-    19.3 MB; this 0.03 s and 24 MB).  Entries are dated 1980-01-01, as :func:`numpy.savez` dates them: the file's
-    bytes depend on ``data`` alone."""
-    import zipfile
-
-    with atomic_open(path) as fh, zipfile.ZipFile(fh, "w", allowZip64=True) as archive:
-        for key, value in data.items():
-            array = np.asanyarray(value)
-            entry = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            entry.compress_type = zipfile.ZIP_DEFLATED if _deflates(array) else zipfile.ZIP_STORED
-            with archive.open(entry, "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, array, allow_pickle=False)
+    Stored, not deflated (:func:`numpy.savez_compressed`): most of the bytes are the filters' float64 outputs,
+    whose low bits are rounding noise that deflate shrinks by a third at many times the writing time."""
+    with atomic_open(path) as fh:
+        np.savez(fh, allow_pickle=False, **data)
     return Path(path)
-
-
-def _deflates(array: np.ndarray) -> bool:
-    """Whether the first :data:`DEFLATE_SAMPLE_BYTES` of ``array`` deflate below :data:`DEFLATE_BELOW` of their size."""
-    import zlib
-
-    flat = array.reshape(-1)
-    count = max(1, DEFLATE_SAMPLE_BYTES // max(1, array.itemsize))
-    sample = np.ascontiguousarray(flat[:count]).tobytes()
-    return len(sample) > 0 and len(zlib.compress(sample, 1)) < DEFLATE_BELOW * len(sample)
 
 
 #: The :class:`~agsf_torch.experiments.runner.FilterTrace` arrays ``runs.npz`` holds per filter (``error_angle``,
@@ -294,7 +266,7 @@ def save_runs(
     arrays = {**data, "units": np.array(json.dumps(units, sort_keys=True))}
     if writer is None:
         save_npz(path, arrays)
-    else:  # handed to a worker, or too large to copy: a thread (compression releases the interpreter lock)
+    else:  # handed to a worker, or too large to copy: a thread (writing releases the interpreter lock)
         writer.submit(save_npz, path, arrays, path=path, thread=too_large_to_hand_over(arrays.values()))
     return data
 

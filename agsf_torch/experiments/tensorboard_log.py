@@ -39,16 +39,23 @@ hyperparameter with the complete domain of values over all sessions and
 experiment configuration, so no run exists only to hold it.  The session and the
 experiment's curves share the run directory: the HParams tab links each session to
 its curves.  :func:`run_name` names such a directory by its parameters.
+
+Writers
+-------
+Every record is written by :class:`torch.utils.tensorboard.SummaryWriter` (its scalars, text, histograms and event
+files) and the HParams summaries are built by :mod:`tensorboard.plugins.hparams.summary_v2`.  This module adds only
+what neither does: the layout above (a run per filter, the step as simulated time), a run written whole (in a hidden
+folder moved into place, so that an interrupted run leaves no truncated curves), the experiment's ``differs`` flags
+(TensorBoard's domains leave them unset; the HParams tab lists the differing hyperparameters first), and the
+session's end (TensorBoard builds it only through TensorFlow).
 """
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import re
 import shutil
-import struct
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -176,36 +183,32 @@ def filter_events(data: dict[str, np.ndarray], summary: dict[str, Any]) -> dict[
 
 
 def write_filter_run(run: Path, events: dict[str, Any]) -> None:
-    """Write one filter's run ``run`` (a folder) from its :func:`filter_events` entry: the ``time_axis`` text at step
-    0, one event per step holding every tag's scalar at that step, then the weight histograms.  The event file is
-    written in a hidden folder beside ``run`` (``.{name}.{hex}.tmp``) and moved into ``run`` when whole, in place of
-    any event file ``run`` held (a task written again after its worker died leaves one run, not two): an interrupted
-    run leaves no truncated curves.
-
-    The records are those of :class:`torch.utils.tensorboard.SummaryWriter` (its text and histogram summaries, its
-    histogram buckets, ``simple_value`` scalars), written in this thread: one event per step for all the scalar tags,
-    not one per value through a queue to a writer thread (measured on a 100-run case of four filters, 12,000
-    scalars: 0.37 s that way, 0.05 s this)."""
-    from torch.utils.tensorboard.summary import histogram, text
+    """Write one filter's run ``run`` (a folder) from its :func:`filter_events` entry with a
+    :class:`~torch.utils.tensorboard.SummaryWriter`: the ``time_axis`` text at step 0, one event per step holding
+    every tag's scalar at that step (``simple_value``, as ``add_scalar`` writes it; one summary of all tags, as
+    TensorFlow's merged summaries are written, since the writer checksums each record in Python), then the weight
+    histograms.  The event file is written in a hidden folder beside ``run`` (``.{name}.{hex}.tmp``) and moved into
+    ``run`` when whole, in place of any event file ``run`` held (a task written again after its worker died leaves one
+    run, not two): an interrupted run leaves no truncated curves."""
+    from tensorboard.compat.proto.summary_pb2 import Summary
+    from torch.utils.tensorboard import SummaryWriter
 
     run = Path(run)
     tmp = temporary_name(run)
     try:
-        tmp.mkdir(parents=True)
-        with _EventFile(tmp) as out:
-            out.write(text("time_axis", events["text"]), 0)
+        with SummaryWriter(str(tmp)) as writer:
+            writer.add_text("time_axis", events["text"], 0)
             by_step: dict[int, list[Any]] = {}
             for key, (steps, values) in events["scalars"].items():
                 for step, value in zip(np.asarray(steps).tolist(), np.asarray(values, dtype=np.float64).tolist()):
-                    by_step.setdefault(int(step), []).append((key, value))
+                    by_step.setdefault(int(step), []).append(Summary.Value(tag=key, simple_value=value))
             for step in sorted(by_step):
-                out.write_scalars(by_step[step], step)
+                writer.file_writer.add_summary(Summary(value=by_step[step]), step)
             if events["histograms"] is not None:
-                steps, values = events["histograms"]
-                for k in range(len(steps)):
-                    out.write(histogram("weights/all_runs", values[k], _HISTOGRAM_BUCKETS), int(steps[k]))
+                for step, values in zip(*events["histograms"]):
+                    writer.add_histogram("weights/all_runs", values, int(step))
         run.mkdir(parents=True, exist_ok=True)
-        for earlier in run.glob("events.out.tfevents.*"):  # a retaken task's first write: the run is this one
+        for earlier in run.glob(EVENTS_GLOB):  # a retaken task's first write: the run is this one
             earlier.unlink()
         for event_file in sorted(tmp.iterdir()):
             os.replace(event_file, run / event_file.name)
@@ -213,70 +216,6 @@ def write_filter_run(run: Path, events: dict[str, Any]) -> None:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-
-
-def _tensorflow_buckets() -> list[float]:
-    """The histogram bucket edges :class:`torch.utils.tensorboard.SummaryWriter` uses (TensorFlow's: ±1e-12 growing by
-    10 % to ±1e20, and 0)."""
-    v, buckets = 1e-12, []
-    while v < 1e20:
-        buckets.append(v)
-        v *= 1.1
-    return [-b for b in reversed(buckets)] + [0.0] + buckets
-
-
-_HISTOGRAM_BUCKETS = _tensorflow_buckets()
-
-
-class _EventFile:
-    """One TensorBoard event file in ``folder``, written in this thread: a ``file_version`` event, then
-    :meth:`write`'s (``wall_time`` the clock time of each)."""
-
-    def __init__(self, folder: Path) -> None:
-        import socket
-
-        from tensorboard.compat.proto.event_pb2 import Event
-
-        self._event = Event
-        name = f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}.{os.getpid()}.{next(_EVENT_FILES)}"
-        self._file = open(Path(folder) / name, "wb")  # noqa: SIM115 - closed by __exit__
-        self._put(Event(wall_time=time.time(), file_version="brain.Event:2"))
-
-    def _put(self, event: Any) -> None:
-        """One record: the length (``uint64``), its masked CRC-32C, the serialised event, its masked CRC-32C."""
-        data = event.SerializeToString()
-        header = struct.pack("<Q", len(data))
-        self._file.write(header + _masked_crc(header) + data + _masked_crc(data))
-
-    def write(self, summary: Any, step: int) -> None:
-        """One event of ``summary`` (a ``Summary`` proto) at ``step``."""
-        self._put(self._event(summary=summary, step=int(step), wall_time=time.time()))
-
-    def write_scalars(self, values: list[tuple[str, float]], step: int) -> None:
-        """One event of the scalars ``(tag, value)`` at ``step`` (``simple_value``, as ``add_scalar`` writes them)."""
-        from tensorboard.compat.proto.summary_pb2 import Summary
-
-        summary = Summary(value=[Summary.Value(tag=tag, simple_value=value) for tag, value in values])
-        self.write(summary, step)
-
-    def __enter__(self) -> _EventFile:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self._file.close()
-
-
-_EVENT_FILES = itertools.count()
-
-
-def _masked_crc(data: bytes) -> bytes:
-    """The masked CRC-32C of a TensorBoard record (TFRecord framing), little-endian: ``crc`` rotated right by 15
-    bits plus ``0xa282ead8``, modulo 2³².  The checksum is google-crc32c's (hardware CRC-32C where the CPU has it;
-    TensorBoard's own writer computes it in Python, byte by byte, 0.1 s a 100-run case)."""
-    import google_crc32c
-
-    crc = google_crc32c.value(data)
-    return struct.pack("<I", (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF)
 
 
 # ----------------------------------------------------------------------------
@@ -344,31 +283,38 @@ def hparam_domains(sessions: Iterable[Mapping[str, Any]]) -> dict[str, list[Any]
     return domains
 
 
-def _hparam_info(name: str, values: list[Any]):
-    from google.protobuf import struct_pb2
-    from tensorboard.plugins.hparams import api_pb2
+def _experiment_summary(domains: Mapping[str, list[Any]], metrics: Iterable[str]):
+    """The ``_hparams_/experiment`` summary: each hyperparameter's discrete domain (booleans, numbers, or else
+    strings) with ``differs`` set when it holds two values or more, and the metrics ``summary/<metric>``."""
+    from tensorboard.plugins.hparams import summary_v2 as hp
 
-    info = api_pb2.HParamInfo(name=name, display_name=name)
-    if all(isinstance(v, bool) for v in values):
-        info.type = api_pb2.DATA_TYPE_BOOL
-        info.domain_discrete.values.extend(struct_pb2.Value(bool_value=v) for v in values)
-    elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
-        info.type = api_pb2.DATA_TYPE_FLOAT64
-        info.domain_discrete.values.extend(struct_pb2.Value(number_value=float(v)) for v in sorted(values))
-    else:
-        info.type = api_pb2.DATA_TYPE_STRING
-        info.domain_discrete.values.extend(struct_pb2.Value(string_value=str(v)) for v in values)
-    info.differs = len(values) > 1
-    return info
+    class Compared(hp.Discrete):
+        def update_hparam_info(self, hparam_info) -> None:
+            super().update_hparam_info(hparam_info)
+            hparam_info.differs = len(self.values) > 1
+
+    def domain(values: list[Any]) -> Compared:
+        if all(isinstance(v, bool) for v in values):
+            return Compared(values)
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            return Compared([float(v) for v in values])
+        return Compared([str(v) for v in values])
+
+    return hp.hparams_config_pb(
+        [hp.HParam(k, domain([hparam_value(v) for v in values]), display_name=k) for k, values in domains.items()],
+        [hp.Metric(METRIC_PREFIX + k, display_name=k) for k in metrics],
+    )
 
 
-def _hparams_summary(tag: str, plugin_data):
-    """A ``Summary`` holding HParams plugin data (as :mod:`tensorboard.plugins.hparams.summary_v2` writes it)."""
+def _session_end_summary():
+    """The ``_hparams_/session_end_info`` summary of a successful session ending now."""
     from tensorboard.compat.proto import summary_pb2
-    from tensorboard.plugins.hparams import metadata
+    from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
 
+    end = plugin_data_pb2.SessionEndInfo(status=api_pb2.STATUS_SUCCESS, end_time_secs=time.time())
     summary = summary_pb2.Summary()
-    summary.value.add(tag=tag, metadata=metadata.create_summary_metadata(plugin_data), tensor=metadata.NULL_TENSOR)
+    content = metadata.create_summary_metadata(plugin_data_pb2.HParamsPluginData(session_end_info=end))
+    summary.value.add(tag=metadata.SESSION_END_INFO_TAG, metadata=content, tensor=metadata.NULL_TENSOR)
     return summary
 
 
@@ -386,49 +332,21 @@ def write_hparams_session(
     experiment (:func:`hparam_domains`); it must cover ``hparams``.  The metrics are
     scalars ``summary/<metric>`` at step 0 in ``run_dir``, shown under their own names.
     """
-    from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
+    from tensorboard.plugins.hparams import summary_v2 as hp
     from torch.utils.tensorboard import SummaryWriter
 
-    hp = {k: hparam_value(v) for k, v in hparams.items()}
-    missing = [k for k in hp if k not in domains]
+    values = {k: hparam_value(v) for k, v in hparams.items()}
+    missing = [k for k in values if k not in domains]
     if missing:
         raise ValueError(f"hparams {missing} have no domain")
-    experiment = api_pb2.Experiment(
-        hparam_infos=[_hparam_info(k, [hparam_value(v) for v in values]) for k, values in domains.items()],
-        metric_infos=[
-            api_pb2.MetricInfo(name=api_pb2.MetricName(tag=METRIC_PREFIX + k), display_name=k) for k in metrics
-        ],
-    )
     # no group name: each session is its own group, named by its run
-    start = plugin_data_pb2.SessionStartInfo(
-        start_time_secs=time.time() if start_time_secs is None else start_time_secs
-    )
-    for k, v in hp.items():
-        if isinstance(v, bool):
-            start.hparams[k].bool_value = v
-        elif isinstance(v, (int, float)):
-            start.hparams[k].number_value = v
-        else:
-            start.hparams[k].string_value = v
-    writer = SummaryWriter(str(run_dir))
-    try:
-        fw = writer.file_writer
-        fw.add_summary(
-            _hparams_summary(metadata.EXPERIMENT_TAG, plugin_data_pb2.HParamsPluginData(experiment=experiment))
-        )
-        fw.add_summary(
-            _hparams_summary(
-                metadata.SESSION_START_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_start_info=start)
-            )
-        )
+    start = hp.hparams_pb(values, trial_id="", start_time_secs=start_time_secs)
+    with SummaryWriter(str(run_dir)) as writer:
+        writer.file_writer.add_summary(_experiment_summary(domains, metrics))
+        writer.file_writer.add_summary(start)
         for k, v in metrics.items():
             writer.add_scalar(METRIC_PREFIX + k, float(v), 0)
-        end = plugin_data_pb2.SessionEndInfo(status=api_pb2.STATUS_SUCCESS, end_time_secs=time.time())
-        fw.add_summary(
-            _hparams_summary(metadata.SESSION_END_INFO_TAG, plugin_data_pb2.HParamsPluginData(session_end_info=end))
-        )
-    finally:
-        writer.close()
+        writer.file_writer.add_summary(_session_end_summary())
 
 
 def move_events(source: Path, run_dir: Path) -> None:

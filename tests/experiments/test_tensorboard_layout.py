@@ -362,22 +362,14 @@ def test_a_filter_run_written_again_holds_one_event_file(tmp_path):
     assert event_records(tmp_path) == once and not list(tmp_path.glob(".*.tmp"))
 
 
-def test_a_filter_run_holds_the_records_summary_writer_writes_with_valid_checksums(tmp_path):
-    """``write_filter_run`` writes one event per step for all the scalar tags, with CRC-32C from google-crc32c: a
-    reader sees exactly what ``SummaryWriter`` (one event per value, TensorBoard's own checksums) writes of the same
-    events, and TensorBoard's own masked CRC agrees on every record."""
-    import os
-    import struct
+def test_a_filter_run_holds_its_text_scalars_and_histograms_as_tensorboard_reads_them(tmp_path):
+    """``write_filter_run``: one event file in the run, read back by TensorBoard's accumulator with every tag, every
+    step and every value (scalars to float32), the text at step 0 and a histogram of every run's weights per step."""
+    from tensorboard.util import tensor_util
 
-    from tensorboard.compat.tensorflow_stub.pywrap_tensorflow import masked_crc32c
-    from torch.utils.tensorboard import SummaryWriter
-
-    from agsf_torch.experiments.tensorboard_log import _masked_crc, write_filter_run
+    from agsf_torch.experiments.tensorboard_log import write_filter_run
     from tests.helpers import event_records
 
-    for size in (0, 1, 7, 8, 100, 4097):  # the checksum against TensorBoard's own, byte by byte in Python
-        data = os.urandom(size)
-        assert _masked_crc(data) == struct.pack("<I", masked_crc32c(data))
     rng = np.random.default_rng(1)
     steps = np.arange(100, 3100, 100)
     events = {
@@ -389,20 +381,18 @@ def test_a_filter_run_holds_the_records_summary_writer_writes_with_valid_checksu
         },
         "histograms": (steps[::10], rng.dirichlet(np.ones(4), size=(3, 8)).reshape(3, -1)),
     }
-    write_filter_run(tmp_path / "ours" / "GSF", events)
-    with SummaryWriter(str(tmp_path / "reference" / "GSF")) as writer:
-        writer.add_text("time_axis", events["text"], 0)
-        for key, (s, values) in events["scalars"].items():
-            for step, value in zip(s, values):
-                writer.add_scalar(key, float(value), int(step))
-        for step, values in zip(*events["histograms"]):
-            writer.add_histogram("weights/all_runs", values, int(step))
-    assert event_records(tmp_path / "ours") == event_records(tmp_path / "reference")
-    (event_file,) = (tmp_path / "ours" / "GSF").glob(EVENTS_GLOB)
-    raw, records = event_file.read_bytes(), 0
-    while raw:  # every record's framing checked with TensorBoard's checksum
-        (length,) = struct.unpack("<Q", raw[:8])
-        assert raw[8:12] == struct.pack("<I", masked_crc32c(raw[:8]))
-        assert raw[12 + length : 16 + length] == struct.pack("<I", masked_crc32c(raw[12 : 12 + length]))
-        raw, records = raw[16 + length :], records + 1
-    assert records == 1 + 1 + len(steps) + 3  # the file version, the text, one per step, the histograms
+    write_filter_run(tmp_path / "GSF", events)
+    assert len(list((tmp_path / "GSF").glob(EVENTS_GLOB))) == 1 and not list(tmp_path.glob(".*.tmp"))
+    (records,) = event_records(tmp_path).values()
+    assert set(records) == {*events["scalars"], "weights/all_runs", "time_axis/text_summary"}
+    for key, (s, values) in events["scalars"].items():
+        assert [step for step, _ in records[key]] == s.tolist()
+        assert_recorded([value for _, value in records[key]], values, key)
+    assert [step for step, _ in records["weights/all_runs"]] == events["histograms"][0].tolist()
+    acc = accumulate(tmp_path / "GSF")
+    for event, values in zip(acc.Histograms("weights/all_runs"), events["histograms"][1]):
+        h = event.histogram_value
+        assert (h.num, h.min, h.max, h.sum) == (values.size, values.min(), values.max(), values.sum())
+        assert sum(h.bucket) == values.size
+    (text,) = acc.Tensors("time_axis/text_summary")
+    assert text.step == 0 and tensor_util.make_ndarray(text.tensor_proto).item().decode() == events["text"]
