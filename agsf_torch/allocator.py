@@ -4,10 +4,8 @@ Torch allocates CPU tensors with the C library's ``malloc``.  glibc serves a req
 threshold* with a fresh memory map and unmaps it on ``free``; that threshold starts at 128 KiB and only
 grows as such blocks are freed.  A batched filter step allocates and frees the same few-MB intermediates
 every step (the penalty update's pair products, the Galerkin matrices, the update's gains), so each step
-maps them again and faults every page back in: measured on the penalty-adaptive predict (6 states,
-B = 256, N = 5, 2 cores, glibc 2.36), 170–280 ms per step with the default threshold against 97–129 ms with
-it fixed at 32 MiB (1.4–2.0× in paired runs), at the same peak memory (345–354 MB either way; at B = 8192,
-1.07–1.11 GB in most runs with either setting and 1.6–1.75 GB in some runs of both).
+maps them again and faults every page back in; with the threshold fixed at 32 MiB they come from the heap, at
+the same peak memory (the timings: ``agsf bench``, docs/results/performance.md).
 
 :func:`set_mmap_threshold` fixes the threshold (``mallopt(M_MMAP_THRESHOLD, …)``); the ``agsf`` command and
 the sweep's Ray tasks call it at their start.  A script of your own calls it once before its filter loop, or

@@ -175,8 +175,7 @@ def prepare_fused_kernels(
     """Compile the fused kernels the filters' first ``step`` needs side by side, before it runs.
 
     A first step with compiled fused kernels (``compile_fused=True``) would otherwise compile each kernel
-    when it is first called, one after another (the propagation's, then the update's: 69–102 s measured
-    on a 2-core machine with empty caches).  Here a copy of each such filter rehearses the step inside
+    when it is first called, one after another (the propagation's, then the update's).  Here a copy of each such filter rehearses the step inside
     :func:`~agsf_torch.fused.lanes.compiling_in_parallel` (kernels not in the cache run eagerly; the results
     are dropped, the filters themselves untouched), which then compiles them in parallel processes; the
     real step loads them and runs compiled, with the same numbers as a process whose cache was warm.  The

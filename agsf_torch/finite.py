@@ -1,9 +1,9 @@
 """Finiteness checks: one reduction per tensor instead of a boolean mask.
 
 ``bool(torch.isfinite(t).all())`` allocates a boolean tensor as large as ``t`` and reads it again;
-for the ``[B, N, n, n]`` covariances of a batched step that is milliseconds per check (measured on
-2 cores: 1.7 ms for 20,480 6×6 matrices).  The extremes of ``t`` carry the same answer in one pass
-without a temporary (0.15 ms there): ``torch.aminmax`` propagates NaN, and a ``±inf`` entry is an
+for the ``[B, N, n, n]`` covariances of a batched step that is a large temporary per check.  The extremes of
+``t`` carry the same answer in one pass without a temporary: ``torch.aminmax`` propagates NaN, and a ``±inf``
+entry is an
 extreme, so every entry is finite exactly when both extremes are.
 """
 

@@ -1,8 +1,8 @@
 """Broadcasting of shapes (tuples of sizes), without tensors.
 
-:func:`torch.broadcast_shapes` costs ~0.1–0.2 ms per call in torch 2.13 (it runs through the reference
-implementation's symbolic-size guards), which is most of a one-spacecraft filter step's budget; the filters
-call :func:`broadcast_shapes` instead, which follows the same rules in plain Python (a few µs).
+:func:`torch.broadcast_shapes` runs through the reference implementation's symbolic-size guards, a large part of
+a one-spacecraft filter step; the filters call :func:`broadcast_shapes` instead, which follows the same rules in
+plain Python.
 """
 
 from __future__ import annotations

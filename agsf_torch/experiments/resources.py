@@ -6,10 +6,8 @@ as ``runs × components × n²`` and the star camera's as ``runs × max_stars``.
 :func:`estimated_memory` adds these up from the configuration alone; the byte counts
 per sample are the arrays the runner keeps (:class:`~.runner.FilterTrace`), and
 :data:`RETAINED_OVERHEAD` (the per-step tensors, their stacked copies and the numpy
-copies written to ``runs.npz`` coexisting at the end of a run) was measured on this
-code base: the peak resident memory of ``agsf run case1`` grew by 2.2 (512 runs × 600
-steps) and 2.4 (2048 runs × 300 steps) times the kept bytes over a 0.53 GB process;
-the constant 3 keeps a margin, and a slow test
+copies written to ``runs.npz`` coexisting at the end of a run) is a multiple of the kept
+bytes with a margin above what ``agsf run case1`` peaks at; a slow test
 (``tests/experiments/test_outputs.py``) checks the estimate against a measured peak.  :func:`check_memory` refuses a configuration whose estimate exceeds
 the memory this machine has available, naming the estimate, the budget and the keys
 that drive it; ``force=True`` (``--force`` on the command line) runs it anyway.
@@ -149,8 +147,7 @@ def resident_memory() -> int:
 def peak_resident_memory() -> int:
     """This process's own peak resident memory (bytes): ``VmHWM`` of ``/proc/self/status`` where there is one
     (Linux), else ``getrusage``'s max RSS.  Not ``getrusage`` on Linux: its max RSS survives ``exec``, so a
-    process started by a large one reports the parent's resident memory at the fork (measured: 1,455 MiB for a
-    child whose own peak was 9 MiB)."""
+    process started by a large one reports the parent's resident memory at the fork, not its own."""
     return _own_memory("VmHWM:")
 
 
@@ -192,8 +189,8 @@ def refuse_if_too_large(
 
 
 #: A forked process's own memory beside its parent's, bytes (the pages it writes: its kernels, its figures, the
-#: allocator's arenas; measured 172–174 MB private, its ~30 MB of arrays included, in each process running one of
-#: ``agsf reproduce``'s 100-run cases of four filters), besides its configuration's estimated arrays.
+#: allocator's arenas, with a margin above what one of ``agsf reproduce``'s cases writes), besides its
+#: configuration's estimated arrays.
 FORKED_PROCESS = 200 * 2**20
 
 

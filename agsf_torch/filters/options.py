@@ -100,8 +100,7 @@ class FilterOptions:
             ``False``: the generic path (any model, ``torch.func``), the reference.
         compile_fused: run the fused kernels compiled ahead of time (:mod:`agsf_torch.fused.lanes`:
             per kernel a threaded variant for calls of 1,024 lanes or more and a serial one below,
-            each compiled on first use, about 10–60 s each on 2 cores the first time on a machine and about a
-            second to load in a later process; the filter loop compiles a first step's kernels side
+            each compiled on first use, once per machine, and loaded by later processes; the filter loop compiles a first step's kernels side
             by side, :func:`agsf_torch.filter_loop.prepare_fused_kernels`); ``False`` runs the same code eagerly
             (from :data:`~agsf_torch.fused.lanes.EAGER_MIN_LANES` components on; fewer take the
             generic path, which is faster there).  The adaptive filters' FPKE kernels are
@@ -130,7 +129,7 @@ class FilterOptions:
     compile_fused: bool = field(
         default=False,
         metadata=option(
-            "compile the fused kernels ahead of time (10–60 s each on 2 cores, once per machine; then ~1 s to load)",
+            "compile the fused kernels ahead of time (once per machine; later processes load them)",
             config="bool",
         ),
     )

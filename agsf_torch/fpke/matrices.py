@@ -270,8 +270,7 @@ def fpke_matrix(
         chunk_size: nodes per chunk (quadrature) or pairs per chunk (product rule), a
             positive integer, or ``None`` (automatic).
         compile: evaluate the per-chunk products with a ``torch.compile``-d
-            kernel (fused elementwise work; measured 6× faster on the 3-state
-            attitude model, after a one-off compilation of ~20 s per shape); the model's own
+            kernel (fused elementwise work, after a one-off compilation per shape); the model's own
             route is asked for its compiled form (the attitude models: the lanes kernel of
             :mod:`agsf_torch.fused.pair_products`, compiled ahead of time once per machine).
         pair_products: with a :class:`ProductRule`, take the model's own exact route to ``E[ℓᵢℓⱼ]`` when it

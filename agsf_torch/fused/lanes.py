@@ -15,7 +15,7 @@ calls serial code for any lane count (a dynamic dimension).  Both are stored in
 an on-disk cache (:func:`kernel_cache_dir`) keyed by the kernel, its static configuration, the
 variant, the input dtypes and trailing shapes, the torch version and the source of this package's
 fused kernels; a later process loads them in milliseconds instead of tracing the kernel again, and
-each call skips dynamo's guards (~75 µs a call instead of ~300 µs).  Each compilation is announced on
+each call skips dynamo's guards.  Each compilation is announced on
 the ``agsf_torch`` logger (INFO) when it starts and ends.  A compilation or compiled-run failure falls
 back to the eager kernel with one warning (naming the package when it is one that cannot be loaded); the numbers
 are the eager ones.  A package in the cache that is damaged (:func:`~.kernel_cache.package_damage`: empty, cut
@@ -78,17 +78,15 @@ logger = logging.getLogger(__name__)
 #: Lanes per call of a large call's compiled kernel, which is compiled for exactly this many (a tail is
 #: padded with copies of its first lane, valid data whose results are dropped: at most this many lanes of
 #: waste per call): with every shape known the compiler vectorises and unrolls what a dynamic lane count
-#: leaves generic (measured on 2 cores: the 6-state propagation at 1.6 M lanes/s against 0.75 M/s for the
-#: same code with a dynamic lane count); the chunk size itself matters little (2.0, 2.2 and 2.1 M lanes/s
-#: for 40,960 lanes in chunks of 1024, 2048 and 4096), so it is the smallest, to bound the padding.
+#: leaves generic; the chunk size itself matters little, so it is the smallest that vectorises, to bound the
+#: padding.
 COMPILED_CHUNK = 1024
 #: Lanes per eager call: each of a kernel's thousands of lane operations is one torch call, whose
-#: overhead (~3 µs) is paid once per chunk, so eager chunks are large (measured on 2 cores: the Galerkin
-#: pairs of 4096 six-state mixtures 228 ms in chunks of 4096, 125 ms of 16384, ~100 ms of 65536); the
-#: kernel's temporaries are bounded by it (a few hundred live lanes of 512 KiB).
+#: overhead is paid once per chunk, so eager chunks are large; the kernel's temporaries are bounded by it
+#: (a few hundred live lanes of 512 KiB).
 DEFAULT_CHUNK = 65536
 #: Below this many lanes an *eager* fused kernel is slower than the generic batched path (thousands of
-#: tiny operations instead of tens of batched ones; measured crossover 500–2000 lanes on 2 cores):
+#: tiny operations instead of tens of batched ones):
 #: models then decline their fused path unless it is compiled.
 EAGER_MIN_LANES = 1024
 
@@ -150,8 +148,7 @@ _PENDING: contextvars.ContextVar[dict[Path, tuple] | None] = contextvars.Context
 #: passes one to :func:`run_in_chunks`) a call takes the kernel's *serial* variant, compiled without OpenMP
 #: threads for any lane count (on first use, like the threaded one): padding to a full chunk would multiply
 #: the work, and the threaded code's parallel loop would wake the other threads for microseconds of work,
-#: whose spin-wait afterwards slows the LAPACK calls that follow (measured on 2 cores: one spacecraft's star
-#: update 24 ms instead of 0.8 ms).  At least two lanes are passed to it (a single one is padded with a
+#: whose spin-wait afterwards slows the LAPACK calls that follow.  At least two lanes are passed to it (a single one is padded with a
 #: copy): sizes 0 and 1 are special cases of an exported dimension.
 PARALLEL_MIN_LANES = COMPILED_CHUNK
 
@@ -224,8 +221,8 @@ def _load(
                 path.unlink(missing_ok=True)
             if not path.is_file():
                 logger.info(
-                    "compiling the fused kernel %r ahead of time (once per machine and torch version: about 10–60 s on "
-                    "2 cores; later processes load it from %s in about a second)",
+                    "compiling the fused kernel %r ahead of time (once per machine and torch version; later processes "
+                    "load it from %s)",
                     name,
                     path.parent,
                 )
@@ -241,7 +238,7 @@ def _load_package(path: Path) -> Callable:
 
     Loaded by torch's C++ package loader directly (what :func:`torch._inductor.aoti_load_package` wraps with
     pytree specs, which for a flat tuple of tensors are the identity) so that a new process does not import
-    torch's compiler stack to run a kernel compiled before (measured: 2.4 s of a first step's 3.2 s); through
+    torch's compiler stack to run a kernel compiled before (most of a first step's time); through
     the public loader where that class is absent."""
     loader_class = getattr(getattr(torch._C, "_aoti", None), "AOTIModelPackageLoader", None)
     if loader_class is None:

@@ -23,8 +23,7 @@ def mixture_information_nis(
     r"""The moment-matched mixture NIS ``ν̄ᵀS̄⁻¹ν̄`` (:func:`~agsf_torch.update.moment_matched_innovation`) from
     square roots: ``S̄ = σ²I + AAᵀ``, ``A = [√wᵢ [Hᵢ Lᵢ, νᵢ − ν̄]]ᵢ`` (``[..., d, (k+1)N]``; the order of the
     columns does not change ``AAᵀ``), written once, by the products that scale its columns, straight
-    into the layout the Gram product reads (measured on 2 cores, 4096 trajectories of 5 components and
-    5 stars: 11 ms against 20 ms for concatenating the blocks, scaling them and transposing the result).
+    into the layout the Gram product reads (no concatenated, scaled and transposed copies of the blocks).
 
     Where the Cholesky factor of ``S̄`` is fit for solves (:func:`~agsf_torch.update.covariance_form_usable`,
     the generic update's rule), with it; elsewhere (a precise sensor after a wide prior) in information form,

@@ -315,10 +315,8 @@ def attitude_pair_moments_kernel(
 #: Pairs per call of the compiled kernel (its threaded variant; fewer pairs take the serial one), by the number of
 #: states.  Each pair carries a row of ``K = 84`` nodes, so the kernel's temporaries are ``[pairs, 84]``: at 128
 #: pairs ~86 KB each, which stay in the core's cache, where chunks of the default 1,024 lanes (688 KB each) went to
-#: memory.  Measured on 2 cores (AMD EPYC VM), 3,840 pairs (6 states, B = 256, N = 5), in one step of the penalty
-#: update: 15.5–16.7 ms against 37.8–65.7 ms in chunks of 1,024; alone, 18 against 25 ms.  With 3 states a node
-#: carries one channel instead of ten, far fewer temporaries, and the calls dominate: the pairs of 100 trajectories
-#: (N = 5, one thread) took 1.66–1.68 ms a step in chunks of 512 or 1,024, 1.80 ms in 256 and 2.00 ms in 128.
+#: memory.  With 3 states a node carries one channel instead of ten, far fewer temporaries, and the number of calls
+#: dominates: larger chunks (the timings: ``agsf bench``, docs/results/performance.md).
 COMPILED_PAIRS = {3: 512, 6: 128}
 
 _WEIGHTS: dict[tuple, tuple[Tensor, Tensor]] = {}

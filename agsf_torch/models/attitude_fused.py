@@ -42,8 +42,7 @@ class FusedAttitudePaths:
         return u if self.estimate_bias else u - self.bias.to(u)
 
     #: Pairs from which the eager lanes route (:mod:`agsf_torch.fused.pair_products`) beats the batched one, by
-    #: state dimension (measured on 2 cores: at 6 states 25 against 47 ms for 480 pairs, 17 against 14 ms for
-    #: 240; at 3 states 2.0 against 2.5 ms for 120 pairs, 1.4 against 0.8 ms for 15).
+    #: state dimension (the crossover ``agsf bench`` measures).
     EAGER_MIN_PAIRS = {3: 100, 6: 400}
 
     @derived_from(*_KERNEL_PHYSICS, generic=ContinuousModel.fpke_pair_products)

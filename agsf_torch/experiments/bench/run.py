@@ -82,8 +82,7 @@ def bench_adaptive(
     sec = side_by_side({k: (lambda f=f: f.predict(mix, u, 0.1)) for k, f in filters.items()}, repeats)
     if penalty:
         # timed on its own: alternated with the others, its frees of hundreds of MB (returned to the system by
-        # the allocator) made the next calls fault their memory back in (the fused GSF at B = 256: 2.5 ms
-        # alone, 4-36 ms after it)
+        # the allocator) make the next calls fault their memory back in
         sec["AGSF-penalty (batched)"] = median_time(lambda: reference.predict(mix, u, 0.1), repeats)
     out = {
         "state_dim": model.state_dim,
