@@ -91,7 +91,6 @@ def _reproduce(args: argparse.Namespace) -> int:
         overrides,
         progress=not args.quiet,
         force=args.force,
-        writers=args.writers,
         threads=args.threads,
         jobs=args.jobs,
     )
@@ -129,8 +128,6 @@ def _sweep(args: argparse.Namespace) -> int:
 
     if args.address is not None and args.backend != "ray":
         raise ValueError("--address needs --backend ray")
-    if args.writers is not None and args.backend != "local":
-        raise ValueError("--writers is the local backend's (each Ray task writes its own files)")
     base = load_config(args.config, args.set)
     grid = parse_grid(args.grid, base)
     _refuse_set(args.set, {key: f"--grid {key}=…" for key in grid})
@@ -138,7 +135,7 @@ def _sweep(args: argparse.Namespace) -> int:
         kw = {"address": args.address, "cpus_per_task": max(1, args.threads or 1)}
     else:
         _threads(args)
-        kw = {"writers": args.writers, "threads": args.threads}
+        kw = {"threads": args.threads}
     try:
         rows = run_sweep(
             base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, force=args.force, **kw
@@ -288,7 +285,7 @@ def _print_summary(name: str, summary: dict) -> None:
 
 def _calibrate(args: argparse.Namespace) -> int:
     from ..storage.files import write_json, write_text
-    from .calibration import QUICK_STUDY, STUDY, run_study, settings_named
+    from .calibration import QUICK_STUDY, STUDY, run_study, settings_named, verdict_study
     from .calibration_report import calibration_figure, calibration_markdown
     from .config import load_config
     from .experiment import prepare_output
@@ -305,9 +302,12 @@ def _calibrate(args: argparse.Namespace) -> int:
     out = prepare_output(Path(args.out), "calibrate", json.dumps({**params, **cfg.to_dict()}, sort_keys=True), params)
     t0 = time.perf_counter()
     results = run_study(cfg, settings, datasets=args.datasets, seed=cfg.seed, workers=workers, progress=not args.quiet)
+    verdicts = verdict_study(cfg, datasets=args.datasets, seed=cfg.seed, quick=args.quick) if not args.setting else []
     elapsed = time.perf_counter() - t0
-    write_json(out / "calibration.json", {**params, "seconds": elapsed, "results": results}, indent=2)
-    report = calibration_markdown(results)
+    write_json(
+        out / "calibration.json", {**params, "seconds": elapsed, "results": results, "verdicts": verdicts}, indent=2
+    )
+    report = calibration_markdown(results, verdicts)
     write_text(out / "calibration.md", report)
     calibration_figure(results, out / "calibration.png")
     print(report)
