@@ -45,8 +45,8 @@ from ..filters.registry import FILTER_NAMES
 from ..rotations import attitude_error_angle
 from ..storage.files import save_figure, write_json, write_text
 from .config import ExperimentConfig, load_config
-from .experiment import make_env, make_filters, mean_ci95, prepare_output, prior_covariance
-from .factories import filter_model
+from .experiment import make_env, make_filters, mean_ci95, prepare_output
+from .factories import filter_model, loop_options
 from .resources import check_memory
 from .runner import monte_carlo_steps
 from .statistics import WINDOW_TEXT, error_windows
@@ -106,17 +106,9 @@ def run_scenario(
     env = make_env(cfg)
     filters = make_filters(cfg)
     model = next(iter(filters.values())).filter.model
-    P0 = prior_covariance(cfg)
-    steps = monte_carlo_steps(
-        env,
-        filters,
-        num_steps=cfg.num_steps,
-        prior_cov=P0,
-        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
-        seed=cfg.seed,
-        estimate_bias=cfg.estimate_bias,
-        noise_model=cfg.star_noise_model,
-    )
+    options = loop_options(cfg)
+    P0 = options["prior_cov"]
+    steps = monte_carlo_steps(env, filters, **options)
     if progress:
         from .progress import progress_bar
 

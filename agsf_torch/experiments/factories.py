@@ -10,7 +10,7 @@ from ..filters.registry import filter_spec
 from ..models import AttitudeModel
 from .config import ExperimentConfig
 
-__all__ = ["make_env", "make_filters", "prior_covariance", "filter_model"]
+__all__ = ["make_env", "make_filters", "prior_covariance", "filter_model", "loop_options"]
 
 
 def make_env(cfg: ExperimentConfig):
@@ -49,3 +49,17 @@ def prior_covariance(cfg: ExperimentConfig) -> torch.Tensor:
     n = filter_model(cfg).state_dim
     sb = (cfg.prior_bias_sigma_deg_per_hr * DEG_PER_HOUR) ** 2
     return torch.diag(torch.tensor([cfg.prior_var] * 3 + [sb] * 3, dtype=torch.float64)[:n])
+
+
+def loop_options(cfg: ExperimentConfig) -> dict:
+    """The configuration's keyword arguments of the Monte Carlo loop (:func:`~.runner.monte_carlo_steps`,
+    :func:`~.runner.run_monte_carlo`): steps, prior covariance, the filters' star noise (σ_s scaled by
+    ``filter_sigma_s_scale``) and its model, the seed and whether the bias is estimated."""
+    return {
+        "num_steps": cfg.num_steps,
+        "prior_cov": prior_covariance(cfg),
+        "sigma_s": cfg.sigma_s * cfg.filter_sigma_s_scale,
+        "seed": cfg.seed,
+        "estimate_bias": cfg.estimate_bias,
+        "noise_model": cfg.star_noise_model,
+    }

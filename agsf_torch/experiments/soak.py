@@ -36,7 +36,8 @@ from ..constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
 from ..filters.registry import ADAPTIVE_FILTERS
 from ..storage.files import append_line, json_text, write_text
 from .config import ExperimentConfig, load_preset
-from .experiment import make_env, make_filters, prepare_output, prior_covariance
+from .experiment import make_env, make_filters, prepare_output
+from .factories import loop_options
 from .resources import check_memory, resident_memory
 from .runner import monte_carlo_steps
 
@@ -155,16 +156,7 @@ def run_soak(
         log = write_text(out / "soak.jsonl", "")  # a rerun starts the log afresh
     rows: list[dict[str, Any]] = []
     start = time.perf_counter()
-    steps = monte_carlo_steps(
-        env,
-        setups,
-        num_steps=cfg.num_steps,
-        prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
-        seed=cfg.seed,
-        estimate_bias=cfg.estimate_bias,
-        noise_model=cfg.star_noise_model,
-    )
+    steps = monte_carlo_steps(env, setups, **loop_options(cfg))
     try:
         for step in steps:
             last = (step.index + 1) % per_report == 0 or step.index + 1 == cfg.num_steps

@@ -56,7 +56,7 @@ import numpy as np
 
 from ..consistency import check_level, consistency_check_arrays
 from .config import ExperimentConfig
-from .factories import filter_model, make_env, make_filters, prior_covariance
+from .factories import filter_model, loop_options, make_env, make_filters
 from .recorded import RecordingEnv, record_environment
 from .resources import check_memory
 from .runner import run_monte_carlo
@@ -251,16 +251,7 @@ def _judge(cfg: ExperimentConfig, recording, datasets: int, progress: bool, labe
         entries of each update.
     """
     res = run_monte_carlo(
-        RecordingEnv(recording),
-        make_filters(cfg),
-        num_steps=cfg.num_steps,
-        prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
-        seed=cfg.seed,
-        estimate_bias=cfg.estimate_bias,
-        progress=progress,
-        noise_model=cfg.star_noise_model,
-        label=label,
+        RecordingEnv(recording), make_filters(cfg), progress=progress, label=label, **loop_options(cfg)
     )
     n = filter_model(cfg).state_dim
 

@@ -8,7 +8,8 @@ import torch
 
 from agsf_torch.attitude.learning import attitude_log_likelihood
 from agsf_torch.experiments.config import load_preset
-from agsf_torch.experiments.experiment import make_env, make_filters, prior_covariance
+from agsf_torch.experiments.experiment import make_env, make_filters
+from agsf_torch.experiments.factories import loop_options
 from agsf_torch.experiments.learn import learning_problem
 from agsf_torch.experiments.recorded import RecordingEnv, record_environment
 from agsf_torch.experiments.runner import monte_carlo_steps
@@ -42,16 +43,7 @@ def test_learn_treats_a_gyro_dropout_as_run_does():
     configured, kwargs = learning_problem(cfg, rec)
 
     run_total, run_terms, held = torch.zeros((), dtype=torch.float64), torch.zeros((), dtype=torch.float64), 0
-    steps = monte_carlo_steps(
-        RecordingEnv(rec),
-        make_filters(cfg),
-        num_steps=cfg.num_steps,
-        prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
-        seed=cfg.seed,
-        estimate_bias=cfg.estimate_bias,
-        noise_model=cfg.star_noise_model,
-    )
+    steps = monte_carlo_steps(RecordingEnv(rec), make_filters(cfg), **loop_options(cfg))
     for step in steps:
         if step.index == 0:
             assert torch.equal(step.prior_mean, kwargs["prior_mean"])  # the same prior draw
