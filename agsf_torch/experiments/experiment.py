@@ -14,7 +14,7 @@ from typing import Any
 
 from ..storage.files import write_json
 from .config import REPLAY_IGNORED, ExperimentConfig
-from .factories import make_env, make_filters, prior_covariance
+from .factories import loop_options, make_env, make_filters, prior_covariance
 from .figures import write_figures
 from .file_writer import FileWriter
 from .outputs import OutputConflict, load_filter_runs, prepare_output, save_runs
@@ -100,16 +100,7 @@ def run_experiment(
         data = save_runs(out / "runs.npz", None, reused, writer)
         return _write_results(out, data, cfg, reuse, writer, label)
     res = run_monte_carlo(
-        env,
-        filters,
-        num_steps=cfg.num_steps,
-        prior_cov=prior_covariance(cfg),
-        sigma_s=cfg.sigma_s * cfg.filter_sigma_s_scale,
-        seed=cfg.seed,
-        estimate_bias=cfg.estimate_bias,
-        progress=progress,
-        noise_model=cfg.star_noise_model,
-        label=cfg.name if label is None else label,
+        env, filters, progress=progress, label=cfg.name if label is None else label, **loop_options(cfg)
     )
     data = save_runs(out / "runs.npz", res, reused, writer)
     return _write_results(out, data, cfg, reuse, writer, label)
