@@ -168,10 +168,11 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         p = x[..., :3]
         s = sum_last(p * p)[..., None, None]
         eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
-        Gp = (self.sigma_v[..., None, None] ** 2 / 16.0) * (1.0 + s) ** 2 * eye3
+        # in x's dtype: a per-trajectory value has dims, which would take part in type promotion
+        Gp = (self.sigma_v.to(x)[..., None, None] ** 2 / 16.0) * (1.0 + s) ** 2 * eye3
         if not self.estimate_bias:
             return Gp
-        Gp, Gb = torch.broadcast_tensors(Gp, self.sigma_u[..., None, None] ** 2 * eye3)
+        Gp, Gb = torch.broadcast_tensors(Gp, self.sigma_u.to(x)[..., None, None] ** 2 * eye3)
         z = torch.zeros_like(Gp)
         return torch.cat((torch.cat((Gp, z), -1), torch.cat((z, Gb), -1)), -2)
 

@@ -335,7 +335,7 @@ class StarVectorMeasurement(MeasurementModel):
     def noise_cov(self) -> Tensor:
         """``R``: ``σ_s² I_{3M}`` (isotropic) or block-diagonal ``[..., 3M, 3M]`` (tangent)."""
         eye = torch.eye(3 * self.num_stars, dtype=self.r_inertial.dtype, device=self.r_inertial.device)
-        sigma = self.sigma[..., None, None]  # one per trajectory: [B, 1, 1]
+        sigma = self.sigma.to(eye)[..., None, None]  # one per trajectory: [B, 1, 1], in the vectors' dtype
         if self.noise_model == "isotropic":
             return sigma**2 * eye
         b = self.body / torch.linalg.vector_norm(self.body, dim=-1, keepdim=True).clamp_min(1e-300)

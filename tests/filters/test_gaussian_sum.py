@@ -182,11 +182,23 @@ def test_one_trajectory_input_is_not_broadcast_over_a_batch(gen, name):
 
 
 @pytest.mark.parametrize(
-    "sigma", [-1e-5, 0.0, float("nan"), float("inf"), True, np.bool_(True), "a", 1 + 0j, torch.tensor([1e-5, 1e-5])]
+    "sigma",
+    [
+        -1e-5,
+        0.0,
+        float("nan"),
+        float("inf"),
+        True,
+        np.bool_(True),
+        "a",
+        1 + 0j,
+        torch.full((2, 2), 1e-5),
+        torch.tensor([1e-5, -1e-5]),
+    ],
 )
-def test_star_noise_must_be_one_positive_finite_number(sigma):
+def test_star_noise_must_be_positive_finite_numbers_one_for_all_or_one_per_trajectory(sigma):
     r = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
-    with pytest.raises(ValueError, match=r"sigma must be a positive finite scalar \(rad\), got"):
+    with pytest.raises(ValueError, match=r"sigma must be a positive finite scalar or \[B\] \(rad\), got"):
         StarVectorMeasurement(r, sigma=sigma)
     assert StarVectorMeasurement(r, sigma=1e-5).sigma.item() == 1e-5  # a float is kept in float64
 
