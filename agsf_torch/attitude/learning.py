@@ -116,8 +116,8 @@ class DatasetFits:
             inside: name → ``[D]`` bool, it passes at 5 %.
         judged: name → ``[D]`` bool: a verdict is given (converged and identified).
         joint_statistic / joint_dof / joint_p_value: ``[D]`` the likelihood-ratio test of the configured values,
-        ``2(ℓ(θ̂) − ℓ(θ₀))`` against χ² with ``p`` degrees of freedom (every learned coordinate);
-        joint_consistent: ``[D]`` bool (meaningful where converged).
+            ``2(ℓ(θ̂) − ℓ(θ₀))`` against χ² with ``p`` degrees of freedom (every learned coordinate);
+            joint_consistent: ``[D]`` bool (meaningful where converged).
         alternative_ratio: ``[A, D]`` the same statistic at each of ``alternatives``.
         converged / diverged: ``[D]`` bool; iterations: ``[D]`` Newton iterations; nll: ``[D]`` −ℓ at the estimate;
         history: −ℓ ``[D]`` per iteration.
