@@ -166,6 +166,7 @@ def calibration_figure(results: list[dict], path: Path) -> Path:
             ax_det.semilogx(factors, rates, "o-", color=colours.get(c["name"]), label=c["name"])
         ax_det.axhline(0.05, color="grey", lw=0.8, ls=":", label="5 %")
         ax_det.set_xticks([1 / 3, 0.5, 1, 2, 3], ["÷3", "÷2", "1", "×2", "×3"])
+        ax_det.set_xticks([], minor=True)  # the log axis's own minor labels would overlap these
         ax_det.set_ylim(0, 1.02)
         ax_det.set_title(f"(b) verdict 'mis-modelled' · {headline['label']}")
         ax_det.set_xlabel("configured value / truth")
