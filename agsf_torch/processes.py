@@ -1,10 +1,9 @@
 """Worker interpreters: the CPUs this process may use, and the environment of a new interpreter that imports what
 its caller imports.
 
-The package starts new interpreters (``python -m …``), not multiprocessing children, where it hands work to other
-processes (compiling kernels side by side, :func:`agsf_torch.fused.lanes.compiling_in_parallel`; writing files,
-:class:`agsf_torch.experiments.file_writer.FileWriter`): a multiprocessing child would run the caller's
-``__main__`` again.
+The kernel compiler starts new interpreters (``python -m …``, :func:`agsf_torch.fused.lanes.compiling_in_parallel`),
+not spawned multiprocessing children, which would run the caller's ``__main__`` again; the experiments' workers are
+a forked :class:`concurrent.futures.ProcessPoolExecutor` (:mod:`agsf_torch.experiments.forked`).
 """
 
 from __future__ import annotations

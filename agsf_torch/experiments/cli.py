@@ -12,7 +12,7 @@ Subcommands:
 * ``agsf adaptation [--scenario …] [--runs R] [--samples K] --out DIR`` — where adapting
   the weights pays: RMS, NEES and the density score against an exact-density reference
   for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.adaptation`).
-* ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--writers N | --backend ray [--address ADDR]]`` — a
+* ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
   resumable grid, in this process (each configuration's files written by a worker process while the next
   runs) or as Ray tasks; ends with a table of every configuration (printed and written to ``results.md``).
 * ``agsf soak [--filter NAME] [--runs B] [--duration S] --out DIR`` — a long run
@@ -64,7 +64,6 @@ from .cli_terminal import (
     key_value,
     messages,
     nonnegative_float,
-    nonnegative_int,
     one_line,
     positive_float,
     positive_int,
@@ -142,18 +141,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", default="runs/reproduce", help="output folder (default: runs/reproduce; one subfolder per case)"
     )
     p.add_argument(
-        "--writers",
-        type=nonnegative_int,
-        default=None,
-        help="with --jobs 1: worker processes drawing each case's figures while the next runs (default: 1 on 2 "
-        "CPUs or more, else 0; 0: drawn in this process)",
-    )
-    p.add_argument(
         "--jobs",
         type=positive_int,
         default=None,
-        help="cases at once, each in a forked process that writes its own files (default: every case on Linux "
-        "with 2 CPUs or more, else 1: one after another)",
+        help="cases at once, each in a worker process that writes its own files (default: every case on Linux "
+        "with 2 CPUs or more, else 1: one after another in this process, a worker process writing each case's "
+        "files while the next runs where there are 2 CPUs or more)",
     )
     common(p)
     p.set_defaults(func=_reproduce)
@@ -201,13 +194,6 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="Ray cluster to use (with --backend ray): 'auto' (this node's cluster) or ray://HEAD:10001; "
         "default: RAY_ADDRESS if set, else a new local Ray instance",
-    )
-    p.add_argument(
-        "--writers",
-        type=nonnegative_int,
-        default=None,
-        help="local: worker processes writing each configuration's figures and data while the next runs "
-        "(default: 1 on 2 CPUs or more, else 0; 0: written in this process)",
     )
     common(p)
     p.set_defaults(func=_sweep)
@@ -339,33 +325,9 @@ def main(argv: list[str] | None = None) -> int:
             release_outputs()
 
 
-#: Commands after which the ``agsf`` command leaves without the interpreter's teardown (:func:`entry`).
-FAST_EXIT_COMMANDS = frozenset({"reproduce", "run"})
-
-
 def entry() -> None:
-    """The ``agsf`` command: :func:`main` on the command line's arguments, then exit with its code.
-
-    After ``reproduce`` and ``run`` the process leaves without the interpreter's teardown (``os._exit`` once the
-    standard streams and logging are flushed): every file is closed and every process joined by then, and the
-    teardown of the modules torch loads takes 0.3–0.4 s (measured on 2 cores: a twentieth of the main job).  Other
-    commands exit normally (a Ray sweep's exit handler disconnects it from the cluster)."""
-    argv = sys.argv[1:]
-    code = main(argv)
-    try:
-        command = build_parser().parse_known_args(argv)[0].command
-    except SystemExit:  # not reached: main() parsed the same arguments
-        command = None
-    if command not in FAST_EXIT_COMMANDS:
-        sys.exit(code)
-    import logging
-    import os
-
-    from .forked import _flush_standard_streams
-
-    logging.shutdown()
-    _flush_standard_streams()  # a closed stream, or one whose reader is gone, is skipped
-    os._exit(code)
+    """The ``agsf`` command: :func:`main` on the command line's arguments, then exit with its code."""
+    sys.exit(main(sys.argv[1:]))
 
 
 if __name__ == "__main__":

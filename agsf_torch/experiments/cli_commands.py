@@ -91,7 +91,6 @@ def _reproduce(args: argparse.Namespace) -> int:
         overrides,
         progress=not args.quiet,
         force=args.force,
-        writers=args.writers,
         threads=args.threads,
         jobs=args.jobs,
     )
@@ -129,8 +128,6 @@ def _sweep(args: argparse.Namespace) -> int:
 
     if args.address is not None and args.backend != "ray":
         raise ValueError("--address needs --backend ray")
-    if args.writers is not None and args.backend != "local":
-        raise ValueError("--writers is the local backend's (each Ray task writes its own files)")
     base = load_config(args.config, args.set)
     grid = parse_grid(args.grid, base)
     _refuse_set(args.set, {key: f"--grid {key}=…" for key in grid})
@@ -138,7 +135,7 @@ def _sweep(args: argparse.Namespace) -> int:
         kw = {"address": args.address, "cpus_per_task": max(1, args.threads or 1)}
     else:
         _threads(args)
-        kw = {"writers": args.writers, "threads": args.threads}
+        kw = {"threads": args.threads}
     try:
         rows = run_sweep(
             base, grid, Path(args.out), progress=not args.quiet, backend=args.backend, force=args.force, **kw

@@ -50,8 +50,9 @@ def forget_parent_bars() -> None:
     from tqdm.auto import tqdm
 
     tqdm._instances.clear()
-    if hasattr(tqdm, "_lock"):
-        del tqdm._lock
+    for cls in tqdm.__mro__:  # the lock lives on the class that first took it: tqdm.write sets it on tqdm.std's
+        if "_lock" in vars(cls):
+            delattr(cls, "_lock")
 
 
 class _Reported:

@@ -13,6 +13,7 @@ compares the cases.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from ..processes import available_cpus
 from ..storage.files import write_json, write_text
 from .config import load_config
 from .experiment import make_filters, prepare_output, run_experiment
-from .file_writer import PRELOAD_MODULES, check_writers, writing_beside
+from .file_writer import PRELOAD_MODULES, check_threads, default_writers, writing_beside
 from .forked import fork_available, run_forked
 from .resources import available_memory, check_memory, check_memory_side_by_side, writer_memory
 from .statistics import WINDOW_TEXT, minus_gsf_key
@@ -37,7 +38,6 @@ def reproduce(
     *,
     progress: bool = True,
     force: bool = False,
-    writers: int | None = None,
     threads: int | None = None,
     jobs: int | None = None,
 ) -> str:
@@ -45,27 +45,25 @@ def reproduce(
     combined ``summary.json`` and ``results.md``; return the Markdown table.  Every case is
     validated (and its memory estimated, unless ``force``) before ``out`` is created.
 
-    A case's figures and event files are written by ``writers`` worker processes (:func:`~.file_writer.writing_beside`;
-    default :func:`~.file_writer.default_writers`: one where the process may use two CPUs or more), with its ``runs.npz`` (by a
-    thread of this process above :data:`~.file_writer.HANDOVER_BYTES`), while the next case runs; after the last case
-    this process helps with what is left.  The cases run with
-    ``threads`` torch threads (default: torch's, capped so that they and the writers fit the CPUs), restored
-    afterwards.  The memory check counts the writers (:func:`~.resources.writer_memory`).  The files are
-    the same with and without writers (byte for byte; the event files' records).
+    With ``jobs`` > 1 the cases run side by side, ``jobs`` at once, each in a worker process forked from this one
+    that runs it end to end with one torch thread and writes its files (:func:`.forked.run_forked`; ``threads`` must
+    be None or 1); their numbers and files are those of the cases run one after another with one torch thread (byte
+    for byte; with more threads a threaded kernel may round differently in the last bits), and each case's HParams
+    session is written as it completes.  The memory check counts the cases that run at once
+    (:func:`~.resources.check_memory_side_by_side`).  Default (``None``): every case at once where fork is available
+    and the process may use two CPUs or more (:func:`default_jobs`), else 1.
 
-    With ``jobs`` > 1 the cases instead run side by side, ``jobs`` at once, each in a process forked from this one
-    that runs it end to end with one torch thread and writes its files (:mod:`.forked`; ``threads`` must be None or
-    1, ``writers`` None or 0); their numbers and files are those of the cases run one after another with one torch
-    thread (byte for byte; with more threads a threaded kernel may round differently in the last bits), and each
-    case's HParams session is written as it completes.  Default (``None``): every case at once where fork is available and the process
-    may use two CPUs or more (:func:`default_jobs`), else 1.  The memory check then counts the cases that run at
-    once (:func:`~.resources.check_memory_side_by_side`)."""
+    With ``jobs`` = 1 the cases run one after another in this process, with ``threads`` torch threads (default:
+    torch's, capped so that they and the writer fit the CPUs), restored afterwards; a case's figures, event files and
+    ``runs.npz`` are written by a worker process while the next case runs where the process may use two CPUs or more
+    (:func:`~.file_writer.writing_beside`; the same files, byte for byte).  The memory check counts that worker
+    (:func:`~.resources.writer_memory`)."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
-    jobs = check_jobs(jobs, len(configs), writers, threads)
+    jobs = check_jobs(jobs, len(configs), threads)
     if jobs > 1:
         check_memory_side_by_side(list(configs.values()), jobs, force=force)
     else:
-        writers = check_writers(writers, threads)
+        writers = default_writers()
         for cfg in configs.values():
             check_memory(cfg, force=force, budget=available_memory() - writer_memory(cfg, writers))
     digest = hashlib.sha256(
@@ -84,9 +82,11 @@ def reproduce(
     if jobs > 1:
         tasks = [(_run_case, (cfg, out / name, progress, force)) for name, cfg in configs.items()]
         make_filters(next(iter(configs.values())))  # the rules and tables every case's filters share, built once
-        run_forked(tasks, jobs, names=names, preload=CASE_MODULES, on_result=lambda i, case: record(names[i], case))
+        for module in CASE_MODULES:  # imported once here, not in every case's process
+            importlib.import_module(module)
+        run_forked(tasks, jobs, names=names, on_result=lambda i, case: record(names[i], case))
     else:
-        with writing_beside(writers, threads) as writer:
+        with writing_beside(threads) as writer:
             for name, cfg in configs.items():
                 summary = run_experiment(
                     cfg, out / name, progress=progress, kind="reproduce-case", force=force, writer=writer
@@ -110,20 +110,18 @@ def default_jobs(cases: int) -> int:
     return cases if cases > 1 and fork_available() and available_cpus() >= 2 else 1
 
 
-def check_jobs(jobs: int | None, cases: int, writers: int | None, threads: int | None = None) -> int:
-    """Validate ``jobs`` with the ``writers`` and ``threads`` they run with (before anything is created) and return
-    it (``None``: :func:`default_jobs`).
+def check_jobs(jobs: int | None, cases: int, threads: int | None = None) -> int:
+    """Validate ``jobs`` with the ``threads`` they run with (before anything is created) and return it (``None``:
+    :func:`default_jobs`).
 
     Raises:
-        ValueError: ``jobs`` not a positive integer; more than 1 where fork is absent; more than 1 with ``writers``
-            (each case's process writes its own files: writers apply to cases run one after another) or with
-            ``threads`` above 1 (each case's process runs one torch thread); ``threads`` not a positive integer.
-
-    ``writers`` given (0 included) and ``jobs`` not: the cases run one after another, with those writers.
+        ValueError: ``jobs`` not a positive integer; more than 1 where fork is absent, or with ``threads`` above 1
+            (each case's process runs one torch thread); ``threads`` not a positive integer.
     """
+    check_threads(threads)
     if jobs is None:
-        jobs = 1 if writers is not None else default_jobs(cases)
-        return jobs if jobs == 1 else check_jobs(jobs, cases, writers, threads)
+        jobs = default_jobs(cases)
+        return jobs if jobs == 1 else check_jobs(jobs, cases, threads)
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
     jobs = min(jobs, max(1, cases))
@@ -131,24 +129,17 @@ def check_jobs(jobs: int | None, cases: int, writers: int | None, threads: int |
         raise ValueError(
             "cases run side by side in forked processes, which need Linux and the main thread: run them one after another (jobs=1, --jobs 1)"
         )
-    if jobs > 1 and writers:
+    if jobs > 1 and threads not in (None, 1):
         raise ValueError(
-            "writers apply to cases run one after another (jobs=1, --jobs 1); cases run side by side write their own files"
+            f"cases side by side run one torch thread each, got threads={threads} (a forked process cannot use "
+            "OpenMP threads safely); run them one after another (jobs=1, --jobs 1) for more threads"
         )
-    if jobs > 1:
-        check_writers(0, threads)
-        if threads not in (None, 1):
-            raise ValueError(
-                f"cases side by side run one torch thread each, got threads={threads} (a forked process cannot use "
-                "OpenMP threads safely); run them one after another (jobs=1, --jobs 1) for more threads"
-            )
     return jobs
 
 
 def _run_case(cfg, out: Path, progress: bool, force: bool) -> dict:
-    """A case run end to end in a forked process (:func:`reproduce`) with one torch thread (OpenMP does not survive a
-    fork: a child of a process that had run a parallel operation would hang at its first), its progress bar drawn by
-    the parent; returns its entry of the combined summary.
+    """A case run end to end in a worker process (:func:`reproduce`; one torch thread, its progress bar drawn by the
+    parent: :mod:`.forked`); returns its entry of the combined summary.
 
     The case runs in :func:`torch.inference_mode` (no autograd bookkeeping on any tensor: 9 % of a case's filter
     loop, measured on 2 cores), which is safe here and nowhere else in the package: no tensor outlives the process,
@@ -156,7 +147,6 @@ def _run_case(cfg, out: Path, progress: bool, force: bool) -> dict:
     in a later autograd computation."""
     import torch
 
-    torch.set_num_threads(1)
     with torch.inference_mode():
         summary = run_experiment(cfg, out, progress=progress, kind="reproduce-case", force=force)
     return _case_summary(cfg, summary)

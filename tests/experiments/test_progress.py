@@ -81,3 +81,16 @@ def test_a_forked_childs_bars_are_reported_and_its_parent_draws_each_childs_on_i
     drawn = list(bars._bars.values())
     bars.close()
     assert all(bar.closed for bar in drawn)
+
+
+def test_a_forked_child_forgets_the_lock_its_parent_took_on_any_bar_class():
+    """``tqdm.write`` takes its lock on ``tqdm.std.tqdm``, the bars of ``tqdm.auto`` inherit it: the child drops it
+    where it lives, and the next bar takes a new one."""
+    from tqdm.auto import tqdm as auto_tqdm
+    from tqdm.std import tqdm as std_tqdm
+
+    std_tqdm.write("a message", file=io.StringIO())
+    held = vars(std_tqdm)["_lock"]
+    progress.forget_parent_bars()
+    assert not any("_lock" in vars(cls) for cls in auto_tqdm.__mro__)
+    assert auto_tqdm.get_lock() is not held

@@ -1,5 +1,6 @@
-"""``agsf reproduce`` with its cases side by side in forked processes (``jobs``): the same tables and files as one
-after another, refusals before anything is created, a failing case raised once the others are complete."""
+"""``agsf reproduce`` with its cases side by side in forked worker processes (``jobs``): the same tables and files as
+one after another, refusals before anything is created, a failing case raised once the others are complete, a case
+whose process dies named with its exit code."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 import torch
 
 from agsf_torch.experiments import reproduce as reproduce_module
-from agsf_torch.experiments.forked import fork_available
+from agsf_torch.experiments.forked import TaskDied, fork_available
 from agsf_torch.experiments.reproduce import check_jobs, default_jobs, reproduce
 from agsf_torch.experiments.resources import TooLarge
 from tests.experiments.test_cli_failures import _assert_refused
@@ -23,7 +24,7 @@ def test_cases_side_by_side_write_what_one_after_another_writes_and_the_threads_
     threads = torch.get_num_threads()
     tables = {
         label: reproduce([1, 2, 3], tmp_path / label, SMALL, progress=False, **kw)
-        for label, kw in (("sequential", {"jobs": 1, "writers": 0}), ("forked", {"jobs": jobs}))
+        for label, kw in (("sequential", {"jobs": 1}), ("forked", {"jobs": jobs}))
     }
     assert torch.get_num_threads() == threads
     assert tables["forked"] == tables["sequential"]
@@ -53,19 +54,37 @@ def test_a_failing_case_is_raised_once_the_other_cases_are_written(tmp_path, mon
     assert not (tmp_path / "out" / "results.md").exists()
 
 
+@needs_fork
+def test_a_case_whose_process_dies_is_named_with_its_exit_code_once_the_others_are_written(tmp_path, monkeypatch):
+    import os
+
+    run = reproduce_module.run_experiment
+
+    def dying_case2(cfg, out, **kw):  # inherited by the forked processes
+        if out.name == "case2":
+            os._exit(9)
+        return run(cfg, out, **kw)
+
+    monkeypatch.setattr(reproduce_module, "run_experiment", dying_case2)
+    with pytest.raises(TaskDied, match=r"^case2 ended without a reply \(exit code 9\)$"):
+        reproduce([1, 2], tmp_path / "out", SMALL, progress=False, jobs=2)
+    assert not (tmp_path / "out" / "results.md").exists()
+    assert not list((tmp_path / "out").rglob(".*.tmp"))
+
+
 @pytest.mark.parametrize(
-    ("jobs", "writers", "match"),
+    ("jobs", "threads", "match"),
     [
         (0, None, "jobs must be a positive integer, got 0"),
         (1.5, None, "jobs must be a positive integer"),
         (True, None, "jobs must be a positive integer"),
-        (2, 1, r"writers apply to cases run one after another \(jobs=1, --jobs 1\)"),
-        (2, "threads=2", r"cases side by side run one torch thread each, got threads=2"),
+        (2, 2, r"cases side by side run one torch thread each, got threads=2"),
+        (1, 0, "threads must be a positive integer or None, got 0"),
     ],
 )
-def test_bad_job_counts_are_refused_before_anything_is_created(tmp_path, monkeypatch, jobs, writers, match):
+def test_bad_job_counts_are_refused_before_anything_is_created(tmp_path, monkeypatch, jobs, threads, match):
     monkeypatch.setattr(reproduce_module, "fork_available", lambda: True)
-    kw = {"threads": 2} if writers == "threads=2" else {"writers": writers}
+    kw = {"threads": threads}
     with pytest.raises(ValueError, match=match):
         reproduce([1, 2], tmp_path / "out", list(EAGER), progress=False, jobs=jobs, **kw)
     assert not (tmp_path / "out").exists()
@@ -84,15 +103,13 @@ def test_by_default_every_case_runs_at_once_on_two_cpus_or_more(monkeypatch, cpu
     monkeypatch.setattr(reproduce_module, "fork_available", lambda: True)
     monkeypatch.setattr(reproduce_module, "available_cpus", lambda: cpus)
     assert default_jobs(cases) == expected
-    assert check_jobs(None, cases, None) == expected
+    assert check_jobs(None, cases) == expected
 
 
-def test_writers_given_alone_run_the_cases_one_after_another_and_jobs_are_capped_by_the_cases():
-    assert check_jobs(None, 3, 0) == 1
-    assert check_jobs(None, 3, 1) == 1
+def test_jobs_are_capped_by_the_cases():
     if fork_available():
-        assert check_jobs(7, 3, None) == 3
-    assert check_jobs(5, 1, 1) == 1  # one case: nothing side by side, the writers apply
+        assert check_jobs(7, 3) == 3
+    assert check_jobs(5, 1) == 1  # one case: nothing side by side
 
 
 def test_cases_side_by_side_that_do_not_fit_in_memory_are_refused_naming_jobs_1(tmp_path, monkeypatch):
@@ -105,15 +122,15 @@ def test_cases_side_by_side_that_do_not_fit_in_memory_are_refused_naming_jobs_1(
     assert not (tmp_path / "out").exists()
 
 
-def test_the_cli_refuses_jobs_with_writers_in_one_line_exit_2(tmp_path):
+def test_the_cli_refuses_bad_jobs_and_the_writers_flag_that_jobs_replaced_in_one_line_exit_2(tmp_path):
     out = tmp_path / "out"
-    _assert_refused(["reproduce", "--out", str(out), "--jobs", "2", "--writers", "1", *TINY_CLI], tmp_path, "--jobs 1")
     _assert_refused(["reproduce", "--out", str(out), "--jobs", "0", *TINY_CLI], tmp_path, "--jobs")
+    _assert_refused(["reproduce", "--out", str(out), "--jobs", "2", "--writers", "1", *TINY_CLI], tmp_path, "--writers")
+    _assert_refused(["sweep", "case1", "--grid", "reg=1", "--writers", "1", "--out", str(out)], tmp_path, "--writers")
 
 
 def test_a_cases_process_that_dies_is_a_one_line_failure_exit_3(tmp_path, monkeypatch):
     """A case's process killed (out of memory, say) is the machine's failure, not a traceback."""
-    from agsf_torch.experiments.forked import TaskDied
     from tests.experiments.test_cli_failures import _agsf
 
     def died(*a, **kw):

@@ -1,12 +1,13 @@
 """A local sweep writes each configuration's files beside the next configuration's run (agsf_torch.experiments.sweep
-with agsf_torch.experiments.file_writer): the same rows and files as without a writer, each row appended only once
-its configuration's files are complete, a reused filter read only once written."""
+with agsf_torch.experiments.file_writer, one worker process where there are 2 CPUs or more): the same rows and files
+as without a writer, each row appended only once its configuration's files are complete, a reused filter read only
+once written."""
 
 from __future__ import annotations
 
 import pytest
 
-from agsf_torch.experiments import cli
+from agsf_torch.experiments import file_writer
 from agsf_torch.experiments.config import load_config
 from agsf_torch.experiments.experiment import run_experiment
 from agsf_torch.experiments.file_writer import HANDOVER_BYTES, WORKER_MEMORY
@@ -21,9 +22,17 @@ TINY = ["runs=2", "duration=0.5", "components=2", *EAGER, 'filters=["EKF","GSF",
 GRID = {"reg": [0.5, 1.0, 2.0]}
 
 
-def test_a_sweep_writes_the_same_rows_and_files_with_a_writer_as_without(tmp_path):
+def _writers(monkeypatch, writers: int) -> None:
+    """Run the sweeps with ``writers`` worker processes (by default one where there are 2 CPUs or more)."""
+    monkeypatch.setattr(file_writer, "default_writers", lambda: writers)
+
+
+def test_a_sweep_writes_the_same_rows_and_files_with_a_writer_as_without(tmp_path, monkeypatch):
     base = load_config("case1", TINY)
-    rows = {w: run_sweep(base, GRID, tmp_path / str(w), progress=False, writers=w) for w in (0, 1)}
+    rows = {}
+    for w in (0, 1):
+        _writers(monkeypatch, w)
+        rows[w] = run_sweep(base, GRID, tmp_path / str(w), progress=False)
     assert rows[0] == rows[1]
     assert read_json_lines(tmp_path / "0" / "results.jsonl") == read_json_lines(tmp_path / "1" / "results.jsonl")
     assert file_digests(tmp_path / "1" / "configs") == file_digests(tmp_path / "0" / "configs")
@@ -54,12 +63,14 @@ def test_a_row_is_appended_once_its_files_are_complete_and_a_reused_filter_is_re
         return run_experiment(cfg, folder, **kw)
 
     monkeypatch.setattr(sweep_run, "append_line", checked_append)
-    run_sweep(base, GRID, out, progress=False, writers=1, runner=runner)
+    _writers(monkeypatch, 1)
+    run_sweep(base, GRID, out, progress=False, runner=runner)
     assert appended == started and len(appended) == 3
 
 
-def test_a_configuration_that_fails_leaves_the_previous_one_recorded(tmp_path):
+def test_a_configuration_that_fails_leaves_the_previous_one_recorded(tmp_path, monkeypatch):
     base = load_config("case1", TINY)
+    _writers(monkeypatch, 1)
     calls = []
 
     def failing_second(cfg, folder, **kw):
@@ -69,7 +80,7 @@ def test_a_configuration_that_fails_leaves_the_previous_one_recorded(tmp_path):
         return run_experiment(cfg, folder, **kw)
 
     with pytest.raises(ZeroDivisionError):
-        run_sweep(base, GRID, tmp_path / "sweep", progress=False, writers=1, runner=failing_second)
+        run_sweep(base, GRID, tmp_path / "sweep", progress=False, runner=failing_second)
     rows = read_json_lines(tmp_path / "sweep" / "results.jsonl")
     assert [r["params"]["reg"] for r in rows] == [0.5]
 
@@ -84,25 +95,20 @@ def test_the_memory_a_run_shares_with_the_writer():
     assert writer_memory(large, 1) == WORKER_MEMORY + arrays
 
 
-def test_writers_are_the_local_backends(tmp_path, capsys):
+def test_threads_are_the_local_backends(tmp_path):
+    """(The ``--writers`` flag is gone: ``test_reproduce_jobs``.)"""
     base = load_config("case1", TINY)
     with pytest.raises(ValueError, match="local backend"):
-        run_sweep(base, GRID, tmp_path / "r", progress=False, backend="ray", writers=1)
-    with pytest.raises(
-        ValueError, match="writers must be an integer from 0 to the [0-9]+ CPUs this process may use, got -1"
-    ):
-        run_sweep(base, GRID, tmp_path / "w", progress=False, writers=-1)
-    code = cli.main(
-        ["sweep", "case1", "--grid", "reg=1", "--backend", "ray", "--writers", "1", "--out", str(tmp_path / "c")]
-    )
-    err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "--writers" in err
-    assert not any((tmp_path / name).exists() for name in ("r", "w", "c"))
+        run_sweep(base, GRID, tmp_path / "r", progress=False, backend="ray", threads=2)
+    with pytest.raises(ValueError, match="threads must be a positive integer or None, got -1"):
+        run_sweep(base, GRID, tmp_path / "w", progress=False, threads=-1)
+    assert not any((tmp_path / name).exists() for name in ("r", "w"))
 
 
-def test_without_a_worker_a_configuration_is_recorded_before_the_next_one_runs(tmp_path):
+def test_without_a_worker_a_configuration_is_recorded_before_the_next_one_runs(tmp_path, monkeypatch):
     """Nothing is written in the background: a crash in the next configuration loses nothing recorded."""
     base = load_config("case1", TINY)
+    _writers(monkeypatch, 0)
     out = tmp_path / "sweep"
     rows_seen = []
 
@@ -110,7 +116,7 @@ def test_without_a_worker_a_configuration_is_recorded_before_the_next_one_runs(t
         rows_seen.append(len(read_json_lines(out / "results.jsonl")) if (out / "results.jsonl").exists() else 0)
         return run_experiment(cfg, folder, **kw)
 
-    run_sweep(base, GRID, out, progress=False, writers=0, runner=runner)
+    run_sweep(base, GRID, out, progress=False, runner=runner)
     assert rows_seen == [0, 1, 2]
 
 
@@ -140,7 +146,8 @@ def _latched_sweep(tmp_path, monkeypatch, on_wait):
 
     monkeypatch.setattr(sweep_run, "_interrupt_latch", fake_latch)
     monkeypatch.setattr(FileWriter, "wait_for", waiting)
-    run_sweep(load_config("case1", TINY), GRID, tmp_path / "sweep", progress=False, writers=1, runner=runner)
+    _writers(monkeypatch, 1)
+    run_sweep(load_config("case1", TINY), GRID, tmp_path / "sweep", progress=False, runner=runner)
     return calls
 
 
@@ -183,8 +190,9 @@ def test_the_previous_configurations_failed_files_do_not_hide_the_failure_of_the
         return run_experiment(cfg, folder, **kw)
 
     monkeypatch.setattr(FileWriter, "wait_for", failing_wait)
+    _writers(monkeypatch, 1)
     with pytest.raises(KeyboardInterrupt):
         base = load_config("case1", [*TINY[:-1], 'filters=["AGSF"]'])  # nothing reused: the next one runs at once
-        run_sweep(base, {"reg": [0.5, 1.0]}, tmp_path / "sweep", progress=False, writers=1, runner=runner)
+        run_sweep(base, {"reg": [0.5, 1.0]}, tmp_path / "sweep", progress=False, runner=runner)
     assert "No space left on device" in caplog.text  # logged, not raised over the interruption
     assert not (tmp_path / "sweep" / "results.jsonl").exists()  # its files failed: not recorded

@@ -19,7 +19,7 @@ from typing import Any
 from ...storage.files import append_line, json_text, repair_json_lines
 from ..config import ExperimentConfig, parse_override
 from ..experiment import prepare_output, run_experiment
-from ..file_writer import check_writers, writing_beside
+from ..file_writer import check_threads, default_writers, writing_beside
 from ..resources import available_memory, check_memory, writer_memory
 from ..tensorboard_log import hparam_domains, move_events, run_names, write_hparams_session
 from .ray_backend import import_ray, run_on_ray
@@ -102,7 +102,6 @@ def run_sweep(
     cpus_per_task: int = 1,
     max_retries: int = 3,
     force: bool = False,
-    writers: int | None = None,
     threads: int | None = None,
 ) -> list[dict[str, Any]]:
     """Run every combination of ``grid`` on top of ``base``; returns all result rows.
@@ -134,11 +133,11 @@ def run_sweep(
             to the same number.
         max_retries: Ray only: retries of a task whose worker or node died
             (exceptions raised by the runner are not retried: they are deterministic).
-        writers: local only: worker processes that write a configuration's figures, event files and ``runs.npz``
-            while the next configuration runs (:func:`~..file_writer.writing_beside`; default: one on two CPUs or
-            more, else none).  A configuration is recorded (its events moved, its row appended) once its files are
-            complete; one that reuses a filter of the configuration before it starts once that one is recorded.
-        threads: local only: torch threads (default: torch's, capped so that they and the writers fit the CPUs).
+        threads: local only: torch threads (default: torch's, capped so that they and the writer fit the CPUs).
+            Locally a worker process writes a configuration's figures, event files and ``runs.npz`` while the next
+            configuration runs where the process may use two CPUs or more (:func:`~..file_writer.writing_beside`).  A
+            configuration is recorded (its events moved, its row appended) once its files are complete; one that
+            reuses a filter of the configuration before it starts once that one is recorded.
 
     Raises:
         SweepFailed: (Ray) some configurations failed; all others were recorded.
@@ -151,9 +150,10 @@ def run_sweep(
         raise ValueError("a Ray address needs backend='ray' (--backend ray)")
     if cpus_per_task < 1:
         raise ValueError(f"cpus_per_task must be ≥ 1, got {cpus_per_task}")
-    if backend == "ray" and (writers or threads):
-        raise ValueError("writers and threads are the local backend's (Ray tasks take cpus_per_task)")
-    writers = check_writers(writers, threads) if backend == "local" else 0
+    if backend == "ray" and threads:
+        raise ValueError("threads are the local backend's (Ray tasks take cpus_per_task)")
+    check_threads(threads)
+    writers = default_writers() if backend == "local" else 0
     if backend == "ray":
         import_ray()  # fail before any work or folder if the extra is missing
     grid = {key: [getattr(base.replace(**{key: v}), key) for v in values] for key, values in grid.items()}  # 1 ≡ 1.0
@@ -169,7 +169,7 @@ def run_sweep(
     out = prepare_output(Path(out), "sweep", digest, {"base": base.to_dict(), "grid": grid})
     with _sweep_lock(out):
         if backend == "local":
-            with writing_beside(writers, threads) as writer:
+            with writing_beside(threads) as writer:
                 return _run_pending(
                     configs, out, progress, runner, backend, address, cpus_per_task, max_retries, writer
                 )
