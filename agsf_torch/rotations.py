@@ -19,6 +19,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .attitude import physics
+from .fused import algebra
+from .fused.algebra import as_entries, as_tensor
+
 __all__ = [
     "cross_matrix",
     "mrp_to_dcm",
@@ -42,7 +46,7 @@ __all__ = [
 
 
 def cross_matrix(v: Tensor) -> Tensor:
-    """Skew-symmetric cross-product matrix ``[v×]``.
+    """Skew-symmetric cross-product matrix ``[v×]`` (:func:`agsf_torch.fused.algebra.cross_matrix`).
 
     Args:
         v: ``[..., 3]``.
@@ -50,16 +54,7 @@ def cross_matrix(v: Tensor) -> Tensor:
     Returns:
         ``[..., 3, 3]`` with ``[v×] u = v × u``.
     """
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack(
-        (
-            torch.stack((o, -z, y), -1),
-            torch.stack((z, o, -x), -1),
-            torch.stack((-y, x, o), -1),
-        ),
-        -2,
-    )
+    return as_tensor(algebra.cross_matrix(as_entries(v, (3,))), like=v)
 
 
 def mrp_to_dcm(p: Tensor) -> Tensor:
@@ -67,16 +62,15 @@ def mrp_to_dcm(p: Tensor) -> Tensor:
 
     .. math:: C(p) = I_3 + \\frac{8[p×]^2 - 4(1 - s)[p×]}{(1 + s)^2},\\quad s = p^T p
 
+    (:func:`agsf_torch.attitude.physics.attitude_matrix`).
+
     Args:
         p: MRP ``[..., 3]``.
 
     Returns:
         ``[..., 3, 3]``.
     """
-    s = (p * p).sum(-1)[..., None, None]
-    px = cross_matrix(p)
-    eye = torch.eye(3, dtype=p.dtype, device=p.device)
-    return eye + (8.0 * px @ px - 4.0 * (1.0 - s) * px) / (1.0 + s) ** 2
+    return as_tensor(physics.attitude_matrix(as_entries(p, (3,))), like=p)
 
 
 def mrp_to_quat(p: Tensor) -> Tensor:
@@ -211,7 +205,7 @@ def mrp_compose(p_a: Tensor, p_b: Tensor) -> Tensor:
 
 
 def mrp_kinematics_matrix(p: Tensor) -> Tensor:
-    """MRP kinematics matrix, ``ṗ = ¼ B(p) ω``.
+    """MRP kinematics matrix, ``ṗ = ¼ B(p) ω`` (:func:`agsf_torch.attitude.physics.kinematics_matrix`).
 
     .. math:: B(p) = (1 - s) I_3 + 2 [p×] + 2 p p^T,\\qquad B B^T = (1 + s)^2 I_3
 
@@ -221,18 +215,18 @@ def mrp_kinematics_matrix(p: Tensor) -> Tensor:
     Returns:
         ``[..., 3, 3]``.
     """
-    s = (p * p).sum(-1)[..., None, None]
-    eye = torch.eye(3, dtype=p.dtype, device=p.device)
-    return (1.0 - s) * eye + 2.0 * cross_matrix(p) + 2.0 * p[..., :, None] * p[..., None, :]
+    return as_tensor(physics.kinematics_matrix(as_entries(p, (3,))), like=p)
 
 
 def mrp_shadow(p: Tensor) -> Tensor:
-    """Shadow MRP ``pˢ = −p / |p|²`` (the same attitude).  ``p`` must be non-zero."""
-    return -p / (p * p).sum(-1, keepdim=True)
+    """Shadow MRP ``pˢ = −p / |p|²`` (the same attitude; :func:`agsf_torch.attitude.physics.shadow`), ``[..., 3]``.
+    ``p`` must be non-zero."""
+    return as_tensor(physics.shadow(as_entries(p, (3,))), like=p)
 
 
 def mrp_shadow_jacobian(p: Tensor) -> Tensor:
-    """Jacobian of the shadow map, ``J = ∂pˢ/∂p = (2 p pᵀ − s I₃) / s²``.
+    """Jacobian of the shadow map, ``J = ∂pˢ/∂p = (2 p pᵀ − s I₃) / s²``
+    (:func:`agsf_torch.attitude.physics.shadow_jacobian`).
 
     Args:
         p: ``[..., 3]`` non-zero.
@@ -240,9 +234,7 @@ def mrp_shadow_jacobian(p: Tensor) -> Tensor:
     Returns:
         ``[..., 3, 3]``.
     """
-    s = (p * p).sum(-1)[..., None, None]
-    eye = torch.eye(3, dtype=p.dtype, device=p.device)
-    return (2.0 * p[..., :, None] * p[..., None, :] - s * eye) / (s * s)
+    return as_tensor(physics.shadow_jacobian(as_entries(p, (3,))), like=p)
 
 
 def mrp_canonical(p: Tensor) -> Tensor:
@@ -270,7 +262,7 @@ def attitude_error_jacobian(p: Tensor) -> Tensor:
 
     .. math:: J = \\frac{4}{(1 + |p|^2)^2} B(p)^T
 
-    (:func:`mrp_kinematics_matrix`; ``J = 4 I`` at ``p = 0``).  Maps an MRP covariance ``P`` to
+    (:func:`agsf_torch.attitude.physics.chart_map`; ``J = 4 I`` at ``p = 0``).  Maps an MRP covariance ``P`` to
     the covariance ``J P Jᵀ`` of the rotation error (rad²).
 
     Args:
@@ -279,8 +271,7 @@ def attitude_error_jacobian(p: Tensor) -> Tensor:
     Returns:
         ``[..., 3, 3]``.
     """
-    s = (p * p).sum(-1)[..., None, None]
-    return 4.0 * mrp_kinematics_matrix(p).transpose(-1, -2) / (1.0 + s) ** 2
+    return as_tensor(physics.chart_map(as_entries(p, (3,))), like=p)
 
 
 def attitude_error_angle(p_a: Tensor, p_b: Tensor) -> Tensor:

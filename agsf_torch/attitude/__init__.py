@@ -1,5 +1,8 @@
 """The attitude application: what joins a gyro and a star camera to the generic filters.
 
+* :mod:`.physics` — the attitude physics written once (MRP chart, kinematics, gyro noise, star camera, Fokker–Planck
+  terms), on entries: the attitude model, the star-vector measurement, :mod:`agsf_torch.rotations` and the fused
+  kernels are all built from it; it imports nothing but the small-matrix algebra (:mod:`agsf_torch.fused.algebra`);
 * :mod:`.inputs` — the filter loop's attitude adapter (observations → steps);
 * :mod:`.gyro_hold` — bridging missing or saturated gyro samples, with the covariance they cost;
 * :mod:`.recordings` — sensor logs on disk (a user's own data), identified by content;

@@ -21,16 +21,21 @@ __all__ = [
     "neg",
     "mul",
     "dot",
-    "scale",
     "matmul",
     "matmul_t",
-    "transpose",
     "identity",
     "zeros",
-    "axpy",
     "symmetric_part",
     "cholesky",
     "cholesky_solve",
+    "forward_substitution",
+    "div",
+    "matvec",
+    "cross",
+    "cross_matrix",
+    "add_cross_matrix",
+    "as_entries",
+    "as_tensor",
     "count",
 ]
 
@@ -108,14 +113,16 @@ def mul(a: Entry, b: Entry) -> Entry:
     return a * b
 
 
-def scale(c: Entry, A: list[list[Entry]]) -> list[list[Entry]]:
-    """``c · A``."""
-    return [[mul(c, v) for v in row] for row in A]
-
-
-def axpy(c: Entry, X: list[list[Entry]], Y: list[list[Entry]]) -> list[list[Entry]]:
-    """``Y + c · X`` entry by entry."""
-    return [[add(y, mul(c, x)) for x, y in zip(rx, ry)] for rx, ry in zip(X, Y)]
+def div(a: Entry, b: Entry) -> Entry:
+    """``a / b`` (``None`` is zero; ``b`` must not be)."""
+    if a is None:
+        return None
+    if isinstance(a, float) and isinstance(b, float):
+        return a / b
+    if isinstance(b, float) and b == 1.0:
+        return a
+    _tick()
+    return a / b
 
 
 def dot(terms) -> Entry:
@@ -138,9 +145,35 @@ def matmul_t(A: list[list[Entry]], B: list[list[Entry]]) -> list[list[Entry]]:
     return [[dot((A[i][t], B[j][t]) for t in range(k)) for j in range(len(B))] for i in range(len(A))]
 
 
-def transpose(A: list[list[Entry]]) -> list[list[Entry]]:
-    """``Aᵀ``."""
-    return [list(col) for col in zip(*A)]
+def matvec(A: list[list[Entry]], x: list[Entry]) -> list[Entry]:
+    """``A x``."""
+    return [dot((row[k], x[k]) for k in range(len(x))) for row in A]
+
+
+def cross(a: list[Entry], b: list[Entry]) -> list[Entry]:
+    """``a × b`` of two 3-vectors."""
+    return [
+        sub(mul(a[1], b[2]), mul(a[2], b[1])),
+        sub(mul(a[2], b[0]), mul(a[0], b[2])),
+        sub(mul(a[0], b[1]), mul(a[1], b[0])),
+    ]
+
+
+#: ``[v×]``'s off-diagonal entries: ``(i, j) → (k, ±1)`` with ``[v×]ᵢⱼ = ±vₖ``.
+_SKEW = {(0, 1): (2, -1.0), (0, 2): (1, 1.0), (1, 0): (2, 1.0), (1, 2): (0, -1.0), (2, 0): (1, -1.0), (2, 1): (0, 1.0)}
+
+
+def cross_matrix(v: list[Entry]) -> list[list[Entry]]:
+    """``[v×]`` (``[v×] u = v × u``), its diagonal structural zeros."""
+    return add_cross_matrix(zeros(3), v)
+
+
+def add_cross_matrix(A: list[list[Entry]], v: list[Entry], sign: float = 1.0) -> list[list[Entry]]:
+    """``A ± [v×]`` (3×3, ``sign`` = ±1) with one addition or subtraction per off-diagonal entry (no negations)."""
+    out = [list(row) for row in A]
+    for (i, j), (k, s) in _SKEW.items():
+        out[i][j] = add(A[i][j], v[k]) if s * sign > 0 else sub(A[i][j], v[k])
+    return out
 
 
 def identity(n: int) -> list[list[Entry]]:
@@ -186,9 +219,9 @@ def cholesky(P: list[list[Entry]]) -> tuple[list[list[Entry]], list[Entry], Tens
     return L, inv, ok
 
 
-def cholesky_solve(L: list[list[Entry]], inv: list[Entry], b: list[Entry]) -> list[Entry]:
-    """``x = (LLᵀ)⁻¹ b`` for one right-hand side ``b`` (forward then back substitution; known zeros
-    of ``b`` emit no arithmetic until they fill in)."""
+def forward_substitution(L: list[list[Entry]], inv: list[Entry], b: list[Entry]) -> list[Entry]:
+    """``z = L⁻¹ b`` for a lower-triangular ``L`` with the reciprocals ``inv`` of its diagonal (known zeros of
+    ``b`` emit no arithmetic until they fill in)."""
     n = len(L)
     z: list[Entry] = [None] * n
     for k in range(n):
@@ -196,6 +229,13 @@ def cholesky_solve(L: list[list[Entry]], inv: list[Entry], b: list[Entry]) -> li
         for t in range(k):
             v = sub(v, mul(L[k][t], z[t]))
         z[k] = mul(v, inv[k])
+    return z
+
+
+def cholesky_solve(L: list[list[Entry]], inv: list[Entry], b: list[Entry]) -> list[Entry]:
+    """``x = (LLᵀ)⁻¹ b`` for one right-hand side ``b``: :func:`forward_substitution`, then back substitution."""
+    n = len(L)
+    z = forward_substitution(L, inv, b)
     x: list[Entry] = [None] * n
     for k in reversed(range(n)):
         v = z[k]
@@ -203,3 +243,34 @@ def cholesky_solve(L: list[list[Entry]], inv: list[Entry], b: list[Entry]) -> li
             v = sub(v, mul(L[t][k], x[t]))
         x[k] = mul(v, inv[k])
     return x
+
+
+def as_entries(t: Tensor, shape: tuple[int, ...]):
+    """The entries of ``t [..., *shape]`` as nested lists (``shape`` deep) of views ``[...]``: how a batched tensor
+    method applies a function written on entries (any leading dims; the views broadcast as their tensors do)."""
+    if not shape:
+        return t
+    return [as_entries(t.select(-len(shape), i), shape[1:]) for i in range(shape[0])]
+
+
+def as_tensor(nested, like: Tensor | None = None) -> Tensor:
+    """Nested lists of entries (tensors broadcasting to one shape ``[...]``, numbers, ``None`` for zero) back to
+    one tensor ``[..., *shape]``; ``like`` gives the dtype and device where no entry is a tensor."""
+
+    def flatten(x) -> list:
+        return [v for item in x for v in flatten(item)] if isinstance(x, list) else [x]
+
+    def dims(x) -> list[int]:
+        return [len(x), *dims(x[0])] if isinstance(x, list) else []
+
+    flat = flatten(nested)
+    tensors = [v for v in flat if isinstance(v, Tensor)]
+    ref = tensors[0] if tensors else like
+    batch = torch.broadcast_shapes(*(v.shape for v in tensors)) if tensors else ()
+    cols = [
+        v.expand(batch)
+        if isinstance(v, Tensor)
+        else torch.full(batch, 0.0 if v is None else float(v), dtype=ref.dtype, device=ref.device)
+        for v in flat
+    ]
+    return torch.stack(cols, -1).reshape(*batch, *dims(nested))

@@ -9,7 +9,7 @@ components: with ``Σ = Pᵢ + Pⱼ`` (Cholesky factor ``L_Σ``), ``d = μᵢ �
           \\log z = −½\\big(d^Ty + \\log\\det Σ + n\\log 2π\\big),
 
 the model's Gaussian moments under ``N(m, S)``
-(:meth:`~agsf_torch.models.AttitudeModel.fokker_planck_moments`) and ``E[ℓ]`` of each side
+(:func:`~agsf_torch.attitude.physics.fokker_planck_moments`) and ``E[ℓ]`` of each side
 (:func:`~agsf_torch.fpke.moments.residual_mean`) from ``Πδ = ∓y``, ``ΠS = I − Kᵀ`` or ``Kᵀ`` and
 ``ΠSΠ − Π = −Σ⁻¹``; the components' moment rates ``μ̇ᵢ, Ṗᵢ`` are formed in the kernel, once per
 component.  Written on entries (:mod:`agsf_torch.fused.algebra`): every solve is a
@@ -24,96 +24,14 @@ import math
 
 from torch import Tensor
 
+from ..attitude import physics
 from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub, symmetric_part, zeros
 from .lanes import entries
 from .propagation import attitude_rates
 
-__all__ = ["attitude_pair_kernel", "attitude_moments", "residual_mean", "pair_index", "product_gaussian"]
+__all__ = ["attitude_pair_kernel", "residual_mean", "pair_index", "product_gaussian"]
 
 Mat = list[list[Entry]]
-
-
-def attitude_moments(m: list[Entry], S: Mat, u: list[Entry], c: Tensor, n: int) -> dict:
-    """The attitude model's Fokker–Planck moments under ``N(m, S)`` on entries (the equations of
-    :meth:`~agsf_torch.models.AttitudeModel.fokker_planck_moments`): ``scalar``, ``transport`` ``v``,
-    ``transport_jacobian`` ``J`` (bias rows structural zeros), ``field`` ``E[φ]``, ``field_gradient``
-    and ``field_hessian`` (zero on the bias axes).  ``u`` is the gyro rate (the 3-state model's known
-    bias already removed); ``c = σ_v²/32``."""
-    p = m[:3]
-    M = [row[:3] for row in S[:3]]
-    if n == 6:
-        w = [sub(u[k], m[3 + k]) for k in range(3)]
-        C = [[neg(S[i][3 + j]) for j in range(3)] for i in range(3)]
-    else:
-        w = list(u)
-        C = [[None] * 3 for _ in range(3)]
-    Mm = [dot((M[i][k], p[k]) for k in range(3)) for i in range(3)]
-    Es = add(dot((p[k], p[k]) for k in range(3)), add(add(M[0][0], M[1][1]), M[2][2]))
-    Epp = [[add(mul(p[i], p[j]), M[i][j]) for j in range(3)] for i in range(3)]
-    Esp = [add(mul(Es, p[i]), mul(2.0, Mm[i])) for i in range(3)]
-    Es2 = add(
-        add(mul(Es, Es), mul(2.0, dot((M[i][j], M[i][j]) for i in range(3) for j in range(3)))),
-        mul(4.0, dot((p[k], Mm[k]) for k in range(3))),
-    )
-    trC = add(add(C[0][0], C[1][1]), C[2][2])
-    Cm = [dot((C[i][k], p[k]) for k in range(3)) for i in range(3)]
-    CTm = [dot((C[k][i], p[k]) for k in range(3)) for i in range(3)]
-    eps_C = [sub(C[1][2], C[2][1]), sub(C[2][0], C[0][2]), sub(C[0][1], C[1][0])]
-    E_sw = [add(mul(Es, w[i]), mul(2.0, CTm[i])) for i in range(3)]
-    cross = [
-        sub(mul(p[1], w[2]), mul(p[2], w[1])),
-        sub(mul(p[2], w[0]), mul(p[0], w[2])),
-        sub(mul(p[0], w[1]), mul(p[1], w[0])),
-    ]
-    E_cross = [add(cross[i], eps_C[i]) for i in range(3)]
-    E_pw = add(dot((p[k], w[k]) for k in range(3)), trC)
-    Mw = [dot((M[i][k], w[k]) for k in range(3)) for i in range(3)]
-    E_pwp = [add(add(mul(p[i], E_pw), Cm[i]), Mw[i]) for i in range(3)]
-    v_p = [
-        sub(
-            mul(0.25, add(sub(w[i], E_sw[i]), mul(2.0, add(E_cross[i], E_pwp[i])))),
-            mul(mul(8.0, c), add(p[i], Esp[i])),
-        )
-        for i in range(3)
-    ]
-    E_pwT = [[add(mul(p[i], w[j]), C[i][j]) for j in range(3)] for i in range(3)]
-    wx = [[None, neg(w[2]), w[1]], [w[2], None, neg(w[0])], [neg(w[1]), w[0], None]]
-    one_Es = add(1.0, Es)
-    J_pp = [
-        [
-            sub(
-                mul(0.5, add(sub(sub(E_pwT[i][j], E_pwT[j][i]), wx[i][j]), E_pw if i == j else None)),
-                mul(mul(8.0, c), add(one_Es if i == j else None, mul(2.0, Epp[i][j]))),
-            )
-            for j in range(3)
-        ]
-        for i in range(3)
-    ]
-    grad = [mul(4.0, add(p[i], Esp[i])) for i in range(3)]
-    hess = [[add(mul(4.0, one_Es) if i == j else None, mul(8.0, Epp[i][j])) for j in range(3)] for i in range(3)]
-    scalar = sub(mul(1.5, E_pw), mul(mul(4.0, c), add(3.0, mul(5.0, Es))))
-    field = add(add(1.0, mul(2.0, Es)), Es2)
-    if n == 6:
-        one_minus = sub(1.0, Es)
-        px = [[None, neg(p[2]), p[1]], [p[2], None, neg(p[0])], [neg(p[1]), p[0], None]]
-        E_B = [
-            [add(add(one_minus if i == j else None, mul(2.0, px[i][j])), mul(2.0, Epp[i][j])) for j in range(3)]
-            for i in range(3)
-        ]
-        J = [J_pp[i] + [mul(-0.25, E_B[i][j]) for j in range(3)] for i in range(3)] + [[None] * 6 for _ in range(3)]
-        v = v_p + [None] * 3
-        grad = grad + [None] * 3
-        hess = [row + [None] * 3 for row in hess] + [[None] * 6 for _ in range(3)]
-    else:
-        J, v = J_pp, v_p
-    return {
-        "scalar": scalar,
-        "transport": v,
-        "transport_jacobian": J,
-        "field": field,
-        "gradient": grad,
-        "hessian": hess,
-    }
 
 
 def residual_mean(
@@ -218,7 +136,7 @@ def attitude_pair_kernel(
     m_c = entries(means.reshape(T * N, n), (n,))
     P_c = entries(covs.reshape(T * N, n, n), (n, n))
     u_c = list(u.t().repeat_interleave(N, dim=1).unbind(0))  # the gyro rate on every component lane
-    f_c, _, Pdot_c = attitude_rates(m_c, zeros(n), P_c, u_c, sv2, su2, n)
+    f_c, _, Pdot_c = attitude_rates(m_c, zeros(n), P_c, u_c, sv2, su2)
     first, second = pair_index(N)
     P = len(first)
     (mi, Pi, rate_i, cov_rate_i), (mj, Pj, rate_j, cov_rate_j) = (
@@ -233,7 +151,7 @@ def attitude_pair_kernel(
     ue = [_gather(v, T, N, first) for v in u_c]
     g = product_gaussian(mi, Pi, mj, Pj)
     Kt, y, Sinv, mean, S, log_z = (g[k] for k in ("gain", "y", "sum_precision", "mean", "cov", "log_z"))
-    mom = attitude_moments(mean, S, ue, c, n)
+    mom = physics.fokker_planck_moments(mean, S, ue, c)
     D1 = [c] * 3 + [None] * (n - 3)
     D0 = [None] * 3 + [mul(0.5, su2)] * (n - 3)
     Q = [[neg(v) for v in row] for row in Sinv]

@@ -34,8 +34,10 @@ import math
 import torch
 from torch import Tensor
 
-from .algebra import Entry, add, dot, mul, sub
+from ..attitude import physics
+from .algebra import Entry, add, cholesky, cross_matrix, dot, matmul, matvec, mul, sub, zeros
 from .lanes import entries, stack_entries
+from .propagation import attitude_rates
 
 __all__ = [
     "COMPILED_PAIRS",
@@ -69,37 +71,14 @@ def _affine_at_nodes(a: list[Entry], A: Mat, xi: list[Tensor]) -> list[Entry]:
     return [add(a[r], dot((A[r][k], xi[k]) for k in range(3))) for r in range(len(a))]
 
 
-def _matvec(A: Mat, x: list[Entry]) -> list[Entry]:
-    return [dot((A[r][k], x[k]) for k in range(len(x))) for r in range(len(A))]
-
-
-def _matmul(A: Mat, B: Mat) -> Mat:
-    return [[dot((A[r][t], B[t][k]) for t in range(len(B))) for k in range(len(B[0]))] for r in range(len(A))]
-
-
-def _cross(a: list[Entry], b: list[Entry]) -> list[Entry]:
-    return [
-        sub(mul(a[1], b[2]), mul(a[2], b[1])),
-        sub(mul(a[2], b[0]), mul(a[0], b[2])),
-        sub(mul(a[0], b[1]), mul(a[1], b[0])),
-    ]
-
-
 def _node_terms(p: list[Entry], w: list[Entry], c: Tensor) -> dict:
-    """The attitude model's Fokker–Planck terms at the nodes (:meth:`~agsf_torch.models.AttitudeModel.fokker_planck_terms`),
-    what both sides share: ``s``, ``h = −f_p + 2a_p`` (``f_p = ¼B(p)ω``, ``a_p = 4c(1+s)p``), ``d_p = c(1+s)²``
-    and ``div f − Σ∂²D = 1.5pᵀω − 4c(3 + 5s)``."""
-    s = dot((p[k], p[k]) for k in range(3))
-    one_s = add(1.0, s)
-    pw = dot((p[k], w[k]) for k in range(3))
-    pxw = _cross(p, w)
-    one_minus = sub(1.0, s)
-    f = [mul(0.25, add(add(mul(one_minus, w[k]), mul(2.0, pxw[k])), mul(mul(2.0, pw), p[k]))) for k in range(3)]
-    c4s = mul(mul(8.0, c), one_s)  # 2·4c(1+s)
-    h = [sub(mul(c4s, p[k]), f[k]) for k in range(3)]
-    d_p = mul(c, mul(one_s, one_s))
-    scalar = sub(mul(1.5, pw), mul(mul(4.0, c), add(3.0, mul(5.0, s))))
-    return {"s": s, "one_minus_s": one_minus, "h": h, "d_p": d_p, "scalar": scalar}
+    """The Fokker–Planck terms at the nodes (:func:`~agsf_torch.attitude.physics.fokker_planck_terms`), what both
+    sides share: ``s``, ``h = −f_p + 2a_p`` (``f_p = ¼B(p)ω``, ``a_p = 4c(1+s)p``), ``d_p = c(1+s)²`` and
+    ``div f − Σ∂²D = 1.5pᵀω − 4c(3 + 5s)``."""
+    t = physics.fokker_planck_terms(p, w, c)
+    h = [sub(mul(2.0, a), f) for a, f in zip(t["diffusion_divergence"], t["rate"])]
+    scalar = sub(t["divergence"], t["second_divergence"])
+    return {"s": t["s"], "one_minus_s": sub(1.0, t["s"]), "h": h, "d_p": t["diffusion"], "scalar": scalar}
 
 
 def _side_values(
@@ -119,10 +98,10 @@ def _side_values(
     """The channels of ``ℓ`` of one side at every node: ``[ℓ]`` (3 states) or the ten Hermite coefficients in
     ``ξ_b`` (6 states; :mod:`agsf_torch.fpke.bias_block`)."""
     delta = [sub(mE[r], mu[r]) for r in range(n)]
-    a = _matvec(Pi, delta)  # Π(m − μ) per pair
-    A = _matmul(Pi, [row[:3] for row in LE])  # Π L_{:,p} per pair
+    a = matvec(Pi, delta)  # Π(m − μ) per pair
+    A = matmul(Pi, [row[:3] for row in LE])  # Π L_{:,p} per pair
     z0 = _affine_at_nodes(a, A, xi)
-    Pz = _affine_at_nodes(_matvec(Pdot, a), _matmul(Pdot, A), xi)
+    Pz = _affine_at_nodes(matvec(Pdot, a), matmul(Pdot, A), xi)
     d = [terms["d_p"]] * 3 + [d_b] * (n - 3)
     v0 = [add(rate[r], terms["h"][r]) for r in range(3)] + [rate[r] for r in range(3, n)]
     # ℓ(x₀) = Σ zᵣ(v₀ᵣ + ½(Ṗz)ᵣ − dᵣzᵣ) + tr(DΠ) + div f − Σ∂²D − ½tr(ΠṖ)
@@ -137,25 +116,19 @@ def _side_values(
     if n == 3:
         return [c0]
     L_bb = [row[3:] for row in LE[3:]]
-    Z = _matmul([row[3:] for row in Pi], L_bb)  # Π_{:,b} L_bb [6][3] per pair
+    Z = matmul([row[3:] for row in Pi], L_bb)  # Π_{:,b} L_bb [6][3] per pair
     Zp = Z[:3]
     # g = Zᵀ(v₀ + Ṗz₀ − 2Dz₀) + (¼B(p)ᵀz₀,p − 1.5p)ᵀL_bb
     wv = [sub(add(v0[r], Pz[r]), mul(mul(2.0, d[r]), z0[r])) for r in range(n)]
     zp0 = z0[:3]
-    pz = dot((p[k], zp0[k]) for k in range(3))
-    pxz = _cross(p, zp0)
-    Btz = [add(sub(mul(terms["one_minus_s"], zp0[k]), mul(2.0, pxz[k])), mul(mul(2.0, pz), p[k])) for k in range(3)]
-    q = [sub(mul(0.25, Btz[k]), mul(1.5, p[k])) for k in range(3)]
+    Btz = physics.mrp_rate(p, zp0, terms["s"], transpose=True)  # ¼B(p)ᵀz₀,p
+    q = [sub(Btz[k], mul(1.5, p[k])) for k in range(3)]
     g = [add(dot((Z[r][k], wv[r]) for r in range(n)), dot((q[t], L_bb[t][k]) for t in range(3))) for k in range(3)]
     # G = ½ZᵀṖZ − Σₐ dₐ ZₐZₐᵀ + ¼[(1 − s) sym(Z_pᵀL_bb) + 2 Σₖ pₖ sym(Z_pᵀ[eₖ×]L_bb) + sym2(Z_pᵀp (L_bbᵀp)ᵀ)]
-    PZ = _matmul(Pdot, Z)
-    A0 = _matmul([list(col) for col in zip(*Zp)], L_bb)  # Z_pᵀ L_bb
-    ex = [  # [e_k×], its zeros structural
-        [[None, None, None], [None, None, -1.0], [None, 1.0, None]],
-        [[None, None, 1.0], [None, None, None], [-1.0, None, None]],
-        [[None, -1.0, None], [1.0, None, None], [None, None, None]],
-    ]
-    Mk = [_matmul([list(col) for col in zip(*Zp)], _matmul(ex[k], L_bb)) for k in range(3)]
+    PZ = matmul(Pdot, Z)
+    A0 = matmul([list(col) for col in zip(*Zp)], L_bb)  # Z_pᵀ L_bb
+    ex = [cross_matrix([1.0 if i == k else None for i in range(3)]) for k in range(3)]  # [e_k×], zeros structural
+    Mk = [matmul([list(col) for col in zip(*Zp)], matmul(ex[k], L_bb)) for k in range(3)]
     zp = [dot((Zp[r][k], p[r]) for r in range(3)) for k in range(3)]  # Z_pᵀp
     G = []
     for r, col in _SYM:
@@ -293,16 +266,14 @@ def attitude_pair_moments_kernel(
         mu_*, P_*: each side's ``μ`` ``[Q, n]`` and ``P`` ``[Q, n, n]``; u: the gyro rate ``[Q, 3]`` (rad/s; the
             3-state model's known bias removed); sv2, su2: ``σ_v²``, ``σ_u²`` (0-d tensors).
     """
-    from .algebra import cholesky, zeros
     from .galerkin import product_gaussian
-    from .propagation import attitude_rates
 
     Q, n = mu_i.shape
     uE = entries(u, (3,))
     comps, rates = [], []
     for mu, P in ((mu_i, P_i), (mu_j, P_j)):
         mE, PE = entries(mu, (n,)), entries(P, (n, n))
-        rate, _, Pdot = attitude_rates(mE, zeros(n), PE, uE, sv2, su2, n)
+        rate, _, Pdot = attitude_rates(mE, zeros(n), PE, uE, sv2, su2)
         comps.append((mE, PE))
         rates += [rate, Pdot]
     g = product_gaussian(*comps[0], *comps[1])

@@ -7,7 +7,8 @@ The same mathematics as :func:`agsf_torch.propagation.propagate_moments` for
           \\qquad P ← Φ P Φ^T + S,
 
 with ``f = [¼B(p)ω; 0]``, ``A = [[F, −¼B(p)], [0, 0]]``, ``F = ½(pωᵀ − ωpᵀ − [ω×] + (ωᵀp)I)``,
-``ω = ω̃ − b`` and ``gQgᵀ = diag((σ_v²/16)(1+s)² I₃, σ_u² I₃)``.  Written on entries
+``ω = ω̃ − b`` and ``gQgᵀ = diag((σ_v²/16)(1+s)² I₃, σ_u² I₃)``, the functions of
+:mod:`agsf_torch.attitude.physics` applied to lanes.  Written on entries
 (:mod:`agsf_torch.fused.algebra`), the structure is known when the kernel is traced: ``A``'s bias
 rows are zero, so ``Φ`` keeps its ``[0, I]`` bias rows and no arithmetic is emitted for them;
 ``gQgᵀ`` is diagonal.  ``P ← ΦPΦᵀ + S`` is formed on the lower triangle (symmetric by
@@ -22,7 +23,8 @@ import functools
 
 from torch import Tensor
 
-from .algebra import Entry, add, cholesky, dot, identity, matmul, matmul_t, mul, sub, zeros
+from ..attitude import physics
+from .algebra import Entry, add, cholesky, dot, identity, matmul, matmul_t, mul, zeros
 from .lanes import entries, stack_entries
 
 __all__ = ["attitude_propagation_kernel", "attitude_rates", "positive_pivots", "propagation_kernel"]
@@ -30,36 +32,17 @@ __all__ = ["attitude_propagation_kernel", "attitude_rates", "positive_pivots", "
 Mat = list[list[Entry]]
 
 
-def attitude_rates(m: list[Entry], Phi: Mat, S: Mat, u: list[Tensor], sv2: Tensor, su2: Tensor, n: int):
-    """``(μ̇, Φ̇, Ṡ)`` at ``(m, Φ, S)`` (module docstring); ``u`` the gyro rate (3-state: bias removed)."""
-    p = m[:3]
-    w = [sub(u[k], m[3 + k]) for k in range(3)] if n == 6 else list(u)
-    s = add(add(mul(p[0], p[0]), mul(p[1], p[1])), mul(p[2], p[2]))
-    pw = add(add(mul(p[0], w[0]), mul(p[1], w[1])), mul(p[2], w[2]))
-    one_s = sub(1.0, s)
-    x, y, z = p
-    B = [
-        [add(one_s, mul(2.0, mul(x, x))), mul(2.0, sub(mul(x, y), z)), mul(2.0, add(mul(x, z), y))],
-        [mul(2.0, add(mul(x, y), z)), add(one_s, mul(2.0, mul(y, y))), mul(2.0, sub(mul(y, z), x))],
-        [mul(2.0, sub(mul(x, z), y)), mul(2.0, add(mul(y, z), x)), add(one_s, mul(2.0, mul(z, z)))],
-    ]
-    f = [mul(0.25, add(add(mul(B[i][0], w[0]), mul(B[i][1], w[1])), mul(B[i][2], w[2]))) for i in range(3)]
-    wx = [[None, mul(-1.0, w[2]), w[1]], [w[2], None, mul(-1.0, w[0])], [mul(-1.0, w[1]), w[0], None]]
-    F = [
-        [mul(0.5, add(sub(sub(mul(p[i], w[j]), mul(w[i], p[j])), wx[i][j]), pw if i == j else None)) for j in range(3)]
-        for i in range(3)
-    ]
-    if n == 6:
-        A = [F[i] + [mul(-0.25, B[i][j]) for j in range(3)] for i in range(3)] + zeros(3, 6)
-        f = f + [None, None, None]
-    else:
-        A = F
-    g_p = mul(sv2 / 16.0, mul(add(1.0, s), add(1.0, s)))
-    G = [[(g_p if i < 3 else su2) if i == j else None for j in range(n)] for i in range(n)]
+def attitude_rates(m: list[Entry], Phi: Mat, S: Mat, u: list[Tensor], sv2: Tensor, su2: Tensor):
+    """``(μ̇, Φ̇, Ṡ) = (f, AΦ, AS + SAᵀ + gQgᵀ)`` at ``(m, Φ, S)`` (module docstring), ``f``, ``A`` and ``gQgᵀ``
+    from :mod:`agsf_torch.attitude.physics`; ``u`` the gyro rate (3-state: bias removed)."""
+    n = len(m)
+    s = physics.mrp_norm2(m[:3])
+    A = physics.drift_jacobian(m, u, s)
+    G = physics.process_noise(m, sv2, su2, s)
     AS = matmul(A, S)
-    Sdot = [[add(add(AS[i][j], AS[j][i]), G[i][j]) if j <= i else None for j in range(n)] for i in range(n)]
-    Sdot = [[Sdot[i][j] if j <= i else Sdot[j][i] for j in range(n)] for i in range(n)]
-    return f, matmul(A, Phi), Sdot
+    low = [[add(add(AS[i][j], AS[j][i]), G[i][j]) for j in range(i + 1)] for i in range(n)]
+    Sdot = [[low[i][j] if j <= i else low[j][i] for j in range(n)] for i in range(n)]
+    return physics.drift(m, u, s), matmul(A, Phi), Sdot
 
 
 def _stage(x, k, c):
@@ -102,10 +85,10 @@ def attitude_propagation_kernel(
     h = dt / substeps
     for _ in range(substeps):
         Phi, S = identity(n), zeros(n)
-        k1 = attitude_rates(m, Phi, S, ue, sv2, su2, n)
-        k2 = attitude_rates(*_stage([m, Phi, S], k1, 0.5 * h), ue, sv2, su2, n)
-        k3 = attitude_rates(*_stage([m, Phi, S], k2, 0.5 * h), ue, sv2, su2, n)
-        k4 = attitude_rates(*_stage([m, Phi, S], k3, h), ue, sv2, su2, n)
+        k1 = attitude_rates(m, Phi, S, ue, sv2, su2)
+        k2 = attitude_rates(*_stage([m, Phi, S], k1, 0.5 * h), ue, sv2, su2)
+        k3 = attitude_rates(*_stage([m, Phi, S], k2, 0.5 * h), ue, sv2, su2)
+        k4 = attitude_rates(*_stage([m, Phi, S], k3, h), ue, sv2, su2)
         m, Phi, S = _combine([m, Phi, S], k1, k2, k3, k4, h)
         PPhiT = matmul_t(P, Phi)
         low = [[add(dot((Phi[i][t], PPhiT[t][j]) for t in range(n)), S[i][j]) for j in range(i + 1)] for i in range(n)]

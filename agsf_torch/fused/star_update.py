@@ -41,29 +41,40 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
+from ..attitude import physics
 from ..finite import all_finite
-from ..models.base import MeasurementModel
-from ..models.star_vectors import StarVectorMeasurement
 from ..shapes import broadcast_shapes
 from ..update import ComponentUpdate, check_innovation
+from .algebra import (
+    Entry,
+    add,
+    cholesky,
+    cholesky_solve,
+    cross,
+    div,
+    dot,
+    forward_substitution,
+    matmul,
+    matvec,
+    mul,
+    sub,
+    zeros,
+)
 from .lanes import entries, run_in_chunks, stack_entries
 from .mixture_nis import mixture_information_nis
 from .propagation import positive_pivots
 
-__all__ = [
-    "FusedUpdate",
-    "cholesky_lower",
-    "information_star_update",
-    "mrp_chart",
-    "star_kernel",
-    "fused_star_update",
-]
+if TYPE_CHECKING:  # the measurement calls this kernel; the kernel never imports the model
+    from ..models.star_vectors import StarVectorMeasurement
 
-Mat = list[list[Tensor]]
+__all__ = ["FusedUpdate", "information_star_update", "star_kernel", "fused_star_update"]
+
+Mat = list[list[Entry]]
 
 
 @dataclass(frozen=True)
@@ -77,61 +88,6 @@ class FusedUpdate(ComponentUpdate):
     positive_definite: Tensor | None = None
 
 
-def cholesky_lower(P: Mat) -> Mat:
-    """Lower Cholesky factor of a symmetric positive definite ``n×n`` matrix (only ``P[i][j]``, ``j ≤ i``,
-    are read), unrolled: ``L[i][j]`` for ``j ≤ i`` (the upper entries are ``None``)."""
-    n = len(P)
-    L: Mat = [[None] * n for _ in range(n)]  # type: ignore[list-item]
-    for j in range(n):
-        d = P[j][j]
-        for k in range(j):
-            d = d - L[j][k] * L[j][k]
-        L[j][j] = torch.sqrt(d)
-        inv = 1.0 / L[j][j]
-        for i in range(j + 1, n):
-            v = P[i][j]
-            for k in range(j):
-                v = v - L[i][k] * L[j][k]
-            L[i][j] = v * inv
-    return L
-
-
-def mrp_chart(p: list[Tensor]) -> tuple[Mat, Mat]:
-    """``C(p)`` (inertial → body) and ``E = 4B(p)ᵀ/(1+s)²``, the map from an MRP perturbation to the
-    body-frame rotation (``δ(C r) = [(C r)×] E δp``), each ``3×3``, from ``p`` as 3 entries.
-
-    .. math:: C = I + \\frac{8[p×]^2 - 4(1-s)[p×]}{(1+s)^2},\\qquad B = (1-s)I + 2[p×] + 2pp^T
-    """
-    x, y, z = p
-    s = x * x + y * y + z * z
-    inv = 1.0 / ((1.0 + s) * (1.0 + s))
-    a, c8 = 4.0 * (1.0 - s), 8.0
-    # [p×]² = ppᵀ − sI; C = I + (8(ppᵀ − sI) − 4(1 − s)[p×]) / (1 + s)²
-    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
-    C = [
-        [1.0 + c8 * (xx - s) * inv, (c8 * xy + a * z) * inv, (c8 * xz - a * y) * inv],
-        [(c8 * xy - a * z) * inv, 1.0 + c8 * (yy - s) * inv, (c8 * yz + a * x) * inv],
-        [(c8 * xz + a * y) * inv, (c8 * yz - a * x) * inv, 1.0 + c8 * (zz - s) * inv],
-    ]
-    one_s = 1.0 - s
-    B = [
-        [one_s + 2.0 * xx, 2.0 * (xy - z), 2.0 * (xz + y)],
-        [2.0 * (xy + z), one_s + 2.0 * yy, 2.0 * (yz - x)],
-        [2.0 * (xz - y), 2.0 * (yz + x), one_s + 2.0 * zz],
-    ]
-    c4 = 4.0 * inv
-    E = [[c4 * B[j][i] for j in range(3)] for i in range(3)]  # 4Bᵀ/(1+s)²
-    return C, E
-
-
-def _matvec(A: Mat, v: list[Tensor]) -> list[Tensor]:
-    return [A[i][0] * v[0] + A[i][1] * v[1] + A[i][2] * v[2] for i in range(3)]
-
-
-def _cross(a: list[Tensor], b: list[Tensor]) -> list[Tensor]:
-    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-
-
 def information_star_update(
     mean: list[Tensor],
     P: Mat,
@@ -139,7 +95,7 @@ def information_star_update(
     nu: list[list[Tensor]],
     E: Mat,
     mask: list[Tensor],
-    sigma2: Tensor | float,
+    sigma2: Tensor,
 ) -> tuple[list[Tensor], Mat, Tensor, Tensor, Tensor, Mat]:
     """One star-vector update of every lane in information form (module docstring).
 
@@ -149,106 +105,66 @@ def information_star_update(
         body: the predicted body vectors ``bⱼ = C rⱼ`` at the linearisation point, ``M`` lists of 3.
         nu: the innovations ``νⱼ`` (``ỹⱼ − h(x)`` with the relinearisation term of an iterated
             update), ``M`` lists of 3.
-        E: the chart's ``3×3`` map (``Hⱼ = [bⱼ×] E``).
+        E: the chart's ``3×3`` map (``Hⱼ = [bⱼ×] E``, :func:`~agsf_torch.attitude.physics.chart_map`).
         mask: ``M`` entries, 1.0 for a valid star, 0.0 for a masked one.
-        sigma2: ``σ²`` (rad²), a number or an entry.
+        sigma2: ``σ²`` (rad²), an entry.
 
     Returns:
         ``(mean⁺ (n entries), P⁺ (n×n, symmetric), log N(ỹ; h, S), NIS νᵀS⁻¹ν, d, F = E L_pp (3×3))``
-        per lane (``Hⱼ L = [bⱼ×] F`` on the attitude columns); lanes without a valid star are *not*
-        special-cased here (the caller keeps them).
+        per lane (``Hⱼ L = [bⱼ×] F`` on the attitude columns; ``log N`` NaN where a pivot of ``P`` or ``I + A``
+        is not positive); lanes without a valid star are *not* special-cased here (the caller keeps them).
     """
     n = len(mean)
-    L = cholesky_lower(P)
-    Lpp = [[L[i][j] if j <= i else None for j in range(3)] for i in range(3)]
-    inv_s2 = 1.0 / sigma2
+    L, _, prior_ok = cholesky(P)
+    inv_s2 = div(1.0, sigma2)
     # T = Σ mⱼ (|bⱼ|² I − bⱼbⱼᵀ) (symmetric) and u = Σ mⱼ νⱼ × bⱼ
-    T = [[None] * 3 for _ in range(3)]
-    u = [None, None, None]
+    T: Mat = zeros(3)
+    u: list[Entry] = [None] * 3
     count = None
     for b, v, m in zip(body, nu, mask):
-        bb = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
+        bb = dot((b[k], b[k]) for k in range(3))
         for i in range(3):
             for j in range(i + 1):
-                t = m * ((bb if i == j else 0.0) - b[i] * b[j])
-                T[i][j] = t if T[i][j] is None else T[i][j] + t
-        w = _cross(v, b)
-        u = [m * w[k] if u[k] is None else u[k] + m * w[k] for k in range(3)]
-        count = m if count is None else count + m
-    for i in range(3):
-        for j in range(i + 1, 3):
-            T[i][j] = T[j][i]
-    # F = E Lpp (3×3): the chart map applied to the attitude columns of L
-    F = [[sum(E[i][k] * Lpp[k][j] for k in range(j, 3)) for j in range(3)] for i in range(3)]
-    TF = [[T[i][0] * F[0][j] + T[i][1] * F[1][j] + T[i][2] * F[2][j] for j in range(3)] for i in range(3)]
-    A = [[None] * 3 for _ in range(3)]
-    for i in range(3):
-        for j in range(i + 1):
-            A[i][j] = (F[0][i] * TF[0][j] + F[1][i] * TF[1][j] + F[2][i] * TF[2][j]) * inv_s2
-    g = [(F[0][i] * u[0] + F[1][i] * u[1] + F[2][i] * u[2]) * inv_s2 for i in range(3)]
-    IA = [[(1.0 + A[i][j]) if i == j else (A[i][j] if j < i else None) for j in range(3)] for i in range(3)]
-    U = cholesky_lower(IA)
-    # z = (U Uᵀ)⁻¹ g: forward then backward substitution
-    t0 = g[0] / U[0][0]
-    t1 = (g[1] - U[1][0] * t0) / U[1][1]
-    t2 = (g[2] - U[2][0] * t0 - U[2][1] * t1) / U[2][2]
-    z2 = t2 / U[2][2]
-    z1 = (t1 - U[2][1] * z2) / U[1][1]
-    z0 = (t0 - U[1][0] * z1 - U[2][0] * z2) / U[0][0]
-    z = [z0, z1, z2]
-    # W = the first three columns of L (n×3); δx = W z; Y = W U⁻ᵀ (rows solve U yᵢ = wᵢ)
-    W = [[L[i][j] if j <= i else None for j in range(3)] for i in range(n)]
-
-    def row_dot(r: list[Tensor | None], v: list[Tensor]) -> Tensor:
-        out = None
-        for a, c in zip(r, v):
-            if a is not None:
-                out = a * c if out is None else out + a * c
-        return out
-
-    delta = [row_dot(W[i], z) for i in range(n)]
-    Y = []
-    for i in range(n):
-        w = [W[i][k] if W[i][k] is not None else None for k in range(3)]
-        y0 = w[0] / U[0][0] if w[0] is not None else None
-        y1 = None
-        if w[1] is not None or y0 is not None:
-            y1 = ((w[1] if w[1] is not None else 0.0) - (U[1][0] * y0 if y0 is not None else 0.0)) / U[1][1]
-        y2 = (
-            (w[2] if w[2] is not None else 0.0)
-            - (U[2][0] * y0 if y0 is not None else 0.0)
-            - (U[2][1] * y1 if y1 is not None else 0.0)
-        ) / U[2][2]
-        Y.append([y0, y1, y2])
-    post: Mat = [[None] * n for _ in range(n)]
+                T[i][j] = add(T[i][j], mul(m, sub(bb if i == j else None, mul(b[i], b[j]))))
+        u = [add(u[k], mul(m, w)) for k, w in enumerate(cross(v, b))]
+        count = add(count, m)
+    T = [[T[i][j] if j <= i else T[j][i] for j in range(3)] for i in range(3)]
+    W = [row[:3] for row in L]  # the first three columns of L (n×3), its upper triangle structural zeros
+    F = matmul(E, W[:3])  # the chart map applied to the attitude columns of L
+    TF = matmul(T, F)
+    A = [
+        [mul(dot((F[k][i], TF[k][j]) for k in range(3)), inv_s2) if j <= i else None for j in range(3)]
+        for i in range(3)
+    ]
+    g = [mul(dot((F[k][i], u[k]) for k in range(3)), inv_s2) for i in range(3)]
+    U, U_inv, gain_ok = cholesky([[add(1.0, A[i][j]) if i == j else A[i][j] for j in range(3)] for i in range(3)])
+    z = cholesky_solve(U, U_inv, g)
+    delta = matvec(W, z)  # δx = W z
+    Y = [forward_substitution(U, U_inv, w) for w in W]  # Y = W U⁻ᵀ
+    post: Mat = zeros(n)
     for i in range(n):
         for j in range(i + 1):
-            v = row_dot([Y[i][k] for k in range(3)], [Y[j][k] if Y[j][k] is not None else 0.0 for k in range(3)])
-            for k in range(3, j + 1):  # the bias block's own factor, L_bb L_bbᵀ
-                v = v + L[i][k] * L[j][k]
-            post[i][j] = v
-            post[j][i] = v
-    new_mean = [mean[i] + delta[i] for i in range(n)]
+            # the bias block's own factor, L_bb L_bbᵀ
+            v = add(dot((Y[i][k], Y[j][k]) for k in range(3)), dot((L[i][k], L[j][k]) for k in range(3, j + 1)))
+            post[i][j] = post[j][i] = v
+    new_mean = [add(mean[i], delta[i]) for i in range(n)]
     # NIS = Σ mⱼ |νⱼ − [bⱼ×] E δp|² / σ² + |z|²
-    Edp = _matvec(E, delta[:3])
-    nis = z0 * z0 + z1 * z1 + z2 * z2
+    Edp = matvec(E, delta[:3])
     resid = None
     for b, v, m in zip(body, nu, mask):
-        hb = _cross(b, Edp)
-        e = [v[k] - hb[k] for k in range(3)]
-        term = m * (e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-        resid = term if resid is None else resid + term
-    nis = nis + resid * inv_s2
-    dof = 3.0 * count
-    log_det = dof * torch.log(torch.as_tensor(sigma2)) + 2.0 * (
-        torch.log(U[0][0]) + torch.log(U[1][1]) + torch.log(U[2][2])
-    )
+        e = [sub(v[k], hb) for k, hb in enumerate(cross(b, Edp))]
+        resid = add(resid, mul(m, dot((e[k], e[k]) for k in range(3))))
+    nis = add(dot((z[k], z[k]) for k in range(3)), mul(resid, inv_s2))
+    dof = mul(3.0, count)
+    log_det = dof * torch.log(sigma2) + 2.0 * (torch.log(U[0][0]) + torch.log(U[1][1]) + torch.log(U[2][2]))
     log_beta = -0.5 * (nis + log_det + dof * math.log(2.0 * math.pi))
+    log_beta = torch.where(prior_ok & gain_ok, log_beta, torch.nan)  # beyond the kernel's range: the generic update
     return new_mean, post, log_beta, nis, dof, F
 
 
 def _star_step(mean, P, x_lin, r, y, mask, sigma2):
-    """One linearisation at ``x_lin`` (``None``: the prior mean), batch-first lanes in and out.
+    """One linearisation at ``x_lin`` (``None``: the prior mean), batch-first lanes in and out; ``h`` and ``H`` from
+    :mod:`agsf_torch.attitude.physics`.
 
     Args:
         mean, x_lin: ``[c, n]``; P: ``[c, n, n]``; r, y: ``[c, M, 3]`` catalogue and measured unit
@@ -264,20 +180,19 @@ def _star_step(mean, P, x_lin, r, y, mask, sigma2):
     x = mu if x_lin is None else entries(x_lin, (n,))
     Pe = entries(P, (n, n))
     re, ye, me = entries(r, (M, 3)), entries(y, (M, 3)), entries(mask, (M,))
-    Cm, E = mrp_chart(x[:3])
-    Edp = None if x_lin is None else _matvec(E, [mu[k] - x[k] for k in range(3)])
+    C, E = physics.attitude_matrix(x[:3]), physics.chart_map(x[:3])
+    Edp = None if x_lin is None else matvec(E, [sub(mu[k], x[k]) for k in range(3)])
     body, nu = [], []
     for j in range(M):
-        b = _matvec(Cm, re[j])
-        v = [ye[j][k] - b[k] for k in range(3)]
+        b = physics.star_vector(C, re[j])
+        v = [sub(ye[j][k], b[k]) for k in range(3)]
         if Edp is not None:  # ν = ỹ − h(x) − H (μ − x)
-            hb = _cross(b, Edp)
-            v = [v[k] - hb[k] for k in range(3)]
+            v = [sub(v[k], hb) for k, hb in enumerate(cross(b, Edp))]
         body.append(b)
-        nu.append([me[j] * v[k] for k in range(3)])
+        nu.append([mul(me[j], v[k]) for k in range(3)])
     new_mean, post, log_beta, nis, dof, F = information_star_update(mu, Pe, body, nu, E, me, sigma2)
     # Hⱼ L = [bⱼ×] F on the attitude columns (masked): the square root of each star's H P Hᵀ
-    HL = [[[me[j] * v for v in row] for row in _cross_rows(body[j], F)] for j in range(M)]
+    HL = [[[mul(me[j], v) for v in row] for row in physics.star_jacobian(body[j], F)] for j in range(M)]
     return (
         stack_entries(new_mean, c),
         stack_entries(post, c),
@@ -288,12 +203,6 @@ def _star_step(mean, P, x_lin, r, y, mask, sigma2):
         stack_entries(HL, c),
         positive_pivots(post),
     )
-
-
-def _cross_rows(b: list[Tensor], F: Mat) -> Mat:
-    """``[b×] F`` (3×3)."""
-    cols = [_cross(b, [F[0][k], F[1][k], F[2][k]]) for k in range(3)]
-    return [[cols[k][i] for k in range(3)] for i in range(3)]
 
 
 def star_kernel(mean, P, r, y, mask, sigma2):
@@ -374,23 +283,12 @@ def fused_star_update(
     joint = log_weights + log_beta
     log_lik = torch.logsumexp(joint, -1)
     new_log_weights = joint - log_lik.unsqueeze(-1)
+    entry = None if star_valid is None else star_valid.to(means.dtype).repeat_interleave(3, dim=-1)
     nis_mixture = None
     if mixture_nis:
-        entry_valid = (
-            None
-            if star_valid is None
-            else star_valid.to(means.dtype).repeat_interleave(3, dim=-1).expand(*lead[:-1], 3 * M)
-        )
-        nis_mixture = (
-            nis[..., 0]
-            if N == 1
-            else mixture_information_nis(log_weights, nu, HL, measurement.sigma.to(means) ** 2, entry_valid)
-        )
-    entry = (
-        torch.ones_like(nu)
-        if star_valid is None
-        else star_valid.to(means.dtype).repeat_interleave(3, dim=-1).unsqueeze(-2).expand(nu.shape)
-    )
+        valid = None if entry is None else entry.expand(*lead[:-1], 3 * M)
+        nis_mixture = nis[..., 0] if N == 1 else mixture_information_nis(log_weights, nu, HL, sigma**2, valid)
+    entry = torch.ones_like(nu) if entry is None else entry.unsqueeze(-2).expand(nu.shape)
     log_lik = measurement.data_log_likelihood(log_weights, nu, HL, y, entry)  # the data's: two dof per star
     any_valid = dof[..., 0] > 0
     if not bool(any_valid.all()):  # trajectories without a valid star keep their prior
@@ -405,7 +303,7 @@ def fused_star_update(
 
 
 def _check_innovation(
-    y: Tensor, means: Tensor, covs: Tensor, measurement: MeasurementModel, star_valid: Tensor | None
+    y: Tensor, means: Tensor, covs: Tensor, measurement: StarVectorMeasurement, star_valid: Tensor | None
 ) -> None:
     """:func:`~agsf_torch.update.check_innovation` with the exact innovation variances (called where the
     sufficient test ``ε|νⱼ| ≤ σ ≤ √Sⱼⱼ`` on the kernel's innovations failed; it names the cause or passes)."""

@@ -8,7 +8,8 @@ measured body rate ``ω̃`` (rad/s):
     \\dot p = \\tfrac14 B(p)(\\tilde ω - b - η_v),\\qquad \\dot b = η_u,
 
 so ``f = [¼B(p)(ω̃ − b); 0]``, ``g = [[−¼B(p), 0], [0, I₃]]`` and
-``Q = diag(σ_v² I₃, σ_u² I₃)``.
+``Q = diag(σ_v² I₃, σ_u² I₃)``.  Every equation is a function of :mod:`agsf_torch.attitude.physics`, which the
+fused kernels (:mod:`.attitude_fused`) evaluate too; the methods here apply it to the entries of batched tensors.
 """
 
 from __future__ import annotations
@@ -18,10 +19,11 @@ import math
 import torch
 from torch import Tensor
 
+from ..attitude import physics
 from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V
-from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_shadow_jacobian
+from ..fused.algebra import as_entries, as_tensor
 from .attitude_fused import ATTITUDE_DYNAMICS, FusedAttitudePaths
-from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative, sum_last
+from .base import ContinuousModel, FokkerPlanckMoments, FokkerPlanckTerms, check_nonnegative
 from .derived import derived_from
 
 __all__ = ["AttitudeModel", "DEFAULT_SIGMA_V", "DEFAULT_SIGMA_U"]
@@ -50,7 +52,8 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
     last dimension, ``[..., 1]`` included, is a ``ValueError`` (:meth:`check_input`), never a
     rate broadcast over the three axes.
 
-    The closed forms and the fused kernels hold for these dynamics (``drift``, ``noise_gain``, ``noise_psd``):
+    The closed forms and the fused kernels are built from the same functions as these dynamics (``drift``,
+    ``noise_gain``, ``noise_psd``, :mod:`agsf_torch.attitude.physics`) and hold for them only:
     a subclass that overrides any of them gets ``torch.func`` derivatives, the generic quadrature and the
     unfused path (:mod:`~agsf_torch.models.derived`), unless it overrides the derivations too.
     """
@@ -95,125 +98,68 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
                 f"{tuple(self.bias.shape)}): use the EKF, MEKF or GSF, or one value"
             )
 
-    def _rate(self, x: Tensor, u: Tensor) -> Tensor:
-        """Bias-corrected body rate ``ω = ω̃ − b`` (``[..., 3]``); ``u`` is checked to be ``[..., 3]``."""
-        self.check_input(u)
-        if self.estimate_bias:
-            return u - x[..., 3:]
-        return u - self.bias.to(u)
+    def _gyro_rate(self, u: Tensor) -> Tensor:
+        """The gyro rate the physics takes (:func:`~agsf_torch.attitude.physics.body_rate`): ``ω̃`` (6 states: each
+        component's bias is a state), or ``ω̃ − b`` with the known bias (3 states), ``[..., 3]`` rad/s."""
+        return u if self.estimate_bias else u - self.bias.to(u)
 
-    @staticmethod
-    def _mrp_rate(p: Tensor, w: Tensor) -> Tensor:
-        """``¼B(p)ω = ¼[(1 − s)ω + 2 p×ω + 2p(pᵀω)]`` without forming ``B``."""
-        s = sum_last(p * p, keepdim=True)
-        pw = sum_last(p * w.expand_as(p) if w.dim() < p.dim() else p * w, keepdim=True)
-        return 0.25 * (
-            (1.0 - s) * w
-            + 2.0 * torch.linalg.cross(p, w.expand_as(p) if w.dim() < p.dim() else w, dim=-1)
-            + 2.0 * pw * p
-        )
+    def _entries(self, x: Tensor, u: Tensor) -> tuple[list, list]:
+        """The entries of ``x [..., n]`` and of the gyro rate the physics takes (:meth:`_gyro_rate`; ``u`` checked to
+        be ``[..., 3]``): views that broadcast as the tensors do (:func:`~agsf_torch.fused.algebra.as_entries`)."""
+        self.check_input(u)
+        return as_entries(x, (self.state_dim,)), as_entries(self._gyro_rate(u), (3,))
 
     # ------------------------------------------------------------ protocol
     def drift(self, x: Tensor, u: Tensor) -> Tensor:
-        """``f(x, ω̃) = [¼B(p)(ω̃ − b); 0₃]``: ``x [..., n]``, ``u = ω̃ [..., 3]``."""
-        p = x[..., :3]
-        w = self._rate(x, u)
-        pdot = self._mrp_rate(p, w)
-        if self.estimate_bias:
-            return torch.cat((pdot, torch.zeros_like(pdot)), -1)
-        return pdot
+        """``f(x, ω̃) = [¼B(p)(ω̃ − b); 0₃]`` (:func:`~agsf_torch.attitude.physics.drift`): ``x [..., n]``,
+        ``u = ω̃ [..., 3]``."""
+        return as_tensor(physics.drift(*self._entries(x, u)), like=x)
 
     def noise_gain(self, x: Tensor) -> Tensor:
-        """``g(x) = −¼B(p)`` (3-state) or ``[[−¼B(p), 0], [0, I₃]]`` (6-state)."""
-        gp = -0.25 * mrp_kinematics_matrix(x[..., :3])
-        if not self.estimate_bias:
-            return gp
-        z = torch.zeros_like(gp)
-        eye = torch.eye(3, dtype=x.dtype, device=x.device).expand_as(gp)
-        return torch.cat((torch.cat((gp, z), -1), torch.cat((z, eye), -1)), -2)
+        """``g(x) = −¼B(p)`` (3-state) or ``[[−¼B(p), 0], [0, I₃]]`` (6-state) (:func:`~agsf_torch.attitude.physics.noise_gain`)."""
+        return as_tensor(physics.noise_gain(as_entries(x, (self.state_dim,))), like=x)
 
     def noise_psd(self) -> Tensor:
-        """``Q = σ_v² I₃`` or ``diag(σ_v² I₃, σ_u² I₃)``."""
-        one = torch.ones(3, dtype=self.sigma_v.dtype, device=self.sigma_v.device)
-        sv2 = self.sigma_v[..., None] ** 2 * one
-        if not self.estimate_bias:
-            return torch.diag_embed(sv2)
-        sv2, su2 = torch.broadcast_tensors(sv2, self.sigma_u[..., None] ** 2 * one)
-        return torch.diag_embed(torch.cat((sv2, su2), -1))
+        """``Q = σ_v² I₃`` or ``diag(σ_v² I₃, σ_u² I₃)`` (:func:`~agsf_torch.attitude.physics.noise_psd`)."""
+        return as_tensor(physics.noise_psd(self.sigma_v**2, self.sigma_u**2, self.state_dim))
 
-    @derived_from("drift", "_rate", "_mrp_rate", generic=ContinuousModel.drift_jacobian)
+    @derived_from("drift", "_gyro_rate", generic=ContinuousModel.drift_jacobian)
     def drift_jacobian(self, x: Tensor, u: Tensor) -> Tensor:
-        """Closed form ``A = [[F, −¼B(p)], [0, 0]]`` with ``ω = ω̃ − b``.
+        """Closed form ``A = [[F, −¼B(p)], [0, 0]]`` with ``ω = ω̃ − b``
+        (:func:`~agsf_torch.attitude.physics.drift_jacobian`).
 
         .. math:: F = \\tfrac12 \\left(p ω^T - ω p^T - [ω×] + (ω^T p) I_3\\right)
         """
-        p = x[..., :3]
-        w = self._rate(x, u)
-        p, w = torch.broadcast_tensors(p, w)
-        eye = torch.eye(3, dtype=x.dtype, device=x.device)
-        F = 0.5 * (
-            p[..., :, None] * w[..., None, :]
-            - w[..., :, None] * p[..., None, :]
-            - cross_matrix(w)
-            + sum_last(w * p)[..., None, None] * eye
-        )
-        if not self.estimate_bias:
-            return F
-        top = torch.cat((F, -0.25 * mrp_kinematics_matrix(p)), -1)
-        return torch.cat((top, torch.zeros_like(top)), -2)
+        return as_tensor(physics.drift_jacobian(*self._entries(x, u)), like=x)
 
     @derived_from("noise_gain", "noise_psd", generic=ContinuousModel.process_noise)
     def process_noise(self, x: Tensor) -> Tensor:
-        """Closed form ``g Q gᵀ``: ``(σ_v²/16)(1 + s)² I₃`` on the MRP block (``B Bᵀ = (1+s)² I``)."""
-        p = x[..., :3]
-        s = sum_last(p * p)[..., None, None]
-        eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
+        """Closed form ``g Q gᵀ``: ``(σ_v²/16)(1 + s)² I₃`` on the MRP block (``B Bᵀ = (1+s)² I``;
+        :func:`~agsf_torch.attitude.physics.process_noise`)."""
         # in x's dtype: a per-trajectory value has dims, which would take part in type promotion
-        Gp = (self.sigma_v.to(x)[..., None, None] ** 2 / 16.0) * (1.0 + s) ** 2 * eye3
-        if not self.estimate_bias:
-            return Gp
-        Gp, Gb = torch.broadcast_tensors(Gp, self.sigma_u.to(x)[..., None, None] ** 2 * eye3)
-        z = torch.zeros_like(Gp)
-        return torch.cat((torch.cat((Gp, z), -1), torch.cat((z, Gb), -1)), -2)
-
-    def _diffusion_diagonal(self, x: Tensor) -> Tensor:
-        """Diagonal of ``D = ½gQgᵀ``: ``(σ_v²/32)(1+s)²`` on the MRP axes, ``σ_u²/2`` on the bias axes."""
-        p = x[..., :3]
-        self._refuse_per_trajectory("the FPKE diffusion terms")
-        s = sum_last(p * p, keepdim=True)
-        dp = (self.sigma_v**2 / 32.0) * (1.0 + s) ** 2 * torch.ones_like(p)
-        if not self.estimate_bias:
-            return dp
-        return torch.cat((dp, (0.5 * self.sigma_u**2) * torch.ones_like(p)), -1)
+        sv2, su2 = self.sigma_v.to(x) ** 2, self.sigma_u.to(x) ** 2
+        return as_tensor(physics.process_noise(as_entries(x, (self.state_dim,)), sv2, su2), like=x)
 
     @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fokker_planck_terms)
     def fokker_planck_terms(self, x: Tensor, u: Tensor) -> FokkerPlanckTerms:
-        """Closed forms (method.md §3), with ``c = σ_v²/32``, ``s = pᵀp``, ``ω = ω̃ − b``:
+        """Closed forms (method.md §3; :func:`~agsf_torch.attitude.physics.fokker_planck_terms`), with
+        ``c = σ_v²/32``, ``s = pᵀp``, ``ω = ω̃ − b``:
 
         ``div f = (3/2) pᵀω``, ``D_pp = c(1+s)² I₃`` (``D_bb = (σ_u²/2) I₃``),
         ``aₖ = 4c(1+s) pₖ`` on the MRP entries (0 on the bias), ``Σ∂²D = 4c(3 + 5s)``.
         ``D`` is diagonal and is returned as its diagonal ``[..., n]``.
         """
         self._refuse_per_trajectory("the Fokker–Planck terms")
-        p = x[..., :3]
-        p_b, w_b = torch.broadcast_tensors(p, self._rate(x, u))
-        s = sum_last(p_b * p_b, keepdim=True)
-        pw = sum_last(p_b * w_b, keepdim=True)
-        c = self.sigma_v**2 / 32.0
-        pdot = 0.25 * ((1.0 - s) * w_b + 2.0 * torch.linalg.cross(p_b, w_b, dim=-1) + 2.0 * pw * p_b)
-        a = (4.0 * c) * (1.0 + s) * p_b
-        d = c * (1.0 + s) ** 2 * torch.ones_like(p_b)
-        if self.estimate_bias:
-            zero = torch.zeros_like(p_b)
-            pdot = torch.cat((pdot, zero), -1)
-            a = torch.cat((a, zero), -1)
-            d = torch.cat((d, (0.5 * self.sigma_u**2) * torch.ones_like(p_b)), -1)
+        xe, ue = self._entries(x, u)
+        t = physics.fokker_planck_terms(xe[:3], physics.body_rate(xe, ue), (self.sigma_v**2 / 32.0).to(x))
+        bias = [None] * (self.state_dim - 3)
+        d_b = [(0.5 * self.sigma_u**2).to(x)] * (self.state_dim - 3)
         return FokkerPlanckTerms(
-            drift=pdot,
-            drift_divergence=1.5 * pw.squeeze(-1),
-            diffusion=d,
-            diffusion_divergence=a,
-            diffusion_second_divergence=(4.0 * c) * (3.0 + 5.0 * s.squeeze(-1)),
+            drift=as_tensor(t["rate"] + bias, like=x),
+            drift_divergence=as_tensor([t["divergence"]], like=x)[..., 0],
+            diffusion=as_tensor([t["diffusion"]] * 3 + d_b, like=x),
+            diffusion_divergence=as_tensor(t["diffusion_divergence"] + bias, like=x),
+            diffusion_second_divergence=as_tensor([t["second_divergence"]], like=x)[..., 0],
         )
 
     @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fpke_quadrature_points)
@@ -238,80 +184,31 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
 
     @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fokker_planck_moments)
     def fokker_planck_moments(self, mean: Tensor, cov: Tensor, u: Tensor) -> FokkerPlanckMoments:
-        """Exact Gaussian expectations of the Fokker–Planck terms under ``x ~ N(mean, cov)``.
-
-        With ``m, M`` the MRP mean and covariance, ``ω = ω̃ − b`` (mean ``m_ω``),
-        ``C = Cov(p, ω) = −S_pb`` (0 in the 3-state model), ``c = σ_v²/32`` and
-        ``s = pᵀp``, the Gaussian moments are ``E[s] = mᵀm + tr M``,
-        ``E[ppᵀ] = mmᵀ + M``, ``E[sp] = E[s]m + 2Mm``,
-        ``E[s²] = E[s]² + 2tr M² + 4mᵀMm``, ``E[sω] = E[s]m_ω + 2Cᵀm``,
-        ``E[p×ω] = m×m_ω + ε:C``, ``E[(pᵀω)p] = m(mᵀm_ω + tr C) + Cm + Mm_ω``.  The
-        diffusion is ``D = φ D₁ + D₀`` with ``φ = (1+s)²``, ``D₁ = c`` on the MRP axes and
-        ``D₀ = σ_u²/2`` on the bias axes; ``v = f − 2a`` with ``v_p = ¼B(p)ω − 8c(1+s)p``,
-        ``∂v_p/∂p = F − 8c((1+s)I + 2ppᵀ)`` (``F`` of :meth:`drift_jacobian`) and
-        ``∂v_p/∂b = −¼B(p)``.
+        """Exact Gaussian expectations of the Fokker–Planck terms under ``x ~ N(mean, cov)``
+        (:func:`~agsf_torch.attitude.physics.fokker_planck_moments`, which states them).  The diffusion is
+        ``D = φ D₁ + D₀`` with ``φ = (1+s)²``, ``D₁ = c = σ_v²/32`` on the MRP axes (``pattern``) and
+        ``D₀ = σ_u²/2`` on the bias axes (``constant``).
 
         Args:
             mean: ``[..., n]``; cov: ``[..., n, n]``; u: ``ω̃`` ``[..., 3]``.
         """
-        self.check_input(u)
         self._refuse_per_trajectory("the Fokker–Planck moments")
         n = self.state_dim
-        m = mean[..., :3]
-        M = cov[..., :3, :3]
-        eye = torch.eye(3, dtype=mean.dtype, device=mean.device)
-        if self.estimate_bias:
-            m_w = u - mean[..., 3:]
-            C = -cov[..., :3, 3:]
-        else:
-            m_w = (u - self.bias.to(u)).expand_as(m)
-            C = torch.zeros_like(M)
+        me, ue = self._entries(mean, u)
         c = self.sigma_v.to(mean) ** 2 / 32.0
-
-        def dot(a: Tensor, b: Tensor) -> Tensor:
-            return sum_last(a * b, keepdim=True)
-
-        Mm = (M @ m.unsqueeze(-1)).squeeze(-1)
-        Es = dot(m, m) + M.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)  # [..., 1]
-        Epp = m.unsqueeze(-1) * m.unsqueeze(-2) + M
-        Esp = Es * m + 2.0 * Mm
-        Es2 = Es * Es + 2.0 * sum_last((M * M).flatten(-2), keepdim=True) + 4.0 * dot(m, Mm)
-        trC = C.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)
-        Cm = (C @ m.unsqueeze(-1)).squeeze(-1)
-        CTm = (C.transpose(-1, -2) @ m.unsqueeze(-1)).squeeze(-1)
-        eps_C = torch.stack((C[..., 1, 2] - C[..., 2, 1], C[..., 2, 0] - C[..., 0, 2], C[..., 0, 1] - C[..., 1, 0]), -1)
-        E_sw = Es * m_w + 2.0 * CTm
-        E_cross = torch.linalg.cross(m, m_w, dim=-1) + eps_C
-        E_pwp = m * (dot(m, m_w) + trC) + Cm + (M @ m_w.unsqueeze(-1)).squeeze(-1)
-        E_pw = dot(m, m_w) + trC
-        v_p = 0.25 * (m_w - E_sw + 2.0 * E_cross + 2.0 * E_pwp) - 8.0 * c * (m + Esp)
-        E_pwT = m.unsqueeze(-1) * m_w.unsqueeze(-2) + C  # E[p ωᵀ]
-        F = 0.5 * (E_pwT - E_pwT.transpose(-1, -2) - cross_matrix(m_w) + E_pw.unsqueeze(-1) * eye)
-        J_pp = F - 8.0 * c * ((1.0 + Es).unsqueeze(-1) * eye + 2.0 * Epp)
-        field_grad = 4.0 * (m + Esp)
-        field_hess = 4.0 * (1.0 + Es).unsqueeze(-1) * eye + 8.0 * Epp
-        scalar = (1.5 * E_pw - 4.0 * c * (3.0 + 5.0 * Es)).squeeze(-1)
-        pattern = torch.cat((c.expand(3), torch.zeros(n - 3, dtype=mean.dtype, device=mean.device)))
-        constant = torch.zeros(n, dtype=mean.dtype, device=mean.device)
-        if self.estimate_bias:
-            E_B = (1.0 - Es).unsqueeze(-1) * eye + 2.0 * cross_matrix(m) + 2.0 * Epp
-            zero = torch.zeros_like(J_pp)
-            J = torch.cat((torch.cat((J_pp, -0.25 * E_B), -1), torch.cat((zero, zero), -1)), -2)
-            v = torch.cat((v_p, torch.zeros_like(v_p)), -1)
-            field_grad = torch.cat((field_grad, torch.zeros_like(field_grad)), -1)
-            field_hess = torch.cat((torch.cat((field_hess, zero), -1), torch.cat((zero, zero), -1)), -2)
-            constant[3:] = 0.5 * self.sigma_u.to(mean) ** 2
-        else:
-            J, v = J_pp, v_p
+        mom = physics.fokker_planck_moments(me, as_entries(cov, (n, n)), ue, c)
+        zeros = torch.zeros(n - 3, dtype=mean.dtype, device=mean.device)
         return FokkerPlanckMoments(
-            scalar=scalar,
-            transport=v,
-            transport_jacobian=J,
-            field=(1.0 + 2.0 * Es + Es2).squeeze(-1),
-            field_gradient=field_grad,
-            field_hessian=field_hess,
-            pattern=pattern,
-            constant=constant,
+            scalar=as_tensor([mom["scalar"]], like=mean)[..., 0],
+            transport=as_tensor(mom["transport"], like=mean),
+            transport_jacobian=as_tensor(mom["transport_jacobian"], like=mean),
+            field=as_tensor([mom["field"]], like=mean)[..., 0],
+            field_gradient=as_tensor(mom["gradient"], like=mean),
+            field_hessian=as_tensor(mom["hessian"], like=mean),
+            pattern=torch.cat((c.expand(3), zeros)),
+            constant=torch.cat(
+                (torch.zeros(3, dtype=mean.dtype, device=mean.device), zeros + 0.5 * self.sigma_u.to(mean) ** 2)
+            ),
         )
 
     @derived_from(*ATTITUDE_DYNAMICS, generic=ContinuousModel.fpke_polynomial_space)
@@ -366,13 +263,13 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
             m, P = self._switch(mean[at], cov[at], torch.ones(len(at[0]), dtype=torch.bool, device=switch.device))
             return mean.index_put(at, m), cov.index_put(at, P)
         p = mean[..., :3]
-        safe_p = torch.where(switch[..., None], p, torch.ones_like(p))
-        J = mrp_shadow_jacobian(safe_p)
+        safe_p = as_entries(torch.where(switch[..., None], p, torch.ones_like(p)), (3,))
+        J = as_tensor(physics.shadow_jacobian(safe_p))
         eye = torch.eye(self.state_dim, dtype=mean.dtype, device=mean.device)
         T = eye.expand(*J.shape[:-2], self.state_dim, self.state_dim).clone()
         T[..., :3, :3] = J
         T = torch.where(switch[..., None, None], T, eye)
-        new_p = torch.where(switch[..., None], -safe_p / (safe_p * safe_p).sum(-1, keepdim=True), p)
+        new_p = torch.where(switch[..., None], as_tensor(physics.shadow(safe_p)), p)
         new_mean = torch.cat((new_p, mean[..., 3:]), -1)
         new_cov = T @ cov @ T.transpose(-1, -2)
         return new_mean, 0.5 * (new_cov + new_cov.transpose(-1, -2))
@@ -395,23 +292,21 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         Args:
             mean: ``[..., N, n]``; cov: ``[..., N, n, n]``; reference: broadcastable to ``mean``.
         """
-        p = mean[..., :3]
-        s = (p * p).sum(-1, keepdim=True)
-        shadow = -p / s.clamp_min(torch.finfo(p.dtype).tiny)
-        ref = reference[..., :3]
-        switch = ((shadow - ref) ** 2).sum(-1) < ((p - ref) ** 2).sum(-1)
-        return self._switch(mean, cov, switch)
+        return self._switch(mean, cov, _nearer_set(mean[..., :3], reference[..., :3])[1])
 
     def state_error(self, x_est: Tensor, x_true: Tensor) -> Tensor:
         """``x_est − x_true`` with the true MRP taken in whichever set (itself or
         its shadow) lies closer to the estimate."""
         p_e, p_t = torch.broadcast_tensors(x_est[..., :3], x_true[..., :3])
-        s_t = (p_t * p_t).sum(-1, keepdim=True)
-        shadow = -p_t / s_t.clamp_min(torch.finfo(p_t.dtype).tiny)
-        d_direct = p_e - p_t
-        d_shadow = p_e - shadow
-        use_shadow = (d_shadow * d_shadow).sum(-1, keepdim=True) < (d_direct * d_direct).sum(-1, keepdim=True)
-        dp = torch.where(use_shadow, d_shadow, d_direct)
+        dp = p_e - _nearer_set(p_t, p_e)[0]
         if not self.estimate_bias:
             return dp
         return torch.cat((dp, x_est[..., 3:] - x_true[..., 3:]), -1)
+
+
+def _nearer_set(p: Tensor, ref: Tensor) -> tuple[Tensor, Tensor]:
+    """``p [..., 3]`` or its shadow, whichever lies nearer to ``ref``, and where the shadow was taken ``[...]``
+    (``p = 0`` stays: its shadow lies at infinity)."""
+    shadow = -p / (p * p).sum(-1, keepdim=True).clamp_min(torch.finfo(p.dtype).tiny)
+    switch = ((shadow - ref) ** 2).sum(-1) < ((p - ref) ** 2).sum(-1)
+    return torch.where(switch[..., None], shadow, p), switch

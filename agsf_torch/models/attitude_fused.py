@@ -1,7 +1,7 @@
 """The attitude model's fused paths (:mod:`agsf_torch.fused`): its propagation, its Galerkin pairs and its penalty
 pairs on lanes, the hooks of :class:`~agsf_torch.models.base.ContinuousModel` that the filters take where a model
 has them.  :class:`FusedAttitudePaths` is a mixin of :class:`~agsf_torch.models.attitude.AttitudeModel`: its
-kernels evaluate that class's equations, so each hook is marked as derived from them
+kernels and that class's methods are built from the same functions (:mod:`agsf_torch.attitude.physics`), so each hook is marked as derived from them
 (:func:`~agsf_torch.models.derived.derived_from`): on a subclass that changes the dynamics or the noise
 without overriding the hook, the hook gives way to the generic path.
 """
@@ -21,7 +21,7 @@ __all__ = ["ATTITUDE_DYNAMICS", "FusedAttitudePaths"]
 
 #: The methods of :class:`~agsf_torch.models.attitude.AttitudeModel` that state its dynamics: its closed forms
 #: and kernels are derived from these.
-ATTITUDE_DYNAMICS = ("drift", "noise_gain", "noise_psd", "_rate", "_mrp_rate", "_gyro_rate")
+ATTITUDE_DYNAMICS = ("drift", "noise_gain", "noise_psd", "_gyro_rate")
 #: What the kernels evaluate besides the dynamics: the closed forms they were checked against.
 _KERNEL_PHYSICS = (
     *ATTITUDE_DYNAMICS,
@@ -32,14 +32,14 @@ _KERNEL_PHYSICS = (
 )
 
 
+def _compiled(compile: bool, *tensors: Tensor) -> bool:
+    """``compile``, unless one of ``tensors`` asks for gradients: a compiled kernel records none, the eager one does."""
+    return compile and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+
+
 class FusedAttitudePaths:
     """The fused hooks of the attitude model (module docstring); they read its ``estimate_bias``, ``bias``,
     ``sigma_v``, ``sigma_u``, ``state_dim`` and ``check_input``."""
-
-    def _gyro_rate(self, u: Tensor) -> Tensor:
-        """The gyro rate the kernels take: ``ω̃`` (6 states: each component's bias is a state), or ``ω̃ − b`` with the
-        known bias (3 states), ``[..., 3]`` rad/s."""
-        return u if self.estimate_bias else u - self.bias.to(u)
 
     #: Pairs from which the eager lanes route (:mod:`agsf_torch.fused.pair_products`) beats the batched one, by
     #: state dimension (the crossover ``agsf bench`` measures).
@@ -58,12 +58,11 @@ class FusedAttitudePaths:
         if u is not None:
             self.check_input(u)
             count = math.prod(pairs.mean.shape[:-1])
-            differentiable = torch.is_grad_enabled() and any(
-                t.requires_grad for t in (u, pairs.mean, pairs.chol, pairs.first.means, pairs.first.cov_rates)
-            )
             if compile or count >= self.EAGER_MIN_PAIRS[self.state_dim]:
-                rate = self._gyro_rate(u)
-                return on_lanes(pairs, rate, self.sigma_v, self.sigma_u, compile=compile and not differentiable)
+                inputs = (u, pairs.mean, pairs.chol, pairs.first.means, pairs.first.cov_rates)
+                return on_lanes(
+                    pairs, self._gyro_rate(u), self.sigma_v, self.sigma_u, compile=_compiled(compile, *inputs)
+                )
         if not self.estimate_bias:
             return None
         from ..fpke.bias_block import attitude_pair_products
@@ -86,9 +85,7 @@ class FusedAttitudePaths:
             return None
         self.check_input(u)
         self._refuse_per_trajectory("the FPKE penalty pairs")
-        if torch.is_grad_enabled() and any(
-            t.requires_grad for t in (u, means, covs, self.sigma_v, self.sigma_u, self.bias)
-        ):
+        if not _compiled(compile, u, means, covs, self.sigma_v, self.sigma_u, self.bias):
             return None  # the compiled kernel records no gradients: the eager routes do
         T = means.shape[0]
         rate = self._gyro_rate(u)
@@ -124,12 +121,11 @@ class FusedAttitudePaths:
             (self.sigma_v**2).to(like),
             (self.sigma_u**2).to(like),
         )
-        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (*inputs, *shared))
         m, P, ok = run_in_chunks(
             propagation_kernel(substeps),
             inputs,
             shared=shared,
-            compile=compile and not differentiable,
+            compile=_compiled(compile, *inputs, *shared),
             key=("attitude", n, substeps),
         )
         return m.reshape(*lead, n), P.reshape(*lead, n, n), ok.reshape(lead)
@@ -156,12 +152,11 @@ class FusedAttitudePaths:
         like = means
         shared = ((self.sigma_v**2 / 32.0).to(like), (self.sigma_v**2).to(like), (self.sigma_u**2).to(like))
         tensors = (means, covs, rate)
-        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (*tensors, *shared))
         return run_in_chunks(
             attitude_pair_kernel,
             tensors,
             shared=shared,
-            compile=compile and not differentiable,
+            compile=_compiled(compile, *tensors, *shared),
             chunk=max(1, DEFAULT_CHUNK // pairs),
             key=("attitude-galerkin", self.state_dim),
         )

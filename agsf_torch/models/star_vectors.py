@@ -23,7 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..rotations import cross_matrix, mrp_kinematics_matrix, mrp_to_dcm
+from ..attitude import physics
+from ..fused.algebra import as_entries, as_tensor
 from ..shapes import broadcast_shapes
 from .base import MeasurementModel, check_finite, check_measurement_batch
 from .derived import derived_from
@@ -226,34 +227,31 @@ class StarVectorMeasurement(MeasurementModel):
         )
         return y
 
-    def predict(self, x: Tensor) -> Tensor:
-        """``h(x) = vec(C(p) r_j)``: ``x [..., n]`` → ``[..., 3M]``."""
-        C = mrp_to_dcm(x[..., :3])
-        b = (C.unsqueeze(-3) @ self.r_inertial.to(x).unsqueeze(-1)).squeeze(-1)  # [..., M, 3]
-        return b.flatten(-2)
+    def _body_vectors(self, x: Tensor) -> tuple[list, list]:
+        """``(bⱼ = C(p) rⱼ, p)`` as entries ``[..., M]`` and ``[..., 1]`` (:mod:`agsf_torch.attitude.physics`)."""
+        p = as_entries(x[..., :3].unsqueeze(-2), (3,))  # [..., 1] against the stars [..., M]
+        r = as_entries(self.r_inertial.to(x), (3,))
+        return physics.star_vector(physics.attitude_matrix(p), r), p
 
-    @derived_from("predict", generic=MeasurementModel.jacobian)
+    def predict(self, x: Tensor) -> Tensor:
+        """``h(x) = vec(C(p) r_j)`` (:func:`~agsf_torch.attitude.physics.star_vector`): ``x [..., n]`` → ``[..., 3M]``."""
+        return as_tensor(self._body_vectors(x)[0], like=x).flatten(-2)
+
+    @derived_from("predict", "_body_vectors", generic=MeasurementModel.jacobian)
     def jacobian(self, x: Tensor) -> Tensor:
-        """Closed form ``∂(C(p) r)/∂p = 4/(1+s)² [(C r)×] B(p)ᵀ``; zero on bias states.
+        """Closed form ``∂(C(p) r)/∂p = [(C r)×] E``, ``E = 4B(p)ᵀ/(1+s)²``; zero on bias states
+        (:func:`~agsf_torch.attitude.physics.star_jacobian`).
 
         From ``Ċ = −[ω×]C`` and ``ω = 4 B(p)ᵀ ṗ / (1+s)²``.
 
         Returns:
             ``[..., 3M, n]``.
         """
-        p = x[..., :3]
-        s = (p * p).sum(-1)[..., None, None, None]
-        C = mrp_to_dcm(p)
-        b = (C.unsqueeze(-3) @ self.r_inertial.to(x).unsqueeze(-1)).squeeze(-1)  # [..., M, 3]
-        Bt = mrp_kinematics_matrix(p).transpose(-1, -2).unsqueeze(-3)
-        Hp = 4.0 / (1.0 + s) ** 2 * (cross_matrix(b) @ Bt)  # [..., M, 3, 3]
-        Hp = Hp.flatten(-3, -2)
-        n = x.shape[-1]
-        if n == 3:
-            return Hp
-        return torch.cat((Hp, Hp.new_zeros(*Hp.shape[:-1], n - 3)), -1)
+        b, p = self._body_vectors(x)
+        H = physics.star_jacobian(b, physics.chart_map(p))
+        return as_tensor([row + [None] * (x.shape[-1] - 3) for row in H], like=x).flatten(-3, -2)
 
-    @derived_from("predict", "jacobian", "noise_cov", "mask", generic=MeasurementModel.fused_update)
+    @derived_from("predict", "_body_vectors", "jacobian", "noise_cov", "mask", generic=MeasurementModel.fused_update)
     def fused_update(
         self,
         log_weights: Tensor,
