@@ -45,6 +45,7 @@ __all__ = [
     "attitude_matrix",
     "chart_map",
     "star_jacobian",
+    "rate_derivatives",
     "fokker_planck_terms",
     "fokker_planck_moments",
 ]
@@ -169,6 +170,13 @@ def star_jacobian(b: Vec, E: Mat) -> Mat:
 def star_vector(C: Mat, r: Vec) -> Vec:
     """``h = C(p) r``: a catalogue unit vector ``r`` in the body frame."""
     return matvec(C, r)
+
+
+def rate_derivatives(p: Vec, s: Entry = None) -> tuple[Mat, Vec]:
+    """``(∂f_p/∂ω, ∂(div f)/∂ω) = (¼B(p), (3/2)p)`` (3×3 and 3 entries): the MRP rate and the divergence
+    ``div f = (3/2)pᵀω`` are linear in the body rate, so these are all of their dependence on the bias
+    (``ω = ω̃ − b``); ``s = pᵀp`` if known."""
+    return [[mul(0.25, v) for v in row] for row in kinematics_matrix(p, s)], [mul(1.5, v) for v in p]
 
 
 def fokker_planck_terms(p: Vec, w: Vec, c: Entry) -> dict:

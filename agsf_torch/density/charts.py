@@ -26,7 +26,7 @@ from torch import Tensor
 from ..mixture import GaussianMixture
 from ..models.attitude import AttitudeModel
 from ..models.base import ContinuousModel
-from ..rotations import mrp_canonical, mrp_shadow_jacobian
+from ..rotations import mrp_canonical, mrp_shadow, mrp_shadow_jacobian
 
 __all__ = ["CHARTS", "chart_for", "canonical_points", "mixture_log_density"]
 
@@ -77,7 +77,7 @@ def _switch_flow(x: Tensor, S: Tensor | None = None, Sig: Tensor | None = None):
     if not bool(switch.any()):
         return x, S, Sig
     safe = torch.where(switch[..., None], p, torch.ones_like(p))
-    new_p = torch.where(switch[..., None], -safe / (safe * safe).sum(-1, keepdim=True), p)
+    new_p = torch.where(switch[..., None], mrp_shadow(safe), p)
     x = torch.cat((new_p, x[..., 3:]), -1)
     if S is None:
         return x, S, Sig
@@ -116,7 +116,7 @@ def mixture_log_density(mixture: GaussianMixture, x: Tensor, *, chart: str = "eu
     s = (p * p).sum(-1)  # [..., K]
     tiny = s <= torch.finfo(x.dtype).tiny ** 0.5
     s_safe = torch.where(tiny, torch.ones_like(s), s)
-    xs = torch.cat((-p / s_safe[..., None], x[..., 3:]), -1)
+    xs = torch.cat((mrp_shadow(torch.where(tiny[..., None], torch.ones_like(p), p)), x[..., 3:]), -1)
     direct = mixture.component_log_prob(x)  # [..., N, K]
     shadow = mixture.component_log_prob(xs) - 3.0 * torch.log(s_safe).unsqueeze(-2)
     shadow = torch.where(tiny.unsqueeze(-2), torch.full_like(shadow, -math.inf), shadow)

@@ -3,7 +3,6 @@
 * :mod:`.residual` — the residual factor ``ℓᵢ`` and the pointwise residual;
 * :mod:`.pairs` — the product Gaussians ``pᵢpⱼ = z_ij N(m_ij, S_ij)``;
 * :mod:`.matrices` — ``L_ij = ∫LᵢLⱼ`` and ``K_ij = ∫pᵢLⱼ`` by quadrature;
-* :mod:`.bias_block` — the 6-state attitude model's ``E[ℓᵢℓⱼ]`` with the bias block in closed form;
 * :mod:`.rules` — which quadrature rule;
 * :mod:`.rounding` — which components' residual is zero to rounding.
 """

@@ -49,6 +49,12 @@ class ProductGaussians:
         eye = torch.eye(self.gain.shape[-1], dtype=self.gain.dtype, device=self.gain.device)
         return torch.stack((-self.y, self.y)), torch.stack((eye - self.gain, self.gain)), -self.sum_precision
 
+    def flat(self, t: Tensor, event: int) -> Tensor:
+        """``t [..., P, *event]`` (its leading dims broadcasting against the pairs') as ``[Q, *event]``: one row
+        per pair of every trajectory, ``event`` the number of trailing dims."""
+        tail = t.shape[t.dim() - event :]
+        return t.expand(*self.mean.shape[:-1], *tail).reshape(-1, *tail)
+
     @cached_property
     def chol(self) -> Tensor:
         """Lower Cholesky factor of ``S_ij`` ``[..., P, n, n]`` (for quadrature nodes ``m + chol ξ``)."""

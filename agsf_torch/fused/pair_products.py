@@ -1,6 +1,6 @@
 """The attitude model's ``E[ℓᵢℓⱼ]`` (the penalty update's ``L``, method.md §3) on lanes.
 
-The same mathematics as :mod:`agsf_torch.fpke.bias_block` (6 states: the bias block in closed form,
+The same mathematics as :mod:`agsf_torch.models.attitude_bias_block` (6 states: the bias block in closed form,
 ten Hermite coefficients in ``ξ_b`` per MRP node) and as the 84-node interpolatory rule of the
 3-state model (one value per node), written on entries (:mod:`agsf_torch.fused.algebra`) with one
 lane per pair and node: a pair's ``N(m, S = LLᵀ)`` gives the nodes ``p = m_p + L_pp ξ`` and
@@ -10,9 +10,8 @@ affine in ``ξ`` is formed once per pair and side and evaluated at the nodes wit
 
 .. math:: z_0 = Π(x_0 − μ) = Π(m − μ) + ΠL_{:,p}\\,ξ,\\qquad \\dot P z_0 = \\dot PΠ(m − μ) + \\dot PΠL_{:,p}\\,ξ,
 
-and so are the per-pair matrices of the bias block (``Z = Π_{:,b}L_bb``, ``ZᵀṖZ``, ``Z_pᵀL_bb``,
-``Z_pᵀ[e_k×]L_bb``); a node pays only for what varies with it (``s = pᵀp``, the drift, ``D``, the
-coefficients).  Per node the kernel is ~700 floating-point operations for both sides of a 6-state
+and so are the per-pair matrices of the bias block (``Z = Π_{:,b}L_bb``, ``ZᵀṖZ``); a node pays only for
+what varies with it (``s = pᵀp``, the drift, ``D``, ``¼B(p)L_bb`` once for both sides, the coefficients).  Per node the kernel is ~700 floating-point operations for both sides of a 6-state
 pair.  ``E[ℓᵢℓⱼ]`` is then ``Σ_c vᵢ,cᵀ W vⱼ,c`` over the channels ``c`` with ``W = TᵀT`` (``T`` the
 rule's map from values at the nodes to orthonormal Hermite coefficients): exactly the dot product of
 the two sides' coefficients.
@@ -22,8 +21,8 @@ Two entry points: :func:`attitude_pair_products` takes the pairs' product Gaussi
 :func:`attitude_penalty_pairs` starts from the components and forms the product Gaussians and the moment
 rates on lanes too (:func:`attitude_pair_moments_kernel`, a kernel of its own: inside the node kernel the
 compiler would recompute these per-pair values at every node), which the penalty update takes
-(``fused_penalty_pairs``); there the pairs ``(i, i)`` take :func:`attitude_diagonal_pair_values_kernel`,
-which evaluates their one component once.  Compiled, the node kernels run in chunks of
+(``fused_penalty_pairs``); there the pairs ``(i, i)`` take :func:`attitude_diagonal_pair_values_kernel`, the
+same kernel given their one component, evaluated once.  Compiled, the node kernels run in chunks of
 :data:`COMPILED_PAIRS` pairs (by the number of states).
 """
 
@@ -35,7 +34,7 @@ import torch
 from torch import Tensor
 
 from ..attitude import physics
-from .algebra import Entry, add, cholesky, cross_matrix, dot, matmul, matvec, mul, sub, zeros
+from .algebra import Entry, add, cholesky, dot, matmul, matvec, mul, sub, zeros
 from .lanes import entries, stack_entries
 from .propagation import attitude_rates
 
@@ -71,14 +70,19 @@ def _affine_at_nodes(a: list[Entry], A: Mat, xi: list[Tensor]) -> list[Entry]:
     return [add(a[r], dot((A[r][k], xi[k]) for k in range(3))) for r in range(len(a))]
 
 
-def _node_terms(p: list[Entry], w: list[Entry], c: Tensor) -> dict:
-    """The Fokker–Planck terms at the nodes (:func:`~agsf_torch.attitude.physics.fokker_planck_terms`), what both
-    sides share: ``s``, ``h = −f_p + 2a_p`` (``f_p = ¼B(p)ω``, ``a_p = 4c(1+s)p``), ``d_p = c(1+s)²`` and
-    ``div f − Σ∂²D = 1.5pᵀω − 4c(3 + 5s)``."""
+def _node_terms(p: list[Entry], w: list[Entry], c: Tensor, L_bb: Mat | None) -> dict:
+    """What both sides share at the nodes (:mod:`agsf_torch.attitude.physics`): ``h = −f_p + 2a_p``
+    (``f_p = ¼B(p)ω``, ``a_p = 4c(1+s)p``), ``d_p = c(1+s)²`` and ``scalar`` ``div f − Σ∂²D``; with a bias block
+    (``L_bb`` given), ``rate_matrix`` ``∂f_p/∂ω = ¼B(p)``, ``divergence_gradient`` ``∂(div f)/∂ω = (3/2)p`` and
+    ``BL`` ``¼B(p)L_bb``."""
     t = physics.fokker_planck_terms(p, w, c)
     h = [sub(mul(2.0, a), f) for a, f in zip(t["diffusion_divergence"], t["rate"])]
     scalar = sub(t["divergence"], t["second_divergence"])
-    return {"s": t["s"], "one_minus_s": sub(1.0, t["s"]), "h": h, "d_p": t["diffusion"], "scalar": scalar}
+    out = {"h": h, "d_p": t["diffusion"], "scalar": scalar}
+    if L_bb is not None:
+        out["rate_matrix"], out["divergence_gradient"] = physics.rate_derivatives(p, t["s"])
+        out["BL"] = matmul(out["rate_matrix"], L_bb)
+    return out
 
 
 def _side_values(
@@ -86,8 +90,6 @@ def _side_values(
     mE: list[Entry],
     LE: Mat,
     xi: list[Tensor],
-    p: list[Entry],
-    lb: list[Entry] | None,
     terms: dict,
     mu: list[Entry],
     Pi: Mat,
@@ -96,7 +98,7 @@ def _side_values(
     d_b: Tensor,
 ) -> list[Entry]:
     """The channels of ``ℓ`` of one side at every node: ``[ℓ]`` (3 states) or the ten Hermite coefficients in
-    ``ξ_b`` (6 states; :mod:`agsf_torch.fpke.bias_block`)."""
+    ``ξ_b`` (6 states; :mod:`agsf_torch.models.attitude_bias_block`)."""
     delta = [sub(mE[r], mu[r]) for r in range(n)]
     a = matvec(Pi, delta)  # Π(m − μ) per pair
     A = matmul(Pi, [row[:3] for row in LE])  # Π L_{:,p} per pair
@@ -117,32 +119,22 @@ def _side_values(
         return [c0]
     L_bb = [row[3:] for row in LE[3:]]
     Z = matmul([row[3:] for row in Pi], L_bb)  # Π_{:,b} L_bb [6][3] per pair
-    Zp = Z[:3]
-    # g = Zᵀ(v₀ + Ṗz₀ − 2Dz₀) + (¼B(p)ᵀz₀,p − 1.5p)ᵀL_bb
+    # g = Zᵀ(v₀ + Ṗz₀ − 2Dz₀) + L_bbᵀ(¼B(p)ᵀz₀,p − (3/2)p)
     wv = [sub(add(v0[r], Pz[r]), mul(mul(2.0, d[r]), z0[r])) for r in range(n)]
-    zp0 = z0[:3]
-    Btz = physics.mrp_rate(p, zp0, terms["s"], transpose=True)  # ¼B(p)ᵀz₀,p
-    q = [sub(Btz[k], mul(1.5, p[k])) for k in range(3)]
+    Bq, dq = terms["rate_matrix"], terms["divergence_gradient"]
+    q = [sub(dot((Bq[t][k], z0[t]) for t in range(3)), dq[k]) for k in range(3)]
     g = [add(dot((Z[r][k], wv[r]) for r in range(n)), dot((q[t], L_bb[t][k]) for t in range(3))) for k in range(3)]
-    # G = ½ZᵀṖZ − Σₐ dₐ ZₐZₐᵀ + ¼[(1 − s) sym(Z_pᵀL_bb) + 2 Σₖ pₖ sym(Z_pᵀ[eₖ×]L_bb) + sym2(Z_pᵀp (L_bbᵀp)ᵀ)]
+    # G = ½ZᵀṖZ − Σₐ dₐ ZₐZₐᵀ + sym(Z_pᵀ ¼B(p)L_bb)
     PZ = matmul(Pdot, Z)
-    A0 = matmul([list(col) for col in zip(*Zp)], L_bb)  # Z_pᵀ L_bb
-    ex = [cross_matrix([1.0 if i == k else None for i in range(3)]) for k in range(3)]  # [e_k×], zeros structural
-    Mk = [matmul([list(col) for col in zip(*Zp)], matmul(ex[k], L_bb)) for k in range(3)]
-    zp = [dot((Zp[r][k], p[r]) for r in range(3)) for k in range(3)]  # Z_pᵀp
+    M = matmul([list(col) for col in zip(*Z[:3])], terms["BL"])  # Z_pᵀ ¼B(p)L_bb
     G = []
     for r, col in _SYM:
         ZPZ = mul(0.5, dot((Z[t][r], PZ[t][col]) for t in range(n)))  # per pair
         Op = dot((Z[t][r], Z[t][col]) for t in range(3))
         Ob = dot((Z[t][r], Z[t][col]) for t in range(3, n))
         per = sub(ZPZ, mul(d_b, Ob))
-        symA0 = A0[r][col] if r == col else mul(0.5, add(A0[r][col], A0[col][r]))
-        symM = [Mk[k][r][col] if r == col else mul(0.5, add(Mk[k][r][col], Mk[k][col][r])) for k in range(3)]
-        inner = add(
-            add(mul(terms["one_minus_s"], symA0), mul(2.0, dot((p[k], symM[k]) for k in range(3)))),
-            add(mul(zp[r], lb[col]), mul(zp[col], lb[r])),
-        )
-        G.append(add(sub(per, mul(terms["d_p"], Op)), mul(0.25, inner)))
+        symM = M[r][col] if r == col else mul(0.5, add(M[r][col], M[col][r]))
+        G.append(add(sub(per, mul(terms["d_p"], Op)), symM))
     root2 = math.sqrt(2.0)
     return (
         [add(c0, add(add(G[0], G[1]), G[2]))]
@@ -152,64 +144,42 @@ def _side_values(
     )
 
 
-def attitude_pair_values_kernel(
-    m: Tensor,
-    L: Tensor,
-    mu_i: Tensor,
-    Pi_i: Tensor,
-    rate_i: Tensor,
-    Pdot_i: Tensor,
-    mu_j: Tensor,
-    Pi_j: Tensor,
-    rate_j: Tensor,
-    Pdot_j: Tensor,
-    u: Tensor,
-    nodes: Tensor,
-    W: Tensor,
-    c: Tensor,
-    d_b: Tensor,
-) -> tuple[Tensor]:
-    """``E[ℓᵢℓⱼ]`` ``[Q]`` of ``Q`` pairs (module docstring).
+def attitude_pair_values_kernel(m: Tensor, L: Tensor, u: Tensor, *sides_and_shared: Tensor) -> tuple[Tensor]:
+    """``E[ℓᵢℓⱼ]`` ``[Q]`` of ``Q`` pairs (module docstring); given one side, ``E[ℓᵢ²]`` of pairs ``(i, i)``, that
+    side evaluated once (``vᵢᵀWvᵢ`` per channel).
 
     Args:
         m, L: the pair's product Gaussian ``N(m, LLᵀ)``: ``[Q, n]``, ``[Q, n, n]`` (lower-triangular).
-        mu_*, Pi_*, rate_*, Pdot_*: each side's ``μ``, ``Π = P⁻¹``, ``μ̇`` and ``Ṗ`` (``[Q, n]``, ``[Q, n, n]``).
         u: the gyro rate ``[Q, 3]`` (rad/s; the 3-state model's known bias removed).
-        nodes: the MRP nodes ``ξ`` ``[K, 3]``; W: ``TᵀT`` ``[K, K]`` (:func:`pair_product_weights`).
-        c: ``σ_v²/32``; d_b: ``σ_u²/2`` (0-d tensors; unused with 3 states).
+        sides_and_shared: each side's ``μ``, ``Π = P⁻¹``, ``μ̇`` and ``Ṗ`` (``[Q, n]``, ``[Q, n, n]``; two sides or
+            one), then the MRP nodes ``ξ`` ``[K, 3]``, ``W = TᵀT`` ``[K, K]`` (:func:`pair_product_weights`),
+            ``c = σ_v²/32`` and ``d_b = σ_u²/2`` (0-d tensors; ``d_b`` unused with 3 states).
     """
-    sides = ((mu_i, Pi_i, rate_i, Pdot_i), (mu_j, Pi_j, rate_j, Pdot_j))
-    return (_products_of_tensors(m, L, u, sides, nodes, W, c, d_b),)
-
-
-def attitude_diagonal_pair_values_kernel(
-    m: Tensor,
-    L: Tensor,
-    mu: Tensor,
-    Pi: Tensor,
-    rate: Tensor,
-    Pdot: Tensor,
-    u: Tensor,
-    nodes: Tensor,
-    W: Tensor,
-    c: Tensor,
-    d_b: Tensor,
-) -> tuple[Tensor]:
-    """``E[ℓᵢ²]`` ``[Q]`` of ``Q`` pairs ``(i, i)``: :func:`attitude_pair_values_kernel` with both sides one
-    component, evaluated once (``vᵢᵀWvᵢ`` per channel)."""
-    return (_products_of_tensors(m, L, u, ((mu, Pi, rate, Pdot),), nodes, W, c, d_b),)
-
-
-def _products_of_tensors(
-    m: Tensor, L: Tensor, u: Tensor, sides: tuple, nodes: Tensor, W: Tensor, c: Tensor, d_b: Tensor
-) -> Tensor:
-    """:func:`_expected_products` of batch-first tensors: ``m``, ``L``, ``u`` and each side's ``(μ, Π, μ̇, Ṗ)``
-    taken as entries of ``[Q, 1]`` columns (``L``'s upper triangle as structural zeros)."""
-    n = m.shape[-1]
+    *sides, nodes, W, c, d_b = sides_and_shared
+    Q, n = m.shape
+    mE, LE, uE = _column(entries(m, (n,))), _lower(_column(entries(L, (n, n)))), _column(entries(u, (3,)))
+    xi = list(nodes.unbind(-1))
+    p = _affine_at_nodes(mE[:3], LE[:3], xi)
+    if n == 6:
+        beta = _affine_at_nodes(mE[3:], [row[:3] for row in LE[3:]], xi)
+        w = [sub(uE[k], beta[k]) for k in range(3)]
+        terms = _node_terms(p, w, c, [row[3:] for row in LE[3:]])
+    else:
+        terms = _node_terms(p, uE, c, None)
     shapes = ((n,), (n, n), (n,), (n, n))
-    columns = [tuple(_column(entries(t, shape)) for t, shape in zip(side, shapes)) for side in sides]
-    mE, LE = _column(entries(m, (n,))), _lower(_column(entries(L, (n, n))))
-    return _expected_products(mE, LE, _column(entries(u, (3,))), columns, nodes, W, c, d_b, m.shape[0])
+    values = []
+    for a in range(0, len(sides), 4):  # each side's μ, Π, μ̇, Ṗ as [Q, 1] columns
+        side = (_column(entries(t, shape)) for t, shape in zip(sides[a : a + 4], shapes))
+        vals = _side_values(n, mE, LE, xi, terms, *side, d_b)
+        values.append(torch.stack([v.expand(Q, nodes.shape[0]) for v in vals], 1))  # [Q, channels, K]
+    vi, vj = values if len(values) == 2 else values * 2
+    return (((vi @ W) * vj).sum((-2, -1)),)
+
+
+def attitude_diagonal_pair_values_kernel(*args: Tensor) -> tuple[Tensor]:
+    """:func:`attitude_pair_values_kernel` of the pairs ``(i, i)`` (one side): a kernel of its own, compiled for
+    its own arguments."""
+    return attitude_pair_values_kernel(*args)
 
 
 def _column(x):
@@ -218,39 +188,6 @@ def _column(x):
     if isinstance(x, list):
         return [_column(v) for v in x]
     return x.unsqueeze(-1) if isinstance(x, Tensor) and x.dim() > 0 else x
-
-
-def _expected_products(
-    mE: list[Entry],
-    LE: Mat,
-    uE: list[Entry],
-    sides: list[tuple],
-    nodes: Tensor,
-    W: Tensor,
-    c: Tensor,
-    d_b: Tensor,
-    Q: int,
-) -> Tensor:
-    """``E[ℓᵢℓⱼ]`` ``[Q]`` from the pairs' ``m``, lower ``L`` and gyro rate and each side's ``(μ, Π, μ̇, Ṗ)``, all
-    entries of ``[Q, 1]`` columns (module docstring); one side only: ``E[ℓᵢ²]``."""
-    n = len(mE)
-    xi = list(nodes.unbind(-1))
-    p = _affine_at_nodes(mE[:3], LE[:3], xi)
-    if n == 6:
-        beta = _affine_at_nodes(mE[3:], [row[:3] for row in LE[3:]], xi)
-        w = [sub(uE[k], beta[k]) for k in range(3)]
-        L_bb = [row[3:] for row in LE[3:]]
-        lb = [dot((p[t], L_bb[t][k]) for t in range(3)) for k in range(3)]  # L_bbᵀp
-    else:
-        w, lb = uE, None
-    terms = _node_terms(p, w, c)
-    K = nodes.shape[0]
-    values = []
-    for mu, Pi, rate, Pdot in sides:
-        vals = _side_values(n, mE, LE, xi, p, lb, terms, mu, Pi, rate, Pdot, d_b)
-        values.append(torch.stack([v.expand(Q, K) for v in vals], 1))  # [Q, channels, K]
-    vi, vj = values if len(values) == 2 else values * 2
-    return ((vi @ W) * vj).sum((-2, -1))
 
 
 def attitude_pair_moments_kernel(
@@ -317,19 +254,14 @@ def attitude_pair_products(
         compile: run the kernel compiled ahead of time (:func:`~.lanes.run_in_chunks`).
         chunk: pairs per eager call (default: as many as keep ``DEFAULT_CHUNK`` node lanes).
     """
-    lead = prod.mean.shape[:-1]
-
-    def flat(t: Tensor, event: int) -> Tensor:
-        tail = t.shape[t.dim() - event :]
-        return t.expand(*lead, *tail).reshape(-1, *tail)
-
+    lead, flat = prod.mean.shape[:-1], prod.flat
     sides = []
     for r in (prod.first, prod.second):
         sides += [flat(r.means, 1), flat(r.precision, 2), flat(r.mean_rates, 1), flat(r.cov_rates, 2)]
     m = flat(prod.mean, 1)
     if m.shape[0] == 0:
         return m.new_zeros(lead)
-    inputs = (m, flat(prod.chol, 2), *sides, flat(rate.unsqueeze(-2), 1))
+    inputs = (m, flat(prod.chol, 2), flat(rate.unsqueeze(-2), 1), *sides)
     return _pair_values(inputs, sigma_v, sigma_u, compile, chunk).reshape(lead)
 
 
@@ -398,9 +330,9 @@ def attitude_penalty_pairs(
         key=("attitude pair moments", n),
     )
     Pi_i, Pi_j = side(prec, first), side(prec, second)
-    both = (m, L, mu_i, Pi_i, rate_i, Pdot_i, mu_j, Pi_j, rate_j, Pdot_j, u)
+    both = (m, L, u, mu_i, Pi_i, rate_i, Pdot_i, mu_j, Pi_j, rate_j, Pdot_j)
     acc_off = _pair_values(tuple(t[:split] for t in both), sigma_v, sigma_u, compile)
-    one = (m, L, mu_i, Pi_i, rate_i, Pdot_i, u)
+    one = (m, L, u, mu_i, Pi_i, rate_i, Pdot_i)
     diagonal = attitude_diagonal_pair_values_kernel
     acc_diag = _pair_values(tuple(t[split:] for t in one), sigma_v, sigma_u, compile, kernel=diagonal)
     back = torch.empty_like(order)

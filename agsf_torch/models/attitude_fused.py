@@ -50,7 +50,7 @@ class FusedAttitudePaths:
         """``E[ℓᵢℓⱼ]`` of every pair at 84 MRP nodes, the bias block (6 states) integrated in closed form (``ℓ`` is
         quadratic in it), a tenth of the 840 nodes of :meth:`fpke_polynomial_space`: on lanes
         (:mod:`agsf_torch.fused.pair_products`, compiled ahead of time if ``compile``) from
-        :attr:`EAGER_MIN_PAIRS` pairs on or when compiled; below, batched (:mod:`agsf_torch.fpke.bias_block`),
+        :attr:`EAGER_MIN_PAIRS` pairs on or when compiled; below, batched (:mod:`.attitude_bias_block`),
         or ``None`` for the 3-state model (its 84-node interpolatory rule is then the generic route)."""
         from ..fused.pair_products import attitude_pair_products as on_lanes
 
@@ -65,7 +65,7 @@ class FusedAttitudePaths:
                 )
         if not self.estimate_bias:
             return None
-        from ..fpke.bias_block import attitude_pair_products
+        from .attitude_bias_block import attitude_pair_products
 
         return attitude_pair_products(self, u, pairs)
 

@@ -1,7 +1,7 @@
 """The penalty update's ``E[ℓᵢℓⱼ]`` on lanes (:mod:`agsf_torch.fused.pair_products`) against the batched routes.
 
 Both routes evaluate the same values at the same 84 MRP nodes per pair (6 states: the ten Hermite
-coefficients in ``ξ_b`` of the closed-form bias block, :mod:`agsf_torch.fpke.bias_block`; 3 states: ``ℓ``
+coefficients in ``ξ_b`` of the closed-form bias block, :mod:`agsf_torch.models.attitude_bias_block`; 3 states: ``ℓ``
 itself, the generic interpolatory rule) in a different order, and contract them as ``Σ_c vᵢ,cᵀWvⱼ,c``
 (``W = TᵀT``).  A value sums at most ``k = 2n² + 4n + 8`` rounded products, each no larger than ``T``, the sum
 of the magnitudes of ``ℓ``'s terms at the node (:func:`_node_term_scale`; 6 states: three times its largest

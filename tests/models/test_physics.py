@@ -82,3 +82,35 @@ def test_the_closed_forms_hold_their_identities(gen):
         minus = as_tensor(physics.star_vector(physics.attitude_matrix(as_entries(p - d, (3,))), r))
         # central differences: truncation O(h²|∂³h|) with |∂³(Cr)/∂p³| ≤ 10³ here, rounding O(ε/h)
         assert_within(H[..., k], (plus - minus) / (2 * h), 1e3 * h * h + 1e2 * EPS / h, f"H column {k}")
+
+
+def test_the_rate_derivatives_are_those_of_the_rate_and_the_divergence(gen):
+    """``f_p = ¼B(p)ω`` and ``div f = (3/2)pᵀω`` are linear in ``ω``: :func:`physics.rate_derivatives` times ``ω``
+    gives both, to a few roundings of terms of size ``(1 + |p|)²|ω|``."""
+    p = random_mrps(500, gen, max_norm=1.3)
+    w = torch.randn(500, 3, generator=gen, dtype=F64)
+    pe, we = as_entries(p, (3,)), as_entries(w, (3,))
+    B4, grad = (as_tensor(v) for v in physics.rate_derivatives(pe))
+    terms = physics.fokker_planck_terms(pe, we, 1.0)
+    scale = (1 + p.norm(dim=-1, keepdim=True)) ** 2 * w.norm(dim=-1, keepdim=True)
+    assert_within((B4 @ w[..., None])[..., 0], as_tensor(terms["rate"]), 16 * EPS * scale, "¼B(p)ω")
+    assert_within((grad * w).sum(-1), as_tensor(terms["divergence"]), 16 * EPS * scale[..., 0], "(3/2)pᵀω")
+
+
+def test_both_bias_block_routes_evaluate_the_rate_derivatives(gen, monkeypatch):
+    """The batched bias block (:mod:`agsf_torch.models.attitude_bias_block`) and the pair kernel on lanes take
+    ``¼B(p)`` and ``(3/2)p`` from :func:`physics.rate_derivatives`, not a copy of their own."""
+    from agsf_torch.fpke.pairs import product_gaussians
+    from agsf_torch.fused.pair_products import attitude_pair_products as on_lanes
+    from agsf_torch.models.attitude_bias_block import attitude_pair_products as batched
+    from tests.fpke.test_exactness import _random_rates
+
+    calls = _spy(monkeypatch, "rate_derivatives")
+    model = AttitudeModel(estimate_bias=True)
+    rates, u = _random_rates(model, 2, 3, gen, (-4.0, -2.0))
+    prod = product_gaussians(rates.with_precision())
+    batched(model, u, prod)
+    assert calls, "the batched bias block does not come from physics.rate_derivatives"
+    calls.clear()
+    on_lanes(prod, u, model.sigma_v, model.sigma_u)
+    assert calls, "the pair kernel on lanes does not come from physics.rate_derivatives"

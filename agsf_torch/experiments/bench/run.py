@@ -69,7 +69,7 @@ def bench_adaptive(
             def fpke_pair_products(self, u, pairs, *, compile=False):  # the reference row: the batched route
                 if not self.estimate_bias:
                     return None  # the generic 84-node interpolatory rule
-                from ...fpke.bias_block import attitude_pair_products
+                from ...models.attitude_bias_block import attitude_pair_products
 
                 return attitude_pair_products(self, u, pairs)
 

@@ -1,4 +1,4 @@
-"""The 6-state attitude model's ``E[ℓᵢℓⱼ]`` with the bias block in closed form (:mod:`agsf_torch.fpke.bias_block`)
+"""The 6-state attitude model's ``E[ℓᵢℓⱼ]`` with the bias block in closed form (:mod:`agsf_torch.models.attitude_bias_block`)
 against the 840-node interpolatory rule and a dense Gauss–Hermite rule of higher degree than the integrand."""
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ def test_bias_block_route_equals_both_rules(gen, N):
 def test_chunks_and_an_empty_batch(gen):
     """Chunks of pairs give the numbers of one call to rounding (BLAS blocks a batch by its size; both within
     the rounding bound of the test above); an empty batch an empty result."""
-    from agsf_torch.fpke.bias_block import attitude_pair_products
     from agsf_torch.fpke.pairs import product_gaussians
+    from agsf_torch.models.attitude_bias_block import attitude_pair_products
 
     model = AttitudeModel(estimate_bias=True)
     rates, u = _random_rates(model, 5, 4, gen, (-4.0, -2.0))

@@ -1,10 +1,14 @@
-"""The paper's ``E[ℓᵢℓⱼ]`` of the 6-state attitude model with the bias block integrated in closed form.
+"""The paper's ``E[ℓᵢℓⱼ]`` of the 6-state attitude model with the bias block integrated in closed form, batched:
+the route of :meth:`~agsf_torch.models.AttitudeModel.fpke_pair_products` for few pairs (the generic FPKE core,
+:mod:`agsf_torch.fpke`, reaches it only through that hook; the same mathematics on lanes:
+:mod:`agsf_torch.fused.pair_products`).
 
 Under a pair's product Gaussian ``N(m, S)`` (``S = LLᵀ``, ``L`` lower-triangular, MRP first), a point is
 ``x = m + Lξ``: the MRP ``p = m_p + L_pp ξ_p`` and the bias ``b = β + L_bb ξ_b`` with ``β = m_b + L_bp ξ_p``.
 The attitude model's drift is affine in the bias (``ω = ω̃ − b``) and its ``D``, ``a`` and ``Σ∂²D`` do not
-depend on it, so at fixed ``ξ_p`` the residual factor of a component (:mod:`.residual`) is a quadratic in
-``ξ_b``:
+depend on it, so at fixed ``ξ_p`` the residual factor of a component (:mod:`agsf_torch.fpke.residual`) is a
+quadratic in ``ξ_b``, with the rate's coefficients ``¼B(p)`` and ``(3/2)p``
+(:func:`~agsf_torch.attitude.physics.rate_derivatives`):
 
 .. math::
 
@@ -31,9 +35,11 @@ import math
 import torch
 from torch import Tensor
 
+from ..attitude import physics
+from ..fpke.pairs import ProductGaussians
+from ..fpke.residual import ComponentRates
+from ..fused.algebra import as_entries, as_tensor
 from ..quadrature import ProductRule, product_rule
-from .pairs import ProductGaussians
-from .residual import ComponentRates
 
 __all__ = ["attitude_pair_products"]
 
@@ -47,29 +53,17 @@ def _mrp_rule(dtype: torch.dtype, device: torch.device) -> ProductRule:
     return _RULES[key]
 
 
-def _cross_matrix_t(p: Tensor, v: Tensor) -> Tensor:
-    """``B(p)ᵀ v = (1 − s)v − 2 p×v + 2p(pᵀv)`` (``B(p) = (1 − s)I + 2[p×] + 2ppᵀ``, ``s = pᵀp``)."""
-    s = (p * p).sum(-1, keepdim=True)
-    return (1.0 - s) * v - 2.0 * torch.linalg.cross(p, v, dim=-1) + 2.0 * p * (p * v).sum(-1, keepdim=True)
-
-
 #: Row and column of the six entries of a symmetric 3×3 matrix: the diagonal, then (0, 1), (0, 2), (1, 2).
 _SYM = ([0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2])
 
-#: ``[e_k×]`` for the three unit vectors: ``[p×] = Σ_k p_k [e_k×]``.
-_E_CROSS = torch.tensor(
-    [
-        [[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
-        [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]],
-        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
-    ],
-    dtype=torch.float64,
-)
 
-
-def _side_coefficients(side: ComponentRates, x0: Tensor, terms, L_bb: Tensor, p: Tensor) -> Tensor:
+def _side_coefficients(
+    side: ComponentRates, x0: Tensor, terms, L_bb: Tensor, rate_matrix: Tensor, div_grad: Tensor
+) -> Tensor:
     """The ten Hermite coefficients in ``ξ_b`` of ``ℓ`` of one side of every pair at every MRP node,
-    ``[Q, 10, K]`` (module docstring), with ``z = Π(x − μ)`` as :func:`~.residual.residual_factor` forms it."""
+    ``[Q, 10, K]`` (module docstring), with ``z = Π(x − μ)`` as :func:`~agsf_torch.fpke.residual.residual_factor`
+    forms it; ``rate_matrix`` ``¼B(p)`` ``[Q, K, 3, 3]`` and ``div_grad`` ``(3/2)p`` ``[Q, K, 3]`` at the nodes
+    (:func:`~agsf_torch.attitude.physics.rate_derivatives`)."""
     Pi = side.precision  # [Q, 6, 6]
     Pdot = side.cov_rates
     z0 = (x0 - side.means.unsqueeze(-2)) @ Pi  # [Q, K, 6] (Π symmetric)
@@ -81,31 +75,17 @@ def _side_coefficients(side: ComponentRates, x0: Tensor, terms, L_bb: Tensor, p:
     scalars = terms.drift_divergence - terms.diffusion_second_divergence - 0.5 * (Pi * Pdot).sum((-2, -1)).unsqueeze(-1)
     c0 = ((v0 + 0.5 * Pz - d * z0) * z0).sum(-1) + tr_D_Pi + scalars  # [Q, K]
     Z = Pi[..., :, 3:] @ L_bb  # Π L_{:,b} (L lower-triangular) [Q, 6, 3]
-    Zp = Z[..., :3, :]
-    # g = Zᵀ(v₀ + Ṗz₀ − 2Dz₀) − Fᵀz₀ − 1.5 L_bbᵀp, with −Fᵀz₀ = ¼ L_bbᵀ B(p)ᵀ z₀,p
+    # g = Zᵀ(v₀ + Ṗz₀ − 2Dz₀) − Fᵀz₀ − (3/2)L_bbᵀp, with −Fᵀz₀ = L_bbᵀ ¼B(p)ᵀz₀,p
     g = (v0 + Pz - 2.0 * d * z0) @ Z  # [Q, K, 3]
-    g = g + (0.25 * _cross_matrix_t(p, z0[..., :3]) - 1.5 * p) @ L_bb
-    # G = Zᵀ(½Ṗ − D)Z − sym(ZᵀF), as its six entries (00, 11, 22, 01, 02, 12).  Per node only scalars change,
-    # so every 3×3 product is formed once per pair: ZᵀDZ = Σ_a d_a Z_aᵀZ_a, and with B(p) = (1 − s)I + 2[p×] + 2ppᵀ,
-    # −ZᵀF = ¼ Z_pᵀB(p)L_bb = ¼[(1 − s)Z_pᵀL_bb + 2 Σ_k p_k Z_pᵀ[e_k×]L_bb + 2 (Z_pᵀp)(L_bbᵀp)ᵀ]
+    g = g + ((z0[..., :3].unsqueeze(-1) * rate_matrix).sum(-2) - div_grad) @ L_bb
+    # G = Zᵀ(½Ṗ − D)Z − sym(ZᵀF), as its six entries (00, 11, 22, 01, 02, 12).  Per node only D and ¼B(p) change,
+    # so the rest is formed once per pair: ZᵀDZ = Σ_a d_a Z_aᵀZ_a, and −ZᵀF = Z_pᵀ ¼B(p) L_bb = Σ_ab ¼B_ab O_ab
+    # with O_ab = Z_p[a]ᵀ L_bb[b] (rows a and b)
     r, c = _SYM
     ZPZ = 0.5 * (Z.transpose(-1, -2) @ Pdot @ Z)[..., r, c]  # [Q, 6]
     outer = 0.5 * (Z[..., :, r] * Z[..., :, c] + Z[..., :, c] * Z[..., :, r])  # [Q, 6 rows a, 6 entries]
-    A0 = Zp.transpose(-1, -2) @ L_bb  # [Q, 3, 3]
-    Mk = torch.stack([Zp.transpose(-1, -2) @ (_E_CROSS[k].to(Z) @ L_bb) for k in range(3)], 1)  # [Q, 3, 3, 3]
-    sym = lambda A: 0.5 * (A[..., r, c] + A[..., c, r])  # noqa: E731 - the six entries of sym(A)
-    zp, lb = p @ Zp, p @ L_bb  # Z_pᵀp, L_bbᵀp [Q, K, 3]
-    s_node = (p * p).sum(-1, keepdim=True)
-    G = (
-        ZPZ.unsqueeze(-2)
-        - d @ outer
-        + 0.25
-        * (
-            (1.0 - s_node) * sym(A0).unsqueeze(-2)
-            + 2.0 * p @ sym(Mk)
-            + (zp[..., r] * lb[..., c] + zp[..., c] * lb[..., r])
-        )
-    )  # [Q, K, 6]
+    O = (Z[..., :3, None, :, None] * L_bb[..., None, :, None, :]).flatten(1, 2)  # [Q, 9 (a, b), 3, 3]
+    G = ZPZ.unsqueeze(-2) - d @ outer + rate_matrix.flatten(-2) @ (0.5 * (O[..., r, c] + O[..., c, r]))  # [Q, K, 6]
     coeffs = torch.cat(
         ((c0 + G[..., :3].sum(-1)).unsqueeze(-1), g, math.sqrt(2.0) * G[..., :3], 2.0 * G[..., 3:]), -1
     )  # [Q, K, 10]
@@ -123,12 +103,7 @@ def attitude_pair_products(model, u: Tensor | None, prod: ProductGaussians, max_
         prod: the pairs' product Gaussians, their sides with precisions formed
             (:meth:`~agsf_torch.fpke.ComponentRates.with_precision` before :func:`~.pairs.product_gaussians`).
     """
-    lead = prod.mean.shape[:-1]
-
-    def flat(t: Tensor, event: int) -> Tensor:
-        tail = t.shape[t.dim() - event :]
-        return t.expand(*lead, *tail).reshape(-1, *tail)
-
+    lead, flat = prod.mean.shape[:-1], prod.flat
     m, L = flat(prod.mean, 1), flat(prod.chol, 2)
     first, second = (r.map(lambda t, dim: flat(t, -dim - 1)) for r in (prod.first, prod.second))
     uf = None if u is None else flat(u.unsqueeze(-2), 1)  # [Q, 3]
@@ -167,6 +142,8 @@ def _chunk_products(
     beta = m[..., None, 3:] + xi @ L_bp.transpose(-1, -2)
     x0 = torch.cat((p, beta), -1)  # [Q, K, 6]
     terms = model.fokker_planck_terms(x0, None if u is None else u[..., None, :])
-    ci = rule.coefficients(_side_coefficients(first, x0, terms, L_bb, p))  # [Q, 10, K]
-    cj = rule.coefficients(_side_coefficients(second, x0, terms, L_bb, p))
+    B4, div_grad = physics.rate_derivatives(as_entries(p, (3,)))
+    B4, div_grad = as_tensor(B4), as_tensor(div_grad)  # ¼B(p) [Q, K, 3, 3], (3/2)p [Q, K, 3]
+    ci = rule.coefficients(_side_coefficients(first, x0, terms, L_bb, B4, div_grad))  # [Q, 10, K]
+    cj = rule.coefficients(_side_coefficients(second, x0, terms, L_bb, B4, div_grad))
     return (ci * cj).sum((-2, -1))
