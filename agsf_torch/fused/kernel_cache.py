@@ -2,7 +2,9 @@
 
 A compiled kernel is an AOTInductor package in :func:`kernel_cache_dir`, named by a hash of everything its code
 depends on (:func:`_package_path`: the kernel, its static configuration, the variant and its thread count, the
-input dtypes and trailing shapes, the torch version and the source of the package's fused kernels).  A process
+input dtypes and trailing shapes, the torch version and the source of every module of the package that the
+kernel's module imports, directly or through others: :func:`source_closure`, so that an edit of the physics or
+the algebra a kernel is built from compiles it again).  A process
 compiling one holds its :func:`compile_lock`, so that processes started together compile each kernel once.
 Packages are written atomically and, like any new file, readable as the umask allows (``0666`` less the umask),
 so that a cache shared by a group serves all its users.  A package that cannot be loaded is judged
@@ -12,10 +14,13 @@ compilation, a whole one is kept.
 
 from __future__ import annotations
 
+import ast
 import contextlib
+import functools
 import hashlib
 import logging
 import os
+import sys
 import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -23,7 +28,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["kernel_cache_dir", "compile_lock", "package_damage"]
+__all__ = ["kernel_cache_dir", "compile_lock", "package_damage", "source_closure"]
 
 logger = logging.getLogger(__name__)
 
@@ -40,13 +45,66 @@ def _kernel_name(kernel: Callable) -> str:
     return getattr(kernel, "__name__", None) or getattr(getattr(kernel, "func", None), "__name__", "kernel")
 
 
+_PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # agsf_torch/
+
+
+def _module_file(name: str) -> Path | None:
+    """The source file of the package's module ``name`` (``agsf_torch.x.y``), or None if it is not one."""
+    parts = name.split(".")
+    if parts[0] != _PACKAGE_ROOT.name:
+        return None
+    base = _PACKAGE_ROOT.joinpath(*parts[1:])
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _imported_modules(name: str, path: Path) -> set[str]:
+    """The package's modules that module ``name`` (its source ``path``) imports anywhere in its code."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                base = ".".join(anchor + ([base] if base else []))
+            targets = [base] + [f"{base}.{alias.name}" for alias in node.names]  # a name may be a submodule
+        else:
+            continue
+        found.update(t for t in targets if _module_file(t) is not None)
+    return found
+
+
+@functools.cache
+def source_closure(module: str) -> tuple[Path, ...]:
+    """The source files of ``module`` and of every module of the package it imports, directly or through others
+    (read from the code, lazy imports included), sorted: what a kernel defined in ``module`` is built from.  A
+    module outside the package contributes its own file."""
+    seen: dict[str, Path] = {}
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        path = _module_file(name)
+        if path is None and name == module and getattr(sys.modules.get(name), "__file__", None):
+            path = Path(sys.modules[name].__file__)  # a kernel defined outside the package: its own file
+        if name in seen or path is None:
+            continue
+        seen[name] = path
+        todo.extend(_imported_modules(name, path) - seen.keys())
+    return tuple(sorted(set(seen.values())))
+
+
 def _package_name(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor]) -> str:
     """The cache file of a compiled kernel: everything its code depends on, hashed."""
-    fused = Path(__file__).resolve().parent
-    h = hashlib.sha256()
-    for path in sorted(fused.glob("*.py")):  # the kernels and the algebra they are written in
-        h.update(path.name.encode() + path.read_bytes())
     func = getattr(kernel, "func", kernel)
+    h = hashlib.sha256()
+    for path in source_closure(func.__module__):  # the kernel, the physics and the algebra it is written in
+        where = path.relative_to(_PACKAGE_ROOT) if path.is_relative_to(_PACKAGE_ROOT) else path
+        h.update(str(where).encode() + path.read_bytes())
     h.update(repr((torch.__version__, func.__module__, func.__qualname__, getattr(kernel, "keywords", {}))).encode())
     h.update(repr((key, [(t.dtype, tuple(t.shape[1:])) for t in inputs])).encode())
     h.update(repr([(t.dtype, tuple(t.shape)) for t in shared]).encode())

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -157,6 +159,22 @@ def test_the_cache_key_follows_what_the_compiled_code_depends_on(gen):
     assert kernel_cache._package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
     assert kernel_cache._package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
     assert kernel_cache._package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
+
+
+def test_a_kernel_is_compiled_again_when_the_physics_it_is_built_from_changes(monkeypatch):
+    """The cache key hashes every module of the package the kernel's module imports, directly or through others:
+    the propagation kernel lives in fused/ but is built from attitude/physics.py and fused/algebra.py."""
+    from agsf_torch.fused.propagation import attitude_propagation_kernel
+
+    root = Path(kernel_cache.__file__).resolve().parents[1]
+    closure = {str(p.relative_to(root)) for p in kernel_cache.source_closure(attitude_propagation_kernel.__module__)}
+    assert {"fused/propagation.py", "attitude/physics.py", "fused/algebra.py"} <= closure
+    x = torch.zeros(4, 6, dtype=F64)
+    name = kernel_cache._package_name(attitude_propagation_kernel, ("a",), (x,), ())
+    physics = root / "attitude" / "physics.py"
+    read_bytes = Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda p: read_bytes(p) + (b"# edited" if p == physics else b""))
+    assert kernel_cache._package_name(attitude_propagation_kernel, ("a",), (x,), ()) != name
 
 
 def test_the_kernel_cache_lives_where_the_environment_says(monkeypatch, tmp_path):
