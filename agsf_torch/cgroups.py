@@ -1,7 +1,7 @@
 """The memory a Linux control group still allows this process.
 
 A container or a batch scheduler (Docker ``--memory``, Kubernetes, Slurm, systemd) limits a process's memory below
-what the machine reports free (``MemAvailable``); the memory checks of :mod:`agsf_torch.experiments.resources` read the
+what the machine reports free (``MemAvailable``); the memory checks of :mod:`agsf_torch.experiments.run.resources` read the
 group's limit as well (:func:`memory_headroom`).  Kept by hand because no library reads it (psutil's available memory
 and ``/proc/meminfo`` are the machine's; joblib reads the CPU quota only, :func:`agsf_torch.processes.available_cpus`).
 

@@ -236,7 +236,7 @@ def _whiteness(
     row): the lag-1 autocorrelation about 0 of the standardised NIS of each run, over the star frames at which some run
     of the data set has a valid NIS, averaged over runs weighted by their pairs, against ``±Φ⁻¹(1 − level/2)/√(pairs)``
     (for white innovations it has mean 0 and tends to a normal of variance ``1/pairs`` as the runs' frames grow;
-    with a few tens of frames per run the check is conservative, :mod:`agsf_torch.experiments.verdict_calibration`)."""
+    with a few tens of frames per run the check is conservative, :mod:`agsf_torch.experiments.studies.verdict_calibration`)."""
     from scipy.special import ndtri
 
     valid = np.isfinite(nis) & (nis_dof > 0)

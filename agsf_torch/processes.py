@@ -3,7 +3,7 @@ its caller imports.
 
 The kernel compiler starts new interpreters (``python -m …``, :func:`agsf_torch.fused.lanes.compiling_in_parallel`),
 not spawned multiprocessing children, which would run the caller's ``__main__`` again; the experiments' workers are
-a forked :class:`concurrent.futures.ProcessPoolExecutor` (:mod:`agsf_torch.experiments.forked`).
+a forked :class:`concurrent.futures.ProcessPoolExecutor` (:mod:`agsf_torch.experiments.run.worker_pool`).
 """
 
 from __future__ import annotations

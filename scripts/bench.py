@@ -2,7 +2,7 @@
 
 import sys
 
-from agsf_torch.experiments.cli import main
+from agsf_torch.experiments.cli.main import main
 
 if __name__ == "__main__":
     sys.exit(main(["bench", *sys.argv[1:]]))

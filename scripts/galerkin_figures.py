@@ -25,7 +25,7 @@ import torch  # noqa: E402
 
 from agsf_torch import GaussianMixture  # noqa: E402
 from agsf_torch.density.grid import FokkerPlanckGrid, integrated_squared_error  # noqa: E402
-from agsf_torch.experiments.sine_benchmark import DT, NUM_STEPS, sine_prior  # noqa: E402
+from agsf_torch.experiments.studies.sine_benchmark import DT, NUM_STEPS, sine_prior  # noqa: E402
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GalerkinWeightUpdate, GaussianSumFilter, PenaltyWeightUpdate  # noqa: E402
 from agsf_torch.models import LorenzModel, SineDriftModel  # noqa: E402
 

@@ -69,7 +69,7 @@ def test_a_threshold_out_of_range_is_refused_naming_it(bad):
 
 
 def test_every_agsf_command_sets_it_before_it_runs(monkeypatch, capsys, tmp_path):
-    from agsf_torch.experiments import cli
+    from agsf_torch.experiments.cli import main as cli
 
     calls = []
     monkeypatch.setattr(cli, "set_mmap_threshold", lambda: calls.append(True))

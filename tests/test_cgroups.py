@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from agsf_torch.cgroups import memory_headroom
-from agsf_torch.experiments import resources
+from agsf_torch.experiments.run import resources
 from tests.helpers import assert_within
 
 

@@ -17,7 +17,7 @@ from agsf_torch.consistency import (
     format_report,
     nis_per_expected,
 )
-from agsf_torch.experiments import cli
+from agsf_torch.experiments.cli import main as cli
 from tests.helpers import EAGER, assert_statistic, assert_within, relative_bound
 
 SMALL = ["runs=48", "duration=20.0", "update_iterations=3", 'filters=["EKF"]', *EAGER]
@@ -97,9 +97,9 @@ def test_whiteness_check_on_synthetic_innovations():
 def test_diagnose_judges_a_recording_as_the_live_run_it_records(tmp_path, capsys):
     """``agsf diagnose --recording`` replays the file as ``agsf run --recording`` does: a recording of the
     configuration's own simulation gets the live run's verdict, number for number."""
-    from agsf_torch.experiments.config import load_config
-    from agsf_torch.experiments.factories import make_env
-    from agsf_torch.experiments.recorded import record_environment
+    from agsf_torch.experiments.config.factories import make_env
+    from agsf_torch.experiments.config.loader import load_config
+    from agsf_torch.experiments.run.recorded import record_environment
 
     small = ["runs=8", "duration=6.0", "update_iterations=3", 'filters=["EKF"]', *EAGER]
     args = [*sum([["--set", s] for s in small], []), "--quiet"]

@@ -76,5 +76,5 @@ def test_importing_the_package_leaves_scipy_stats_unloaded():
     import subprocess
     import sys
 
-    code = "import sys, agsf_torch.experiments.cli; print('scipy.stats' in sys.modules)"
+    code = "import sys, agsf_torch.experiments.cli.main; print('scipy.stats' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"

@@ -18,9 +18,9 @@ from scipy import stats
 
 from agsf_torch import update as update_module
 from agsf_torch.consistency import chi2_band
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.factories import make_env, make_filters, prior_covariance
-from agsf_torch.experiments.runner import run_monte_carlo
+from agsf_torch.experiments.config.factories import make_env, make_filters, prior_covariance
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run.runner import run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter, MultiplicativeEKF
 from agsf_torch.gating import innovation_gate
 from agsf_torch.mixture import GaussianMixture

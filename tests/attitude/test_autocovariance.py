@@ -20,8 +20,8 @@ from agsf_torch.attitude.autocovariance import (
     innovation_products,
     solve_autocovariance_ls,
 )
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run.recorded import record_environment
 from agsf_torch.rotations import mrp_compose
 from tests.helpers import F64, assert_statistic, assert_within, random_unit_vectors
 

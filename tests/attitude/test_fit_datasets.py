@@ -13,7 +13,7 @@ import torch
 import envs
 from agsf_torch.attitude.learning import _wald, attitude_log_likelihood, fit_attitude_parameters, fit_datasets
 from agsf_torch.attitude.recordings import Recording
-from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.experiments.run.recorded import record_environment
 from agsf_torch.quantiles import chi2_quantile
 from tests.attitude.test_learning import BASE
 from tests.helpers import F64, assert_statistic, assert_within, relative_bound

@@ -9,7 +9,7 @@ import torch
 
 import envs
 from agsf_torch.attitude.learning import fit_attitude_parameters
-from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.experiments.run.recorded import record_environment
 from tests.helpers import F64, assert_within
 
 DEG_PER_HOUR = math.pi / 180 / 3600

@@ -11,7 +11,7 @@ import torch
 
 import envs
 from agsf_torch.attitude.learning import fit_attitude_parameters
-from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.experiments.run.recorded import record_environment
 from tests.attitude.test_learning import BASE
 from tests.helpers import F64, assert_statistic
 

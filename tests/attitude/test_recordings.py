@@ -11,8 +11,8 @@ import torch
 
 import envs
 from agsf_torch.attitude.recordings import Recording
-from agsf_torch.experiments.recorded import RecordingEnv, record_environment
-from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
+from agsf_torch.experiments.run.recorded import RecordingEnv, record_environment
+from agsf_torch.experiments.run.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import GaussianSumFilter
 from agsf_torch.models import AttitudeModel
 from tests.helpers import EAGER, F64, assert_within
@@ -95,9 +95,9 @@ def test_replay_needs_truth(recording):
 def test_cli_simulate_then_run_on_the_file(tmp_path):
     import json
 
-    from agsf_torch.experiments import cli
-    from agsf_torch.experiments.config import load_config
-    from agsf_torch.experiments.experiment import make_env, run_experiment
+    from agsf_torch.experiments.cli import main as cli
+    from agsf_torch.experiments.config.loader import load_config
+    from agsf_torch.experiments.run.experiment import make_env, run_experiment
 
     cfg = load_config("case1", ["runs=6", "duration=3.0", *EAGER, 'filters=["EKF", "GSF"]'])
     path = record_environment(make_env(cfg), cfg.num_steps, cfg.seed).save(tmp_path / "rec.npz")
@@ -120,9 +120,9 @@ def test_a_replay_is_identified_by_the_keys_it_reads(tmp_path):
     with them changed is accepted and gives the same numbers; a key the filters read makes another experiment."""
     import json
 
-    from agsf_torch.experiments.config import REPLAY_IGNORED, load_config
-    from agsf_torch.experiments.experiment import make_env, run_experiment
-    from agsf_torch.experiments.outputs import OutputConflict, release_outputs
+    from agsf_torch.experiments.config.loader import REPLAY_IGNORED, load_config
+    from agsf_torch.experiments.run.experiment import make_env, run_experiment
+    from agsf_torch.experiments.run.outputs import OutputConflict, release_outputs
 
     keys = ["runs=3", "duration=2.0", *EAGER, 'filters=["GSF"]']
     cfg = load_config("case1", keys)

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from agsf_torch.experiments.adaptation import STUDY_FILTERS, run_adaptation_study, scenario_config
-from agsf_torch.experiments.cli import main
+from agsf_torch.experiments.cli.main import main
+from agsf_torch.experiments.studies.adaptation import STUDY_FILTERS, run_adaptation_study, scenario_config
 from tests.helpers import EAGER
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from agsf_torch.experiments.bench import run as bench
@@ -200,7 +201,7 @@ def test_peak_memory_is_the_processs_own_not_its_parents_at_the_fork():
     import subprocess
     import sys
 
-    code = "from agsf_torch.experiments.resources import peak_resident_memory; print(peak_resident_memory())"
+    code = "from agsf_torch.experiments.run.resources import peak_resident_memory; print(peak_resident_memory())"
     ballast = torch.ones(2**27, dtype=torch.float64)  # 1 GiB resident in this process
     ballast.add_(1.0)
     child = int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
@@ -216,15 +217,18 @@ def test_a_main_job_reference_that_is_not_a_checkout_is_refused_naming_it(tmp_pa
     assert bench.check_reference(bench.PROJECT_ROOT) == bench.PROJECT_ROOT.resolve()
 
 
-def test_the_main_job_of_a_reference_checkout_runs_that_checkouts_code(tmp_path):
+@pytest.mark.parametrize("command", ["cli.py", "cli/__main__.py"])
+def test_the_main_job_of_a_reference_checkout_runs_that_checkouts_code(tmp_path, command):
     """``python -m`` puts the working folder first on the path: the reference's job runs there, or it would
-    silently time this checkout's code (as a first version of the option did)."""
+    silently time this checkout's code (as a first version of the option did).  The command is a module in
+    earlier layouts, a package's ``__main__`` in this one."""
     package = tmp_path / "agsf_torch" / "experiments"
     package.mkdir(parents=True)
     (tmp_path / "agsf_torch" / "__init__.py").write_text("")
     (package / "__init__.py").write_text("")
     marker = tmp_path / "ran"
-    (package / "cli.py").write_text(f"import sys\nopen({str(marker)!r}, 'w').write(' '.join(sys.argv[1:]))\n")
+    (package / command).parent.mkdir(exist_ok=True)
+    (package / command).write_text(f"import sys\nopen({str(marker)!r}, 'w').write(' '.join(sys.argv[1:]))\n")
     seconds = bench._main_job_seconds(["--jobs", "1"], bench.check_reference(tmp_path))
     assert seconds > 0 and marker.read_text().startswith("reproduce --case all --out ")
     assert marker.read_text().endswith("--quiet --jobs 1")

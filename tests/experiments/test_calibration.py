@@ -6,14 +6,14 @@ import json
 
 import pytest
 
-from agsf_torch.experiments.calibration import (
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.studies.calibration import (
     MIS_SCALINGS,
     QUICK_STUDY,
     calibrate_setting,
     settings_named,
 )
-from agsf_torch.experiments.calibration_report import calibration_markdown
-from agsf_torch.experiments.config import load_config
+from agsf_torch.experiments.studies.calibration_report import calibration_markdown
 from tests.experiments.test_cli_failures import _agsf, _assert_refused
 
 

@@ -21,8 +21,8 @@ from hypothesis import strategies as st
 
 from agsf_torch.attitude.learning import PARAMETERS
 from agsf_torch.attitude.recordings import Recording
-from agsf_torch.experiments import cli
-from agsf_torch.experiments.config import MAX_SEED
+from agsf_torch.experiments.cli import main as cli
+from agsf_torch.experiments.config.loader import MAX_SEED
 from tests.helpers import TINY_CLI
 
 TINY = TINY_CLI

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from agsf_torch.experiments import cli
+from agsf_torch.experiments.cli import main as cli
 from agsf_torch.experiments.sweep import results_table
 from agsf_torch.storage.files import read_json_lines
 from tests.helpers import TINY_CLI
@@ -209,7 +209,7 @@ def test_torch_internal_deprecation_is_hidden_and_nothing_else():
 
 
 def test_reproduce_names_its_outputs(tmp_path, monkeypatch):
-    from agsf_torch.experiments import reproduce
+    from agsf_torch.experiments.studies import reproduce
 
     monkeypatch.setattr(reproduce, "reproduce", lambda cases, out, overrides, progress, force, **_: "TABLE")
     out = tmp_path / "repro"
@@ -273,7 +273,7 @@ def test_a_full_disk_is_an_io_failure_naming_the_file_with_its_own_exit_code(tmp
 
 
 def test_ctrl_c_prints_one_line_and_exits_130(tmp_path, monkeypatch):
-    from agsf_torch.experiments import recorded
+    from agsf_torch.experiments.run import recorded
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
@@ -286,7 +286,7 @@ def test_ctrl_c_prints_one_line_and_exits_130(tmp_path, monkeypatch):
 def test_a_full_disk_while_claiming_the_output_folder_leaves_no_folder(tmp_path, monkeypatch):
     import errno
 
-    from agsf_torch.experiments import outputs
+    from agsf_torch.experiments.run import outputs
 
     def full(path, obj, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from agsf_torch.experiments.config import ExperimentConfig, load_config, load_preset, preset_names
+from agsf_torch.experiments.config.loader import ExperimentConfig, load_config, load_preset, preset_names
 from tests.helpers import assert_within
 
 
@@ -106,8 +106,8 @@ def test_every_filter_option_is_a_config_key_with_its_declared_default_help_and_
     """Options are declared once (the filters' and weight updates' dataclass fields): each appears in the
     configuration with the declared default, in the command line's key list and in the docs, and a bad
     value is refused by the declaring class, naming the key."""
-    from agsf_torch.experiments.cli import build_parser
-    from agsf_torch.experiments.config import config_key_help
+    from agsf_torch.experiments.cli.main import build_parser
+    from agsf_torch.experiments.config.loader import config_key_help
     from agsf_torch.filters.registry import CONFIG_OPTIONS
 
     cfg = ExperimentConfig()
@@ -127,9 +127,9 @@ def test_a_fault_after_the_end_of_a_simulated_run_is_named_in_a_warning_and_a_re
     import warnings
 
     from agsf_torch.attitude.recordings import Recording
-    from agsf_torch.experiments import cli
-    from agsf_torch.experiments.factories import make_env
-    from agsf_torch.experiments.recorded import record_environment
+    from agsf_torch.experiments.cli import main as cli
+    from agsf_torch.experiments.config.factories import make_env
+    from agsf_torch.experiments.run.recorded import record_environment
 
     faults = '[{kind="star_outage", start=1.0, end=2.0}, {kind="gyro_dropout", start=3.0, end=4.0}]'
     keys = [f"faults={faults}", "duration=3.0", "runs=2", "compile=false", "compile_fused=false"]

@@ -6,7 +6,7 @@ import dataclasses
 
 import pytest
 
-from agsf_torch.experiments.config import ExperimentConfig, parse_override
+from agsf_torch.experiments.config.loader import ExperimentConfig, parse_override
 
 
 def test_unknown_key_lists_every_known_key():

@@ -9,7 +9,7 @@ from contextlib import redirect_stderr, redirect_stdout
 
 import pytest
 
-from agsf_torch.experiments import cli
+from agsf_torch.experiments.cli import main as cli
 
 
 def _agsf(argv: list[str]) -> tuple[int, str]:
@@ -42,7 +42,7 @@ def test_a_file_error_after_work_was_written_exits_3_naming_the_file(tmp_path, m
 
 def test_a_permission_denied_before_anything_is_written_is_a_refusal(tmp_path, monkeypatch):
     """The output folder cannot be claimed: nothing was written, so the command is refused (2) and leaves no folder."""
-    from agsf_torch.experiments import outputs
+    from agsf_torch.experiments.run import outputs
 
     monkeypatch.setattr(outputs, "write_json", lambda path, obj, **kwargs: (_ for _ in ()).throw(_denied(path)))
     out = tmp_path / "s"
@@ -64,8 +64,8 @@ def test_a_case_denied_its_folder_after_the_run_began_exits_3(tmp_path, monkeypa
     """``agsf reproduce`` rerun over a folder whose case folder it may not write: the run had begun (its
     ``experiment.json`` rewritten, the other cases run), so the status is the I/O failure's, in this process or in
     a case's forked one."""
-    from agsf_torch.experiments import reproduce
-    from agsf_torch.experiments.forked import fork_available
+    from agsf_torch.experiments.run.worker_pool import fork_available
+    from agsf_torch.experiments.studies import reproduce
 
     if jobs != "1" and not fork_available():
         pytest.skip("cases side by side need fork (Linux)")

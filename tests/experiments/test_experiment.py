@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.stats import t as student_t
 
-from agsf_torch.experiments import cli
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.experiment import OutputConflict, run_experiment
+from agsf_torch.experiments.cli import main as cli
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run.experiment import OutputConflict, run_experiment
 from agsf_torch.experiments.sweep import parse_grid, run_sweep
 from tests.helpers import EAGER, assert_within, relative_bound
 

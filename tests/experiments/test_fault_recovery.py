@@ -15,9 +15,9 @@ from functools import cache
 import numpy as np
 import pytest
 
-from agsf_torch.experiments.config import ExperimentConfig
-from agsf_torch.experiments.experiment import make_env, make_filters, prior_covariance
-from agsf_torch.experiments.runner import run_monte_carlo
+from agsf_torch.experiments.config.loader import ExperimentConfig
+from agsf_torch.experiments.run.experiment import make_env, make_filters, prior_covariance
+from agsf_torch.experiments.run.runner import run_monte_carlo
 
 RUNS, DURATION = 16, 220.0
 AFTER = (200.0, 220.0)

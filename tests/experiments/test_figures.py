@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.figures import axes_figure, fpke_figure, rms_figure, weights_figure, write_figures
-from agsf_torch.experiments.statistics import summarize
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.report.figures import axes_figure, fpke_figure, rms_figure, weights_figure, write_figures
+from agsf_torch.experiments.report.statistics import summarize
 from tests.helpers import assert_within, relative_bound
 
 ARCSEC = 180.0 / math.pi * 3600.0  # rad → arcsec, written out independently of the module
@@ -241,8 +241,8 @@ def test_write_figures_writes_the_four_pngs_and_leaves_no_pyplot_figure_open(sum
 
 def test_a_figure_drawn_by_a_worker_follows_the_callers_matplotlib_settings(summary3, tmp_path, monkeypatch):
     """Settings changed at run time (a notebook's, say) reach the worker: its PNG is the caller's byte for byte."""
-    from agsf_torch.experiments.file_writer import FileWriter
-    from agsf_torch.experiments.forked import fork_available
+    from agsf_torch.experiments.run.file_writer import FileWriter
+    from agsf_torch.experiments.run.worker_pool import fork_available
 
     if not fork_available():
         pytest.skip("worker processes are forked (Linux)")

@@ -1,4 +1,4 @@
-"""Writing files in worker processes (agsf_torch.experiments.file_writer) and reproduce's use of it."""
+"""Writing files in worker processes (agsf_torch.experiments.run.file_writer) and reproduce's use of it."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from agsf_torch.experiments.file_writer import FileWriter
-from agsf_torch.experiments.forked import TaskDied, fork_available
-from agsf_torch.experiments.reproduce import reproduce
+from agsf_torch.experiments.run.file_writer import FileWriter
+from agsf_torch.experiments.run.worker_pool import TaskDied, fork_available
+from agsf_torch.experiments.studies.reproduce import reproduce
 from agsf_torch.storage.files import write_text
 from tests.helpers import EAGER, event_records, file_digests
 
@@ -239,7 +239,7 @@ def test_bad_worker_counts_are_refused(workers):
 
 @needs_fork
 def test_reproduce_writes_the_same_files_with_a_writer_as_without_and_restores_the_threads(tmp_path, monkeypatch):
-    from agsf_torch.experiments import file_writer
+    from agsf_torch.experiments.run import file_writer
 
     overrides = ["runs=3", "duration=2.0", "components=2", *EAGER]
     threads = torch.get_num_threads()
@@ -281,7 +281,7 @@ class _Submissions:
 def test_runs_npz_goes_to_a_worker_unless_its_arrays_exceed_the_handover_limit(tmp_path, monkeypatch, limit, thread):
     import numpy as np
 
-    from agsf_torch.experiments import file_writer, outputs
+    from agsf_torch.experiments.run import file_writer, outputs
 
     reused = {
         "GSF": ({"time": np.arange(3.0), "star_frame": np.zeros(3, bool), "GSF/error_angle": np.ones((2, 3))}, {})

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from agsf_torch.attitude.recordings import Recording
-from agsf_torch.experiments import cli
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.experiment import make_env, prior_covariance
-from agsf_torch.experiments.recorded import record_environment
+from agsf_torch.experiments.cli import main as cli
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run.experiment import make_env, prior_covariance
+from agsf_torch.experiments.run.recorded import record_environment
 from agsf_torch.filter_loop import PRIOR_SEED_OFFSET, sample_prior
 from tests.helpers import EAGER, assert_within, relative_bound
 
@@ -106,7 +106,7 @@ def test_a_log_that_starts_at_a_star_frame_needs_no_initial_estimate(tmp_path):
     same frame, an independent one) with a zero bias; a row 0 without a determining frame is refused, naming it."""
     from scipy.spatial.transform import Rotation
 
-    from agsf_torch.experiments.recorded import RecordingEnv
+    from agsf_torch.experiments.run.recorded import RecordingEnv
     from agsf_torch.rotations import mrp_to_dcm
 
     keys = KEYS + ["estimate_bias=true"]

@@ -1,4 +1,4 @@
-"""Tasks in forked worker processes (:mod:`agsf_torch.experiments.forked`, a ProcessPoolExecutor): results in order,
+"""Tasks in forked worker processes (:mod:`agsf_torch.experiments.run.worker_pool`, a ProcessPoolExecutor): results in order,
 every task run to its end before the first failure is raised as the task raised it, a worker that dies named with its
 exit code, an interruption passed on."""
 
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from agsf_torch.experiments.forked import TaskDied, fork_available, run_forked
+from agsf_torch.experiments.run.worker_pool import TaskDied, fork_available, run_forked
 
 pytestmark = pytest.mark.skipif(not fork_available(), reason="forked tasks need fork (Linux)")
 
@@ -134,13 +134,13 @@ def test_an_interruption_interrupts_the_children_once_and_propagates(tmp_path, w
 
 
 def _counting(total: int) -> int:
-    from agsf_torch.experiments.progress import progress_bar
+    from agsf_torch.experiments.run.progress import progress_bar
 
     return sum(1 for _ in progress_bar(range(total), desc=f"count{total}", unit="step", total=total))
 
 
 def test_the_childrens_progress_bars_are_drawn_by_the_parent_on_a_line_each(monkeypatch):
-    from agsf_torch.experiments import forked
+    from agsf_torch.experiments.run import worker_pool as forked
 
     seen = []
 

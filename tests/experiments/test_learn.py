@@ -7,12 +7,12 @@ import math
 import torch
 
 from agsf_torch.attitude.learning import attitude_log_likelihood
-from agsf_torch.experiments.config import load_preset
-from agsf_torch.experiments.experiment import make_env, make_filters
-from agsf_torch.experiments.factories import loop_options
-from agsf_torch.experiments.learn import learning_problem
-from agsf_torch.experiments.recorded import RecordingEnv, record_environment
-from agsf_torch.experiments.runner import monte_carlo_steps
+from agsf_torch.experiments.config.factories import loop_options
+from agsf_torch.experiments.config.loader import load_preset
+from agsf_torch.experiments.run.experiment import make_env, make_filters
+from agsf_torch.experiments.run.recorded import RecordingEnv, record_environment
+from agsf_torch.experiments.run.runner import monte_carlo_steps
+from agsf_torch.experiments.studies.learn import learning_problem
 from tests.helpers import assert_within
 
 EPS = torch.finfo(torch.float64).eps

@@ -9,11 +9,11 @@ import sys
 
 import pytest
 
-from agsf_torch.experiments import cli
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.experiment import OutputConflict, make_env, run_experiment
-from agsf_torch.experiments.recorded import record_environment
-from agsf_torch.experiments.resources import (
+from agsf_torch.experiments.cli import main as cli
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run.experiment import OutputConflict, make_env, run_experiment
+from agsf_torch.experiments.run.recorded import record_environment
+from agsf_torch.experiments.run.resources import (
     BASE_PROCESS,
     RETAINED_OVERHEAD,
     WORKING_OVERHEAD,
@@ -195,7 +195,7 @@ def test_the_memory_estimate_bounds_a_measured_peak(tmp_path):
     resident memory of the process, by less than a factor of two."""
     cfg = load_config("case1", ["runs=1024"])
     code = (
-        "from agsf_torch.experiments import cli; from agsf_torch.experiments.resources import peak_resident_memory; "
+        "from agsf_torch.experiments import cli; from agsf_torch.experiments.run.resources import peak_resident_memory; "
         f"cli.main(['run', 'case1', '--set', 'runs=1024', '--quiet', '--out', {str(tmp_path / 'run')!r}]); "
         "print(peak_resident_memory() // 1024)"
     )
@@ -213,7 +213,7 @@ def test_a_ctrl_c_swallowed_inside_a_finaliser_still_stops_the_sweep(tmp_path):
     import os
     import signal
 
-    from agsf_torch.experiments.experiment import run_experiment
+    from agsf_torch.experiments.run.experiment import run_experiment
     from agsf_torch.storage.files import read_json_lines
 
     class Finaliser:
@@ -235,7 +235,7 @@ def test_a_ctrl_c_swallowed_inside_a_finaliser_still_stops_the_sweep(tmp_path):
 def test_a_conflict_names_what_differs_and_how_much_more(tmp_path):
     """A refused folder says which keys differ from the experiment it holds (the first four, then how many
     more), with both values; nested configurations (a sweep's base and grid) by dotted keys."""
-    from agsf_torch.experiments.outputs import check_output, prepare_output, release_outputs
+    from agsf_torch.experiments.run.outputs import check_output, prepare_output, release_outputs
 
     out = prepare_output(tmp_path / "x", "run", "aaaa", {"runs": 2, "grid": {"reg": [1.0, 2.0]}, "seed": 1})
     release_outputs()
@@ -258,7 +258,7 @@ def test_runs_npz_is_what_numpy_reads_with_the_same_bytes_for_the_same_arrays(tm
 
     import numpy as np
 
-    from agsf_torch.experiments.outputs import save_npz
+    from agsf_torch.experiments.run.outputs import save_npz
 
     rng = np.random.default_rng(0)
     nis = np.full((50, 300), np.nan)

@@ -6,9 +6,9 @@ import io
 import re
 from contextlib import redirect_stderr
 
-from agsf_torch.experiments import progress
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.progress import progress_bar
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run import progress
+from agsf_torch.experiments.run.progress import progress_bar
 from agsf_torch.experiments.sweep import parse_grid, run_sweep
 
 

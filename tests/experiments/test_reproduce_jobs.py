@@ -7,10 +7,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from agsf_torch.experiments import reproduce as reproduce_module
-from agsf_torch.experiments.forked import TaskDied, fork_available
-from agsf_torch.experiments.reproduce import check_jobs, default_jobs, reproduce
-from agsf_torch.experiments.resources import TooLarge
+from agsf_torch.experiments.run.resources import TooLarge
+from agsf_torch.experiments.run.worker_pool import TaskDied, fork_available
+from agsf_torch.experiments.studies import reproduce as reproduce_module
+from agsf_torch.experiments.studies.reproduce import check_jobs, default_jobs, reproduce
 from tests.experiments.test_cli_failures import _assert_refused
 from tests.helpers import EAGER, TINY_CLI, event_records, file_digests
 
@@ -113,7 +113,7 @@ def test_jobs_are_capped_by_the_cases():
 
 
 def test_cases_side_by_side_that_do_not_fit_in_memory_are_refused_naming_jobs_1(tmp_path, monkeypatch):
-    from agsf_torch.experiments import resources
+    from agsf_torch.experiments.run import resources
 
     monkeypatch.setattr(reproduce_module, "fork_available", lambda: True)
     monkeypatch.setattr(resources, "available_memory", lambda: 700 * 2**20)  # one case fits, three do not

@@ -9,7 +9,7 @@ import torch
 
 import envs
 from agsf_torch.consistency import chi2_band
-from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
+from agsf_torch.experiments.run.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter, GaussianSumFilter
 from agsf_torch.models import AttitudeModel
 from tests.helpers import F64, assert_within, relative_bound
@@ -94,7 +94,7 @@ def test_the_scores_over_every_step_at_once_equal_those_of_each_step(gen, n):
     """The runner scores a run once, over ``[B, T]``: the same numbers as step by step over ``[B]`` (to rounding:
     a batched 3×3 product may take another kernel at another batch size)."""
     from agsf_torch.consistency import nees
-    from agsf_torch.experiments.runner import rotation_error
+    from agsf_torch.experiments.run.runner import rotation_error
     from agsf_torch.rotations import attitude_error_angle
     from tests.helpers import random_mrps, random_spd
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from agsf_torch.experiments import cli
-from agsf_torch.experiments.forked import fork_available
+from agsf_torch.experiments.cli import main as cli
+from agsf_torch.experiments.run.worker_pool import fork_available
 from tests.experiments.test_forked import _slow_clean
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -29,7 +29,8 @@ _STUCK_REPRODUCE = textwrap.dedent(
     import os, sys, time
     from pathlib import Path
 
-    from agsf_torch.experiments import cli, reproduce
+    from agsf_torch.experiments.cli import main as cli
+    from agsf_torch.experiments.studies import reproduce
     from agsf_torch.storage.files import atomic_open
 
     marks = Path(sys.argv[1])
@@ -156,7 +157,7 @@ def _signalled(signum: int):
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
 def test_a_command_ends_with_one_line_and_128_plus_the_signal(tmp_path, monkeypatch, safety_net, signum):
-    from agsf_torch.experiments import recorded
+    from agsf_torch.experiments.run import recorded
 
     monkeypatch.setattr(recorded, "record_environment", _signalled(signum))
     out = tmp_path / "s"
@@ -184,7 +185,7 @@ def test_an_interrupted_sweep_says_what_stopped_it_and_how_to_resume(tmp_path, m
 
 def test_a_signal_the_command_was_started_ignoring_stays_ignored(tmp_path, monkeypatch):
     """``nohup agsf …`` starts the command with SIGHUP ignored: a closed terminal must not end it."""
-    from agsf_torch.experiments import recorded
+    from agsf_torch.experiments.run import recorded
 
     seen = []
 
@@ -208,7 +209,7 @@ def test_a_forked_task_takes_sigterm_as_ctrl_c(tmp_path):
     ignored), runs its clean-up to its end and reports the interruption, which the caller raises."""
     import threading
 
-    from agsf_torch.experiments.forked import run_forked
+    from agsf_torch.experiments.run.worker_pool import run_forked
 
     marks = [tmp_path / f"child{k}" for k in range(2)]
 

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from agsf_torch.experiments.cli import main
-from agsf_torch.experiments.soak import run_soak, soak_config, soak_verdict
+from agsf_torch.experiments.cli.main import main
+from agsf_torch.experiments.studies.soak import run_soak, soak_config, soak_verdict
 from tests.helpers import assert_within, relative_bound
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from agsf_torch.experiments.reproduce import results_table
-from agsf_torch.experiments.statistics import WINDOW_TEXT, clopper_pearson, error_windows
+from agsf_torch.experiments.report.statistics import WINDOW_TEXT, clopper_pearson, error_windows
+from agsf_torch.experiments.studies.reproduce import results_table
 from tests.helpers import assert_within, relative_bound
 
 
@@ -89,7 +89,7 @@ def test_a_non_finite_nis_at_an_update_makes_the_ratio_non_finite_and_fails_the_
 def test_fpke_ratio_is_per_run_and_skips_steps_without_a_residual():
     """``after / before`` per run, then the mean and the 10–90 % range over the runs; a zero or non-finite
     ``before`` gives no ratio for that run (a step without any gives NaN, not a warning)."""
-    from agsf_torch.experiments.statistics import fpke_ratio
+    from agsf_torch.experiments.report.statistics import fpke_ratio
 
     before = np.array([[1.0, 2.0, 0.0], [4.0, 1.0, np.inf]])
     after = np.array([[0.5, 2.0, 1.0], [1.0, 0.1, 1.0]])

@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agsf_torch.experiments import cli
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.experiment import run_experiment
+from agsf_torch.experiments.cli import main as cli
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.report.tensorboard import run_name
+from agsf_torch.experiments.run.experiment import run_experiment
 from agsf_torch.experiments.sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
-from agsf_torch.experiments.tensorboard_log import run_name
 from tests.helpers import EAGER
 
 BASE = ["runs=4", "duration=1.0", *EAGER, "components=2", 'filters=["GSF", "AGSF"]']

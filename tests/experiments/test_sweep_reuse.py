@@ -11,8 +11,8 @@ import json
 import numpy as np
 import pytest
 
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.experiment import run_experiment
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run.experiment import run_experiment
 from agsf_torch.experiments.sweep import run_sweep
 from agsf_torch.experiments.sweep.rows import results_table
 from tests.helpers import EAGER
@@ -141,7 +141,7 @@ def test_reuse_that_cannot_be_right_is_refused(tmp_path):
 def test_arrays_of_another_simulation_are_never_merged(tmp_path):
     """The last guard, should a digest ever miss a field: the reused run's times and star frames must be
     this experiment's."""
-    from agsf_torch.experiments.outputs import load_filter_runs, save_runs
+    from agsf_torch.experiments.run.outputs import load_filter_runs, save_runs
 
     cfg = load_config("case1", [*TINY, 'filters=["EKF"]'])
     run_experiment(cfg, tmp_path / "a", progress=False)

@@ -1,5 +1,5 @@
 """A local sweep writes each configuration's files beside the next configuration's run (agsf_torch.experiments.sweep
-with agsf_torch.experiments.file_writer, one worker process where there are 2 CPUs or more): the same rows and files
+with agsf_torch.experiments.run.file_writer, one worker process where there are 2 CPUs or more): the same rows and files
 as without a writer, each row appended only once its configuration's files are complete, a reused filter read only
 once written."""
 
@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import pytest
 
-from agsf_torch.experiments import file_writer
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.experiment import run_experiment
-from agsf_torch.experiments.file_writer import HANDOVER_BYTES, WORKER_MEMORY
-from agsf_torch.experiments.resources import RETAINED_OVERHEAD, estimated_memory, writer_memory
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.run import file_writer
+from agsf_torch.experiments.run.experiment import run_experiment
+from agsf_torch.experiments.run.file_writer import HANDOVER_BYTES, WORKER_MEMORY
+from agsf_torch.experiments.run.resources import RETAINED_OVERHEAD, estimated_memory, writer_memory
 from agsf_torch.experiments.sweep import run as sweep_run
 from agsf_torch.experiments.sweep import run_sweep
 from agsf_torch.storage.files import read_json_lines
@@ -126,7 +126,7 @@ def _latched_sweep(tmp_path, monkeypatch, on_wait):
     import threading
     from contextlib import contextmanager
 
-    from agsf_torch.experiments.file_writer import FileWriter
+    from agsf_torch.experiments.run.file_writer import FileWriter
 
     latch, calls = threading.Event(), []
 
@@ -179,7 +179,7 @@ def test_a_ctrl_c_swallowed_while_the_last_files_are_written_finds_the_sweep_com
 
 
 def test_the_previous_configurations_failed_files_do_not_hide_the_failure_of_the_next(tmp_path, monkeypatch, caplog):
-    from agsf_torch.experiments.file_writer import FileWriter
+    from agsf_torch.experiments.run.file_writer import FileWriter
 
     def failing_wait(self, folder):
         raise OSError(28, "No space left on device", str(folder / "rms.png"))

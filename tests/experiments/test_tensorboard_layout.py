@@ -16,11 +16,8 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
 
-from agsf_torch.experiments.config import load_config
-from agsf_torch.experiments.experiment import run_experiment
-from agsf_torch.experiments.reproduce import reproduce
-from agsf_torch.experiments.sweep import run_sweep
-from agsf_torch.experiments.tensorboard_log import (
+from agsf_torch.experiments.config.loader import load_config
+from agsf_torch.experiments.report.tensorboard import (
     EVENTS_GLOB,
     METRIC_PREFIX,
     hparam_domains,
@@ -28,6 +25,9 @@ from agsf_torch.experiments.tensorboard_log import (
     run_names,
     time_steps,
 )
+from agsf_torch.experiments.run.experiment import run_experiment
+from agsf_torch.experiments.studies.reproduce import reproduce
+from agsf_torch.experiments.sweep import run_sweep
 from tests.helpers import EAGER, assert_within, relative_bound
 
 BASE = ["runs=2", "duration=0.5", 'filters=["EKF","GSF"]', "components=2"]
@@ -304,7 +304,7 @@ def test_time_steps_are_integer_milliseconds_or_microseconds_when_finer():
 
 
 def test_a_filter_run_that_fails_leaves_no_events_and_no_temporary_folder(tmp_path):
-    from agsf_torch.experiments.tensorboard_log import write_filter_run
+    from agsf_torch.experiments.report.tensorboard import write_filter_run
 
     steps = np.arange(3)
     events = {
@@ -327,7 +327,8 @@ class _Submissions:
 
 @pytest.mark.parametrize(("limit", "handed"), [(2**40, ["EKF", "GSF"]), (1, [])])
 def test_event_series_go_to_the_writer_unless_they_exceed_the_handover_limit(tmp_path, monkeypatch, limit, handed):
-    from agsf_torch.experiments import file_writer, tensorboard_log
+    from agsf_torch.experiments.report import tensorboard as tensorboard_log
+    from agsf_torch.experiments.run import file_writer
 
     T = 4
     data = {
@@ -350,7 +351,7 @@ def test_event_series_go_to_the_writer_unless_they_exceed_the_handover_limit(tmp
 def test_a_filter_run_written_again_holds_one_event_file(tmp_path):
     """A task taken back from a worker that died after writing the run writes it again: the run is replaced, its
     curves not doubled."""
-    from agsf_torch.experiments.tensorboard_log import write_filter_run
+    from agsf_torch.experiments.report.tensorboard import write_filter_run
     from tests.helpers import event_records
 
     events = {"text": "time: simulated s", "scalars": {"rms_deg": (np.arange(3), np.array([1.0, 0.5, 0.25]))}}
@@ -367,7 +368,7 @@ def test_a_filter_run_holds_its_text_scalars_and_histograms_as_tensorboard_reads
     step and every value (scalars to float32), the text at step 0 and a histogram of every run's weights per step."""
     from tensorboard.util import tensor_util
 
-    from agsf_torch.experiments.tensorboard_log import write_filter_run
+    from agsf_torch.experiments.report.tensorboard import write_filter_run
     from tests.helpers import event_records
 
     rng = np.random.default_rng(1)

@@ -1,4 +1,4 @@
-"""The false-alarm and detection rates of ``agsf diagnose``'s verdicts (agsf_torch.experiments.verdict_calibration):
+"""The false-alarm and detection rates of ``agsf diagnose``'s verdicts (agsf_torch.experiments.studies.verdict_calibration):
 its verdicts are diagnose's, data set by data set; at the truth each check fails at most at its level 5 %/3 and the
 overall verdict at most 5 % (Bonferroni); the whiteness check, about the innovations' known mean, at its level for
 white innovations whether a data set is one trajectory or 16; a threefold σ_s is caught in every data set; bad
@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from agsf_torch.consistency import consistency_check_arrays, consistency_checks
-from agsf_torch.experiments import verdict_calibration
-from agsf_torch.experiments.config import MAX_SEED, load_config
-from agsf_torch.experiments.diagnose import diagnose
-from agsf_torch.experiments.statistics import clopper_pearson
-from agsf_torch.experiments.verdict_calibration import (
+from agsf_torch.experiments.config.loader import MAX_SEED, load_config
+from agsf_torch.experiments.report.statistics import clopper_pearson
+from agsf_torch.experiments.studies import verdict_calibration
+from agsf_torch.experiments.studies.diagnose import diagnose
+from agsf_torch.experiments.studies.verdict_calibration import (
     CHECKS,
     LEVEL_SAMPLES,
     diagnose_verdict_rates,

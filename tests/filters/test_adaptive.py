@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from agsf_torch import GaussianMixture
-from agsf_torch.experiments.sine_benchmark import run_sine_benchmark
+from agsf_torch.experiments.studies.sine_benchmark import run_sine_benchmark
 from agsf_torch.filters import AdaptiveGaussianSumFilter, GaussianSumFilter, PenaltyWeightUpdate
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.models.benchmarks import SineDriftModel
@@ -167,7 +167,7 @@ def test_non_finite_fpke_matrix_names_the_trajectory(gen):
 
 def test_components_beyond_the_qp_limit_are_refused_before_any_work():
     """N > 64 names the limit at the first predict, before the state changes; the config refuses it up front."""
-    from agsf_torch.experiments.config import load_preset
+    from agsf_torch.experiments.config.loader import load_preset
     from agsf_torch.mixture import GaussianMixture
     from agsf_torch.qp import MAX_COMPONENTS
 

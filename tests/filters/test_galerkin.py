@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from agsf_torch import GaussianMixture
-from agsf_torch.experiments.sine_benchmark import run_sine_benchmark
+from agsf_torch.experiments.studies.sine_benchmark import run_sine_benchmark
 from agsf_torch.filters import (
     AdaptiveGaussianSumFilter,
     GalerkinWeightUpdate,

@@ -20,7 +20,7 @@ import envs
 from agsf_torch import GaussianMixture
 from agsf_torch import rotations as rot
 from agsf_torch.consistency import chi2_band
-from agsf_torch.experiments.runner import FilterSetup, run_monte_carlo
+from agsf_torch.experiments.run.runner import FilterSetup, run_monte_carlo
 from agsf_torch.filters import ExtendedKalmanFilter
 from agsf_torch.filters.multiplicative import MultiplicativeEKF, error_state_to_mrp, mrp_to_error_state
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement

@@ -4,7 +4,7 @@
 ``adaptive --update NAME --batch B``: one adaptive predict step (6-state, N = 5) with the weight update NAME.
 The allocator is set up as the ``agsf`` command sets it (:func:`agsf_torch.allocator.set_mmap_threshold`) unless
 ``--default-allocator``.  Prints one JSON line: the workload and ``peak_rss_mib``, this process's own peak
-(:func:`~agsf_torch.experiments.resources.peak_resident_memory`).
+(:func:`~agsf_torch.experiments.run.resources.peak_resident_memory`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import torch
 from ...allocator import set_mmap_threshold
 from ...filters.registry import make_filter
 from ...models import AttitudeModel
-from ..resources import peak_resident_memory
+from ..run.resources import peak_resident_memory
 from .harness import WEIGHT_UPDATE_FILTERS, attitude_mixture
 
 

@@ -183,8 +183,8 @@ def _peak_rss(module_args: list[str]) -> dict[str, Any]:
 
 
 def check_reference(reference: str | Path | None) -> Path | None:
-    """Validate ``agsf bench --main-job-reference``: a checkout of the package (a folder holding
-    ``agsf_torch/experiments/cli.py``), or None.
+    """Validate ``agsf bench --main-job-reference``: a checkout of the package (a folder holding the command,
+    ``agsf_torch/experiments/cli/__main__.py`` or, in earlier layouts, ``agsf_torch/experiments/cli.py``), or None.
 
     Raises:
         ValueError: naming the folder and what it lacks.
@@ -192,9 +192,10 @@ def check_reference(reference: str | Path | None) -> Path | None:
     if reference is None:
         return None
     folder = Path(reference).resolve()
-    if not (folder / "agsf_torch" / "experiments" / "cli.py").is_file():
+    cli = folder / "agsf_torch" / "experiments" / "cli"
+    if not ((cli / "__main__.py").is_file() or cli.with_suffix(".py").is_file()):
         raise ValueError(
-            f"--main-job-reference {reference} is not a checkout of agsf-torch (no agsf_torch/experiments/cli.py there)"
+            f"--main-job-reference {reference} is not a checkout of agsf-torch (no agsf_torch/experiments/cli there)"
         )
     return folder
 

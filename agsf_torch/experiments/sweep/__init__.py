@@ -9,10 +9,10 @@ process while the next one runs, and its row is appended once they are complete)
 
 TensorBoard (``tensorboard --logdir out/tensorboard``) gets one HParams session per
 configuration, named by its swept parameters (``reg=0.5,scaling=trace``,
-:func:`.tensorboard_log.run_name`; a digest is appended only where two names would
+:func:`agsf_torch.experiments.report.tensorboard.run_name`; a digest is appended only where two names would
 collide), holding its parameters, its metrics and the sweep's complete grid as the
 experiment configuration, and beneath it one run per filter with the configuration's
-time series (tags per metric, simulated time as the step, see :mod:`.tensorboard_log`):
+time series (tags per metric, simulated time as the step, see :mod:`agsf_torch.experiments.report.tensorboard`):
 one chart overlays the filters, the run filter selects configurations::
 
     out/tensorboard/reg=0.5,scaling=trace/       events: the HParams session
@@ -26,7 +26,7 @@ just before its row is appended (a rerun replaces the run of a configuration
 interrupted in between).
 
 No filter runs twice on the same numbers: each filter's results depend on the simulation, the
-prior and the options it reads (:meth:`~agsf_torch.experiments.config.ExperimentConfig.filter_digest`),
+prior and the options it reads (:meth:`~agsf_torch.experiments.config.loader.ExperimentConfig.filter_digest`),
 so a sweep over ``reg`` runs the EKF, the GSF and the Galerkin filter once and copies their
 arrays into the other configurations' folders (``summary.json``'s ``reused``, the row's
 ``reused`` and the table's "reused (not rerun)" column name the configuration they came

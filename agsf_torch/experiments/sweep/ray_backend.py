@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ...allocator import set_mmap_threshold
-from ..config import ExperimentConfig
+from ..config.loader import ExperimentConfig
 from .rows import config_metrics
 
 __all__ = ["SweepFailed", "RayUnavailable", "RAY_INSTALL_HINT", "import_ray", "run_on_ray"]
@@ -62,7 +62,7 @@ def _config_on_worker(
     """
     import torch
 
-    from ..outputs import release_outputs
+    from ..run.outputs import release_outputs
 
     torch.set_num_threads(threads)  # the task's CPUs: no oversubscription by parallel tasks
     set_mmap_threshold()  # as the agsf command does: a step's buffers reused from the heap
@@ -119,7 +119,7 @@ def run_on_ray(
         KeyboardInterrupt: Ctrl-C in the driver.
     """
     ray = import_ray()
-    from ..progress import progress_bar
+    from ..run.progress import progress_bar
 
     started = not ray.is_initialized()
     if started:

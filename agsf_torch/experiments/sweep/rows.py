@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from ..statistics import WINDOW_TEXT
+from ..report.statistics import WINDOW_TEXT
 
 __all__ = ["config_metrics", "results_table"]
 
@@ -56,7 +56,7 @@ def results_table(rows: list[dict[str, Any]]) -> str:
     between frames) when any row has it, and ``reused (not rerun)`` when a row copied a filter's results
     from the configuration named (``row["reused"]``: filter → digest).  A metric a row lacks is shown as ``—``.  Cells are
     padded so that the table also reads as plain text; one sentence under the table says what its
-    window is (:data:`~agsf_torch.experiments.statistics.WINDOW_TEXT`).
+    window is (:data:`~agsf_torch.experiments.report.statistics.WINDOW_TEXT`).
 
     Raises:
         ValueError: a row without a ``params`` or ``metrics`` mapping (named by its index).

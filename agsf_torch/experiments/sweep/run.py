@@ -17,11 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from ...storage.files import append_line, json_text, repair_json_lines
-from ..config import ExperimentConfig, parse_override
-from ..experiment import prepare_output, run_experiment
-from ..file_writer import check_threads, default_writers, writing_beside
-from ..resources import available_memory, check_memory, writer_memory
-from ..tensorboard_log import hparam_domains, move_events, run_names, write_hparams_session
+from ..config.loader import ExperimentConfig, parse_override
+from ..report.tensorboard import hparam_domains, move_events, run_names, write_hparams_session
+from ..run.experiment import prepare_output, run_experiment
+from ..run.file_writer import check_threads, default_writers, writing_beside
+from ..run.resources import available_memory, check_memory, writer_memory
 from .ray_backend import import_ray, run_on_ray
 from .rows import config_metrics
 
@@ -106,7 +106,7 @@ def run_sweep(
 ) -> list[dict[str, Any]]:
     """Run every combination of ``grid`` on top of ``base``; returns all result rows.
 
-    Every configuration (and its memory estimate, :func:`.resources.check_memory`, unless
+    Every configuration (and its memory estimate, :func:`agsf_torch.experiments.run.resources.check_memory`, unless
     ``force``) is validated before any work starts or anything is created.  ``out`` holds
     ``experiment.json``, ``results.jsonl`` (one row ``{"digest", "params",
     "metrics"}`` per finished configuration), ``configs/<digest>/`` (that
@@ -135,7 +135,7 @@ def run_sweep(
             (exceptions raised by the runner are not retried: they are deterministic).
         threads: local only: torch threads (default: torch's, capped so that they and the writer fit the CPUs).
             Locally a worker process writes a configuration's figures, event files and ``runs.npz`` while the next
-            configuration runs where the process may use two CPUs or more (:func:`~..file_writer.writing_beside`).  A
+            configuration runs where the process may use two CPUs or more (:func:`~agsf_torch.experiments.run.file_writer.writing_beside`).  A
             configuration is recorded (its events moved, its row appended) once its files are complete; one that
             reuses a filter of the configuration before it starts once that one is recorded.
 
@@ -220,7 +220,7 @@ def _run_pending(
 ) -> list[dict[str, Any]]:
     """Run the configurations without a row in ``results.jsonl`` (the lock held); returns all rows.  Locally a
     configuration's files are written by ``writer`` while the next one runs, and it is recorded once they are
-    complete (:meth:`~..file_writer.FileWriter.wait_for`)."""
+    complete (:meth:`~agsf_torch.experiments.run.file_writer.FileWriter.wait_for`)."""
     results = out / "results.jsonl"
     rows = repair_json_lines(results)
     done = {r["digest"] for r in rows}

@@ -30,13 +30,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..attitude.learning import DatasetFits, fit_datasets
-from ..quantiles import chi2_quantile
-from .config import ExperimentConfig
-from .experiment import make_env
+from ...attitude.learning import DatasetFits, fit_datasets
+from ...quantiles import chi2_quantile
+from ..config.loader import ExperimentConfig
+from ..report.statistics import clopper_pearson
+from ..run.experiment import make_env
+from ..run.recorded import record_environment
 from .learn import learning_problem
-from .recorded import record_environment
-from .statistics import clopper_pearson
 
 __all__ = [
     "CalibrationSetting",
@@ -248,7 +248,7 @@ def _detection(fits: DatasetFits, name: str, judged, x_hat, se, x_true, positive
 def _baseline(rec, datasets: int, configured: dict) -> dict:
     """The autocovariance least-squares estimates of ``σ_s`` and ``σ_v`` on the same data: their errors in
     ``log σ`` (mean, RMS) over the data sets it gives a positive estimate for, and that share."""
-    from ..attitude.autocovariance import autocovariance_least_squares
+    from ...attitude.autocovariance import autocovariance_least_squares
 
     est = autocovariance_least_squares(rec, datasets=datasets)
     out = {}
@@ -283,7 +283,7 @@ def _cost(setting: CalibrationSetting) -> float:
 
 def _calibrate_in_worker(base: dict, setting: CalibrationSetting, datasets: int, seed: int) -> dict:
     """:func:`calibrate_setting` in a worker process: one torch thread (the settings run side by side)."""
-    from .config import ExperimentConfig as Config
+    from ..config.loader import ExperimentConfig as Config
 
     torch.set_num_threads(1)
     return calibrate_setting(Config(**base), setting, datasets, seed)
@@ -304,7 +304,7 @@ def run_study(
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from multiprocessing import get_context
 
-    from .progress import progress_bar
+    from ..run.progress import progress_bar
 
     if isinstance(datasets, bool) or not isinstance(datasets, int) or datasets < 2:
         raise ValueError(f"datasets must be an integer ≥ 2 (rates over data sets), got {datasets!r}")
@@ -337,7 +337,7 @@ VERDICT_SETTINGS = (("1 trajectory × 30 s", 1, 30.0), ("16 trajectories × 20 s
 
 
 def verdict_study(base: ExperimentConfig, *, datasets: int, seed: int, quick: bool = False) -> list[dict]:
-    """``agsf diagnose``'s false-alarm and detection rates (:func:`.verdict_calibration.diagnose_verdict_rates`) in
+    """``agsf diagnose``'s false-alarm and detection rates (:func:`agsf_torch.experiments.studies.verdict_calibration.diagnose_verdict_rates`) in
     each of :data:`VERDICT_SETTINGS` (``quick``: the first, 5 s): the EKF with the iterated update, σ_s and σ_v
     mis-scaled by :data:`MIS_SCALINGS`.  JSON-able records: the label, the levels and the table's rows."""
     from .verdict_calibration import diagnose_verdict_rates

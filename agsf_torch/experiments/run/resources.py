@@ -4,7 +4,7 @@
 statistics, so its memory grows as ``runs × steps``; the filters' working set grows
 as ``runs × components × n²`` and the star camera's as ``runs × max_stars``.
 :func:`estimated_memory` adds these up from the configuration alone; the byte counts
-per sample are the arrays the runner keeps (:class:`~.runner.FilterTrace`), and
+per sample are the arrays the runner keeps (:class:`~agsf_torch.experiments.run.runner.FilterTrace`), and
 :data:`RETAINED_OVERHEAD` (the per-step tensors, their stacked copies and the numpy
 copies written to ``runs.npz`` coexisting at the end of a run) is a multiple of the kept
 bytes with a margin above what ``agsf run case1`` peaks at; a slow test
@@ -18,8 +18,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from ..cgroups import memory_headroom
-from .config import ExperimentConfig
+from ...cgroups import memory_headroom
+from ..config.loader import ExperimentConfig
 
 __all__ = [
     "MemoryEstimate",
@@ -80,7 +80,7 @@ def estimated_memory(cfg: ExperimentConfig, *, keep_steps: bool = True) -> Memor
     ``c_r`` = :data:`RETAINED_OVERHEAD`, ``c_w`` = :data:`WORKING_OVERHEAD`).
     ``keep_steps=False`` (the soak, which keeps running statistics) drops ``retained``.
     """
-    from ..filters.registry import filter_spec
+    from ...filters.registry import filter_spec
 
     n = 6 if cfg.estimate_bias else 3
     N = [cfg.components if filter_spec(f).mixture else 1 for f in cfg.filters]
@@ -91,9 +91,9 @@ def estimated_memory(cfg: ExperimentConfig, *, keep_steps: bool = True) -> Memor
 
 
 def writer_memory(cfg: ExperimentConfig, writers: int) -> int:
-    """Memory a run of ``cfg`` shares with ``writers`` file-writing workers (:func:`.file_writer.writing_beside`),
-    bytes: the workers (:data:`~.file_writer.WORKER_MEMORY` each) and, where the run's arrays are too large to hand
-    to one (:data:`~.file_writer.HANDOVER_BYTES`), one copy of them, which a thread of this process holds while it
+    """Memory a run of ``cfg`` shares with ``writers`` file-writing workers (:func:`agsf_torch.experiments.run.file_writer.writing_beside`),
+    bytes: the workers (:data:`~agsf_torch.experiments.run.file_writer.WORKER_MEMORY` each) and, where the run's arrays are too large to hand
+    to one (:data:`~agsf_torch.experiments.run.file_writer.HANDOVER_BYTES`), one copy of them, which a thread of this process holds while it
     writes the previous run's ``runs.npz`` beside this run.  0 without workers."""
     from .file_writer import HANDOVER_BYTES, WORKER_MEMORY
 
@@ -195,7 +195,7 @@ FORKED_PROCESS = 200 * 2**20
 
 
 def check_memory_side_by_side(configs: list[ExperimentConfig], jobs: int, *, force: bool = False) -> int:
-    """Refuse ``configs`` run ``jobs`` at once, each in a forked process (:mod:`.forked`), if the largest ``jobs`` of
+    """Refuse ``configs`` run ``jobs`` at once, each in a forked process (:mod:`agsf_torch.experiments.run.worker_pool`), if the largest ``jobs`` of
     them need more than :func:`available_memory` together: each its :func:`estimated_memory` but the process
     (shared with the parent) plus :data:`FORKED_PROCESS`, and one process.  Returns the estimate (bytes).
 

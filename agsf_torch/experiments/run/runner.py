@@ -14,10 +14,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..attitude.inputs import AttitudeInputs, as_float64
-from ..consistency import nees, rms
-from ..filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
-from ..rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector
+from ...attitude.inputs import AttitudeInputs, as_float64
+from ...consistency import nees, rms
+from ...filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
+from ...rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector
 
 __all__ = [
     "FilterSetup",

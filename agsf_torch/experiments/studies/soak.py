@@ -2,7 +2,7 @@
 
 The soak drives the filters of a configuration (default: case 1 as a 6-state
 filter with the iterated update, one simulated hour at 10 Hz) through
-:func:`~agsf_torch.experiments.runner.monte_carlo_steps` and keeps **running
+:func:`~agsf_torch.experiments.run.runner.monte_carlo_steps` and keeps **running
 statistics only**, so its memory does not grow with the length of the run.  Every
 ``report_every`` seconds of simulated time it records one row:
 
@@ -31,21 +31,21 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..consistency import nees
-from ..constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
-from ..filters.registry import ADAPTIVE_FILTERS
-from ..storage.files import append_line, json_text, write_text
-from .config import ExperimentConfig, load_preset
-from .experiment import make_env, make_filters, prepare_output
-from .factories import loop_options
-from .resources import check_memory, resident_memory
-from .runner import monte_carlo_steps
+from ...consistency import nees
+from ...constants import ARCSEC_PER_RAD, ATTITUDE_RADIANS_PER_MRP
+from ...filters.registry import ADAPTIVE_FILTERS
+from ...storage.files import append_line, json_text, write_text
+from ..config.factories import loop_options
+from ..config.loader import ExperimentConfig, load_preset
+from ..run.experiment import make_env, make_filters, prepare_output
+from ..run.resources import check_memory, resident_memory
+from ..run.runner import monte_carlo_steps
 
 __all__ = ["soak_config", "run_soak", "soak_verdict", "rss_mb"]
 
 
 def rss_mb() -> float:
-    """Current resident set size of this process (MiB; :func:`~.resources.resident_memory`)."""
+    """Current resident set size of this process (MiB; :func:`~agsf_torch.experiments.run.resources.resident_memory`)."""
     return resident_memory() / 2**20
 
 
@@ -120,14 +120,14 @@ def run_soak(
 
     Args:
         cfg: the configuration (see :func:`soak_config`).
-        out: if given, an experiment folder (:func:`~.outputs.prepare_output`, created after
+        out: if given, an experiment folder (:func:`~agsf_torch.experiments.run.outputs.prepare_output`, created after
             every check) whose ``soak.jsonl`` gets each row as it is made (complete lines).
         report_every: simulated seconds per report row (a multiple of ``cfg.dt``).
         warmup: if given, the warm-up :func:`soak_verdict` will leave out, checked before anything runs: a
             multiple of ``report_every`` (the verdict leaves out whole rows, so a warm-up inside a row would
             count the rest of that row, the prior's stretch included) and shorter than the run.
         progress: print each row (on stderr).
-        force: run even if the memory estimate (:func:`~.resources.check_memory`, running
+        force: run even if the memory estimate (:func:`~agsf_torch.experiments.run.resources.check_memory`, running
             statistics only) exceeds the memory available.
     """
     per_report = int(round(report_every / cfg.dt))

@@ -39,18 +39,18 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..consistency import nees, rms
-from ..density import PosteriorReference
-from ..filters.registry import FILTER_NAMES
-from ..rotations import attitude_error_angle
-from ..storage.files import save_figure, write_json, write_text
-from .config import ExperimentConfig, load_config
-from .experiment import make_env, make_filters, mean_ci95, prepare_output
-from .factories import filter_model, loop_options
-from .resources import check_memory
-from .runner import monte_carlo_steps
-from .statistics import WINDOW_TEXT, error_windows
-from .tensorboard_log import clear_runs, time_steps
+from ...consistency import nees, rms
+from ...density import PosteriorReference
+from ...filters.registry import FILTER_NAMES
+from ...rotations import attitude_error_angle
+from ...storage.files import save_figure, write_json, write_text
+from ..config.factories import filter_model, loop_options
+from ..config.loader import ExperimentConfig, load_config
+from ..report.statistics import WINDOW_TEXT, error_windows
+from ..report.tensorboard import clear_runs, time_steps
+from ..run.experiment import make_env, make_filters, mean_ci95, prepare_output
+from ..run.resources import check_memory
+from ..run.runner import monte_carlo_steps
 
 __all__ = ["SCENARIOS", "STUDY_FILTERS", "run_scenario", "run_adaptation_study", "study_table"]
 
@@ -110,7 +110,7 @@ def run_scenario(
     P0 = options["prior_cov"]
     steps = monte_carlo_steps(env, filters, **options)
     if progress:
-        from .progress import progress_bar
+        from ..run.progress import progress_bar
 
         steps = progress_bar(steps, desc=cfg.name, unit="step", total=cfg.num_steps)
     rec: dict[str, list] = {"time": [], "frame": [], "ess": [], "ess_small": []}
@@ -288,7 +288,7 @@ def _scores_figure(path: Path, summaries: dict[str, dict[str, Any]]) -> None:
 
 def _tensorboard(folder: Path, summary: dict[str, Any], res: dict[str, Any]) -> None:
     """One run per filter (tags ``rms_deg``, ``nees``, ``density_score``) and one ``reference`` run (``ess_median``)
-    under the scenario's ``folder``, steps in simulated ms (:mod:`.tensorboard_log`)."""
+    under the scenario's ``folder``, steps in simulated ms (:mod:`agsf_torch.experiments.report.tensorboard`)."""
     from torch.utils.tensorboard import SummaryWriter
 
     clear_runs(folder)  # a rerun replaces this scenario's events, never appends to them
@@ -318,7 +318,7 @@ def run_adaptation_study(
 
     Raises:
         ValueError: an unknown scenario, ``runs``/``samples`` out of range, or a scenario whose
-            memory estimate (:func:`~.resources.check_memory`) exceeds the memory available
+            memory estimate (:func:`~agsf_torch.experiments.run.resources.check_memory`) exceeds the memory available
             (unless ``force``), before anything is written.
     """
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 2:

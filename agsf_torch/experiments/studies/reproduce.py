@@ -1,7 +1,7 @@
 """``agsf reproduce``: the paper's three cases (method.md §4) and their summary table.
 
 Each case's TensorBoard folder (``out/case{k}/tensorboard``) is an HParams session
-(:func:`.tensorboard_log.write_hparams_session`): its hyperparameters are the case name
+(:func:`agsf_torch.experiments.report.tensorboard.write_hparams_session`): its hyperparameters are the case name
 and the fields of its configuration (lists as JSON; ``compile`` left out: it changes no
 number), its metrics the per-filter numbers of the summary table; beneath it one run per
 filter (``out/case{k}/tensorboard/GSF``) holds the curves, tags per metric.  So
@@ -17,16 +17,16 @@ import importlib
 import json
 from pathlib import Path
 
-from ..filters.registry import ADAPTIVE_FILTERS
-from ..processes import available_cpus
-from ..storage.files import write_json, write_text
-from .config import load_config
-from .experiment import make_filters, prepare_output, run_experiment
-from .file_writer import PRELOAD_MODULES, check_threads, default_writers, writing_beside
-from .forked import fork_available, run_forked
-from .resources import available_memory, check_memory, check_memory_side_by_side, writer_memory
-from .statistics import WINDOW_TEXT, minus_gsf_key
-from .tensorboard_log import hparam_domains, write_hparams_session
+from ...filters.registry import ADAPTIVE_FILTERS
+from ...processes import available_cpus
+from ...storage.files import write_json, write_text
+from ..config.loader import load_config
+from ..report.statistics import WINDOW_TEXT, minus_gsf_key
+from ..report.tensorboard import hparam_domains, write_hparams_session
+from ..run.experiment import make_filters, prepare_output, run_experiment
+from ..run.file_writer import PRELOAD_MODULES, check_threads, default_writers, writing_beside
+from ..run.resources import available_memory, check_memory, check_memory_side_by_side, writer_memory
+from ..run.worker_pool import fork_available, run_forked
 
 __all__ = ["reproduce", "results_table", "default_jobs", "check_jobs"]
 
@@ -46,18 +46,18 @@ def reproduce(
     validated (and its memory estimated, unless ``force``) before ``out`` is created.
 
     With ``jobs`` > 1 the cases run side by side, ``jobs`` at once, each in a worker process forked from this one
-    that runs it end to end with one torch thread and writes its files (:func:`.forked.run_forked`; ``threads`` must
+    that runs it end to end with one torch thread and writes its files (:func:`agsf_torch.experiments.run.worker_pool.run_forked`; ``threads`` must
     be None or 1); their numbers and files are those of the cases run one after another with one torch thread (byte
     for byte; with more threads a threaded kernel may round differently in the last bits), and each case's HParams
     session is written as it completes.  The memory check counts the cases that run at once
-    (:func:`~.resources.check_memory_side_by_side`).  Default (``None``): every case at once where fork is available
+    (:func:`~agsf_torch.experiments.run.resources.check_memory_side_by_side`).  Default (``None``): every case at once where fork is available
     and the process may use two CPUs or more (:func:`default_jobs`), else 1.
 
     With ``jobs`` = 1 the cases run one after another in this process, with ``threads`` torch threads (default:
     torch's, capped so that they and the writer fit the CPUs), restored afterwards; a case's figures, event files and
     ``runs.npz`` are written by a worker process while the next case runs where the process may use two CPUs or more
-    (:func:`~.file_writer.writing_beside`; the same files, byte for byte).  The memory check counts that worker
-    (:func:`~.resources.writer_memory`)."""
+    (:func:`~agsf_torch.experiments.run.file_writer.writing_beside`; the same files, byte for byte).  The memory check counts that worker
+    (:func:`~agsf_torch.experiments.run.resources.writer_memory`)."""
     configs = {f"case{k}": load_config(f"case{k}", overrides) for k in cases}
     jobs = check_jobs(jobs, len(configs), threads)
     if jobs > 1:
@@ -104,7 +104,7 @@ CASE_MODULES = (*PRELOAD_MODULES, "tensorboard.compat.proto.event_pb2", "scipy.s
 
 
 def default_jobs(cases: int) -> int:
-    """Cases at once by default: all of them where fork is available (:func:`.forked.fork_available`) and the process
+    """Cases at once by default: all of them where fork is available (:func:`agsf_torch.experiments.run.worker_pool.fork_available`) and the process
     may use two CPUs or more (three cases on two cores take turns on both, which balances better than two at once
     then one), else 1."""
     return cases if cases > 1 and fork_available() and available_cpus() >= 2 else 1
@@ -139,7 +139,7 @@ def check_jobs(jobs: int | None, cases: int, threads: int | None = None) -> int:
 
 def _run_case(cfg, out: Path, progress: bool, force: bool) -> dict:
     """A case run end to end in a worker process (:func:`reproduce`; one torch thread, its progress bar drawn by the
-    parent: :mod:`.forked`); returns its entry of the combined summary.
+    parent: :mod:`agsf_torch.experiments.run.worker_pool`); returns its entry of the combined summary.
 
     The case runs in :func:`torch.inference_mode` (no autograd bookkeeping on any tensor: 9 % of a case's filter
     loop, measured on 2 cores), which is safe here and nowhere else in the package: no tensor outlives the process,

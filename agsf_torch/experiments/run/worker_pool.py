@@ -1,6 +1,6 @@
 """Worker processes forked from this one, through :class:`concurrent.futures.ProcessPoolExecutor`: ``agsf
 reproduce``'s cases side by side (:func:`run_forked`) and the files one case writes while the next one runs
-(:class:`~.file_writer.FileWriter`).
+(:class:`~agsf_torch.experiments.run.file_writer.FileWriter`).
 
 A case is one thread's work from its first step to its last file, and the cases share nothing but the output
 folder's parent: on two CPUs or more they run side by side, each in a worker that writes its own files.  The
@@ -19,7 +19,7 @@ Kept here because the executor does not do it and the commands need it:
   it on again) and only inside a task (idle, it starts no further task); the task's files are written whole or not
   at all (:func:`~agsf_torch.storage.files.atomic_open` removes its temporary file);
 * a worker's progress bars are drawn by the parent, each task's on a line of its own
-  (:func:`.progress.report_to`): processes that each redraw a terminal line move one another's cursor;
+  (:func:`agsf_torch.experiments.run.progress.report_to`): processes that each redraw a terminal line move one another's cursor;
 * this process's objects are frozen (:func:`gc.freeze`) across the fork, so that the workers' collections do not
   copy the pages they share with it (kept because the main job, measured alternately with and without it, was
   slower without).
@@ -49,7 +49,7 @@ INTERRUPT_GRACE_S = 5.0
 #: Seconds between two looks at the workers' progress reports.
 WAKE_S = 0.1
 #: The signals that interrupt a worker's task: Ctrl-C's, and SIGTERM and SIGHUP, which end the ``agsf`` command as
-#: Ctrl-C does (:func:`.cli_terminal.ending_signals`).
+#: Ctrl-C does (:func:`agsf_torch.experiments.cli.terminal.ending_signals`).
 _INTERRUPTING = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 

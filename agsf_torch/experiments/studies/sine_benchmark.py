@@ -15,11 +15,11 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from ..density.grid import FokkerPlanckGrid, integrated_squared_error
-from ..filter_loop import StepInput, filter_steps
-from ..filters.gaussian_sum import GaussianSumFilter
-from ..mixture import GaussianMixture
-from ..models.function_measurement import FunctionMeasurement
+from ...density.grid import FokkerPlanckGrid, integrated_squared_error
+from ...filter_loop import StepInput, filter_steps
+from ...filters.gaussian_sum import GaussianSumFilter
+from ...mixture import GaussianMixture
+from ...models.function_measurement import FunctionMeasurement
 
 __all__ = ["sine_prior", "run_sine_benchmark", "DT", "NUM_STEPS"]
 

@@ -32,7 +32,7 @@ _report: Callable[[str, str, int | None, int], None] | None = None
 
 
 def report_to(send: Callable[[str, str, int | None, int], None] | None) -> None:
-    """Make this process's bars (a forked child's, :mod:`.forked`) call ``send(desc, unit, total, n)`` as they advance
+    """Make this process's bars (a forked child's, :mod:`agsf_torch.experiments.run.worker_pool`) call ``send(desc, unit, total, n)`` as they advance
     (at most every :data:`REPORT_FRACTION` of the work, and at the end) instead of drawing on stderr: their parent
     draws them all (:class:`ParentBars`), since processes that each redraw a terminal line of their own move one
     another's cursor.  ``None``: draw them here again."""

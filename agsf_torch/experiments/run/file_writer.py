@@ -4,7 +4,7 @@ Drawing a figure and encoding events are Python (they hold the interpreter lock)
 with the next case's filters; another process can.  :class:`FileWriter` takes *tasks*: a module-level function that
 writes one file (atomically, as every writer of the package does, or one TensorBoard run) and its arguments.  With
 ``workers=0`` each task runs when it is submitted, in the caller; with ``workers=k`` in a
-:class:`~.forked.WorkerPool` of ``k`` forked workers (one torch thread each, matplotlib and TensorBoard's writer
+:class:`~agsf_torch.experiments.run.worker_pool.WorkerPool` of ``k`` forked workers (one torch thread each, matplotlib and TensorBoard's writer
 imported while the caller works), in the order submitted.  :meth:`FileWriter.close` waits for every task and
 raises the first failed task's error as the task raised it — what the caller would have raised writing the file
 itself; :meth:`FileWriter.wait_for` does the same for one folder's tasks.
@@ -15,8 +15,8 @@ Kept beside the executor, because the commands need it:
   to hand over (``runs.npz``'s arrays above :data:`HANDOVER_BYTES`) would cost their size again as a copy;
 * an error leaving the ``with`` block still lets the tasks finish (then it propagates: an earlier case's files are
   complete whatever a later case does); an interruption (Ctrl-C) cancels the tasks not started and interrupts the
-  running ones (:meth:`~.forked.WorkerPool.stop`), and a file they had not finished is absent, its temporary file
-  removed; a thread's file is completed first.  A worker that dies is :class:`~.forked.TaskDied`, naming the file it
+  running ones (:meth:`~agsf_torch.experiments.run.worker_pool.WorkerPool.stop`), and a file they had not finished is absent, its temporary file
+  removed; a thread's file is completed first.  A worker that dies is :class:`~agsf_torch.experiments.run.worker_pool.TaskDied`, naming the file it
   was writing and its exit code.
 """
 
@@ -31,9 +31,9 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-from ..processes import available_cpus
-from ..storage.files import remove_partial
-from .forked import WorkerPool, fork_available
+from ...processes import available_cpus
+from ...storage.files import remove_partial
+from .worker_pool import WorkerPool, fork_available
 
 __all__ = [
     "FileWriter",
@@ -53,7 +53,7 @@ logger = logging.getLogger(__name__)
 PRELOAD_MODULES = (
     "matplotlib.figure",
     "matplotlib.backends.backend_agg",
-    "agsf_torch.experiments.figures",
+    "agsf_torch.experiments.report.figures",
     "torch.utils.tensorboard",
 )
 #: The largest arguments a caller hands to a worker, bytes (``runs.npz``'s arrays: larger ones are written by a
@@ -65,7 +65,7 @@ WORKER_MEMORY = 320 * 2**20 + HANDOVER_BYTES
 
 
 class FileWriter:
-    """Runs file-writing tasks inline (``workers=0``, or where fork is not available: :func:`.forked.fork_available`)
+    """Runs file-writing tasks inline (``workers=0``, or where fork is not available: :func:`agsf_torch.experiments.run.worker_pool.fork_available`)
     or in ``workers`` worker processes (module docstring).
 
     Args:
@@ -129,7 +129,7 @@ class FileWriter:
 
     def _raise_died(self, path: Path | None = None) -> None:
         """A worker died: wait for the pool to stop the others, remove what the lost tasks left, and raise
-        :class:`~.forked.TaskDied` naming the first lost file (or ``path``)."""
+        :class:`~agsf_torch.experiments.run.worker_pool.TaskDied` naming the first lost file (or ``path``)."""
         self._pool.shutdown(wait=True)
         lost = [p for f, p in self._tasks.items() if f.done() and isinstance(f.exception(), BrokenProcessPool)]
         for partial in lost:

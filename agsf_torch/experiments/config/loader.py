@@ -24,8 +24,8 @@ from typing import Any
 
 import tomllib
 
-from ..constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR
-from ..filters.registry import ADAPTIVE_FILTERS, CONFIG_OPTIONS, FILTER_NAMES
+from ...constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR
+from ...filters.registry import ADAPTIVE_FILTERS, CONFIG_OPTIONS, FILTER_NAMES
 
 __all__ = [
     "REPLAY_IGNORED",
@@ -195,7 +195,7 @@ class _ExperimentFields:
             raise ValueError(
                 f"config key 'filters' must be a non-empty list of distinct names from {FILTER_NAMES}, got {self.filters!r}"
             )
-        from ..qp import MAX_COMPONENTS
+        from ...qp import MAX_COMPONENTS
 
         if self.components > MAX_COMPONENTS and any(f in ADAPTIVE_FILTERS for f in self.filters):
             raise ValueError(
@@ -246,7 +246,7 @@ class _ExperimentFields:
     def warn_unreached_faults(self) -> None:
         """Warn, naming them, of the faults that start at or after the end of the run (``duration``): legal (a
         longer run meets them) but injected into nothing.  Called where the configuration is simulated
-        (:func:`~.factories.make_env`), not where it is read: a replay of a recording reads no fault."""
+        (:func:`~agsf_torch.experiments.config.factories.make_env`), not where it is read: a replay of a recording reads no fault."""
         from envs.faults import parse_faults
 
         late = [i for i, fault in enumerate(parse_faults(self.faults)) if fault.start >= self.duration]
@@ -272,7 +272,7 @@ class _ExperimentFields:
         the label, the list of filters, the options of the other filters and, for a one-component filter,
         ``components`` and ``spread``.  Two configurations with the same filter digest give that filter the
         same simulated data, prior and options, hence the same numbers (a sweep runs it once)."""
-        from ..filters.registry import filter_spec
+        from ...filters.registry import filter_spec
 
         spec = filter_spec(name)
         skip = {"name", "filters"} | (set(CONFIG_OPTIONS) - spec.option_names)
@@ -338,7 +338,7 @@ def _from_mapping(data: dict[str, Any]) -> ExperimentConfig:
 
 def preset_names() -> list[str]:
     """Names of the presets shipped as package data."""
-    folder = resources.files("agsf_torch.experiments") / "presets"
+    folder = resources.files("agsf_torch.experiments.config") / "presets"
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
@@ -356,7 +356,7 @@ def _resolve(data: dict[str, Any], seen: tuple[str, ...] = ()) -> dict[str, Any]
 
 
 def _preset_table(name: str) -> dict[str, Any]:
-    path = resources.files("agsf_torch.experiments") / "presets" / f"{name}.toml"
+    path = resources.files("agsf_torch.experiments.config") / "presets" / f"{name}.toml"
     if not path.is_file():
         raise ValueError(f"unknown preset {name!r}; available: {', '.join(preset_names())}")
     return tomllib.loads(path.read_text())

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..consistency import Check, consistency_checks, format_report
-from ..storage.files import write_json, write_text
-from .config import ExperimentConfig
-from .experiment import run_experiment
-from .factories import filter_model
-from .tensorboard_log import clear_events
+from ...consistency import Check, consistency_checks, format_report
+from ...storage.files import write_json, write_text
+from ..config.factories import filter_model
+from ..config.loader import ExperimentConfig
+from ..report.tensorboard import clear_events
+from ..run.experiment import run_experiment
 
 __all__ = ["diagnose"]
 

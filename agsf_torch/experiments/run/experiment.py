@@ -1,9 +1,9 @@
 """One configured Monte Carlo experiment: run it and write everything it produces.
 
 The pieces live one concept per module: the output folder and ``runs.npz``
-(:mod:`.outputs`), what a configuration builds (:mod:`.factories`), the
-statistics (:mod:`.statistics`), the figures (:mod:`.figures`) and the
-TensorBoard events (:mod:`.tensorboard_log`); the names are re-exported here.
+(:mod:`agsf_torch.experiments.run.outputs`), what a configuration builds (:mod:`agsf_torch.experiments.config.factories`), the
+statistics (:mod:`agsf_torch.experiments.report.statistics`), the figures (:mod:`agsf_torch.experiments.report.figures`) and the
+TensorBoard events (:mod:`agsf_torch.experiments.report.tensorboard`); the names are re-exported here.
 """
 
 from __future__ import annotations
@@ -12,16 +12,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ..storage.files import write_json
-from .config import REPLAY_IGNORED, ExperimentConfig
-from .factories import loop_options, make_env, make_filters, prior_covariance
-from .figures import write_figures
+from ...storage.files import write_json
+from ..config.factories import loop_options, make_env, make_filters, prior_covariance
+from ..config.loader import REPLAY_IGNORED, ExperimentConfig
+from ..report.figures import write_figures
+from ..report.statistics import mean_ci95, paired_difference, summarize
+from ..report.tensorboard import write_tensorboard
 from .file_writer import FileWriter
 from .outputs import OutputConflict, load_filter_runs, prepare_output, save_runs
 from .resources import check_memory
 from .runner import run_monte_carlo
-from .statistics import mean_ci95, paired_difference, summarize
-from .tensorboard_log import write_tensorboard
 
 __all__ = [
     "make_env",
@@ -50,15 +50,15 @@ def run_experiment(
 ) -> dict[str, Any]:
     """Run one configuration and write everything it produces under ``out``.
 
-    ``writer`` (a :class:`~.file_writer.FileWriter`) writes the figures, the event files and ``runs.npz``, in worker
-    processes if it has them (``runs.npz`` above :data:`~.file_writer.HANDOVER_BYTES` in a thread of this process):
+    ``writer`` (a :class:`~agsf_torch.experiments.run.file_writer.FileWriter`) writes the figures, the event files and ``runs.npz``, in worker
+    processes if it has them (``runs.npz`` above :data:`~agsf_torch.experiments.run.file_writer.HANDOVER_BYTES` in a thread of this process):
     the call then returns before they are written, and they are complete when the writer is closed.
 
     ``label`` names the run on its progress bar and in its figures' titles (``summary["label"]``; default: the
     configuration's ``name``; a sweep passes the configuration's parameters).
 
     ``reuse`` maps filters of the configuration to the folder of an earlier experiment that ran them with the
-    same :meth:`~.config.ExperimentConfig.filter_digest` (the same simulation, prior and options): their arrays
+    same :meth:`~agsf_torch.experiments.config.loader.ExperimentConfig.filter_digest` (the same simulation, prior and options): their arrays
     are copied from its ``runs.npz`` instead of running them again (a sweep over an option only some filters
     read), and ``summary["reused"]`` names the folder each came from.  The simulation of the filters that do
     run must match theirs (times and star frames), else ``RuntimeError``.
@@ -70,11 +70,11 @@ def run_experiment(
     (:meth:`~agsf_torch.attitude.recordings.Recording.content_digest`), so new contents at the same
     path are a different experiment and never replace earlier results.
 
-    Everything is validated (the recording, the memory estimate of :func:`.resources.check_memory`,
+    Everything is validated (the recording, the memory estimate of :func:`agsf_torch.experiments.run.resources.check_memory`,
     unless ``force``, and the output folder) before ``out`` is created.
     """
     if recording is not None:
-        from ..attitude.recordings import Recording
+        from ...attitude.recordings import Recording
         from .recorded import RecordingEnv, check_recording
 
         rec = Recording.load(recording)
@@ -110,7 +110,7 @@ def _check_reusable(cfg: ExperimentConfig, name: str, folder: Path) -> None:
     """Refuse to reuse ``name``'s results from ``folder`` unless its experiment had the same filter digest."""
     import json
 
-    from .config import _from_mapping
+    from ..config.loader import _from_mapping
 
     try:
         theirs = _from_mapping(json.loads((folder / "experiment.json").read_text())["config"])

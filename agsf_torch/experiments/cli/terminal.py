@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..torch_internals import torch_internal_deprecations_hidden
+from ...torch_internals import torch_internal_deprecations_hidden
 
 __all__ = [
     "FORCE_HELP",
@@ -86,8 +86,8 @@ def nonnegative_float(text: str) -> float:
 
 
 def seed(text: str) -> int:
-    """A run seed argument in ``[0, MAX_SEED]`` (:data:`.config.MAX_SEED`)."""
-    from .config import MAX_SEED
+    """A run seed argument in ``[0, MAX_SEED]`` (:data:`agsf_torch.experiments.config.loader.MAX_SEED`)."""
+    from ..config.loader import MAX_SEED
 
     value = integer(text)
     if not 0 <= value <= MAX_SEED:

@@ -4,18 +4,18 @@ from __future__ import annotations
 
 import torch
 
-from ..constants import DEG_PER_HOUR
-from ..filter_loop import FilterSetup
-from ..filters.registry import filter_spec
-from ..models import AttitudeModel
-from .config import ExperimentConfig
+from ...constants import DEG_PER_HOUR
+from ...filter_loop import FilterSetup
+from ...filters.registry import filter_spec
+from ...models import AttitudeModel
+from .loader import ExperimentConfig
 
 __all__ = ["make_env", "make_filters", "prior_covariance", "filter_model", "loop_options"]
 
 
 def make_env(cfg: ExperimentConfig):
     """The batched star-tracker environment of a configuration (warning of faults it never reaches:
-    :meth:`~.config.ExperimentConfig.warn_unreached_faults`)."""
+    :meth:`~agsf_torch.experiments.config.loader.ExperimentConfig.warn_unreached_faults`)."""
     import envs
 
     cfg.warn_unreached_faults()
@@ -52,8 +52,8 @@ def prior_covariance(cfg: ExperimentConfig) -> torch.Tensor:
 
 
 def loop_options(cfg: ExperimentConfig) -> dict:
-    """The configuration's keyword arguments of the Monte Carlo loop (:func:`~.runner.monte_carlo_steps`,
-    :func:`~.runner.run_monte_carlo`): steps, prior covariance, the filters' star noise (σ_s scaled by
+    """The configuration's keyword arguments of the Monte Carlo loop (:func:`~agsf_torch.experiments.run.runner.monte_carlo_steps`,
+    :func:`~agsf_torch.experiments.run.runner.run_monte_carlo`): steps, prior covariance, the filters' star noise (σ_s scaled by
     ``filter_sigma_s_scale``) and its model, the seed and whether the bias is estimated."""
     return {
         "num_steps": cfg.num_steps,

@@ -1,4 +1,4 @@
-"""What each ``agsf`` subcommand does with its parsed arguments (:mod:`.cli` builds the parser and runs them):
+"""What each ``agsf`` subcommand does with its parsed arguments (:mod:`agsf_torch.experiments.cli.main` builds the parser and runs them):
 one function per subcommand, returning the exit code, and the shared printing of a run's summary."""
 
 from __future__ import annotations
@@ -12,17 +12,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cli_terminal import interruption, tensorboard_command
+from .terminal import interruption, tensorboard_command
 
 
 def _simulate(args: argparse.Namespace) -> int:
     import envs
 
-    from ..attitude.recordings import FORMAT
-    from ..storage.files import write_json
-    from .experiment import prepare_output
-    from .recorded import record_environment
-    from .resources import refuse_if_too_large, simulation_memory
+    from ...attitude.recordings import FORMAT
+    from ...storage.files import write_json
+    from ..run.experiment import prepare_output
+    from ..run.recorded import record_environment
+    from ..run.resources import refuse_if_too_large, simulation_memory
 
     if args.seed > envs.random.SEED_MASK - (args.runs - 1):
         raise ValueError(
@@ -60,8 +60,8 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .experiment import run_experiment
+    from ..config.loader import load_config
+    from ..run.experiment import run_experiment
 
     cfg = load_config(args.config, args.set)
     _threads(args)
@@ -75,7 +75,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _reproduce(args: argparse.Namespace) -> int:
-    from .reproduce import reproduce
+    from ..studies.reproduce import reproduce
 
     _threads(args)
     cases = [1, 2, 3] if args.case == "all" else [int(args.case)]
@@ -102,7 +102,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
 
 def _adaptation(args: argparse.Namespace) -> int:
-    from .adaptation import SCENARIOS, run_adaptation_study, study_table
+    from ..studies.adaptation import SCENARIOS, run_adaptation_study, study_table
 
     _threads(args)
     names = list(SCENARIOS) if "all" in args.scenario else list(dict.fromkeys(args.scenario))
@@ -123,8 +123,8 @@ def _adaptation(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
+    from ..config.loader import load_config
+    from ..sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
 
     if args.address is not None and args.backend != "ray":
         raise ValueError("--address needs --backend ray")
@@ -144,7 +144,7 @@ def _sweep(args: argparse.Namespace) -> int:
         print(f"agsf: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        from ..storage.files import read_json_lines
+        from ...storage.files import read_json_lines
 
         status, how = interruption()
         results = Path(args.out) / "results.jsonl"
@@ -154,8 +154,8 @@ def _sweep(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return status
-    from ..storage.files import write_text
-    from .sweep import results_table
+    from ...storage.files import write_text
+    from ..sweep import results_table
 
     table = results_table(rows)
     write_text(Path(args.out) / "results.md", table + "\n")
@@ -169,11 +169,11 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from .bench import format_table, run_bench
+    from ..bench import format_table, run_bench
 
     _threads(args)
-    from ..storage.files import write_text
-    from .bench.run import check_reference
+    from ...storage.files import write_text
+    from ..bench.run import check_reference
 
     reference = check_reference(args.main_job_reference)  # refused before anything runs
     report = run_bench(Path(args.out), compile=not args.no_compile, quick=args.quick, main_job_reference=reference)
@@ -185,9 +185,9 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _soak(args: argparse.Namespace) -> int:
-    from ..storage.files import write_json
-    from .config import parse_override
-    from .soak import run_soak, soak_config, soak_verdict
+    from ...storage.files import write_json
+    from ..config.loader import parse_override
+    from ..studies.soak import run_soak, soak_config, soak_verdict
 
     owners = {"runs": "--runs", "duration": "--duration", "seed": "--seed", "filters": "--filter"}
     _refuse_set(args.set, owners | ({"compile": "--no-compile"} if args.no_compile else {}))
@@ -208,8 +208,8 @@ def _soak(args: argparse.Namespace) -> int:
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .diagnose import diagnose
+    from ..config.loader import load_config
+    from ..studies.diagnose import diagnose
 
     cfg = load_config(args.config, args.set)
     _threads(args)
@@ -219,8 +219,8 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 
 def _learn(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .learn import learn
+    from ..config.loader import load_config
+    from ..studies.learn import learn
 
     cfg = load_config(args.config, args.set)
     _threads(args)
@@ -233,7 +233,7 @@ def _learn(args: argparse.Namespace) -> int:
 def _refuse_set(items: list[str] | None, owners: dict[str, str]) -> None:
     """Refuse a ``--set KEY=…`` of a key another option of the command sets (``owners``: key → that option):
     one of the two values would be dropped without a word."""
-    from .config import parse_override
+    from ..config.loader import parse_override
 
     for item in items or []:
         key = parse_override(item)[0]
@@ -246,7 +246,7 @@ def _threads(args: argparse.Namespace) -> None:
     ``OMP_NUM_THREADS``) capped at the CPUs this process may use (:func:`~agsf_torch.processes.available_cpus`:
     torch does not count a container's CPU quota, and more threads than the quota allows take turns and run slower
     than fewer)."""
-    from ..processes import available_cpus
+    from ...processes import available_cpus
 
     if getattr(args, "threads", None):
         torch.set_num_threads(max(1, args.threads))
@@ -257,7 +257,7 @@ def _threads(args: argparse.Namespace) -> None:
 def _print_summary(name: str, summary: dict) -> None:
     """The run's per-filter numbers and every adaptive filter's paired difference against the GSF, aligned (without
     the truth, a replay of flight data: the NIS ratio alone)."""
-    from .statistics import WINDOW_TEXT, minus_gsf_key
+    from ..report.statistics import WINDOW_TEXT, minus_gsf_key
 
     filters = summary["filters"]
     width = max((len(f"{f} − GSF") for f in filters), default=0)
@@ -284,18 +284,18 @@ def _print_summary(name: str, summary: dict) -> None:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from ..storage.files import write_json, write_text
-    from .calibration import QUICK_STUDY, STUDY, run_study, settings_named, verdict_study
-    from .calibration_report import calibration_figure, calibration_markdown
-    from .config import load_config
-    from .experiment import prepare_output
+    from ...storage.files import write_json, write_text
+    from ..config.loader import load_config
+    from ..run.experiment import prepare_output
+    from ..studies.calibration import QUICK_STUDY, STUDY, run_study, settings_named, verdict_study
+    from ..studies.calibration_report import calibration_figure, calibration_markdown
 
     cfg = load_config(args.config, args.set)
     study = QUICK_STUDY if args.quick else STUDY
     settings = settings_named(args.setting, study)
     if args.datasets < 2:
         raise ValueError(f"--datasets must be at least 2 (rates over data sets), got {args.datasets}")
-    from ..processes import available_cpus
+    from ...processes import available_cpus
 
     workers = args.workers or max(1, min(2, available_cpus(), len(settings)))
     params = {"datasets": args.datasets, "settings": [s.label for s in settings], "seed": cfg.seed}

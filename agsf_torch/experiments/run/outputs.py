@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..storage.files import atomic_open, read_json, write_json
+from ...storage.files import atomic_open, read_json, write_json
 from .file_writer import FileWriter, too_large_to_hand_over
 from .runner import MonteCarloResult
 
@@ -169,7 +169,7 @@ def save_npz(path: Path, data: dict[str, np.ndarray]) -> Path:
     return Path(path)
 
 
-#: The :class:`~agsf_torch.experiments.runner.FilterTrace` arrays ``runs.npz`` holds per filter (``error_angle``,
+#: The :class:`~agsf_torch.experiments.run.runner.FilterTrace` arrays ``runs.npz`` holds per filter (``error_angle``,
 #: ``error`` and ``nees`` only with the truth).
 TRACE_KEYS = (
     "estimate",
@@ -217,12 +217,12 @@ def save_runs(
     reused: dict[str, tuple[dict, dict]] | None = None,
     writer: FileWriter | None = None,
 ) -> dict[str, np.ndarray]:
-    """Write ``runs.npz`` and return what it writes (with ``writer``, a :class:`~.file_writer.FileWriter`, by one of
-    its workers, or by a thread of the caller if the arrays exceed :data:`~.file_writer.HANDOVER_BYTES`: the file is
+    """Write ``runs.npz`` and return what it writes (with ``writer``, a :class:`~agsf_torch.experiments.run.file_writer.FileWriter`, by one of
+    its workers, or by a thread of the caller if the arrays exceed :data:`~agsf_torch.experiments.run.file_writer.HANDOVER_BYTES`: the file is
     complete when the writer is closed).
 
     Layout (batch first, as everywhere in the package): ``time [T]`` (s), ``star_frame [T]``,
-    ``prior_error_angle [B]`` (rad: the prior mean's attitude error at ``t = 0``), and per filter ``name/key`` the :class:`~agsf_torch.experiments.runner.FilterTrace` fields
+    ``prior_error_angle [B]`` (rad: the prior mean's attitude error at ``t = 0``), and per filter ``name/key`` the :class:`~agsf_torch.experiments.run.runner.FilterTrace` fields
     ``[B, T, ...]`` (:data:`TRACE_KEYS`) — ``estimate``, ``error_angle``, ``error`` and ``sigma`` (rotation error
     and its 1σ; without the truth, a replay of flight data: no ``prior_error_angle``, ``error_angle``, ``error``
     and ``nees``),

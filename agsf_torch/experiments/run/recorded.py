@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from ..attitude.recordings import Recording
+from ...attitude.recordings import Recording
 from .progress import progress_bar
 
 __all__ = ["record_environment", "RecordingEnv"]
@@ -90,7 +90,7 @@ def initial_estimate(recording: Recording, name: str = "") -> tuple[np.ndarray, 
     bias = np.zeros((B, 3)) if recording.initial_bias is None else recording.initial_bias
     if recording.initial_mrp is not None:
         return recording.initial_mrp, bias
-    from ..attitude.star_fix import star_fix
+    from ...attitude.star_fix import star_fix
 
     t = torch.as_tensor
     mrp, ok = star_fix(t(recording.star_body[:, 0]), t(recording.star_inertial[:, 0]), t(recording.star_mask[:, 0]))

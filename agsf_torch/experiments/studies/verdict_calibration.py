@@ -3,8 +3,8 @@ of a mis-configured one, counted over many simulated data sets.
 
 A *data set* is ``trajectories`` trajectories of the configuration's duration: what one ``agsf diagnose`` judges.
 ``datasets × trajectories`` trajectories are simulated once (one batched simulation, recorded,
-:func:`~.recorded.record_environment`) and every filter configuration replays that same recording through the
-Monte Carlo runner (:func:`~.runner.run_monte_carlo`, the one filter loop), so the verdicts of the configurations
+:func:`~agsf_torch.experiments.run.recorded.record_environment`) and every filter configuration replays that same recording through the
+Monte Carlo runner (:func:`~agsf_torch.experiments.run.runner.run_monte_carlo`, the one filter loop), so the verdicts of the configurations
 are paired data set by data set.  A configuration is the base one with the filters assuming ``s × σ`` for one
 ``parameter`` (``σ_s``: ``filter_sigma_s_scale = s``; ``σ_v``: ``filter_sigma_v_scale = s``) while the simulation
 stays at the truth; ``s = 1`` is the correctly configured filter, run once and shared by every parameter.  Each data
@@ -54,13 +54,13 @@ from typing import Any
 
 import numpy as np
 
-from ..consistency import check_level, consistency_check_arrays
-from .config import ExperimentConfig
-from .factories import filter_model, loop_options, make_env, make_filters
-from .recorded import RecordingEnv, record_environment
-from .resources import check_memory
-from .runner import run_monte_carlo
-from .statistics import clopper_pearson
+from ...consistency import check_level, consistency_check_arrays
+from ..config.factories import filter_model, loop_options, make_env, make_filters
+from ..config.loader import ExperimentConfig
+from ..report.statistics import clopper_pearson
+from ..run.recorded import RecordingEnv, record_environment
+from ..run.resources import check_memory
+from ..run.runner import run_monte_carlo
 
 __all__ = ["PARAMETERS", "CHECKS", "LEVEL_SAMPLES", "VerdictRates", "diagnose_verdict_rates"]
 
@@ -178,7 +178,7 @@ def diagnose_verdict_rates(
         parameters: which of :data:`PARAMETERS` to mis-scale, one at a time.
         seed: the simulation's seed (default ``cfg.seed``): trajectory ``i`` is seeded ``seed + i``.
         progress: show progress bars.
-        force: run even if the memory estimate (:func:`~.resources.check_memory`) exceeds what is available.
+        force: run even if the memory estimate (:func:`~agsf_torch.experiments.run.resources.check_memory`) exceeds what is available.
 
     Returns:
         :class:`VerdictRates`.

@@ -63,11 +63,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..storage.files import temporary_name
-from .file_writer import too_large_to_hand_over
+from ...storage.files import temporary_name
+from ..run.file_writer import too_large_to_hand_over
 
 if TYPE_CHECKING:
-    from .file_writer import FileWriter
+    from ..run.file_writer import FileWriter
 
 __all__ = [
     "write_tensorboard",
@@ -128,8 +128,8 @@ def write_tensorboard(
     """Write the events of one experiment under ``out/tensorboard``, one run per filter (module docstring).
 
     Events of an earlier writing of the same experiment folder are replaced, not added to: they are removed here,
-    before the runs are written — by ``writer`` (a :class:`~.file_writer.FileWriter`, one task per filter) if given,
-    from :func:`filter_events`' arrays, not ``data`` (here if they exceed :data:`~.file_writer.HANDOVER_BYTES`: the
+    before the runs are written — by ``writer`` (a :class:`~agsf_torch.experiments.run.file_writer.FileWriter`, one task per filter) if given,
+    from :func:`filter_events`' arrays, not ``data`` (here if they exceed :data:`~agsf_torch.experiments.run.file_writer.HANDOVER_BYTES`: the
     weight histograms of a very large run).
     """
     folder = out / "tensorboard"

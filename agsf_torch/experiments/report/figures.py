@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from ..storage.files import save_figure
-from .file_writer import FileWriter
+from ...storage.files import save_figure
+from ..run.file_writer import FileWriter
 
 __all__ = [
     "ARCSEC_PER_RAD",
@@ -420,7 +420,7 @@ def runtime_rc_params() -> dict[str, Any]:
 def write_figures(out: Path, summary: dict[str, Any], writer: FileWriter | None = None) -> list[Path]:
     """Write ``axes.png``, ``rms.png`` (these two with the truth only), ``weights.png`` and ``fpke.png`` into ``out``
     (each through ``writer``, a
-    :class:`~.file_writer.FileWriter`, if given: then they may still be being drawn when this returns, by a process
+    :class:`~agsf_torch.experiments.run.file_writer.FileWriter`, if given: then they may still be being drawn when this returns, by a process
     given this one's matplotlib settings); returns their paths."""
     truth = summary.get("scored_against_truth", True)  # rms.png and axes.png plot the errors against the truth
     paths = [Path(out) / fname for fname in FIGURES if truth or fname not in ("rms.png", "axes.png")]

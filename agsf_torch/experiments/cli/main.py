@@ -11,29 +11,29 @@ Subcommands:
 * ``agsf reproduce --case {1,2,3,all} [--runs R] --out DIR`` — the paper's cases.
 * ``agsf adaptation [--scenario …] [--runs R] [--samples K] --out DIR`` — where adapting
   the weights pays: RMS, NEES and the density score against an exact-density reference
-  for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.adaptation`).
+  for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.studies.adaptation`).
 * ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
   resumable grid, in this process (each configuration's files written by a worker process while the next
   runs) or as Ray tasks; ends with a table of every configuration (printed and written to ``results.md``).
 * ``agsf soak [--filter NAME] [--runs B] [--duration S] --out DIR`` — a long run
   (default one simulated hour, 256 runs, 6-state) with running statistics and a
   pass/fail verdict: no NaN, covariances positive definite, errors inside ±3σ,
-  flat memory (:mod:`agsf_torch.experiments.soak`).
+  flat memory (:mod:`agsf_torch.experiments.studies.soak`).
 * ``agsf diagnose CONFIG [--set …] [--recording FILE] --out DIR`` — run a configuration and judge its
   consistency in words: NEES, NIS and whiteness against their χ² bands
-  (:mod:`agsf_torch.experiments.diagnose`).
+  (:mod:`agsf_torch.experiments.studies.diagnose`).
 * ``agsf learn CONFIG --learn NAMES [--recording FILE] --out DIR`` — maximum-likelihood
   fits of the noise model through the filter, with 95 % intervals
-  (:mod:`agsf_torch.experiments.learn`).
+  (:mod:`agsf_torch.experiments.studies.learn`).
 * ``agsf bench --out DIR`` — what the filters cost beside their peers, every target met
   or not (:mod:`agsf_torch.experiments.bench`).
 
 Every experiment writes ``summary.json``, ``runs.npz``, PNG figures and
-TensorBoard events (see :mod:`agsf_torch.experiments.experiment`); each command ends
+TensorBoard events (see :mod:`agsf_torch.experiments.run.experiment`); each command ends
 by printing where they are and the TensorBoard command of this environment.  Progress
 bars and the package's INFO messages (the FPKE kernel's compilation) go to stderr unless
 ``--quiet``.
-The parser and the entry point live here; what each subcommand does, in :mod:`.cli_commands`.
+The parser and the entry point live here; what each subcommand does, in :mod:`agsf_torch.experiments.cli.commands`.
 """
 
 from __future__ import annotations
@@ -42,9 +42,10 @@ import argparse
 import errno
 import sys
 
-from ..allocator import set_mmap_threshold
-from ..storage.files import files_written
-from .cli_commands import (
+from ...allocator import set_mmap_threshold
+from ...storage.files import files_written
+from ..run.worker_pool import TaskDied
+from .commands import (
     _adaptation,
     _bench,
     _calibrate,
@@ -56,7 +57,7 @@ from .cli_commands import (
     _soak,
     _sweep,
 )
-from .cli_terminal import (
+from .terminal import (
     FORCE_HELP,
     Parser,
     ending_signals,
@@ -70,14 +71,13 @@ from .cli_terminal import (
     seed,
     tensorboard_command,
 )
-from .forked import TaskDied
 
 __all__ = ["main", "tensorboard_command"]
 
 
 def keys_epilog() -> str:
     """The configuration keys ``--set`` (and a TOML file) accepts, one per line with its help."""
-    from .config import config_key_help
+    from ..config.loader import config_key_help
 
     keys = config_key_help()
     width = max(map(len, keys))
@@ -151,8 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     common(p)
     p.set_defaults(func=_reproduce)
 
-    from .adaptation import SCENARIOS
-    from .config import FILTER_NAMES
+    from ..config.loader import FILTER_NAMES
+    from ..studies.adaptation import SCENARIOS
 
     p = sub.add_parser(
         "adaptation",
@@ -291,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     (:func:`~agsf_torch.storage.files.files_written`: a permission denied halfway, after other files were replaced),
     prints ``agsf: I/O failure (file): …`` and returns :data:`EXIT_IO_FAILURE`, as does a case's process that died
     (``agsf: failure: …``); Ctrl-C prints one line and returns 130, and SIGTERM and SIGHUP end the command the same
-    way and return 128 + the signal (143, 129: :func:`.cli_terminal.ending_signals`).  Long steps (the FPKE kernel's
+    way and return 128 + the signal (143, 129: :func:`agsf_torch.experiments.cli.terminal.ending_signals`).  Long steps (the FPKE kernel's
     compilation) are announced on stderr unless ``--quiet``."""
     args = build_parser().parse_args(argv)
     set_mmap_threshold()  # a step's buffers reused from the heap, not mapped afresh (agsf_torch.allocator)
@@ -320,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\nagsf: {how}{kept} (files are written whole or not at all)", file=sys.stderr)
             return status
         finally:
-            from .outputs import release_outputs
+            from ..run.outputs import release_outputs
 
             release_outputs()
 

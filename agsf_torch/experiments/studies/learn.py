@@ -7,16 +7,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..attitude.learning import PARAMETERS, fit_attitude_parameters
-from ..attitude.recordings import Recording
-from ..constants import DEG_PER_HOUR
-from ..filter_loop import PRIOR_SEED_OFFSET, sample_prior
-from ..storage.files import write_json, write_text
-from .config import REPLAY_IGNORED, ExperimentConfig
-from .experiment import make_env, prepare_output, prior_covariance
-from .recorded import check_recording, record_environment
-from .resources import check_memory
-from .tensorboard_log import clear_events
+from ...attitude.learning import PARAMETERS, fit_attitude_parameters
+from ...attitude.recordings import Recording
+from ...constants import DEG_PER_HOUR
+from ...filter_loop import PRIOR_SEED_OFFSET, sample_prior
+from ...storage.files import write_json, write_text
+from ..config.loader import REPLAY_IGNORED, ExperimentConfig
+from ..report.tensorboard import clear_events
+from ..run.experiment import make_env, prepare_output, prior_covariance
+from ..run.recorded import check_recording, record_environment
+from ..run.resources import check_memory
 
 __all__ = ["learn", "learning_problem", "check_learnable", "MIN_STAR_FRAMES"]
 

@@ -1,4 +1,4 @@
-"""The calibration study's report: Markdown tables and a figure from :func:`~.calibration.run_study`'s results."""
+"""The calibration study's report: Markdown tables and a figure from :func:`~agsf_torch.experiments.studies.calibration.run_study`'s results."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from .calibration import MIS_SCALINGS
 
 __all__ = ["calibration_markdown", "calibration_figure", "AXIS_GYRO_DT"]
 
-#: The gyro interval (s) of the settings on the axes of data length and trajectories (:data:`.calibration.STUDY`).
+#: The gyro interval (s) of the settings on the axes of data length and trajectories (:data:`agsf_torch.experiments.studies.calibration.STUDY`).
 AXIS_GYRO_DT = 1.0
 
 
@@ -29,7 +29,7 @@ def _num(x: float, digits: int = 3) -> str:
 def calibration_markdown(results: list[dict], verdicts: list[dict] | None = None) -> str:
     """The study's tables: per setting and coordinate the estimate's bias in standard errors, RMS error against
     the mean standard error, coverage and false alarm; the detection rates; the joint verdict; the baseline beside
-    ours; and, if given, the diagnose verdicts' rates (:mod:`.verdict_calibration`)."""
+    ours; and, if given, the diagnose verdicts' rates (:mod:`agsf_torch.experiments.studies.verdict_calibration`)."""
     lines = [
         "| setting | coordinate | identified | bias / SE | RMS error | mean SE | coverage of the 95 % interval | "
         "false alarm at the truth |",
@@ -90,7 +90,7 @@ def calibration_markdown(results: list[dict], verdicts: list[dict] | None = None
 
 
 def verdicts_markdown(verdicts: list[dict]) -> str:
-    """The diagnose verdicts' rates (:func:`.calibration.verdict_study`), one table per setting: a row per check,
+    """The diagnose verdicts' rates (:func:`agsf_torch.experiments.studies.calibration.verdict_study`), one table per setting: a row per check,
     the false-alarm rate at the truth, then the detection rate at each mis-scaling of each parameter."""
     out = []
     for v in verdicts:
@@ -132,7 +132,7 @@ def calibration_figure(results: list[dict], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..storage.files import save_figure
+    from ...storage.files import save_figure
 
     fig, (ax_err, ax_det) = plt.subplots(1, 2, figsize=(11, 4.2), layout="constrained")
     colours = {"sigma_s": "C0", "sigma_v": "C1"}

@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from ..consistency import chi2_band, nis_per_expected, rms
-from ..filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
-from ..quantiles import student_t_quantile
-from .config import ExperimentConfig
+from ...consistency import chi2_band, nis_per_expected, rms
+from ...filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES
+from ...quantiles import student_t_quantile
+from ..config.loader import ExperimentConfig
 
 __all__ = [
     "summarize",

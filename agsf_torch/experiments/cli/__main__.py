@@ -1,0 +1,5 @@
+"""``python -m agsf_torch.experiments.cli``: the ``agsf`` command."""
+
+from .main import entry
+
+entry()
