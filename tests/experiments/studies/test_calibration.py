@@ -14,7 +14,7 @@ from agsf_torch.experiments.studies.calibration import (
     settings_named,
 )
 from agsf_torch.experiments.studies.calibration_report import calibration_markdown
-from tests.experiments.test_cli_failures import _agsf, _assert_refused
+from tests.experiments.cli.test_cli_failures import _agsf, _assert_refused
 
 
 @pytest.fixture(scope="module")

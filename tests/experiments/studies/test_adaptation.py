@@ -54,7 +54,7 @@ def test_before_the_first_frame_the_galerkin_filter_equals_the_gsf_in_density(st
 
 def test_files_figures_and_tensorboard(study):
     """One run per (scenario, filter) with a tag per metric, read back by TensorBoard's data provider."""
-    from tests.experiments.test_tensorboard_layout import assert_recorded, scalars_view
+    from tests.experiments.report.test_tensorboard import assert_recorded, scalars_view
 
     out, summaries = study
     view = scalars_view(out / "tensorboard")

@@ -32,7 +32,7 @@ def test_outputs_exist_and_agree(experiment):
         assert (out / name).stat().st_size > 0, name
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk["filters"]["AGSF"]["rms_deg"] == summary["filters"]["AGSF"]["rms_deg"]
-    from tests.experiments.test_tensorboard_layout import assert_recorded, scalars_view
+    from tests.experiments.report.test_tensorboard import assert_recorded, scalars_view
 
     view = scalars_view(out / "tensorboard")
     assert set(view) == set(cfg.filters)  # one run per filter

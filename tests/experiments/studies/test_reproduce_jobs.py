@@ -11,7 +11,7 @@ from agsf_torch.experiments.run.resources import TooLarge
 from agsf_torch.experiments.run.worker_pool import TaskDied, fork_available
 from agsf_torch.experiments.studies import reproduce as reproduce_module
 from agsf_torch.experiments.studies.reproduce import check_jobs, default_jobs, reproduce
-from tests.experiments.test_cli_failures import _assert_refused
+from tests.experiments.cli.test_cli_failures import _assert_refused
 from tests.helpers import EAGER, TINY_CLI, event_records, file_digests
 
 needs_fork = pytest.mark.skipif(not fork_available(), reason="cases side by side need fork (Linux)")
@@ -131,7 +131,7 @@ def test_the_cli_refuses_bad_jobs_and_the_writers_flag_that_jobs_replaced_in_one
 
 def test_a_cases_process_that_dies_is_a_one_line_failure_exit_3(tmp_path, monkeypatch):
     """A case's process killed (out of memory, say) is the machine's failure, not a traceback."""
-    from tests.experiments.test_cli_failures import _agsf
+    from tests.experiments.cli.test_cli_failures import _agsf
 
     def died(*a, **kw):
         raise TaskDied("case2 ended without a reply (exit code -9)")

@@ -18,9 +18,9 @@ import pytest
 
 from agsf_torch.experiments.cli import main as cli
 from agsf_torch.experiments.run.worker_pool import fork_available
-from tests.experiments.test_forked import _slow_clean
+from tests.experiments.run.test_worker_pool import _slow_clean
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 #: ``agsf reproduce`` in a new interpreter, each case's work replaced by one that marks its process, begins a file
 #: and waits to be interrupted, then takes 0.3 s to clean up (a second signal must not cut that short).
