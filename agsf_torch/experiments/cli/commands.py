@@ -15,7 +15,8 @@ import torch
 from .terminal import interruption, tensorboard_command
 
 
-def _simulate(args: argparse.Namespace) -> int:
+def simulate_command(args: argparse.Namespace) -> int:
+    """``agsf simulate``: record simulated spacecraft data (truth, gyro, star observations) to a file. Returns the exit code."""
     import envs
 
     from ...attitude.recordings import FORMAT
@@ -59,7 +60,8 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run(args: argparse.Namespace) -> int:
+def run_command(args: argparse.Namespace) -> int:
+    """``agsf run``: one experiment (a preset or a recording), its outputs written under ``--out``. Returns the exit code."""
     from ..config.loader import load_config
     from ..run.experiment import run_experiment
 
@@ -74,7 +76,8 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _reproduce(args: argparse.Namespace) -> int:
+def reproduce_command(args: argparse.Namespace) -> int:
+    """``agsf reproduce``: the paper's cases side by side, with their combined summary and table. Returns the exit code."""
     from ..studies.reproduce import reproduce
 
     _threads(args)
@@ -101,7 +104,8 @@ def _reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
-def _adaptation(args: argparse.Namespace) -> int:
+def adaptation_command(args: argparse.Namespace) -> int:
+    """``agsf adaptation``: the study of what the adaptive weight update buys. Returns the exit code."""
     from ..studies.adaptation import SCENARIOS, run_adaptation_study, study_table
 
     _threads(args)
@@ -122,7 +126,8 @@ def _adaptation(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sweep(args: argparse.Namespace) -> int:
+def sweep_command(args: argparse.Namespace) -> int:
+    """``agsf sweep``: a resumable grid of configurations, locally or on Ray. Returns the exit code."""
     from ..config.loader import load_config
     from ..sweep import RayUnavailable, SweepFailed, parse_grid, run_sweep
 
@@ -168,7 +173,8 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench(args: argparse.Namespace) -> int:
+def bench_command(args: argparse.Namespace) -> int:
+    """``agsf bench``: the speed and memory measurements and their report. Returns the exit code."""
     from ..bench import format_table, run_bench
 
     _threads(args)
@@ -184,7 +190,8 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _soak(args: argparse.Namespace) -> int:
+def soak_command(args: argparse.Namespace) -> int:
+    """``agsf soak``: a long run, checked for drift and consistency. Returns the exit code."""
     from ...storage.files import write_json
     from ..config.loader import parse_override
     from ..studies.soak import run_soak, soak_config, soak_verdict
@@ -207,7 +214,8 @@ def _soak(args: argparse.Namespace) -> int:
     return 0 if verdict["passed"] else 1
 
 
-def _diagnose(args: argparse.Namespace) -> int:
+def diagnose_command(args: argparse.Namespace) -> int:
+    """``agsf diagnose``: the consistency checks of a recording's run, in words. Returns the exit code."""
     from ..config.loader import load_config
     from ..studies.diagnose import diagnose
 
@@ -218,7 +226,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     return 0 if passed else 1
 
 
-def _learn(args: argparse.Namespace) -> int:
+def learn_command(args: argparse.Namespace) -> int:
+    """``agsf learn``: fit the noise model to a recording through the filter's likelihood. Returns the exit code."""
     from ..config.loader import load_config
     from ..studies.learn import learn
 
@@ -283,7 +292,8 @@ def _print_summary(name: str, summary: dict) -> None:
     print(f"  (window — {WINDOW_TEXT['between_frames']})")
 
 
-def _calibrate(args: argparse.Namespace) -> int:
+def calibrate_command(args: argparse.Namespace) -> int:
+    """``agsf calibrate``: how often the learned and diagnosed verdicts flag a correct filter. Returns the exit code."""
     from ...storage.files import write_json, write_text
     from ..config.loader import load_config
     from ..run.experiment import prepare_output

@@ -46,16 +46,16 @@ from ...allocator import set_mmap_threshold
 from ...storage.files import files_written
 from ..run.worker_pool import TaskDied
 from .commands import (
-    _adaptation,
-    _bench,
-    _calibrate,
-    _diagnose,
-    _learn,
-    _reproduce,
-    _run,
-    _simulate,
-    _soak,
-    _sweep,
+    adaptation_command,
+    bench_command,
+    calibrate_command,
+    diagnose_command,
+    learn_command,
+    reproduce_command,
+    run_command,
+    simulate_command,
+    soak_command,
+    sweep_command,
 )
 from .terminal import (
     FORCE_HELP,
@@ -98,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     p.add_argument("--quiet", action="store_true", help="no progress bar on stderr")
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
-    p.set_defaults(func=_simulate)
+    p.set_defaults(func=simulate_command)
 
     def common(p):
         p.add_argument(
@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", required=True, help="output folder (created; an existing one must hold the same experiment)"
     )
     common(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=run_command)
 
     p = sub.add_parser("reproduce", help="the paper's three cases (star frames at 1, 0.5, 0.2 Hz)")
     p.add_argument(
@@ -149,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
         "files while the next runs where there are 2 CPUs or more)",
     )
     common(p)
-    p.set_defaults(func=_reproduce)
+    p.set_defaults(func=reproduce_command)
 
     from ..config.loader import FILTER_NAMES
     from ..studies.adaptation import SCENARIOS
@@ -169,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=positive_int, default=1024, help="exact-density reference samples per run")
     p.add_argument("--out", default="runs/adaptation", help="output folder")
     common(p)
-    p.set_defaults(func=_adaptation)
+    p.set_defaults(func=adaptation_command)
 
     p = sub.add_parser("sweep", help="a grid of configurations, each one batched Monte Carlo")
     p.add_argument("config", help="base TOML file or preset")
@@ -196,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
         "default: RAY_ADDRESS if set, else a new local Ray instance",
     )
     common(p)
-    p.set_defaults(func=_sweep)
+    p.set_defaults(func=sweep_command)
     p = sub.add_parser("diagnose", help="consistency checks (NEES, NIS, whiteness) of one configuration, in words")
     p.add_argument("config", help="TOML file or preset")
     p.add_argument(
@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="output folder")
     common(p)
-    p.set_defaults(func=_diagnose)
+    p.set_defaults(func=diagnose_command)
 
     p = sub.add_parser("learn", help="maximum-likelihood fit of noise-model parameters through the filter")
     p.add_argument("config", help="TOML file or preset (simulation and filter settings)")
@@ -217,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-iter", type=positive_int, default=40, help="Newton iterations of the fit (default 40)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
-    p.set_defaults(func=_learn)
+    p.set_defaults(func=learn_command)
 
     p = sub.add_parser(
         "calibrate",
@@ -235,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=positive_int, default=None, help="settings side by side (default: the CPUs, ≤ 2)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
-    p.set_defaults(func=_calibrate)
+    p.set_defaults(func=calibrate_command)
 
     p = sub.add_parser("soak", help="a long run checking NaN, positive definiteness, 3σ consistency and flat memory")
     p.add_argument("--filter", choices=FILTER_NAMES, default="GSF", help="the filter to soak")
@@ -254,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-compile", action="store_true", help="eager FPKE quadrature (AGSF)")
     p.add_argument("--out", required=True, help="output folder")
     common(p)
-    p.set_defaults(func=_soak)
+    p.set_defaults(func=soak_command)
 
     p = sub.add_parser(
         "bench",
@@ -273,7 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
         "the main job's speed-up target is measured against it",
     )
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
-    p.set_defaults(func=_bench)
+    p.set_defaults(func=bench_command)
     return parser
 
 

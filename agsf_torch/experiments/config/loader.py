@@ -282,7 +282,7 @@ class _ExperimentFields:
         return hashlib.sha256(json.dumps({"filter": name, **fields}, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace(self, **changes: Any) -> ExperimentConfig:
-        return _from_mapping({**self.to_dict(), **changes})
+        return config_from_mapping({**self.to_dict(), **changes})
 
 
 def _option_lines() -> str:
@@ -328,7 +328,7 @@ def config_key_help() -> dict[str, str]:
     return {f.name: entries.get(f.name, "") for f in dataclasses.fields(ExperimentConfig)}
 
 
-def _from_mapping(data: dict[str, Any]) -> ExperimentConfig:
+def config_from_mapping(data: dict[str, Any]) -> ExperimentConfig:
     known = {f.name for f in dataclasses.fields(ExperimentConfig)}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -364,7 +364,7 @@ def _preset_table(name: str) -> dict[str, Any]:
 
 def load_preset(name: str) -> ExperimentConfig:
     """A preset shipped with the package (``case1``, ``case2``, ``case3``, ``wide_prior``, …)."""
-    return _from_mapping(_resolve(_preset_table(name), (name,)))
+    return config_from_mapping(_resolve(_preset_table(name), (name,)))
 
 
 def load_config(path: str | Path, overrides: list[str] | None = None) -> ExperimentConfig:
@@ -390,7 +390,7 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Experim
     for item in overrides or []:
         key, value = parse_override(item)
         cfg[key] = value
-    return _from_mapping(cfg)
+    return config_from_mapping(cfg)
 
 
 def parse_override(item: str) -> tuple[str, Any]:

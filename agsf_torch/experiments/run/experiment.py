@@ -110,10 +110,10 @@ def _check_reusable(cfg: ExperimentConfig, name: str, folder: Path) -> None:
     """Refuse to reuse ``name``'s results from ``folder`` unless its experiment had the same filter digest."""
     import json
 
-    from ..config.loader import _from_mapping
+    from ..config.loader import config_from_mapping
 
     try:
-        theirs = _from_mapping(json.loads((folder / "experiment.json").read_text())["config"])
+        theirs = config_from_mapping(json.loads((folder / "experiment.json").read_text())["config"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"cannot reuse results of {name} from {folder}: no readable experiment.json ({exc})") from None
     if theirs.filter_digest(name) != cfg.filter_digest(name):

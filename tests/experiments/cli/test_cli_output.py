@@ -183,7 +183,7 @@ def test_info_messages_reach_stderr_unless_quiet(quiet, tmp_path, monkeypatch):
         logging.getLogger("agsf_torch.fpke.matrices").info("compiling the kernel")
         return 0
 
-    monkeypatch.setattr(cli, "_run", fake_run)
+    monkeypatch.setattr(cli, "run_command", fake_run)
     logger = logging.getLogger("agsf_torch")
     level, handlers = logger.level, list(logger.handlers)
     code, stdout, stderr = _agsf(["run", "case1", "--out", str(tmp_path)] + (["--quiet"] if quiet else []))
