@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .fpke.matrices import check_chunk_size
+from .chunks import check_chunk_size
 from .shapes import broadcast_shapes
 
 __all__ = [

@@ -93,7 +93,7 @@ def _no_compilation_outside_slow_tests(request: pytest.FixtureRequest, monkeypat
         )
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path_factory.mktemp("kernels")))
-    monkeypatch.setattr(lanes, "_compile_ahead_of_time", refuse)
+    monkeypatch.setattr(lanes, "compile_ahead_of_time", refuse)
     monkeypatch.setattr(lanes, "_compile_pending", refuse)
     monkeypatch.setattr(lanes, "_COMPILED", {})
     monkeypatch.setattr(matrices, "_COMPILED", {})

@@ -60,7 +60,7 @@ def test_a_compiled_fused_kernel_call_hides_it(monkeypatch, tmp_path):
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
     monkeypatch.setattr(lanes, "_COMPILED", {})
-    monkeypatch.setattr(lanes, "_compile_ahead_of_time", compile_ahead_of_time)
+    monkeypatch.setattr(lanes, "compile_ahead_of_time", compile_ahead_of_time)
     monkeypatch.setattr(lanes, "_load_package", lambda path: kernel)
     x = torch.arange(5.0, dtype=torch.float64)
     out = []

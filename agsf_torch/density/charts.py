@@ -28,14 +28,16 @@ from ..models.attitude import AttitudeModel
 from ..models.base import ContinuousModel
 from ..rotations import mrp_canonical, mrp_shadow, mrp_shadow_jacobian
 
-__all__ = ["CHARTS", "chart_for", "canonical_points", "mixture_log_density"]
+__all__ = ["CHARTS", "check_chart", "chart_for", "switch_flow", "canonical_points", "mixture_log_density"]
 
 #: Supported charts: ``"euclidean"`` (plain log-density) and ``"mrp"`` (first three
 #: state entries are MRPs, folded onto ``|p| ≤ 1``).
 CHARTS = ("euclidean", "mrp")
 
 
-def _check_chart(chart: str, n: int) -> str:
+def check_chart(chart: str, n: int) -> str:
+    """``chart`` if it is one of :data:`CHARTS` and fits a state of dimension ``n`` (``"mrp"`` needs ``n ≥ 3``),
+    else ``ValueError`` naming what is wrong."""
     if chart not in CHARTS:
         raise ValueError(f"chart must be one of {CHARTS}, got {chart!r}")
     if chart == "mrp" and n < 3:
@@ -60,13 +62,13 @@ def canonical_points(x: Tensor, chart: str = "euclidean") -> Tensor:
     Returns:
         ``[..., n]``.
     """
-    _check_chart(chart, x.shape[-1])
+    check_chart(chart, x.shape[-1])
     if chart == "euclidean":
         return x
     return torch.cat((mrp_canonical(x[..., :3]), x[..., 3:]), -1)
 
 
-def _switch_flow(x: Tensor, S: Tensor | None = None, Sig: Tensor | None = None):
+def switch_flow(x: Tensor, S: Tensor | None = None, Sig: Tensor | None = None):
     """Shadow switch of points (and of tangent matrices) where ``|p| > 1``.
 
     ``p ← −p/s``; ``S ← T S`` and ``Σ ← T Σ Tᵀ`` with ``T = blockdiag(∂pˢ/∂p, I)``.
@@ -108,7 +110,7 @@ def mixture_log_density(mixture: GaussianMixture, x: Tensor, *, chart: str = "eu
     Returns:
         ``[B, K]`` (nats).
     """
-    chart = _check_chart(chart, x.shape[-1])
+    chart = check_chart(chart, x.shape[-1])
     if chart == "euclidean":
         return mixture.log_prob(x)
     x = canonical_points(x, chart)

@@ -9,11 +9,14 @@ from torch import Tensor
 
 from ..models.base import MeasurementModel
 
-__all__ = ["ReferenceStepRecord"]
+__all__ = ["ReferenceStepRecord", "Frame", "point_eval"]
 
 
 @dataclass(frozen=True)
-class _Frame:
+class Frame:
+    """A measurement frame of the density references: its data, model, valid entries and the Cholesky factor and
+    normalisation of its effective noise covariance."""
+
     step: int  # number of input intervals before the frame
     y: Tensor  # [B, d]
     measurement: MeasurementModel
@@ -23,7 +26,7 @@ class _Frame:
     log_norm: Tensor  # [B]: −½(log det R_eff + dof log 2π)
 
 
-def _point_eval(measurement: MeasurementModel, x: Tensor, jacobian: bool = False):
+def point_eval(measurement: MeasurementModel, x: Tensor, jacobian: bool = False):
     """``h`` (and ``H``) at ``x [B, K, n]`` with the sample dim moved in front for the call."""
     xm = x.movedim(1, 0)
     h = measurement.predict(xm).movedim(0, 1)

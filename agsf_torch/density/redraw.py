@@ -28,15 +28,15 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from .charts import _switch_flow, canonical_points
-from .frames import _point_eval
+from .charts import canonical_points, switch_flow
+from .frames import point_eval
 from .proposal import InitialStateProposal
 
 if TYPE_CHECKING:
-    from .frames import _Frame
+    from .frames import Frame
 
 
-class _PathSpaceRedraw:
+class PathSpaceRedraw:
     """The redraw steps of :class:`~agsf_torch.density.PosteriorReference` (a mixin).
 
     They read the sampler's set-up (``model``, ``chart``, ``state_dim``,
@@ -92,7 +92,7 @@ class _PathSpaceRedraw:
                 for a, b1, b2, b3, b4 in zip((x, S, Sig), k1, k2, k3, k4)
             )
             if self.chart == "mrp":
-                x, S, Sig = _switch_flow(x, S, Sig)
+                x, S, Sig = switch_flow(x, S, Sig)
             collect(i + 1)
         return out
 
@@ -108,7 +108,7 @@ class _PathSpaceRedraw:
             k4 = f(x - dt * k3, uu)
             x = x - dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             if self.chart == "mrp":
-                x = _switch_flow(x)[0]
+                x = switch_flow(x)[0]
         if self.chart == "mrp":  # the MRP set nearer the prior mean
             p = x[..., :3]
             ps = -p / (p * p).sum(-1, keepdim=True).clamp_min(torch.finfo(p.dtype).tiny)
@@ -130,7 +130,7 @@ class _PathSpaceRedraw:
         flows = self._flow(x0, with_tangents=True)
         rs, Ls, Rs, back = [], [], [], []
         for f, (x, S, Sig) in zip(self._frames, flows):
-            h, H = _point_eval(f.measurement, x, jacobian=True)
+            h, H = point_eval(f.measurement, x, jacobian=True)
             v = f.valid[:, None, :]
             rs.append(v * (f.y[:, None, :] - h))
             Ls.append(v[..., None] * (H @ S))
@@ -281,13 +281,13 @@ class _PathSpaceRedraw:
         # measurement models carry the whole batch, so the states are embedded in it for them
         full = self.samples.clone()
 
-        def frame_ll(f: _Frame, x: Tensor) -> Tensor:
+        def frame_ll(f: Frame, x: Tensor) -> Tensor:
             full[sub] = x
             return self._frame_log_likelihood(f, full)[sub]
 
         x = canonical_points(x0, self.chart)
         ll = torch.zeros_like(log_p0)
-        frames_at: dict[int, list[_Frame]] = {}
+        frames_at: dict[int, list[Frame]] = {}
         for f in self._frames:
             frames_at.setdefault(f.step, []).append(f)
         for f in frames_at.get(0, []):

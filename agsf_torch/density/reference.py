@@ -28,16 +28,16 @@ from torch import Tensor
 
 from ..mixture import GaussianMixture, check_covariance
 from ..models.base import ContinuousModel, MeasurementModel
-from .charts import _check_chart, canonical_points, chart_for
+from .charts import canonical_points, chart_for, check_chart
 from .forecast import em_rk4_interval, sqrt_psd
-from .frames import ReferenceStepRecord, _Frame, _point_eval
-from .redraw import _PathSpaceRedraw
+from .frames import Frame, ReferenceStepRecord, point_eval
+from .redraw import PathSpaceRedraw
 from .score import density_score, effective_sample_size
 
 __all__ = ["PosteriorReference"]
 
 
-class PosteriorReference(_PathSpaceRedraw):
+class PosteriorReference(PathSpaceRedraw):
     """Weighted samples of the exact filtering density of a model, advanced step by step.
 
     Drive it with the filters' inputs and measurements::
@@ -199,7 +199,7 @@ class PosteriorReference(_PathSpaceRedraw):
         if not float(t_scale) > 0 or not math.isfinite(float(t_scale)):
             raise ValueError(f"t_scale must be a finite positive number, got {t_scale}")
         self.model = model
-        self.chart = _check_chart(chart_for(model) if chart is None else chart, n)
+        self.chart = check_chart(chart_for(model) if chart is None else chart, n)
         self.prior = prior
         self.prior_mean, self.prior_cov = prior.moments()
         self.num_samples = K = int(num_samples)
@@ -218,7 +218,7 @@ class PosteriorReference(_PathSpaceRedraw):
         Q = torch.as_tensor(model.noise_psd(), dtype=self._dtype, device=self._device)
         self._Q_sqrt = sqrt_psd(Q)
         self._intervals: list[tuple[Tensor | None, float]] = []
-        self._frames: list[_Frame] = []
+        self._frames: list[Frame] = []
         self.time = 0.0
         x0 = self._sample_prior(K)
         self.initial_samples = x0  # x₀ of each particle's path, in the prior's coordinates [B, K, n]
@@ -259,9 +259,9 @@ class PosteriorReference(_PathSpaceRedraw):
         """One input interval of ``substeps`` steps of :func:`.forecast.em_rk4_interval`."""
         return em_rk4_interval(self.model, x, u, dt, self.substeps, self._Q_sqrt, self.chart, self._randn)
 
-    def _frame_log_likelihood(self, frame: _Frame, x: Tensor) -> Tensor:
+    def _frame_log_likelihood(self, frame: Frame, x: Tensor) -> Tensor:
         """``log N(y; h(x), R)`` over the valid entries, ``x [B, K, n]`` → ``[B, K]``."""
-        h = _point_eval(frame.measurement, x)
+        h = point_eval(frame.measurement, x)
         if h.shape[-1] != frame.y.shape[-1]:
             raise ValueError(f"y has {frame.y.shape[-1]} entries but the measurement model predicts {h.shape[-1]}")
         nu = frame.valid[:, None, :] * (frame.y[:, None, :] - h)  # [B, K, d]
@@ -269,7 +269,7 @@ class PosteriorReference(_PathSpaceRedraw):
         z = torch.linalg.solve_triangular(frame.chol, nu.transpose(-1, -2), upper=False)
         return frame.log_norm[:, None] - 0.5 * (z * z).sum(-2)
 
-    def _make_frame(self, y, measurement: MeasurementModel) -> _Frame:
+    def _make_frame(self, y, measurement: MeasurementModel) -> Frame:
         if not isinstance(measurement, MeasurementModel):
             raise ValueError(f"measurement must be a MeasurementModel, got {type(measurement).__name__}")
         y = torch.as_tensor(y, dtype=self._dtype, device=self._device)
@@ -301,7 +301,7 @@ class PosteriorReference(_PathSpaceRedraw):
             raise ValueError(f"measurement noise covariance is not positive definite at trajectory {bad}")
         logdet = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
         dof = valid.sum(-1)
-        return _Frame(
+        return Frame(
             len(self._intervals), y, measurement, valid, R_eff, L, -0.5 * (logdet + dof * math.log(2.0 * math.pi))
         )
 

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from ..mixture import GaussianMixture
-from .charts import _check_chart, mixture_log_density
+from .charts import check_chart, mixture_log_density
 
 __all__ = ["effective_sample_size", "density_score"]
 
@@ -89,7 +89,7 @@ def density_score(
         raise ValueError("log_weights must not be NaN or +inf")
     if bool(torch.isneginf(log_weights).all(-1).any()):
         raise ValueError("every trajectory needs at least one sample with positive weight")
-    _check_chart(chart, n)
+    check_chart(chart, n)
     if lineage is not None:
         if not torch.is_tensor(lineage) or lineage.shape != (B, K) or lineage.dtype not in (torch.int32, torch.int64):
             raise ValueError(f"lineage must be an integer tensor of shape {(B, K)}")

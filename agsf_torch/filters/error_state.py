@@ -25,7 +25,14 @@ from ..rotations import (
     rotvec_to_quat,
 )
 
-__all__ = ["mrp_to_error_state", "error_state_to_mrp", "rotation_series", "ErrorStateMeasurement"]
+__all__ = [
+    "mrp_to_error_state",
+    "error_state_to_mrp",
+    "rotation_series",
+    "exp_and_right_jacobian",
+    "symmetric_part",
+    "ErrorStateMeasurement",
+]
 
 _SERIES_TERMS = 10
 _SERIES_BELOW = 1.0  # |φ| (rad) below which the coefficients come from their Taylor series
@@ -64,7 +71,7 @@ def rotation_series(theta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tens
     return tuple(torch.where(small.unsqueeze(-1), series, closed).unbind(-1))  # type: ignore[return-value]
 
 
-def _exp_and_right_jacobian(phi: Tensor) -> tuple[Tensor, Tensor, tuple[Tensor, ...]]:
+def exp_and_right_jacobian(phi: Tensor) -> tuple[Tensor, Tensor, tuple[Tensor, ...]]:
     """``exp(−[φ×]) = I − f₁K + f₂K²`` and ``J(φ) = I − f₂K + f₃K²`` with ``K = [φ×]``.
 
     ``J`` is the Jacobian of the body-frame composition, ``δq(φ + ε) = δq(J(φ) ε) ⊗ δq(φ) + O(ε²)``
@@ -97,7 +104,8 @@ def _mrp_map(p: Tensor, n: int) -> tuple[Tensor, Tensor]:
     return T, T_inv
 
 
-def _sym(P: Tensor) -> Tensor:
+def symmetric_part(P: Tensor) -> Tensor:
+    """``½(P + Pᵀ)`` of covariances ``P [..., n, n]``: the rounding of a congruence made symmetric again."""
     return 0.5 * (P + P.transpose(-1, -2))
 
 
@@ -116,7 +124,7 @@ def mrp_to_error_state(mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tenso
     n = mean.shape[-1]
     p = mean[..., :3]
     _, T_inv = _mrp_map(p, n)
-    return mrp_to_quat(p), mean[..., 3:], _sym(T_inv @ cov @ T_inv.transpose(-1, -2))
+    return mrp_to_quat(p), mean[..., 3:], symmetric_part(T_inv @ cov @ T_inv.transpose(-1, -2))
 
 
 def error_state_to_mrp(quat: Tensor, bias: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
@@ -132,7 +140,7 @@ def error_state_to_mrp(quat: Tensor, bias: Tensor, cov: Tensor) -> tuple[Tensor,
     n = cov.shape[-1]
     T, _ = _mrp_map(p, n)
     mean = torch.cat((p, bias.expand(*p.shape[:-1], n - 3)), -1)
-    return mean, _sym(T @ cov @ T.transpose(-1, -2))
+    return mean, symmetric_part(T @ cov @ T.transpose(-1, -2))
 
 
 class ErrorStateMeasurement(MeasurementModel):
@@ -169,7 +177,7 @@ class ErrorStateMeasurement(MeasurementModel):
     def jacobian(self, x: Tensor) -> Tensor:
         state = self.state(x)
         T, _ = _mrp_map(state[..., :3], x.shape[-1])
-        _, J, _ = _exp_and_right_jacobian(x[..., :3])
+        _, J, _ = exp_and_right_jacobian(x[..., :3])
         T = T.clone()
         T[..., :3, :3] = T[..., :3, :3] @ J
         return self.inner.jacobian(state) @ T

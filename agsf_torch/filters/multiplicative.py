@@ -47,11 +47,11 @@ from ..update import ComponentUpdate
 from .base import BaseFilter, UpdateFrame
 from .error_state import (
     ErrorStateMeasurement,
-    _exp_and_right_jacobian,
-    _sym,
     error_state_to_mrp,
+    exp_and_right_jacobian,
     mrp_to_error_state,
     rotation_series,
+    symmetric_part,
 )
 
 __all__ = [
@@ -197,7 +197,7 @@ class MultiplicativeEKF(BaseFilter):
         Returns:
             ``(Φ [..., n, n], Q_d [..., n, n])``, ``n`` the model's state dimension.
         """
-        R, J, f = _exp_and_right_jacobian(omega * dt)
+        R, J, f = exp_and_right_jacobian(omega * dt)
         eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
         sv2 = self.model.sigma_v.to(omega) ** 2
         if not self.model.estimate_bias:
@@ -226,7 +226,7 @@ class MultiplicativeEKF(BaseFilter):
         q = quat_multiply(*torch.broadcast_tensors(rotvec_to_quat(omega * dt), q))
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
         Phi, Q = self.transition(omega, dt)
-        P = _sym(Phi @ P @ Phi.transpose(-1, -2) + Q)
+        P = symmetric_part(Phi @ P @ Phi.transpose(-1, -2) + Q)
         b = b.expand(*q.shape[:-1], b.shape[-1])
         return self._to_mixture(mixture, q, b, P), repairs
 
@@ -250,10 +250,10 @@ class MultiplicativeEKF(BaseFilter):
         q_post = q_post / torch.linalg.vector_norm(q_post, dim=-1, keepdim=True)
         b_post = b.expand(*batch, n - 3) + dx[..., 3:]
         if self.covariance_reset:
-            _, J, _ = _exp_and_right_jacobian(dx[..., :3])
+            _, J, _ = exp_and_right_jacobian(dx[..., :3])
             Gam = torch.eye(n, dtype=P_post.dtype, device=P_post.device).expand(*batch, n, n).clone()
             Gam[..., :3, :3] = J
-            P_post = _sym(Gam @ P_post @ Gam.transpose(-1, -2))
+            P_post = symmetric_part(Gam @ P_post @ Gam.transpose(-1, -2))
         P_post, repairs = self._checked(P_post, "after the measurement update")
         out = self._to_mixture(prior, q_post, b_post, P_post)
         keep = (result.dof == 0)[..., None, None]

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 import time
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from ..chunks import check_chunk_size
 from ..models.base import ContinuousModel
 from ..quadrature import ProductRule
 from ..shapes import broadcast_shapes
@@ -30,7 +30,6 @@ __all__ = [
     "GalerkinMatrices",
     "galerkin_matrices",
     "fused_galerkin_matrices",
-    "check_chunk_size",
 ]
 
 
@@ -116,21 +115,6 @@ def _kernel(name: str, compile: bool):
     if name not in _COMPILED:
         _COMPILED[name] = _AnnouncedCompile(name, fn)
     return _COMPILED[name]
-
-
-def check_chunk_size(chunk_size: int | None) -> int | None:
-    """``chunk_size`` as an ``int ≥ 1`` (or ``None``: sized automatically), else ``ValueError``.
-
-    The one check of the option, shared by the matrices here and the weight updates that
-    pass it on (at construction, so that a bad value is refused before any step): zero,
-    negative, fractional, bool and non-numeric values are refused.
-    """
-    if chunk_size is None:
-        return None
-    ok = isinstance(chunk_size, (numbers.Integral, float)) and not isinstance(chunk_size, bool)
-    if not ok or not 1 <= chunk_size < float("inf") or int(chunk_size) != chunk_size:
-        raise ValueError(f"chunk_size must be a positive integer or None, got {chunk_size!r}")
-    return int(chunk_size)
 
 
 def _pairs(rates: ComponentRates) -> tuple[ProductGaussians, Tensor]:

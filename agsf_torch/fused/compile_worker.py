@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..torch_internals import torch_internal_deprecations_hidden
-from .lanes import _compile_ahead_of_time
+from .lanes import compile_ahead_of_time
 
 
 def main(job: str) -> None:
@@ -21,7 +21,7 @@ def main(job: str) -> None:
     t0 = time.perf_counter()
     if not Path(path).is_file():
         with torch_internal_deprecations_hidden():
-            _compile_ahead_of_time(kernel, inputs, shared, Path(path), serial, threads)
+            compile_ahead_of_time(kernel, inputs, shared, Path(path), serial, threads)
     print(f"{time.perf_counter() - t0:.1f}")
 
 

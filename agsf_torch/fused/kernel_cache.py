@@ -1,7 +1,7 @@
 """Where compiled kernels are kept, and who compiles them: the on-disk cache of :mod:`.lanes`' ahead-of-time kernels.
 
 A compiled kernel is an AOTInductor package in :func:`kernel_cache_dir`, named by a hash of everything its code
-depends on (:func:`_package_path`: the kernel, its static configuration, the variant and its thread count, the
+depends on (:func:`package_path`: the kernel, its static configuration, the variant and its thread count, the
 input dtypes and trailing shapes, the torch version and the source of every module of the package that the
 kernel's module imports, directly or through others: :func:`source_closure`, so that an edit of the physics or
 the algebra a kernel is built from compiles it again).  A process
@@ -41,7 +41,8 @@ def kernel_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "agsf-torch" / "kernels"
 
 
-def _kernel_name(kernel: Callable) -> str:
+def kernel_name(kernel: Callable) -> str:
+    """The name a kernel's packages and messages carry: its function's ``__name__`` (a partial's function's)."""
     return getattr(kernel, "__name__", None) or getattr(getattr(kernel, "func", None), "__name__", "kernel")
 
 
@@ -98,7 +99,7 @@ def source_closure(module: str) -> tuple[Path, ...]:
     return tuple(sorted(set(seen.values())))
 
 
-def _package_name(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor]) -> str:
+def package_name(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor]) -> str:
     """The cache file of a compiled kernel: everything its code depends on, hashed."""
     func = getattr(kernel, "func", kernel)
     h = hashlib.sha256()
@@ -108,27 +109,27 @@ def _package_name(kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared
     h.update(repr((torch.__version__, func.__module__, func.__qualname__, getattr(kernel, "keywords", {}))).encode())
     h.update(repr((key, [(t.dtype, tuple(t.shape[1:])) for t in inputs])).encode())
     h.update(repr([(t.dtype, tuple(t.shape)) for t in shared]).encode())
-    return f"{_kernel_name(kernel)}-{h.hexdigest()[:24]}.pt2"
+    return f"{kernel_name(kernel)}-{h.hexdigest()[:24]}.pt2"
 
 
-def _variant_threads(serial: bool) -> int:
+def variant_threads(serial: bool) -> int:
     """The OpenMP threads a variant is compiled for: none for the serial one, this process's torch threads for the
-    threaded one (the compiler writes the count into the code: :func:`_package_path`)."""
+    threaded one (the compiler writes the count into the code: :func:`package_path`)."""
     return 1 if serial else torch.get_num_threads()
 
 
-def _package_path(
+def package_path(
     kernel: Callable, key: tuple, inputs: Sequence[Tensor], shared: Sequence[Tensor], serial: bool
 ) -> Path:
     """Where the compiled kernel of this call is kept (``inputs``: its export sample): the threaded variant per
     lane count and per thread count (this process's torch threads: a kernel compiled in a one-thread process,
     a test worker's say, has no parallel region, and a two-thread process loaded it and ran 30 % slower)."""
-    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0], "threads", _variant_threads(serial))
-    return kernel_cache_dir() / _package_name(kernel, key + variant, inputs, shared)
+    variant = ("serial",) if serial else ("lanes", inputs[0].shape[0], "threads", variant_threads(serial))
+    return kernel_cache_dir() / package_name(kernel, key + variant, inputs, shared)
 
 
 @contextlib.contextmanager
-def _held(lock, name: str):
+def held(lock, name: str):
     """``lock`` acquired, announcing the wait when another process holds it (it compiles kernel ``name``)."""
     from filelock import Timeout
 

@@ -43,13 +43,13 @@ from torch import Tensor
 from ..processes import available_cpus, interpreter_env
 from ..torch_internals import torch_internal_deprecations_hidden
 from .kernel_cache import (
-    _held,
-    _kernel_name,
-    _package_path,
-    _variant_threads,
     compile_lock,
+    held,
     kernel_cache_dir,
+    kernel_name,
     package_damage,
+    package_path,
+    variant_threads,
 )
 
 __all__ = [
@@ -153,7 +153,7 @@ _PENDING: contextvars.ContextVar[dict[Path, tuple] | None] = contextvars.Context
 PARALLEL_MIN_LANES = COMPILED_CHUNK
 
 
-def _compile_ahead_of_time(
+def compile_ahead_of_time(
     kernel: Callable,
     inputs: Sequence[Tensor],
     shared: Sequence[Tensor],
@@ -165,7 +165,7 @@ def _compile_ahead_of_time(
     new file: ``0666`` less the umask): for the lane count of ``inputs`` (threaded code for ``threads`` OpenMP
     threads, by default this process's torch threads), or with ``serial`` for any lane count ≥ 2 (code without
     OpenMP threads).  The compiler writes the thread count into the code (one thread: no parallel region at all),
-    so it is part of the package's name (:func:`_package_path`)."""
+    so it is part of the package's name (:func:`package_path`)."""
     from torch._inductor import config as inductor_config
     from torch.export import Dim
 
@@ -186,7 +186,7 @@ def _compile_ahead_of_time(
     finally:
         os.close(fd)
     try:
-        with inductor_config.patch({"cpp.threads": 1 if serial else threads or _variant_threads(serial)}):
+        with inductor_config.patch({"cpp.threads": 1 if serial else threads or variant_threads(serial)}):
             torch._inductor.aoti_compile_and_package(program, package_path=str(tmp))
         os.chmod(tmp, mode)  # the compiler may have written a file of its own in the name's place
         os.replace(tmp, path)
@@ -199,8 +199,8 @@ def _load(
 ) -> Callable:
     """The compiled kernel (``serial``: its variant without threads): loaded from the cache, or compiled into it
     first (announced)."""
-    path = _package_path(kernel, key, inputs, shared, serial)
-    name = _kernel_name(kernel) + (" (serial)" if serial else "")
+    path = package_path(kernel, key, inputs, shared, serial)
+    name = kernel_name(kernel) + (" (serial)" if serial else "")
     damaged = False
     if path.is_file():
         try:
@@ -216,7 +216,7 @@ def _load(
             )
             damaged = True
     if damaged or not path.is_file():
-        with _held(compile_lock(path), name):  # another process compiling it: wait for its package, not compile again
+        with held(compile_lock(path), name):  # another process compiling it: wait for its package, not compile again
             if damaged and path.is_file() and package_damage(path) is not None:  # not yet replaced by another process
                 path.unlink(missing_ok=True)
             if not path.is_file():
@@ -228,7 +228,7 @@ def _load(
                 )
                 t0 = time.perf_counter()
                 with torch_internal_deprecations_hidden():  # torch's warnings about its own internals, not the user's
-                    _compile_ahead_of_time(kernel, inputs, shared, path, serial, _variant_threads(serial))
+                    compile_ahead_of_time(kernel, inputs, shared, path, serial, variant_threads(serial))
                 logger.info("compiled the fused kernel %r in %.1f s", name, time.perf_counter() - t0)
     return _load_package(path)
 
@@ -307,7 +307,7 @@ def run_in_chunks(
     serial = C < compiled_chunk  # below one chunk: the serial variant (PARALLEL_MIN_LANES for the default)
     chunk_lanes = None if serial else compiled_chunk  # the threaded variant is compiled for its chunk
     shapes = (*(t.dtype for t in inputs), *(tuple(t.shape[1:]) for t in inputs))
-    cache_key = (kernel, chunk_lanes, _variant_threads(serial), *key, *shapes)
+    cache_key = (kernel, chunk_lanes, variant_threads(serial), *key, *shapes)
     try:
         if cache_key in _FAILED:
             raise _Declined
@@ -329,7 +329,7 @@ def run_in_chunks(
         _FAILED.add(cache_key)
         why = " ".join(str(exc).split())  # the loader's messages run over several lines
         warnings.warn(
-            f"compiled kernel {_kernel_name(kernel)} failed ({type(exc).__name__}: {why}); running it eagerly",
+            f"compiled kernel {kernel_name(kernel)} failed ({type(exc).__name__}: {why}); running it eagerly",
             RuntimeWarning,
             stacklevel=2,
         )
@@ -339,11 +339,11 @@ def run_in_chunks(
 
 def _defer(kernel: Callable, key: tuple, part: Sequence[Tensor], shared: Sequence[Tensor], serial: bool) -> bool:
     """Inside :func:`compiling_in_parallel`: note a kernel that is not compiled yet (``True``: run it eagerly now)."""
-    path = _package_path(kernel, key, part, shared, serial)
+    path = package_path(kernel, key, part, shared, serial)
     if path.is_file():
         return False
-    name = _kernel_name(kernel) + (" (serial)" if serial else "")
-    job = (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial, _variant_threads(serial))
+    name = kernel_name(kernel) + (" (serial)" if serial else "")
+    job = (name, kernel, [t.clone() for t in part], [t.clone() for t in shared], serial, variant_threads(serial))
     _PENDING.get().setdefault(path, job)
     return True
 

@@ -189,12 +189,12 @@ def test_components_beyond_the_qp_limit_are_refused_before_any_work():
 @pytest.mark.parametrize("bad", [0, -1, -3, 2.5, True, "4", [4], float("inf"), float("nan")])
 @pytest.mark.parametrize("weight_update", ["penalty", "galerkin"])
 def test_bad_chunk_size_is_refused_and_options_are_frozen(weight_update, bad):
-    """One check (fpke.matrices.check_chunk_size) for every path: the update and the matrices; the options
+    """One check (chunks.check_chunk_size) for every path: the update and the matrices; the options
     of a built update cannot change."""
     from dataclasses import FrozenInstanceError
 
+    from agsf_torch.chunks import check_chunk_size
     from agsf_torch.filters.weight_updates import WEIGHT_UPDATES
-    from agsf_torch.fpke.matrices import check_chunk_size
 
     with pytest.raises(ValueError, match="chunk_size must be a positive integer or None"):
         WEIGHT_UPDATES[weight_update](chunk_size=bad)

@@ -25,7 +25,7 @@ from tests.helpers import random_mrps, random_unit_vectors
 CORE = [
     "filters",
     "filter_loop.py",
-    "experiments/runner.py",
+    "experiments/run/runner.py",
     "propagation.py",
     "update.py",
     "gating.py",

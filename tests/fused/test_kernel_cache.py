@@ -20,7 +20,7 @@ from tests.helpers import F64
 
 #: The real compilation ahead of time (conftest's guard replaces it in every test not marked slow): run here with
 #: the exporter and the compiler stood in for.
-_COMPILE_AHEAD_OF_TIME = lanes._compile_ahead_of_time
+_COMPILE_AHEAD_OF_TIME = lanes.compile_ahead_of_time
 
 
 def _kernel(x, y):
@@ -80,7 +80,7 @@ def cache(monkeypatch, tmp_path) -> list:
         raise RuntimeError("Failed to initialize zip archive: failed finding central directory")
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(lanes, "_compile_ahead_of_time", fake_compile)
+    monkeypatch.setattr(lanes, "compile_ahead_of_time", fake_compile)
     monkeypatch.setattr(lanes, "_load_package", load)
     monkeypatch.setattr(lanes, "_COMPILED", {})
     monkeypatch.setattr(lanes, "_FAILED", set())
@@ -94,7 +94,7 @@ def _inputs(gen, C=70):
 @pytest.mark.parametrize("damage", list(DAMAGED))
 def test_a_damaged_package_is_named_removed_and_compiled_again_in_the_same_run(gen, cache, damage):
     x, y = _inputs(gen)
-    path = lanes._package_path(_kernel, (), [x, y], [], True)
+    path = lanes.package_path(_kernel, (), [x, y], [], True)
     path.parent.mkdir(parents=True)
     path.write_bytes(DAMAGED[damage])
     with pytest.warns(RuntimeWarning) as caught:
@@ -111,7 +111,7 @@ def test_a_whole_package_that_fails_to_load_is_named_and_kept(gen, cache, monkey
     """A package that is whole but cannot be loaded here (a loader's failure, not the file's) is named in the
     warning, the call runs eagerly, and the package is not compiled again (it would fail alike)."""
     x, y = _inputs(gen)
-    path = lanes._package_path(_kernel, (), [x, y], [], True)
+    path = lanes.package_path(_kernel, (), [x, y], [], True)
     path.parent.mkdir(parents=True)
     path.write_bytes(PACKAGE)
 

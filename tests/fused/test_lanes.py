@@ -118,7 +118,7 @@ def fake_compiler(monkeypatch, tmp_path) -> list:
         path.write_bytes(b"package")
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(lanes, "_compile_ahead_of_time", fake_compile)
+    monkeypatch.setattr(lanes, "compile_ahead_of_time", fake_compile)
     monkeypatch.setattr(lanes, "_load_package", lambda path: _kernel)
     monkeypatch.setattr(lanes, "_COMPILED", {})
     return compiled
@@ -152,13 +152,13 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
 
 def test_the_cache_key_follows_what_the_compiled_code_depends_on(gen):
     x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
-    name = kernel_cache._package_name(_kernel, ("a",), (x, y), ())
-    assert kernel_cache._package_name(_kernel, ("a",), (x[:2], y[:2]), ()) == name  # the lane count is dynamic
-    assert kernel_cache._package_name(_kernel, ("b",), (x, y), ()) != name  # the static configuration
-    assert kernel_cache._package_name(_kernel, ("a",), (x.float(), y), ()) != name  # dtypes
-    assert kernel_cache._package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
-    assert kernel_cache._package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
-    assert kernel_cache._package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
+    name = kernel_cache.package_name(_kernel, ("a",), (x, y), ())
+    assert kernel_cache.package_name(_kernel, ("a",), (x[:2], y[:2]), ()) == name  # the lane count is dynamic
+    assert kernel_cache.package_name(_kernel, ("b",), (x, y), ()) != name  # the static configuration
+    assert kernel_cache.package_name(_kernel, ("a",), (x.float(), y), ()) != name  # dtypes
+    assert kernel_cache.package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
+    assert kernel_cache.package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
+    assert kernel_cache.package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
 
 
 def test_a_kernel_is_compiled_again_when_the_physics_it_is_built_from_changes(monkeypatch):
@@ -170,11 +170,11 @@ def test_a_kernel_is_compiled_again_when_the_physics_it_is_built_from_changes(mo
     closure = {str(p.relative_to(root)) for p in kernel_cache.source_closure(attitude_propagation_kernel.__module__)}
     assert {"fused/propagation.py", "attitude/physics.py", "fused/algebra.py"} <= closure
     x = torch.zeros(4, 6, dtype=F64)
-    name = kernel_cache._package_name(attitude_propagation_kernel, ("a",), (x,), ())
+    name = kernel_cache.package_name(attitude_propagation_kernel, ("a",), (x,), ())
     physics = root / "attitude" / "physics.py"
     read_bytes = Path.read_bytes
     monkeypatch.setattr(Path, "read_bytes", lambda p: read_bytes(p) + (b"# edited" if p == physics else b""))
-    assert kernel_cache._package_name(attitude_propagation_kernel, ("a",), (x,), ()) != name
+    assert kernel_cache.package_name(attitude_propagation_kernel, ("a",), (x,), ()) != name
 
 
 def test_the_kernel_cache_lives_where_the_environment_says(monkeypatch, tmp_path):

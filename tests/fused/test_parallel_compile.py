@@ -74,7 +74,7 @@ def test_inside_the_block_missing_kernels_run_eagerly_and_are_compiled_together_
 
 def test_a_kernel_already_in_the_cache_is_not_noted(gen, empty_cache, monkeypatch):
     x, y = _inputs(gen)
-    path = lanes._package_path(_kernel, (), [x, y], [], True)
+    path = lanes.package_path(_kernel, (), [x, y], [], True)
     path.parent.mkdir(parents=True)
     path.write_bytes(b"package")
     monkeypatch.setattr(lanes, "_load_package", lambda p: _kernel)
@@ -137,7 +137,7 @@ def test_kernels_compiled_side_by_side_are_loaded_by_later_calls_and_equal_the_e
         run_in_chunks(_kernel, (x, y), compile=True)
         run_in_chunks(_other_kernel, (x, y), compile=True)
     assert len(list(tmp_path.glob("*.pt2"))) == 2
-    monkeypatch.setattr(lanes, "_compile_ahead_of_time", lambda *a: pytest.fail("compiled again"))
+    monkeypatch.setattr(lanes, "compile_ahead_of_time", lambda *a: pytest.fail("compiled again"))
     for kernel in (_kernel, _other_kernel):
         out = run_in_chunks(kernel, (x, y), compile=True)
         # compiled code need not round as eager code does (another order of the sums, contracted multiply–adds)
@@ -176,12 +176,12 @@ def test_a_kernel_another_process_is_compiling_is_waited_for_and_loaded_not_comp
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
     x, y = _inputs(gen)
-    path = lanes._package_path(_kernel, (), [x, y], [], True)
+    path = lanes.package_path(_kernel, (), [x, y], [], True)
     held, release = threading.Event(), threading.Event()
     other = threading.Thread(target=_hold_then_write, args=(path, held, release))
     other.start()
     held.wait(10)
-    monkeypatch.setattr(lanes, "_compile_ahead_of_time", lambda *a: pytest.fail("compiled again"))
+    monkeypatch.setattr(lanes, "compile_ahead_of_time", lambda *a: pytest.fail("compiled again"))
     monkeypatch.setattr(lanes, "_load_package", lambda p: ("loaded", p.read_bytes()))
     threading.Timer(0.2, release.set).start()
     caplog.set_level(logging.INFO, logger="agsf_torch")

@@ -15,8 +15,8 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from ...chunks import check_chunk_size
 from ...fpke import ComponentRates, residual_rule
-from ...fpke.matrices import check_chunk_size
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...models.derived import provides
