@@ -390,8 +390,8 @@ def _compile_pending(jobs: dict[Path, tuple], processes: int | None) -> None:
 
     workers = max(1, min(len(jobs), processes or available_cpus()))
     logger.info(
-        "compiling the fused kernels %s ahead of time, %d at once (once per machine and torch version: about "
-        "10–60 s each on 2 cores; later processes load them from %s in about a second)",
+        "compiling the fused kernels %s ahead of time, %d at once (once per machine, torch version and kernel "
+        "source; later processes load them from %s)",
         ", ".join(repr(job[0]) for job in jobs.values()),
         workers,
         kernel_cache_dir(),

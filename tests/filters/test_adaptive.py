@@ -361,3 +361,52 @@ def test_one_weight_update_object_serves_one_filter():
     del first
     gc.collect()
     AdaptiveGaussianSumFilter(CubicDrift(), weight_update=update)
+
+
+class _KernelCalled(Exception):
+    """Raised by a stand-in for the FPKE matrices: the call and its ``compile`` flag are all the test needs."""
+
+
+@pytest.mark.parametrize("update", ["penalty", "galerkin"])
+@pytest.mark.parametrize(
+    ("compile_fused", "own", "compiled"),
+    [(True, None, True), (False, None, False), (True, False, False), (False, True, True)],
+)
+def test_the_filter_switch_compiles_the_weight_updates_kernels_unless_the_update_says_otherwise(
+    update, compile_fused, own, compiled, monkeypatch
+):
+    """One switch: ``compile_fused=True`` compiles the weight update's FPKE kernels too (before, a user who set it
+    alone got the penalty update's L eagerly, many times the fused GSF's step); the update's own ``compile``, when
+    given, overrides it.  The matrices are asked for with the resolved flag."""
+    from agsf_torch.filters import GalerkinWeightUpdate
+    from agsf_torch.filters.weight_updates import galerkin, penalty
+
+    flags = []
+
+    def stand_in(*args, compile, **kwargs):
+        flags.append(compile)
+        raise _KernelCalled
+
+    if update == "penalty":
+        weight_update = PenaltyWeightUpdate(compile=own)
+        monkeypatch.setattr(penalty, "fpke_matrix", stand_in)
+    else:
+        weight_update = GalerkinWeightUpdate(compile=own)
+        monkeypatch.setattr(galerkin, "galerkin_matrices", stand_in)
+    filt = AdaptiveGaussianSumFilter(
+        AttitudeModel(estimate_bias=False), weight_update=weight_update, compile_fused=compile_fused, fused=False
+    )
+    cov = 0.01 * torch.eye(3, dtype=F64).expand(1, 2, 3, 3).clone()
+    mix = GaussianMixture(
+        log_weights=torch.full((1, 2), -math.log(2), dtype=F64), means=torch.zeros(1, 2, 3, dtype=F64), covs=cov
+    )
+    with pytest.raises(_KernelCalled):
+        filt.predict(mix, torch.zeros(1, 3, dtype=F64), 0.1)
+    assert flags == [compiled]
+
+
+def test_a_weight_update_compile_of_another_type_is_refused():
+    with pytest.raises(
+        ValueError, match=r"compile must be True, False or None \(as the filter's compile_fused\), got 1"
+    ):
+        PenaltyWeightUpdate(compile=1)

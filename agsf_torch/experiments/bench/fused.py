@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from .harness import PROJECT_ROOT, attitude_mixture, side_by_side
+from .harness import IMPORT_ROOT, attitude_mixture, side_by_side
 
 __all__ = ["bench_propagation", "bench_update", "bench_spacecraft", "bench_compile", "propagation_kernel_flops"]
 
@@ -152,7 +152,7 @@ def bench_compile() -> dict[str, float]:
 
     out: dict[str, float] = {}
     for prepared, prefix in ((True, ""), (False, "sequential_")):
-        script = _FIRST_FUSED_STEP.format(root=str(PROJECT_ROOT), prepared=prepared)
+        script = _FIRST_FUSED_STEP.format(root=str(IMPORT_ROOT), prepared=prepared)
         with tempfile.TemporaryDirectory(prefix="agsf-inductor-") as cache:
             env = {
                 **os.environ,

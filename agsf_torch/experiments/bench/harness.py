@@ -10,15 +10,18 @@ from typing import Any
 
 import torch
 
+import agsf_torch
+
 from ...mixture import GaussianMixture
 
-__all__ = ["median_time", "side_by_side", "attitude_mixture", "WEIGHT_UPDATE_FILTERS", "PROJECT_ROOT"]
+__all__ = ["median_time", "side_by_side", "attitude_mixture", "WEIGHT_UPDATE_FILTERS", "IMPORT_ROOT"]
 
 F64 = torch.float64
 #: The registered filter of each weight update.
 WEIGHT_UPDATE_FILTERS = {"galerkin": "AGSF-galerkin", "penalty": "AGSF"}
-#: The checkout this package is imported from: the benchmark's subprocesses import the same code.
-PROJECT_ROOT = Path(__file__).resolve().parents[3]
+#: The folder this package is imported from (a checkout, or site-packages where it is installed): the benchmark's
+#: subprocesses put it first on their path and import the same code.
+IMPORT_ROOT = Path(agsf_torch.__file__).resolve().parent.parent
 
 
 def median_time(fn: Callable[[], Any], repeats: int, budget: float = 60.0) -> float:

@@ -36,7 +36,7 @@ import torch
 
 from ...storage.files import write_json
 from .fused import bench_compile, bench_propagation, bench_spacecraft, bench_update
-from .harness import PROJECT_ROOT, WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
+from .harness import IMPORT_ROOT, WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
 from .report import format_table, targets
 
 __all__ = ["run_bench", "format_table", "targets"]
@@ -116,14 +116,14 @@ print(time.perf_counter() - t0)
 """
 
 
-def _source_env(root: Path = PROJECT_ROOT) -> dict[str, str]:
+def _source_env(root: Path = IMPORT_ROOT) -> dict[str, str]:
     """The environment of a subprocess that imports the package of the checkout ``root`` (this one by default) first."""
     return {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 
 def bench_first_step(cases: tuple[tuple[str, bool], ...]) -> list[dict[str, Any]]:
     """Seconds from a new process's start to its first adaptive predict (6-state, N = 5, B = 256), twice per case."""
-    root = str(PROJECT_ROOT)
+    root = str(IMPORT_ROOT)
     rows = []
     for update, compile in cases:
         secs = []
@@ -200,7 +200,7 @@ def check_reference(reference: str | Path | None) -> Path | None:
     return folder
 
 
-def _main_job_seconds(extra: list[str], code: Path = PROJECT_ROOT) -> float:
+def _main_job_seconds(extra: list[str], code: Path = IMPORT_ROOT) -> float:
     """Wall seconds of ``agsf reproduce --case all`` in a new process running the checkout ``code`` (its working
     folder and the first entry of its ``PYTHONPATH``: ``python -m`` puts the working folder first, so another
     checkout's package would not be found), into a temporary folder."""

@@ -126,8 +126,13 @@ class _ExperimentFields:
                 if isinstance(value, bool) or not isinstance(value, int):
                     raise ValueError(f"config key '{key}' must be an integer, got {value!r}")
             elif kind == "bool":
-                if not isinstance(value, bool):
-                    raise ValueError(f"config key '{key}' must be true or false, got {value!r}")
+                off = CONFIG_OPTIONS[key].off if key in CONFIG_OPTIONS else None
+                if not isinstance(value, bool) and not (off is not None and value == off):
+                    raise ValueError(
+                        f"config key '{key}' must be true or false"
+                        + (f" (or {off!r})" if off is not None else "")
+                        + f", got {value!r}"
+                    )
             elif kind == "str":
                 if not isinstance(value, str):
                     raise ValueError(f"config key '{key}' must be a string, got {value!r}")

@@ -53,8 +53,8 @@ __all__ = [
 #: The fits' Newton decrement at convergence (nats): the estimate within ``√(2·10⁻⁴) = 0.014`` of its standard
 #: error of the maximum, which moves a 95 % interval's coverage by less than 0.1 %.
 TOLERANCE = 1e-4
-#: Trajectory-steps of one batched fit (3 states; a sixth of it with 6): its autograd graph, with the Hessian's,
-#: takes about 2.6 GB (measured at 200 data sets of 600 steps; the 6-state model 6.5 times as much per step).
+#: Trajectory-steps of one batched fit (3 states; a sixth of it with 6), which bounds the memory of its autograd
+#: graph and the Hessian's (the 6-state model's graph is larger per step).
 GRAPH_BUDGET = 120_000
 #: The mis-scalings of the configured value whose detection is measured (and their inverses).
 MIS_SCALINGS = (1.25, 1.5, 2.0, 3.0)

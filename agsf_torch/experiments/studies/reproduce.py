@@ -141,8 +141,7 @@ def _run_case(cfg, out: Path, progress: bool, force: bool) -> dict:
     """A case run end to end in a worker process (:func:`reproduce`; one torch thread, its progress bar drawn by the
     parent: :mod:`agsf_torch.experiments.run.worker_pool`); returns its entry of the combined summary.
 
-    The case runs in :func:`torch.inference_mode` (no autograd bookkeeping on any tensor: 9 % of a case's filter
-    loop, measured on 2 cores), which is safe here and nowhere else in the package: no tensor outlives the process,
+    The case runs in :func:`torch.inference_mode` (no autograd bookkeeping on any tensor), which is safe here and nowhere else in the package: no tensor outlives the process,
     whereas in a process that goes on, a cache filled in inference mode (a quadrature rule, say) could not take part
     in a later autograd computation."""
     import torch

@@ -253,15 +253,21 @@ class QuadratureUpdate(WeightUpdate):
             models' L on lanes, :mod:`agsf_torch.fused.pair_products`), a generic model's node kernels
             with ``torch.compile`` (a one-off compilation of 10–20 s per shape, kept in the on-disk
             inductor cache); unused by the closed-form Galerkin path, whose fused pair kernel follows
-            the filter's ``compile_fused``.
+            the filter's ``compile_fused``.  ``None`` (the default): as the filter's ``compile_fused``, so that
+            one switch compiles every kernel of an adaptive filter; ``True`` or ``False`` overrides it.
     """
 
     quadrature: Any = field(default=None, metadata=option("the residual integrals' rule (None: the model's exact one)"))
     chunk_size: int | None = field(
         default=None, metadata=option("quadrature nodes or pairs per batched evaluation (None: automatic)")
     )
-    compile: bool = field(
-        default=False, metadata=option("compile the FPKE kernels of the adaptive filters", config="bool")
+    compile: bool | None = field(
+        default=None,
+        metadata=option(
+            "compile the FPKE kernels of the adaptive filters (auto: as the filter's compile_fused)",
+            config="bool",
+            off="auto",
+        ),
     )
     rule: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -271,12 +277,16 @@ class QuadratureUpdate(WeightUpdate):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_chunk_size(self.chunk_size)
-        if not isinstance(self.compile, bool):
-            raise ValueError(f"compile must be True or False, got {self.compile!r}")
+        if self.compile is not None and not isinstance(self.compile, bool):
+            raise ValueError(
+                f"compile must be True, False or None (as the filter's compile_fused), got {self.compile!r}"
+            )
 
     def bind(self, model: ContinuousModel, *, fused: bool = True, compile_fused: bool = False) -> None:
         self.rule["nodes"], self.rule["weights"] = residual_rule(model, self.quadrature, self.factors)
         self.rule["fused"], self.rule["compile_fused"] = bool(fused), bool(compile_fused)
+        # one switch: unless set here, the FPKE kernels compile as the filter's fused kernels do
+        self.rule["compile"] = bool(compile_fused) if self.compile is None else self.compile
 
     def check(self, mixture: GaussianMixture) -> None:
         """The weight QP (:func:`~agsf_torch.qp.solve_simplex_qp`) takes ``N ≤ MAX_COMPONENTS`` components."""

@@ -126,7 +126,7 @@ class GalerkinWeightUpdate(QuadratureUpdate):
                 self.rule["nodes"],
                 self.rule["weights"],
                 self.chunk_size,
-                compile=self.compile,
+                compile=self.rule["compile"],
                 fused=False,
             )
         check_finite_matrix("Galerkin matrix K", G.drift)
@@ -151,7 +151,7 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         residual = self.rule.get("residual")
         if residual is not None:
             comp = component_rates(model, propagated, u) if comp is None else comp
-            Lmat = fpke_matrix(model, u, comp, *residual, self.chunk_size, compile=self.compile)
+            Lmat = fpke_matrix(model, u, comp, *residual, self.chunk_size, compile=self.rule["compile"])
             before = Lmat.error(w0)
             extra["fpke_error_before"] = before
             extra["fpke_error_with_rate"] = before + change

@@ -134,11 +134,11 @@ class PenaltyWeightUpdate(QuadratureUpdate):
             )
         Lmat = None
         if self.quadrature is None and self.rule["fused"]:  # the model's exact rule: rates and pairs on lanes
-            Lmat = fused_fpke_matrix(model, u, propagated.means, propagated.covs, self.compile)
+            Lmat = fused_fpke_matrix(model, u, propagated.means, propagated.covs, self.rule["compile"])
         if Lmat is None:
             comp = component_rates(model, propagated, u).with_precision()  # Πᵢ formed once, for L and its floor
             Lmat = fpke_matrix(
-                model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.compile
+                model, u, comp, self.rule["nodes"], self.rule["weights"], self.chunk_size, compile=self.rule["compile"]
             )
             Lmat = without_rounding_rows(Lmat, comp, model)
         bad = ~torch.isfinite(Lmat.scaled).flatten(-2).all(-1) | ~torch.isfinite(Lmat.log_scale)

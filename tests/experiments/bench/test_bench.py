@@ -214,7 +214,7 @@ def test_a_main_job_reference_that_is_not_a_checkout_is_refused_naming_it(tmp_pa
     with pytest.raises(ValueError, match=f"--main-job-reference {tmp_path} is not a checkout of agsf-torch"):
         bench.check_reference(tmp_path)
     assert bench.check_reference(None) is None
-    assert bench.check_reference(bench.PROJECT_ROOT) == bench.PROJECT_ROOT.resolve()
+    assert bench.check_reference(bench.IMPORT_ROOT) == bench.IMPORT_ROOT.resolve()
 
 
 @pytest.mark.parametrize("command", ["cli.py", "cli/__main__.py"])

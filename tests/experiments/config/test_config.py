@@ -148,3 +148,12 @@ def test_a_fault_after_the_end_of_a_simulated_run_is_named_in_a_warning_and_a_re
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert cli.main([*argv, "--out", str(tmp_path / "replay"), "--quiet"]) == 0
+
+
+def test_the_weight_updates_compile_follows_the_filters_switch_unless_set():
+    """``compile = "auto"`` (the default) leaves the adaptive filters' FPKE kernels to ``compile_fused``; true or
+    false sets them; anything else is refused naming the choices."""
+    assert load_config("case1", ["compile=auto"]).compile == "auto"
+    assert load_config("case1", ["compile=false"]).compile is False
+    with pytest.raises(ValueError, match=r"config key 'compile' must be true or false \(or 'auto'\), got 'maybe'"):
+        load_config("case1", ["compile=maybe"])
