@@ -17,6 +17,7 @@ from torch import Tensor
 
 from ..models.base import MeasurementModel
 from ..rotations import (
+    attitude_error_jacobian,
     cross_matrix,
     mrp_kinematics_matrix,
     mrp_to_quat,
@@ -92,9 +93,7 @@ def exp_and_right_jacobian(phi: Tensor) -> tuple[Tensor, Tensor, tuple[Tensor, .
 
 def _mrp_map(p: Tensor, n: int) -> tuple[Tensor, Tensor]:
     """``T = blockdiag(¼B(p), I)`` and its closed-form inverse ``blockdiag(4Bᵀ/(1+s)², I)``, ``[..., n, n]``."""
-    B = mrp_kinematics_matrix(p)
-    s = (p * p).sum(-1)[..., None, None]
-    G, G_inv = 0.25 * B, 4.0 * B.transpose(-1, -2) / (1.0 + s) ** 2
+    G, G_inv = 0.25 * mrp_kinematics_matrix(p), attitude_error_jacobian(p)  # ¼B(p) and its inverse 4Bᵀ/(1+s)²
     if n == 3:
         return G, G_inv
     T = torch.eye(n, dtype=p.dtype, device=p.device).expand(*p.shape[:-1], n, n).clone()
