@@ -14,6 +14,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..shapes import broadcast_shapes
+
 __all__ = [
     "Entry",
     "add",
@@ -266,11 +268,15 @@ def as_tensor(nested, like: Tensor | None = None) -> Tensor:
     flat = flatten(nested)
     tensors = [v for v in flat if isinstance(v, Tensor)]
     ref = tensors[0] if tensors else like
-    batch = torch.broadcast_shapes(*(v.shape for v in tensors)) if tensors else ()
-    cols = [
-        v.expand(batch)
-        if isinstance(v, Tensor)
-        else torch.full(batch, 0.0 if v is None else float(v), dtype=ref.dtype, device=ref.device)
-        for v in flat
-    ]
-    return torch.stack(cols, -1).reshape(*batch, *dims(nested))
+    batch = broadcast_shapes(*(v.shape for v in tensors)) if tensors else ()
+    constants: dict[float, Tensor] = {}  # one broadcast view per distinct constant (the structural zeros, say)
+
+    def column(v) -> Tensor:
+        if isinstance(v, Tensor):
+            return v.expand(batch)
+        value = 0.0 if v is None else float(v)
+        if value not in constants:
+            constants[value] = torch.full((), value, dtype=ref.dtype, device=ref.device).expand(batch)
+        return constants[value]
+
+    return torch.stack([column(v) for v in flat], -1).reshape(*batch, *dims(nested))
