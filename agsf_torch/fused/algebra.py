@@ -252,7 +252,7 @@ def as_entries(t: Tensor, shape: tuple[int, ...]):
     method applies a function written on entries (any leading dims; the views broadcast as their tensors do)."""
     if not shape:
         return t
-    return [as_entries(t.select(-len(shape), i), shape[1:]) for i in range(shape[0])]
+    return [as_entries(row, shape[1:]) for row in t.unbind(-len(shape))]
 
 
 def as_tensor(nested, like: Tensor | None = None) -> Tensor:
