@@ -10,6 +10,10 @@ Packages are written atomically and, like any new file, readable as the umask al
 so that a cache shared by a group serves all its users.  A package that cannot be loaded is judged
 (:func:`package_damage`): a damaged one (empty, cut short, a foreign or corrupt archive) is replaced by a new
 compilation, a whole one is kept.
+
+Kept by hand because no library keeps AOTInductor packages between processes, and the alternative that does,
+``torch.compile`` with its own caches, traces every unrolled kernel again in each new process before its first
+call: the main job then took about four times as long with every cache warm (the performance page).
 """
 
 from __future__ import annotations
