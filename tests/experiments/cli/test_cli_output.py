@@ -313,7 +313,6 @@ def test_the_agsf_command_exits_with_mains_code(tmp_path, monkeypatch, argv, cod
 def test_the_command_runs_as_a_module():
     """``python -m agsf_torch.experiments.cli`` is the ``agsf`` command (the package's ``__main__``)."""
     import subprocess
-    import sys
 
     done = subprocess.run(
         [sys.executable, "-m", "agsf_torch.experiments.cli", "--help"], capture_output=True, text=True, check=False
