@@ -14,8 +14,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..shapes import broadcast_shapes
-
 __all__ = [
     "Entry",
     "add",
@@ -268,15 +266,14 @@ def as_tensor(nested, like: Tensor | None = None) -> Tensor:
     flat = flatten(nested)
     tensors = [v for v in flat if isinstance(v, Tensor)]
     ref = tensors[0] if tensors else like
-    batch = broadcast_shapes(*(v.shape for v in tensors)) if tensors else ()
-    constants: dict[float, Tensor] = {}  # one broadcast view per distinct constant (the structural zeros, say)
-
-    def column(v) -> Tensor:
-        if isinstance(v, Tensor):
-            return v.expand(batch)
-        value = 0.0 if v is None else float(v)
-        if value not in constants:
-            constants[value] = torch.full((), value, dtype=ref.dtype, device=ref.device).expand(batch)
-        return constants[value]
-
-    return torch.stack([column(v) for v in flat], -1).reshape(*batch, *dims(nested))
+    values = sorted({0.0 if v is None else float(v) for v in flat if not isinstance(v, Tensor)})
+    constants = [torch.full((), value, dtype=ref.dtype, device=ref.device) for value in values]
+    # one call broadcasts every entry (each distinct constant, the structural zeros say, once)
+    views = iter(torch.broadcast_tensors(*tensors, *constants))
+    columns = [next(views) for _ in tensors]
+    constant_views = {value: next(views) for value in values}
+    tensor_columns = iter(columns)
+    stacked = [
+        next(tensor_columns) if isinstance(v, Tensor) else constant_views[0.0 if v is None else float(v)] for v in flat
+    ]
+    return torch.stack(stacked, -1).reshape(*stacked[0].shape, *dims(nested))
