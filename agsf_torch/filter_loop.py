@@ -18,9 +18,7 @@ sensor and no simulator.
 
 from __future__ import annotations
 
-import copy
 import itertools
-import logging
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -30,10 +28,7 @@ import torch
 from torch import Tensor
 
 from .filters.base import Filter
-from .fused.lanes import compiling_in_parallel
 from .mixture import GaussianMixture
-
-logger = logging.getLogger(__name__)
 
 __all__ = [
     "FilterSetup",
@@ -41,7 +36,6 @@ __all__ = [
     "FilterStep",
     "LoopStep",
     "filter_steps",
-    "prepare_fused_kernels",
     "initial_mixtures",
     "sample_prior",
     "PRIOR_SEED_OFFSET",
@@ -169,45 +163,6 @@ def initial_mixtures(setups: Mapping[str, FilterSetup], mean: Tensor, cov: Tenso
     return out
 
 
-def prepare_fused_kernels(
-    filters: Mapping[str, Filter], mixtures: Mapping[str, GaussianMixture], step: StepInput
-) -> None:
-    """Compile the fused kernels the filters' first ``step`` needs side by side, before it runs.
-
-    A first step with compiled fused kernels (``compile_fused=True``) would otherwise compile each kernel
-    when it is first called, one after another (the propagation's, then the update's).  Here a copy of each such filter rehearses the step inside
-    :func:`~agsf_torch.fused.lanes.compiling_in_parallel` (kernels not in the cache run eagerly; the results
-    are dropped, the filters themselves untouched), which then compiles them in parallel processes; the
-    real step loads them and runs compiled, with the same numbers as a process whose cache was warm.  The
-    rehearsal costs one step (eager where a kernel is missing) and nothing where no filter compiles; one
-    that fails (a filter that cannot be copied, an input the real step will refuse) is announced as a
-    warning and the loop goes on, each kernel compiling when first called;
-    :func:`filter_steps` calls it before its first step, and a loop of one's own can call it the same way.
-    """
-    compiling = [name for name, filt in filters.items() if _compiles(filt)]
-    if not compiling:
-        return
-    try:
-        with compiling_in_parallel():
-            for name in compiling:
-                rehearsal = copy.deepcopy(filters[name])
-                mix = rehearsal.predict(mixtures[name], step.u, step.dt)
-                if step.measurement is not None:  # (the step's correct() is left out: it may keep state,
-                    rehearsal.update(mix, *step.measurement)  # and it changes no kernel's shapes)
-    except Exception as exc:  # noqa: BLE001 - a preparation only: the real step compiles on first call, or raises
-        logger.warning(
-            "could not rehearse the first step to compile its fused kernels side by side (%s: %s); each compiles "
-            "when first called",
-            type(exc).__name__,
-            exc,
-        )
-
-
-def _compiles(filt: Filter) -> bool:
-    """Whether ``filt`` runs compiled fused kernels (a filter-like object without the options does not)."""
-    return bool(getattr(filt, "fused", False) and getattr(filt, "compile_fused", False))
-
-
 def filter_steps(
     filters: Mapping[str, Filter], mixtures: Mapping[str, GaussianMixture], inputs: Iterable[StepInput]
 ) -> Iterator[LoopStep]:
@@ -224,7 +179,6 @@ def filter_steps(
     first = next(steps, None)
     if first is None:
         return
-    prepare_fused_kernels(filters, beliefs, first)
     for index, inp in enumerate(itertools.chain([first], steps)):
         out: dict[str, FilterStep] = {}
         for name, filt in filters.items():

@@ -77,11 +77,12 @@ def _no_compilation_outside_slow_tests(request: pytest.FixtureRequest, monkeypat
     """A test not marked ``slow`` compiles no kernel: compiling takes 10–100 s per kernel on a machine whose caches
     are empty (a user's, a fresh CI runner), so a test that did would pass quickly here, where the caches are warm,
     and take minutes there.  Such tests see an empty kernel cache (``AGSF_TORCH_KERNEL_CACHE``) and fail where a
-    fused kernel would be compiled ahead of time or a kernel with ``torch.compile``; a test that fakes the compiler
+    kernel would be compiled ahead of time (:mod:`agsf_torch.compiled_kernels`) or with ``torch.compile``; a test that fakes the compiler
     (or runs the compile machinery on kernels that cannot compile) patches these after this fixture and so
     replaces the guard."""
     if request.node.get_closest_marker("slow") is not None:
         return
+    from agsf_torch import compiled_kernels
     from agsf_torch.fpke import matrices
     from agsf_torch.fused import lanes
 
@@ -93,8 +94,9 @@ def _no_compilation_outside_slow_tests(request: pytest.FixtureRequest, monkeypat
         )
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path_factory.mktemp("kernels")))
-    monkeypatch.setattr(lanes, "compile_ahead_of_time", refuse)
-    monkeypatch.setattr(lanes, "_compile_pending", refuse)
+    monkeypatch.setattr(compiled_kernels, "compile_ahead_of_time", refuse)
+    monkeypatch.setattr(compiled_kernels, "package_program", refuse)
+    monkeypatch.setattr(compiled_kernels, "_BY_GRAPH", {})
     monkeypatch.setattr(lanes, "_COMPILED", {})
-    monkeypatch.setattr(matrices, "_COMPILED", {})
+    monkeypatch.setattr(matrices, "_FAILED", set())
     monkeypatch.setattr(torch, "compile", refuse)

@@ -3,6 +3,8 @@ evaluation of ∂p/∂t − L_FP(p) for nonlinear models; closed forms equal tor
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -294,11 +296,17 @@ def test_galerkin_rule_is_exact_for_attitude(gen, estimate_bias):
     assert torch.equal(K["exact"].mass, closed.mass)  # closed form, no quadrature
 
 
-@pytest.mark.slow  # compiles with torch.compile
-def test_galerkin_matrices_compiled_equal_eager(gen):
+@pytest.mark.slow  # compiles ahead of time
+def test_galerkin_matrices_compiled_equal_eager(gen, monkeypatch, tmp_path):
+    """The generic node kernel compiled ahead of time (agsf_torch.compiled_kernels, keyed by its exported graph):
+    no fallback to the eager kernel (a warning would fail the test), one package written, the eager numbers."""
+    monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
     model, u, rates = _six_state_rates(gen)
     rule = gauss_hermite(model.fpke_quadrature_points(1))
     eager = galerkin_matrices(model, u, rates, *rule)
-    comp = galerkin_matrices(model, u, rates, *rule, compile=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        comp = galerkin_matrices(model, u, rates, *rule, compile=True, chunk_size=4000)  # 9261 nodes: a padded tail
+    assert [p.name.split("-")[0] for p in tmp_path.glob("*.pt2")] == ["fpke_galerkin"]
     bound = relative_bound(eager.drift, 1e-12, 1e-12 * float(eager.drift.abs().max()))
     assert_within(comp.drift, eager.drift, bound, "compiled drift matrix against eager")

@@ -7,6 +7,7 @@ import warnings
 
 import torch
 
+from agsf_torch import compiled_kernels
 from agsf_torch.fused import lanes
 from agsf_torch.torch_internals import torch_internal_deprecations_hidden
 
@@ -60,8 +61,8 @@ def test_a_compiled_fused_kernel_call_hides_it(monkeypatch, tmp_path):
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path))
     monkeypatch.setattr(lanes, "_COMPILED", {})
-    monkeypatch.setattr(lanes, "compile_ahead_of_time", compile_ahead_of_time)
-    monkeypatch.setattr(lanes, "_load_package", lambda path: kernel)
+    monkeypatch.setattr(compiled_kernels, "compile_ahead_of_time", compile_ahead_of_time)
+    monkeypatch.setattr(compiled_kernels, "load_package", lambda path: kernel)
     x = torch.arange(5.0, dtype=torch.float64)
     out = []
     shown = _shown(lambda: out.append(lanes.run_in_chunks(kernel, [x], compile=True, key=("test",))))

@@ -98,13 +98,13 @@ class FilterOptions:
         fused: use the fused (matrix-major) path of a model or measurement that declares one
             (:mod:`agsf_torch.fused`: the attitude model's propagation, the star-vector update);
             ``False``: the generic path (any model, ``torch.func``), the reference.
-        compile_fused: run the fused kernels compiled ahead of time (:mod:`agsf_torch.fused.lanes`:
-            per kernel a threaded variant for calls of 1,024 lanes or more and a serial one below,
-            each compiled on first use, once per machine, and loaded by later processes; the filter loop compiles a first step's kernels side
-            by side, :func:`agsf_torch.filter_loop.prepare_fused_kernels`); ``False`` runs the same code eagerly
-            (from :data:`~agsf_torch.fused.lanes.EAGER_MIN_LANES` components on; fewer take the
-            generic path, which is faster there).  The adaptive filters' FPKE kernels are
-            compiled by their weight update's own ``compile``.
+        compile_fused: the package's one compile switch: run its kernels compiled ahead of time
+            (:mod:`agsf_torch.compiled_kernels`: the fused kernels of :mod:`agsf_torch.fused.lanes`, per kernel a
+            threaded variant for calls of 1,024 lanes or more and a serial one below, and the adaptive filters'
+            FPKE kernels, unless their weight update's ``compile`` overrides it), each compiled on first use, once
+            per machine, and loaded by later processes; ``False`` runs the same code eagerly (the fused kernels from
+            :data:`~agsf_torch.fused.lanes.EAGER_MIN_LANES` components on; fewer take the generic path, which is
+            faster there).
     """
 
     update_iterations: int = field(

@@ -6,19 +6,20 @@ and ``K_ij = z_ij E[ℓⱼ]``, each evaluated over the ``N(N+1)/2`` unordered pa
 
 from __future__ import annotations
 
-import logging
+import copy
+import functools
 import math
-import time
+import warnings
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..chunks import check_chunk_size
+from ..compiled_kernels import compiled_function
 from ..models.base import ContinuousModel
 from ..quadrature import ProductRule
 from ..shapes import broadcast_shapes
-from ..torch_internals import torch_internal_deprecations_hidden
 from .moments import residual_mean
 from .pairs import ProductGaussians, product_gaussians
 from .residual import ComponentRates, residual_factor
@@ -72,49 +73,114 @@ def _galerkin_chunk(
     return torch.stack(((vi * wq).sum(-1), (vj * wq).sum(-1)))
 
 
-_log = logging.getLogger(__name__)
-
-
-class _AnnouncedCompile:
-    """``torch.compile(fn)`` whose first call — the one that compiles — is logged at INFO on the
-    ``agsf_torch`` logger when it starts and when it ends (with its duration), since it takes
-    seconds; later calls go straight to the compiled function."""
-
-    def __init__(self, name: str, fn):
-        self.name = name
-        self._compiled_fn = torch.compile(fn)
-        self._first_call_done = False
-
-    def __call__(self, *args):
-        if self._first_call_done:
-            with torch_internal_deprecations_hidden():  # a new shape recompiles
-                return self._compiled_fn(*args)
-        _log.info(
-            "compiling the FPKE kernel %r with torch.compile (first step only: a few seconds once "
-            "torch's on-disk cache holds it, about 20 s the first time on a machine)",
-            self.name,
-        )
-        t0 = time.perf_counter()
-        with torch_internal_deprecations_hidden():
-            out = self._compiled_fn(*args)
-        self._first_call_done = True
-        _log.info("compiled the FPKE kernel %r in %.1f s", self.name, time.perf_counter() - t0)
-        return out
-
-
-_COMPILED: dict[str, _AnnouncedCompile] = {}
+_CHUNKS = {"pair": _pair_chunk, "galerkin": _galerkin_chunk, "product": _product_chunk}
+#: Chunk kernels of a model whose export or compilation failed (kernel name, model class): run eagerly.
+_FAILED: set[tuple[str, type]] = set()
 
 
 def _kernel(name: str, compile: bool):
-    """The chunk kernel ``name``, eager or ``torch.compile``-d once per process
-    (static first, dynamic after a shape change: no recompile storm); the compilation
-    is announced on the ``agsf_torch`` logger (INFO)."""
-    fn = {"pair": _pair_chunk, "galerkin": _galerkin_chunk, "product": _product_chunk}[name]
-    if not compile:
-        return fn
-    if name not in _COMPILED:
-        _COMPILED[name] = _AnnouncedCompile(name, fn)
-    return _COMPILED[name]
+    """The chunk kernel ``name`` (called as ``kernel(model, *args)``), eager or compiled ahead of time for each
+    model and shape (:func:`_compiled_chunk`)."""
+    fn = _CHUNKS[name]
+    return functools.partial(_compiled_chunk, name) if compile else fn
+
+
+def _model_tensors(model: ContinuousModel) -> dict[str, Tensor]:
+    """A model's own tensors (its buffers and parameters, or plain tensor attributes): inputs of its compiled kernels,
+    not constants baked into them."""
+    if isinstance(model, torch.nn.Module):
+        found = {**dict(model.named_buffers(recurse=False)), **dict(model.named_parameters(recurse=False))}
+    else:
+        found = {key: value for key, value in vars(model).items() if torch.is_tensor(value)}
+    return {key: found[key] for key in sorted(found) if found[key] is not None}
+
+
+def _with_tensors(model: ContinuousModel, tensors: dict[str, Tensor]) -> ContinuousModel:
+    """A shallow copy of ``model`` whose own tensors (:func:`_model_tensors`) are ``tensors``."""
+    traced = copy.copy(model)
+    if isinstance(model, torch.nn.Module):
+        traced._buffers, traced._parameters = dict(model._buffers), dict(model._parameters)
+        for key, value in tensors.items():
+            (traced._parameters if key in model._parameters else traced._buffers)[key] = value
+    else:
+        for key, value in tensors.items():
+            object.__setattr__(traced, key, value)
+    return traced
+
+
+def _fingerprint(model: ContinuousModel) -> tuple:
+    """What a model's compiled chunk kernels depend on besides their inputs: its class and its attributes other
+    than tensors (its tensors, inputs of the kernels, by dtype and shape)."""
+    own = _model_tensors(model)
+    parts = [(key, (value.dtype, tuple(value.shape))) for key, value in own.items()]
+    for key, value in sorted(vars(model).items()):
+        if key not in ("_buffers", "_parameters") and not torch.is_tensor(value):
+            parts.append((key, repr(value)))
+    return (type(model), tuple(parts))
+
+
+def _compiled_chunk(name: str, model: ContinuousModel, *args):
+    """``_CHUNKS[name](model, *args)`` compiled ahead of time (:func:`agsf_torch.compiled_kernels.compiled_function`:
+    keyed by the exported graph, exported once per process, model and shape).  A model whose kernel cannot be
+    exported or compiled (data-dependent control flow, say) runs it eagerly after one warning; so does a call that
+    needs gradients (a compiled kernel has no backward)."""
+    fn = _CHUNKS[name]
+    flat: list[Tensor] = []
+    layout: list = []  # per argument: None, "tensor" or the ComponentRates' field count
+    for arg in args:
+        if arg is None:
+            layout.append(None)
+        elif isinstance(arg, ComponentRates):
+            fields = (arg.means, arg.chol, arg.mean_rates, arg.cov_rates, arg.precision, arg.covs)
+            flat.extend(t.contiguous() for t in fields)
+            layout.append(len(fields))
+        else:
+            flat.append(arg.contiguous())
+            layout.append("tensor")
+    own = _model_tensors(model)
+    names = list(own)
+    flat.extend(own.values())
+    if (name, type(model)) in _FAILED or (torch.is_grad_enabled() and any(t.requires_grad for t in flat)):
+        return fn(model, *args)
+
+    def kernel(*tensors: Tensor) -> tuple[Tensor, ...]:
+        it = iter(tensors)
+        traced = _with_tensors(model, dict(zip(names, tensors[len(tensors) - len(names) :])))
+        rebuilt = []
+        for kind in layout:
+            if kind is None:
+                rebuilt.append(None)
+            elif kind == "tensor":
+                rebuilt.append(next(it))
+            else:
+                means, chol, mean_rates, cov_rates, precision, covs = (next(it) for _ in range(kind))
+                rebuilt.append(ComponentRates(means, chol, mean_rates, cov_rates, precision, covs))
+        out = fn(traced, *rebuilt)
+        return out if isinstance(out, tuple) else (out,)
+
+    try:
+        compiled = compiled_function(f"fpke_{name}", kernel, flat, (_fingerprint(model), tuple(layout)))
+        out = compiled(*flat)
+    except Exception as exc:  # noqa: BLE001 - any exporter, compiler or runtime failure: the eager kernel
+        _FAILED.add((name, type(model)))
+        why = " ".join(str(exc).split())
+        warnings.warn(
+            f"the FPKE kernel {name!r} of {type(model).__name__} could not be compiled ({type(exc).__name__}: "
+            f"{why[:300]}); running it eagerly",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return fn(model, *args)
+    return out if name == "product" else out[0]
+
+
+def _padded_nodes(xi: Tensor, wq: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """A chunk of nodes ``xi [k, n]`` and weights ``wq [k]`` padded to ``size`` nodes of weight zero (at the
+    origin, where every integrand is finite), so that a compiled kernel sees one shape."""
+    k = xi.shape[0]
+    if k == size:
+        return xi, wq
+    return torch.cat((xi, xi.new_zeros(size - k, xi.shape[1]))), torch.cat((wq, wq.new_zeros(size - k)))
 
 
 def _pairs(rates: ComponentRates) -> tuple[ProductGaussians, Tensor]:
@@ -145,9 +211,12 @@ def _integrate_pairs(
         per_node = max(1, int(m[..., 0].numel()) * n * n)
         chunk_size = max(1, max_chunk_elements // per_node)
     acc = torch.zeros(*out_shape, *m.shape[:-1], dtype=m.dtype, device=m.device)
+    compiled = isinstance(kernel, functools.partial)
     for start in range(0, nodes.shape[0], chunk_size):
         xi = nodes[start : start + chunk_size].to(m)
         wq = node_weights[start : start + chunk_size].to(m)
+        if compiled:  # one shape for every chunk: the last padded with nodes of weight zero
+            xi, wq = _padded_nodes(xi, wq, min(chunk_size, nodes.shape[0]))
         acc = acc + kernel(model, m, prod.chol, xi, wq, u, prod.first, prod.second)
     return prod, log_scale, acc
 
@@ -178,8 +247,13 @@ def _product_rule_pairs(
     if chunk_size is None:
         chunk_size = max(1, max_chunk_elements // (K * n * n))
     out = []
-    for a in range(0, m.shape[0], chunk_size):
-        sl = slice(a, a + chunk_size)
+    P = m.shape[0]
+    # compiled: one shape for every chunk, the last padded with copies of its first pair (their values dropped)
+    rows = (
+        (lambda a: _padded_rows(a, min(chunk_size, P), P, m.device)) if isinstance(kernel, functools.partial) else None
+    )
+    for a in range(0, P, chunk_size):
+        sl = slice(a, a + chunk_size) if rows is None else rows(a)
         vi, vj = kernel(
             model,
             m[sl],
@@ -189,11 +263,18 @@ def _product_rule_pairs(
             ri.map(lambda t, dim: t[sl]),
             rj.map(lambda t, dim: t[sl]),
         )
+        vi, vj = vi[: min(chunk_size, P - a)], vj[: min(chunk_size, P - a)]
         c = rule.coefficients(torch.stack((vi, vj)))
         out.append((c[0] * c[1]).sum(-1))
     if not out:  # no pairs: an empty batch
         return m.new_zeros(lead)
     return torch.cat(out).reshape(lead)
+
+
+def _padded_rows(a: int, size: int, total: int, device: torch.device) -> Tensor:
+    """The rows ``a, a+1, …`` of a chunk of ``size`` rows out of ``total``: past the end, row ``a`` again."""
+    index = torch.arange(a, a + size, device=device)
+    return torch.where(index < total, index, a)
 
 
 @dataclass(frozen=True)
@@ -253,10 +334,10 @@ def fpke_matrix(
             node — exact with far fewer nodes than a rule of twice the degree.
         chunk_size: nodes per chunk (quadrature) or pairs per chunk (product rule), a
             positive integer, or ``None`` (automatic).
-        compile: evaluate the per-chunk products with a ``torch.compile``-d
-            kernel (fused elementwise work, after a one-off compilation per shape); the model's own
-            route is asked for its compiled form (the attitude models: the lanes kernel of
-            :mod:`agsf_torch.fused.pair_products`, compiled ahead of time once per machine).
+        compile: evaluate the per-chunk products with the kernel compiled ahead of time
+            (:mod:`agsf_torch.compiled_kernels`, keyed by its exported graph: once per machine, model and shape);
+            the model's own route is asked for its compiled form (the attitude models: the lanes kernel of
+            :mod:`agsf_torch.fused.pair_products`).
         pair_products: with a :class:`ProductRule`, take the model's own exact route to ``E[ℓᵢℓⱼ]`` when it
             has one (:meth:`~agsf_torch.models.base.ContinuousModel.fpke_pair_products`: the 6-state attitude
             model integrates the bias block in closed form); ``False`` interpolates on the product rule.

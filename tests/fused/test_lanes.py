@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from agsf_torch.fused import algebra, kernel_cache, lanes
+from agsf_torch import compiled_kernels
+from agsf_torch.fused import algebra, lanes
 from agsf_torch.fused.lanes import entries, run_in_chunks, stack_entries
 from tests.helpers import F64, assert_within
 
@@ -118,8 +119,8 @@ def fake_compiler(monkeypatch, tmp_path) -> list:
         path.write_bytes(b"package")
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(lanes, "compile_ahead_of_time", fake_compile)
-    monkeypatch.setattr(lanes, "_load_package", lambda path: _kernel)
+    monkeypatch.setattr(compiled_kernels, "compile_ahead_of_time", fake_compile)
+    monkeypatch.setattr(compiled_kernels, "load_package", lambda path: _kernel)
     monkeypatch.setattr(lanes, "_COMPILED", {})
     return compiled
 
@@ -136,7 +137,7 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
     x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
     run_in_chunks(_kernel, (x, y), compile=True)
     run_in_chunks(_kernel, (x, y), compile=True)
-    assert [r.getMessage().split(" the fused kernel ")[0] for r in caplog.records] == ["compiling", "compiled"]
+    assert [r.getMessage().split(" the kernel ")[0] for r in caplog.records] == ["compiling", "compiled"]
     assert "'_kernel (serial)' ahead of time" in caplog.records[0].getMessage()
     assert len(compiled()) == 1 and compiled()[0].parent == tmp_path / "cache"
     assert compiled()[0].name.startswith("_kernel-")
@@ -152,13 +153,13 @@ def test_the_compilation_is_announced_once_and_kept_on_disk(monkeypatch, caplog,
 
 def test_the_cache_key_follows_what_the_compiled_code_depends_on(gen):
     x, y = torch.randn(5, 3, generator=gen, dtype=F64), torch.randn(5, 2, generator=gen, dtype=F64)
-    name = kernel_cache.package_name(_kernel, ("a",), (x, y), ())
-    assert kernel_cache.package_name(_kernel, ("a",), (x[:2], y[:2]), ()) == name  # the lane count is dynamic
-    assert kernel_cache.package_name(_kernel, ("b",), (x, y), ()) != name  # the static configuration
-    assert kernel_cache.package_name(_kernel, ("a",), (x.float(), y), ()) != name  # dtypes
-    assert kernel_cache.package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
-    assert kernel_cache.package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
-    assert kernel_cache.package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
+    name = compiled_kernels.package_name(_kernel, ("a",), (x, y), ())
+    assert compiled_kernels.package_name(_kernel, ("a",), (x[:2], y[:2]), ()) == name  # the lane count is dynamic
+    assert compiled_kernels.package_name(_kernel, ("b",), (x, y), ()) != name  # the static configuration
+    assert compiled_kernels.package_name(_kernel, ("a",), (x.float(), y), ()) != name  # dtypes
+    assert compiled_kernels.package_name(_kernel, ("a",), (x[:, :2], y), ()) != name  # trailing shapes
+    assert compiled_kernels.package_name(_kernel, ("a",), (x, y), (torch.tensor(1.0),)) != name  # shared inputs
+    assert compiled_kernels.package_name(lambda a, b: a, ("a",), (x, y), ()) != name  # the kernel
 
 
 def test_a_kernel_is_compiled_again_when_the_physics_it_is_built_from_changes(monkeypatch):
@@ -166,23 +167,25 @@ def test_a_kernel_is_compiled_again_when_the_physics_it_is_built_from_changes(mo
     the propagation kernel lives in fused/ but is built from attitude/physics.py and fused/algebra.py."""
     from agsf_torch.fused.propagation import attitude_propagation_kernel
 
-    root = Path(kernel_cache.__file__).resolve().parents[1]
-    closure = {str(p.relative_to(root)) for p in kernel_cache.source_closure(attitude_propagation_kernel.__module__)}
+    root = Path(compiled_kernels.__file__).resolve().parent
+    closure = {
+        str(p.relative_to(root)) for p in compiled_kernels.source_closure(attitude_propagation_kernel.__module__)
+    }
     assert {"fused/propagation.py", "attitude/physics.py", "fused/algebra.py"} <= closure
     x = torch.zeros(4, 6, dtype=F64)
-    name = kernel_cache.package_name(attitude_propagation_kernel, ("a",), (x,), ())
+    name = compiled_kernels.package_name(attitude_propagation_kernel, ("a",), (x,), ())
     physics = root / "attitude" / "physics.py"
     read_bytes = Path.read_bytes
     monkeypatch.setattr(Path, "read_bytes", lambda p: read_bytes(p) + (b"# edited" if p == physics else b""))
-    assert kernel_cache.package_name(attitude_propagation_kernel, ("a",), (x,), ()) != name
+    assert compiled_kernels.package_name(attitude_propagation_kernel, ("a",), (x,), ()) != name
 
 
 def test_the_kernel_cache_lives_where_the_environment_says(monkeypatch, tmp_path):
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "k"))
-    assert lanes.kernel_cache_dir() == tmp_path / "k"
+    assert compiled_kernels.kernel_cache_dir() == tmp_path / "k"
     monkeypatch.delenv("AGSF_TORCH_KERNEL_CACHE")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert lanes.kernel_cache_dir() == tmp_path / "xdg" / "agsf-torch" / "kernels"
+    assert compiled_kernels.kernel_cache_dir() == tmp_path / "xdg" / "agsf-torch" / "kernels"
 
 
 @pytest.mark.slow

@@ -128,15 +128,12 @@ import torch
 sys.path.insert(0, {root!r})
 from agsf_torch.experiments.bench.fused import _star_problem
 from agsf_torch.experiments.bench.harness import attitude_mixture
-from agsf_torch.filter_loop import StepInput, prepare_fused_kernels
 from agsf_torch.filters.registry import make_filter
 from agsf_torch.models import AttitudeModel
 filt = make_filter("GSF", AttitudeModel(estimate_bias=True), compile_fused=True)
 mix = attitude_mixture(256, 5, True, torch.Generator().manual_seed(0))
 y, meas = _star_problem(256)
 u = torch.full((256, 3), 0.06, dtype=torch.float64)
-if {prepared!r}:
-    prepare_fused_kernels({{"GSF": filt}}, {{"GSF": mix}}, StepInput(0.1, u, (y, meas)))
 filt.update(filt.predict(mix, u, 0.1), y, meas)
 print(time.perf_counter() - t0)
 """
@@ -144,26 +141,17 @@ print(time.perf_counter() - t0)
 
 def bench_compile() -> dict[str, float]:
     """Seconds from a new process's start to its first compiled fused predict + update (6-state, N = 5,
-    B = 256): with torch's inductor cache and the kernel cache empty, then filled by that run; the kernels
-    compiled side by side first (:func:`agsf_torch.filter_loop.prepare_fused_kernels`, as
-    :func:`~agsf_torch.filter_loop.filter_steps` does), and, for reference, one after another as each is
-    first called (``sequential_*``)."""
+    B = 256): with torch's inductor cache and the kernel cache empty (each kernel compiled when first called,
+    in the process), then filled by that run."""
     import os
 
     out: dict[str, float] = {}
-    for prepared, prefix in ((True, ""), (False, "sequential_")):
-        script = _FIRST_FUSED_STEP.format(root=str(IMPORT_ROOT), prepared=prepared)
-        with tempfile.TemporaryDirectory(prefix="agsf-inductor-") as cache:
-            env = {
-                **os.environ,
-                "TORCHINDUCTOR_CACHE_DIR": cache,
-                "AGSF_TORCH_KERNEL_CACHE": str(Path(cache) / "kernels"),
-            }
-            secs = []
-            for _ in range(2):
-                run = subprocess.run(
-                    [sys.executable, "-c", script], capture_output=True, text=True, check=True, env=env
-                )
-                secs.append(float(run.stdout.strip().splitlines()[-1]))
-        out[prefix + "cold_s"], out[prefix + "warm_s"] = secs
+    script = _FIRST_FUSED_STEP.format(root=str(IMPORT_ROOT))
+    with tempfile.TemporaryDirectory(prefix="agsf-inductor-") as cache:
+        env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache, "AGSF_TORCH_KERNEL_CACHE": str(Path(cache) / "kernels")}
+        secs = []
+        for _ in range(2):
+            run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, env=env)
+            secs.append(float(run.stdout.strip().splitlines()[-1]))
+    out["cold_s"], out["warm_s"] = secs
     return out

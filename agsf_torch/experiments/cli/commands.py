@@ -252,15 +252,15 @@ def _refuse_set(items: list[str] | None, owners: dict[str, str]) -> None:
 
 def _threads(args: argparse.Namespace) -> None:
     """Torch threads: ``--threads`` if given, else torch's count (its default, the machine's cores, or
-    ``OMP_NUM_THREADS``) capped at the CPUs this process may use (:func:`~agsf_torch.processes.available_cpus`:
+    ``OMP_NUM_THREADS``) capped at the CPUs this process may use (``joblib.cpu_count``:
     torch does not count a container's CPU quota, and more threads than the quota allows take turns and run slower
     than fewer)."""
-    from ...processes import available_cpus
+    import joblib
 
     if getattr(args, "threads", None):
         torch.set_num_threads(max(1, args.threads))
-    elif torch.get_num_threads() > available_cpus():
-        torch.set_num_threads(available_cpus())
+    elif torch.get_num_threads() > joblib.cpu_count(only_physical_cores=False):
+        torch.set_num_threads(joblib.cpu_count(only_physical_cores=False))
 
 
 def _print_summary(name: str, summary: dict) -> None:
@@ -305,9 +305,9 @@ def calibrate_command(args: argparse.Namespace) -> int:
     settings = settings_named(args.setting, study)
     if args.datasets < 2:
         raise ValueError(f"--datasets must be at least 2 (rates over data sets), got {args.datasets}")
-    from ...processes import available_cpus
+    import joblib
 
-    workers = args.workers or max(1, min(2, available_cpus(), len(settings)))
+    workers = args.workers or max(1, min(2, joblib.cpu_count(only_physical_cores=False), len(settings)))
     params = {"datasets": args.datasets, "settings": [s.label for s in settings], "seed": cfg.seed}
     out = prepare_output(Path(args.out), "calibrate", json.dumps({**params, **cfg.to_dict()}, sort_keys=True), params)
     t0 = time.perf_counter()

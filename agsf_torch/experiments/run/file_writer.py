@@ -31,7 +31,8 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-from ...processes import available_cpus
+import joblib
+
 from ...storage.files import remove_partial
 from .worker_pool import WorkerPool, fork_available
 
@@ -194,7 +195,7 @@ def default_writers() -> int:
     """Worker processes of a command that writes files beside its work (:func:`writing_beside`): one where fork is
     available and the process may use two CPUs or more, else none (a worker on the only CPU would take its time from
     the filters)."""
-    return 1 if available_cpus() >= 2 and fork_available() else 0
+    return 1 if joblib.cpu_count(only_physical_cores=False) >= 2 and fork_available() else 0
 
 
 def check_threads(threads: int | None) -> None:
@@ -215,7 +216,7 @@ def writing_beside(threads: int | None = None):
     before = torch.get_num_threads()
     with FileWriter(writers) as writer:
         try:
-            torch.set_num_threads(threads or max(1, min(before, available_cpus() - writers)))
+            torch.set_num_threads(threads or max(1, min(before, joblib.cpu_count(only_physical_cores=False) - writers)))
             yield writer
         finally:
             torch.set_num_threads(before)

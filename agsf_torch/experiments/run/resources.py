@@ -18,8 +18,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from ...cgroups import memory_headroom
 from ..config.loader import ExperimentConfig
+from .cgroups import memory_headroom
 
 __all__ = [
     "MemoryEstimate",
@@ -156,7 +156,7 @@ def available_memory() -> int:
     what the machine has available (``MemAvailable`` of ``/proc/meminfo``, else the physical
     memory) plus what this process already holds (its resident set, which the estimate counts in
     ``base``); what the machine has is capped by what this process's control groups still allow
-    (:func:`agsf_torch.cgroups.memory_headroom`: cgroup v1 or v2, the tightest enclosing group)."""
+    (:func:`agsf_torch.experiments.run.cgroups.memory_headroom`: cgroup v1 or v2, the tightest enclosing group)."""
     page = os.sysconf("SC_PAGE_SIZE")
     free = _read_int("/proc/meminfo", "MemAvailable:", 1024) or page * os.sysconf("SC_PHYS_PAGES")
     headroom = memory_headroom()

@@ -249,11 +249,11 @@ class QuadratureUpdate(WeightUpdate):
         chunk_size: quadrature nodes (or, with a product rule, component pairs) per
             batched evaluation, a positive integer (``None``: sized automatically to
             bound memory).
-        compile: compile the FPKE kernels: the model's own route ahead of time (the attitude
-            models' L on lanes, :mod:`agsf_torch.fused.pair_products`), a generic model's node kernels
-            with ``torch.compile`` (a one-off compilation of 10–20 s per shape, kept in the on-disk
-            inductor cache); unused by the closed-form Galerkin path, whose fused pair kernel follows
-            the filter's ``compile_fused``.  ``None`` (the default): as the filter's ``compile_fused``, so that
+        compile: compile the FPKE kernels ahead of time (:mod:`agsf_torch.compiled_kernels`, the package's one
+            compile path): the model's own route (the attitude models' L on lanes,
+            :mod:`agsf_torch.fused.pair_products`) or a generic model's node kernels (keyed by their exported
+            graph, once per machine, model and shape); unused by the closed-form Galerkin path, whose fused pair
+            kernel follows the filter's ``compile_fused``.  ``None`` (the default): as the filter's ``compile_fused``, so that
             one switch compiles every kernel of an adaptive filter; ``True`` or ``False`` overrides it.
     """
 

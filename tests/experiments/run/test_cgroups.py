@@ -1,4 +1,4 @@
-"""Control-group memory limits (agsf_torch.cgroups) on fake /proc and cgroup trees, and their use by the memory
+"""Control-group memory limits (agsf_torch.experiments.run.cgroups) on fake /proc and cgroup trees, and their use by the memory
 budget."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from agsf_torch.cgroups import memory_headroom
 from agsf_torch.experiments.run import resources
+from agsf_torch.experiments.run.cgroups import memory_headroom
 from tests.helpers import assert_within
 
 

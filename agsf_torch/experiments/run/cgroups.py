@@ -3,7 +3,7 @@
 A container or a batch scheduler (Docker ``--memory``, Kubernetes, Slurm, systemd) limits a process's memory below
 what the machine reports free (``MemAvailable``); the memory checks of :mod:`agsf_torch.experiments.run.resources` read the
 group's limit as well (:func:`memory_headroom`).  Kept by hand because no library reads it (psutil's available memory
-and ``/proc/meminfo`` are the machine's; joblib reads the CPU quota only, :func:`agsf_torch.processes.available_cpus`).
+and ``/proc/meminfo`` are the machine's; joblib reads the CPU quota only, ``joblib.cpu_count``).
 
 Both cgroup versions are read.  This process's group comes from ``/proc/self/cgroup`` and the hierarchies' mounts
 from ``/proc/self/mountinfo`` (the mount whose root holds the group; its fields' octal escapes decoded); a limit set

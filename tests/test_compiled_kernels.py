@@ -1,4 +1,4 @@
-"""The on-disk cache of compiled kernels (agsf_torch.fused.kernel_cache, lanes): a damaged package is named, removed
+"""The on-disk cache of compiled kernels (agsf_torch.compiled_kernels, through fused.lanes): a damaged package is named, removed
 and compiled again; a package is written atomically with the permissions of any new file (0666 less the umask).
 
 No test compiles: the compiler is stood in for (conftest's guard fails a test that compiles)."""
@@ -14,13 +14,15 @@ from pathlib import Path
 import pytest
 import torch
 
-from agsf_torch.fused import kernel_cache, lanes
+from agsf_torch import compiled_kernels
+from agsf_torch.fused import lanes
 from agsf_torch.fused.lanes import run_in_chunks
 from tests.helpers import F64
 
 #: The real compilation ahead of time (conftest's guard replaces it in every test not marked slow): run here with
 #: the exporter and the compiler stood in for.
-_COMPILE_AHEAD_OF_TIME = lanes.compile_ahead_of_time
+_COMPILE_AHEAD_OF_TIME = compiled_kernels.compile_ahead_of_time
+_PACKAGE_PROGRAM = compiled_kernels.package_program
 
 
 def _kernel(x, y):
@@ -80,8 +82,8 @@ def cache(monkeypatch, tmp_path) -> list:
         raise RuntimeError("Failed to initialize zip archive: failed finding central directory")
 
     monkeypatch.setenv("AGSF_TORCH_KERNEL_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(lanes, "compile_ahead_of_time", fake_compile)
-    monkeypatch.setattr(lanes, "_load_package", load)
+    monkeypatch.setattr(compiled_kernels, "compile_ahead_of_time", fake_compile)
+    monkeypatch.setattr(compiled_kernels, "load_package", load)
     monkeypatch.setattr(lanes, "_COMPILED", {})
     monkeypatch.setattr(lanes, "_FAILED", set())
     return compiled
@@ -94,7 +96,7 @@ def _inputs(gen, C=70):
 @pytest.mark.parametrize("damage", list(DAMAGED))
 def test_a_damaged_package_is_named_removed_and_compiled_again_in_the_same_run(gen, cache, damage):
     x, y = _inputs(gen)
-    path = lanes.package_path(_kernel, (), [x, y], [], True)
+    path = compiled_kernels.package_path(_kernel, (), [x, y], [], True)
     path.parent.mkdir(parents=True)
     path.write_bytes(DAMAGED[damage])
     with pytest.warns(RuntimeWarning) as caught:
@@ -111,14 +113,14 @@ def test_a_whole_package_that_fails_to_load_is_named_and_kept(gen, cache, monkey
     """A package that is whole but cannot be loaded here (a loader's failure, not the file's) is named in the
     warning, the call runs eagerly, and the package is not compiled again (it would fail alike)."""
     x, y = _inputs(gen)
-    path = lanes.package_path(_kernel, (), [x, y], [], True)
+    path = compiled_kernels.package_path(_kernel, (), [x, y], [], True)
     path.parent.mkdir(parents=True)
     path.write_bytes(PACKAGE)
 
     def cannot_load(p):
         raise RuntimeError("cannot map the library")
 
-    monkeypatch.setattr(lanes, "_load_package", cannot_load)
+    monkeypatch.setattr(compiled_kernels, "load_package", cannot_load)
     with pytest.warns(RuntimeWarning, match="running it eagerly") as caught:
         out = run_in_chunks(_kernel, (x, y), compile=True)
     assert (
@@ -132,9 +134,9 @@ def test_a_whole_package_that_fails_to_load_is_named_and_kept(gen, cache, monkey
 def test_the_damage_of_a_package_is_said_in_words(tmp_path, damage):
     path = tmp_path / "k.pt2"
     path.write_bytes(DAMAGED[damage])
-    assert kernel_cache.package_damage(path)
+    assert compiled_kernels.package_damage(path)
     path.write_bytes(PACKAGE)
-    assert kernel_cache.package_damage(path) is None
+    assert compiled_kernels.package_damage(path) is None
 
 
 def _fake_export(module, args, dynamic_shapes=None, strict=False):
@@ -158,6 +160,7 @@ def test_a_package_is_written_atomically_with_the_permissions_of_any_new_file(tm
         os.chmod(package_path, 0o600)  # whatever mode the compiler leaves, the package gets the umask's
 
     monkeypatch.setattr(torch.export, "export", _fake_export)
+    monkeypatch.setattr(compiled_kernels, "package_program", _PACKAGE_PROGRAM)
     monkeypatch.setattr(torch._inductor, "aoti_compile_and_package", fake_compile_and_package)
     x, y = torch.zeros(4, 3, dtype=F64), torch.zeros(4, 2, dtype=F64)
     previous = os.umask(umask)
@@ -178,6 +181,7 @@ def test_a_failed_compilation_leaves_no_file(tmp_path, monkeypatch):
         raise RuntimeError("compiler crashed")
 
     monkeypatch.setattr(torch.export, "export", _fake_export)
+    monkeypatch.setattr(compiled_kernels, "package_program", _PACKAGE_PROGRAM)
     monkeypatch.setattr(torch._inductor, "aoti_compile_and_package", failing)
     x, y = torch.zeros(4, 3, dtype=F64), torch.zeros(4, 2, dtype=F64)
     with pytest.raises(RuntimeError, match="compiler crashed"):
