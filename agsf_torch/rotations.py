@@ -29,6 +29,7 @@ __all__ = [
     "dcm_to_mrp",
     "mrp_to_quat",
     "quat_to_mrp",
+    "uniform_mrp",
     "quat_to_dcm",
     "dcm_to_quat",
     "quat_multiply",
@@ -84,6 +85,16 @@ def mrp_to_quat(p: Tensor) -> Tensor:
     """
     s = (p * p).sum(-1, keepdim=True)
     return torch.cat((2.0 * p, 1.0 - s), -1) / (1.0 + s)
+
+
+def uniform_mrp(count: int, gen: torch.Generator, dtype: torch.dtype = torch.float64) -> Tensor:
+    """``count`` attitudes drawn uniformly over the rotation group (Haar measure), as short MRPs ``[count, 3]``.
+
+    A normalised 4-D standard normal is uniform on the unit sphere of quaternions, whose double cover of the
+    rotations carries the Haar measure (Shoemake, "Uniform random rotations", Graphics Gems III, 1992);
+    :func:`quat_to_mrp` maps it to ``|p| ≤ 1``.
+    """
+    return quat_to_mrp(torch.randn(count, 4, generator=gen, dtype=dtype))
 
 
 def quat_to_mrp(q: Tensor) -> Tensor:

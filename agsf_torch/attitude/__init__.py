@@ -7,6 +7,7 @@
 * :mod:`.gyro_hold` — bridging missing or saturated gyro samples, with the covariance they cost;
 * :mod:`.recordings` — sensor logs on disk (a user's own data), identified by content;
 * :mod:`.star_fix` — the attitude of one star frame (Wahba's problem), batched: where a replay without the truth starts;
+* :mod:`.floor` — the physical floor: the steady-state error covariance of a gyro and a star camera (the DARE);
 * :mod:`.learning` — maximum-likelihood fits of the noise model through the filter, one data set or many at once;
 * :mod:`.autocovariance` — the autocovariance least-squares baseline for the same noise (σ_v, σ_s).
 

@@ -30,16 +30,20 @@ converts back; the returned MRP is always the short set ``|p| ≤ 1``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from ..attitude.star_fix import star_fix
 from ..mixture import GaussianMixture
 from ..models.attitude import AttitudeModel
 from ..models.base import MeasurementModel
+from ..models.star_vectors import StarVectorMeasurement
 from ..rotations import (
     cross_matrix,
+    mrp_to_quat,
     quat_multiply,
     rotvec_to_quat,
 )
@@ -120,10 +124,29 @@ class MultiplicativeEKF(BaseFilter):
     (``covariance_reset=True``: the covariance is carried to the chart of the new
     reference to first order; the classic MEKF leaves it, an ``O(|δθ̂|)`` relative difference).
 
+    **Start** (``start``): ``"prior"`` (default) runs from the belief it is given.  ``"star_fix"`` starts as flight
+    software does: each trajectory runs from its prior (Kalman updates included) until its first frame whose valid
+    stars (after the gate, if any) determine an attitude (≥ 2 non-parallel ones,
+    :func:`~agsf_torch.attitude.star_fix.star_fix`); at that frame its attitude is replaced by the frame's Wahba
+    solution ``q_fix`` (measured directions ``b̃_j = y_j/|y_j|``, catalogue vectors ``r_j``) with Shuster's QUEST
+    covariance
+
+    .. math:: P_{θθ} = \\Big(\\sum_j \\frac{I - b̃_j b̃_j^T}{σ_j^2}\\Big)^{-1}
+
+    (by a Cholesky solve; the information of the star update ``H_j = [b×]``, whatever the noise model), its bias
+    estimate and bias covariance are kept and the attitude–bias covariance is zeroed.  That frame is not used again
+    in a Kalman update (its stars are masked out for that trajectory: the fix has already used them, and using them
+    twice would count their information twice); its update diagnostics show no entries (``dof`` 0).  Which
+    trajectories have been fixed is the filter's run state (:attr:`initialised`; :meth:`state_dict`,
+    :meth:`load_state_dict`, :meth:`reset`): a trajectory whose frames never fix an attitude stays on its prior.
+    The measurement must then be a :class:`~agsf_torch.models.StarVectorMeasurement` (``ValueError`` at the update
+    otherwise).
+
     Args:
         model: the attitude model (``estimate_bias``, ``sigma_v``, ``sigma_u``, known ``bias``).
         discrete_noise: ``"farrenkopf"`` (default) or ``"exact"`` (above).
         covariance_reset: also transport the covariance in the reset (default ``False``).
+        start: ``"prior"`` (default) or ``"star_fix"`` (above; the registry's ``MEKF-fix``).
         **options: ``update_iterations`` (≥ 1; 1 is the classic MEKF), ``gate_probability``
             (the per-block χ² innovation gate of :mod:`agsf_torch.gating`, as in the GSF)
             (:class:`~agsf_torch.filters.base.BaseFilter`).
@@ -145,6 +168,8 @@ class MultiplicativeEKF(BaseFilter):
     model_type = AttitudeModel
     num_components = 1
     mixture_nis = False  # one component: the mixture NIS is the component's
+    #: The starts the MEKF implements (``start``).
+    STARTS = ("prior", "star_fix")
 
     def __init__(
         self,
@@ -152,22 +177,32 @@ class MultiplicativeEKF(BaseFilter):
         *,
         discrete_noise: str = "farrenkopf",
         covariance_reset: bool = False,
+        start: str = "prior",
         **options: Any,
     ) -> None:
+        if start not in self.STARTS:
+            raise ValueError(f"start must be one of {', '.join(map(repr, self.STARTS))}, got {start!r}")
         super().__init__(model, **options)
         if discrete_noise not in ("farrenkopf", "exact"):
             raise ValueError(f"discrete_noise must be 'farrenkopf' or 'exact', got {discrete_noise!r}")
+        self.start = start
         self.discrete_noise = discrete_noise
         self.covariance_reset = bool(covariance_reset)
+        self._initialised: Tensor | None = None  # [...] bool: trajectories started from a star fix
+        self._fix: _FrameFix | None = None  # the star fix of the update under way (_kalman_step → _after_update)
 
     def checkpoint_options(self) -> dict[str, Any]:
-        """The base filter's options, ``discrete_noise`` and ``covariance_reset``
+        """The base filter's options, ``discrete_noise``, ``covariance_reset`` and, unless it is the default
+        ``"prior"`` (so that checkpoints written before the option still load), ``start``
         (:meth:`~agsf_torch.filters.base.BaseFilter.checkpoint_options`)."""
-        return {
+        options = {
             **super().checkpoint_options(),
             "discrete_noise": self.discrete_noise,
             "covariance_reset": self.covariance_reset,
         }
+        if self.start != "prior":
+            options["start"] = self.start
+        return options
 
     # ------------------------------------------------------------ error state
     def _to_error_state(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor, Tensor, int]:
@@ -260,9 +295,126 @@ class MultiplicativeEKF(BaseFilter):
         means = torch.where(keep, prior.means.expand_as(out.means), out.means)
         cov_out = torch.where(keep[..., None], prior.covs.expand_as(out.covs), out.covs)
         means, cov_out = self.model.canonicalize(means, cov_out)
+        if self._fix is not None and bool(self._fix.now.any()):
+            means, cov_out, fixed = self._fixed_belief(frame, self._fix, means, cov_out)
+            repairs += fixed
         return out.replace(
             means=means, covs=cov_out, validate=False
         ), repairs  # checked above; kept entries are the input's
+
+    # ------------------------------------------------------------ star-fix start
+    def _validate_update(self, mixture: GaussianMixture, y: Any, measurement: MeasurementModel) -> Tensor:
+        """As the base class's; with ``start="star_fix"`` the measurement must be a star-vector one and the run
+        state must cover the belief's trajectories."""
+        y = super()._validate_update(mixture, y, measurement)
+        if self.start == "star_fix":
+            if not isinstance(measurement, StarVectorMeasurement):
+                raise ValueError(
+                    f"start='star_fix' fixes the attitude from star vectors: the measurement must be a "
+                    f"StarVectorMeasurement, got {type(measurement).__name__} (use start='prior')"
+                )
+            if self._initialised is not None and tuple(self._initialised.shape) != tuple(mixture.batch_shape):
+                raise ValueError(
+                    f"the star-fix run state covers trajectories of shape {tuple(self._initialised.shape)}, the belief "
+                    f"has batch shape {tuple(mixture.batch_shape)}: reset() the filter for a new run"
+                )
+        return y
+
+    def _kalman_step(self, frame: UpdateFrame, y: Tensor, mask: Tensor | None) -> ComponentUpdate:
+        """The base class's Kalman step; with ``start="star_fix"`` the trajectories this frame fixes first
+        (:meth:`_frame_fix`) take no part in it (their entries are masked out; class docstring)."""
+        if self.start != "star_fix":
+            return super()._kalman_step(frame, y, mask)
+        self._fix = self._frame_fix(frame, y, mask)
+        if bool(self._fix.now.any()):
+            keep = (~self._fix.now).unsqueeze(-1).expand(y.shape)
+            mask = frame.measurement.mask() if mask is None else mask  # the entry mask replaces the model's
+            mask = keep if mask is None else mask & keep
+        return super()._kalman_step(frame, y, mask)
+
+    def _frame_fix(self, frame: UpdateFrame, y: Tensor, mask: Tensor | None) -> _FrameFix:
+        """The star fix of this frame for the trajectories not yet started from one (class docstring).
+
+        The valid stars are the measurement's, less the gate's rejections (``mask [..., 3M]``); ``y [..., 3M]``
+        holds their measured directions (normalised here).  Trajectories that cannot be fixed get the identity in
+        place of the information, so that one batched Cholesky factorisation serves all."""
+        measurement = frame.measurement.inner
+        batch = frame.covs.shape[:-3]
+        M = measurement.num_stars
+        valid = torch.ones(M, dtype=torch.bool, device=y.device)
+        if measurement.star_mask is not None:
+            valid = valid & measurement.star_mask
+        if mask is not None:
+            valid = valid & mask.unflatten(-1, (M, 3)).all(-1)
+        valid = valid.expand(*batch, M)
+        body = y.unflatten(-1, (M, 3))
+        norm = torch.linalg.vector_norm(body, dim=-1, keepdim=True)
+        body = torch.where(valid.unsqueeze(-1), body / norm.clamp_min(torch.finfo(y.dtype).tiny), 0.0)
+        inertial = measurement.r_inertial.to(y).expand(*batch, M, 3)
+        mrp, ok = star_fix(body, inertial, valid)
+        before = (
+            torch.zeros(batch, dtype=torch.bool, device=y.device) if self._initialised is None else self._initialised
+        )
+        now = ok & ~before
+        eye = torch.eye(3, dtype=y.dtype, device=y.device)
+        weight = valid.to(y.dtype) / measurement.sigma.to(y)[..., None] ** 2  # 1/σ_j², 0 off the valid stars
+        J = ((eye - body.unsqueeze(-1) * body.unsqueeze(-2)) * weight[..., None, None]).sum(-3)
+        J = torch.where(now[..., None, None], J, eye)
+        P = torch.cholesky_solve(eye.expand_as(J), torch.linalg.cholesky(J))
+        return _FrameFix(now=now, quat=mrp_to_quat(mrp), cov=symmetric_part(P), initialised=before | ok)
+
+    def _fixed_belief(
+        self, frame: UpdateFrame, fix: _FrameFix, means: Tensor, covs: Tensor
+    ) -> tuple[Tensor, Tensor, int]:
+        """The posterior ``(means [..., 1, n], covs [..., 1, n, n], repairs)`` with the trajectories ``fix.now``
+        started from the fix: attitude ``q_fix`` with the QUEST covariance, bias and its covariance from the prior
+        (``frame``), attitude–bias covariance zero."""
+        _, b = frame.context
+        P = frame.covs[..., 0, :, :].clone()
+        P[..., :3, :] = 0.0
+        P[..., :, :3] = 0.0
+        P[..., :3, :3] = fix.cov
+        P, repairs = self._checked(P, "after the star fix")
+        mean, cov = error_state_to_mrp(fix.quat, b.expand(*fix.quat.shape[:-1], b.shape[-1]), P)
+        now = fix.now[..., None, None]
+        means = torch.where(now, mean.unsqueeze(-2), means)
+        covs = torch.where(now.unsqueeze(-1), cov.unsqueeze(-3), covs)
+        return means, covs, repairs
+
+    def _after_update(self, posterior: GaussianMixture) -> None:
+        """Commit the star-fix run state of the update just made (last: a failed update changes nothing)."""
+        if self._fix is not None:
+            self._initialised, self._fix = self._fix.initialised, None
+
+    @property
+    def initialised(self) -> Tensor | None:
+        """``[...]`` bool: the trajectories started from a star fix (``start="star_fix"``), or ``None`` before the
+        first update of a run."""
+        return None if self._initialised is None else self._initialised.clone()
+
+    def reset(self) -> None:
+        """Start a new run: no trajectory has been started from a star fix."""
+        self._initialised, self._fix = None, None
+
+    def state_dict(self) -> dict[str, Any]:
+        """The run state: ``{}`` with ``start="prior"``; ``{"initialised": [...] bool tensor or None}`` with
+        ``start="star_fix"``."""
+        if self.start != "star_fix":
+            return super().state_dict()
+        return {"initialised": None if self._initialised is None else self._initialised.clone()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` (validated before anything changes)."""
+        if self.start != "star_fix":
+            super().load_state_dict(state)
+            return
+        if not isinstance(state, dict) or set(state) != {"initialised"}:
+            got = sorted(state) if isinstance(state, dict) else state
+            raise ValueError(f"the star-fix MEKF's state must be {{'initialised': ...}}, got {got!r}")
+        flag = state["initialised"]
+        if flag is not None and not (torch.is_tensor(flag) and flag.dtype == torch.bool):
+            raise ValueError(f"state 'initialised' must be a bool tensor or None, got {flag!r}")
+        self._initialised, self._fix = None if flag is None else flag.clone(), None
 
     def estimate(self, mixture: GaussianMixture) -> tuple[Tensor, Tensor]:
         """Point estimate and covariance in MRP coordinates: the one component.
@@ -272,3 +424,20 @@ class MultiplicativeEKF(BaseFilter):
         """
         self.check_mixture(mixture)
         return mixture.means[..., 0, :], mixture.covs[..., 0, :, :]
+
+
+@dataclass(frozen=True)
+class _FrameFix:
+    """The star fix of one frame (:meth:`MultiplicativeEKF._frame_fix`).
+
+    Attributes:
+        now: ``[...]`` bool, the trajectories this frame fixes first.
+        quat: ``[..., 4]``, the fix's attitude (meaningful where ``now``).
+        cov: ``[..., 3, 3]``, its QUEST covariance (rad²; the identity where not ``now``).
+        initialised: ``[...]`` bool, the trajectories started from a fix once this frame is done.
+    """
+
+    now: Tensor
+    quat: Tensor
+    cov: Tensor
+    initialised: Tensor

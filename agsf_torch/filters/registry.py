@@ -17,7 +17,8 @@ every filter; :data:`CONFIG_OPTIONS` lists those a configuration file can set.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 from ..models.base import ContinuousModel
@@ -51,6 +52,7 @@ class FilterSpec:
         mixture: ``True`` if it carries ``components`` components, ``False`` for one.
         weight_update: the weight update class of an adaptive filter (built from its own
             options and passed as ``weight_update=``), or ``None``.
+        fixed: constructor arguments of ``cls`` this entry fixes (``MEKF-fix``: ``start="star_fix"``).
     """
 
     name: str
@@ -58,6 +60,7 @@ class FilterSpec:
     cls: type[BaseFilter]
     mixture: bool
     weight_update: type[WeightUpdate] | None = None
+    fixed: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def adaptive(self) -> bool:
@@ -76,7 +79,7 @@ class FilterSpec:
         FilterOptions(**kwargs)  # validated here, whatever the filter does with them
         if self.weight_update is not None:
             kwargs["weight_update"] = self.weight_update(**_own(self.weight_update, options))
-        return self.cls(model, **kwargs)
+        return self.cls(model, **kwargs, **self.fixed)
 
 
 def _own(cls: type, options: dict[str, Any]) -> dict[str, Any]:
@@ -104,6 +107,13 @@ FILTERS: dict[str, FilterSpec] = {
             GalerkinWeightUpdate,
         ),
         FilterSpec("MEKF", "multiplicative EKF (one component), the industry baseline", MultiplicativeEKF, False),
+        FilterSpec(
+            "MEKF-fix",
+            "multiplicative EKF started from the first frame with two stars by a star fix, as flight software does",
+            MultiplicativeEKF,
+            False,
+            fixed={"start": "star_fix"},
+        ),
     )
 }
 #: Every registered name, in registry order.

@@ -432,3 +432,214 @@ def test_bad_inputs_raise_before_anything_changes(gen):
         MultiplicativeEKF(model, discrete_noise="van-loan")
     with pytest.raises(ValueError, match="no run state"):
         mekf.load_state_dict({"x": 1})
+
+
+# --------------------------------------------------------------------------- 6. the star-fix start
+def _wrong_prior(gen, truth, angle, estimate_bias, att_var=1e-3):
+    """A belief ``angle`` rad off the truth (about a random axis; ``angle=None``: uniformly random attitudes),
+    covariance ``att_var·I`` on the attitude (MRP²) and 1e-12 on the bias."""
+    B = truth.shape[0]
+    if angle is None:
+        p = random_mrps(B, gen)
+    else:
+        axis = random_unit_vectors(gen, B)
+        p = rot.quat_to_mrp(rot.quat_multiply(rot.rotvec_to_quat(angle * axis), rot.mrp_to_quat(truth)))
+    n = 6 if estimate_bias else 3
+    mean = torch.cat((p, 1e-6 * torch.randn(B, 3, generator=gen, dtype=F64)), -1)[:, :n]
+    P0 = torch.diag(torch.tensor([att_var] * 3 + [1e-12] * 3, dtype=F64)[:n])
+    return GaussianMixture.from_gaussian(mean, P0.expand(B, n, n))
+
+
+def _frame(gen, truth, r, sigma):
+    """Noisy star vectors ``C(truth) r_j + σ n`` ``[B, 3M]`` (the measurement model's isotropic noise)."""
+    y = StarVectorMeasurement(r, sigma=sigma).predict(truth)
+    return y + sigma * torch.randn(y.shape, generator=gen, dtype=F64)
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+@pytest.mark.parametrize("angle", [math.pi / 2, None])
+def test_star_fix_start_converges_in_one_frame_from_a_wrong_prior(gen, estimate_bias, angle):
+    """From a prior 90° off (or uniformly random) that believes itself within 2° (P₀ = 1e-3 MRP²), one frame of 5
+    stars of 10 µrad: the star-fix start lands on the truth with an error its covariance accounts for (each
+    trajectory's ``δθᵀ P_θθ⁻¹ δθ`` below the χ²(3) quantile of a 1e-6 false-failure rate, Bonferroni over the
+    trajectories), while the prior-start MEKF linearised 90° away is still far off (measured: ~0.6 rad).  The
+    next frames are ordinary Kalman updates and the filter stays consistent."""
+    from scipy.stats import chi2
+
+    B, M, sigma = 32, 5, 1e-5
+    truth = random_mrps(B, gen)
+    mix = _wrong_prior(gen, truth, angle, estimate_bias)
+    model = AttitudeModel(estimate_bias=estimate_bias)
+    r = random_unit_vectors(gen, B, M)
+    meas = StarVectorMeasurement(r, sigma=sigma)
+    y = _frame(gen, truth, r, sigma)
+    limit = chi2.ppf(1.0 - 1e-6 / B, 3)
+
+    fixed = MultiplicativeEKF(model, start="star_fix")
+    post = fixed.update(mix, y, meas)
+    assert fixed.initialised.tolist() == [True] * B
+    assert fixed.diagnostics["dof"].tolist() == [0.0] * B  # the fixing frame is not used again
+    e = rot.attitude_error_vector(post.means[:, 0, :3], truth)
+    P = mrp_to_error_state(post.means[:, 0], post.covs[:, 0])[2][:, :3, :3]
+    nees = (e[:, None, :] @ torch.linalg.solve(P, e[:, :, None])).reshape(-1)
+    assert float(nees.max()) < limit, float(nees.max())
+
+    prior = MultiplicativeEKF(model).update(mix, y, meas)
+    err_prior = rot.attitude_error_angle(prior.means[:, 0, :3], truth)
+    err_fixed = rot.attitude_error_angle(post.means[:, 0, :3], truth)
+    if angle is not None:
+        assert float(err_prior.min()) > 0.1 and float(err_fixed.max()) < 1e-3 * float(err_prior.min())
+
+    for _ in range(3):  # one gyro second, then a frame: ordinary updates from the fix
+        u = torch.zeros(B, 3, dtype=F64) + (post.means[:, 0, 3:] if estimate_bias else 0.0)
+        post = fixed.predict(post, u, 1.0)
+        y = _frame(gen, truth, r, sigma)
+        post = fixed.update(post, y, meas)
+        assert fixed.diagnostics["dof"].tolist() == [3.0 * M] * B
+    e = rot.attitude_error_vector(post.means[:, 0, :3], truth)
+    P = mrp_to_error_state(post.means[:, 0], post.covs[:, 0])[2][:, :3, :3]
+    nees = (e[:, None, :] @ torch.linalg.solve(P, e[:, :, None])).reshape(-1)
+    assert float(nees.max()) < limit, float(nees.max())
+
+
+@pytest.mark.parametrize("noise_model", ["isotropic", "tangent"])
+def test_star_fix_is_the_wahba_solution_with_the_quest_covariance(gen, noise_model):
+    """The fix, against independent computations, one trajectory at a time: the attitude is scipy's
+    ``Rotation.align_vectors`` of the valid stars' measured directions (1e-12 rad), the attitude covariance is
+    ``(Σ_j (I − b̃_j b̃_jᵀ)/σ²)⁻¹`` (numpy's inverse of the information, 1e-10 relative: the MRP chart's round trip),
+    the bias estimate, its covariance and the attitude–bias covariance are the prior's, its and zero.  Masked
+    stars, one σ per trajectory, both noise models."""
+    from scipy.spatial.transform import Rotation
+
+    B, M = 6, 6
+    truth = random_mrps(B, gen)
+    mix = _wrong_prior(gen, truth, 0.3, True, att_var=1e-2)
+    mix = mix.replace(covs=mix.covs + 1e-9 * torch.eye(6, dtype=F64).roll(3, -1))  # a prior cross-covariance
+    sigma = torch.tensor([1e-5, 2e-5, 5e-6, 1e-5, 3e-5, 1e-4], dtype=F64)
+    r = random_unit_vectors(gen, B, M)
+    mask = torch.ones(B, M, dtype=torch.bool)
+    mask[0, 3:] = False
+    mask[1, :2] = False
+    mask[4, 1:4] = False
+    y = StarVectorMeasurement(r, sigma=1.0).predict(truth)
+    y = y + sigma[:, None] * torch.randn(B, 3 * M, generator=gen, dtype=F64)
+    body = y.unflatten(-1, (M, 3))
+    extra = {"body": body / body.norm(dim=-1, keepdim=True)} if noise_model == "tangent" else {}
+    meas = StarVectorMeasurement(r, mask, sigma, noise_model=noise_model, **extra)
+    mekf = MultiplicativeEKF(AttitudeModel(estimate_bias=True), start="star_fix")
+    post = mekf.update(mix, y, meas)
+    _, b_post, P_post = mrp_to_error_state(post.means[:, 0], post.covs[:, 0])
+    _, b_prior, P_prior = mrp_to_error_state(mix.means[:, 0], mix.covs[:, 0])
+    for i in range(B):
+        bj = body[i][mask[i]].numpy()
+        bj = bj / np.linalg.norm(bj, axis=-1, keepdims=True)
+        rj = r[i][mask[i]].numpy()
+        C = Rotation.align_vectors(bj, rj)[0].as_matrix()
+        dC = rot.mrp_to_dcm(post.means[i, 0, :3]).numpy() @ C.T
+        angle = Rotation.from_matrix(dC).magnitude()
+        assert_within(angle, 0.0, 1e-12, f"attitude of the fix against scipy's (trajectory {i})")
+        info = sum(np.eye(3) - np.outer(b, b) for b in bj) / float(sigma[i]) ** 2
+        quest = np.linalg.inv(info)
+        assert_within(P_post[i, :3, :3], quest, relative_bound(quest, 1e-10, 1e-10 * np.abs(quest).max()), "QUEST")
+    assert torch.equal(b_post, b_prior) and torch.equal(post.means[:, 0, 3:], mix.means[:, 0, 3:])
+    assert_within(P_post[:, 3:, 3:], P_prior[:, 3:, 3:], 1e-15 * P_prior[:, 3:, 3:].abs().max(), "bias covariance")
+    assert_within(P_post[:, :3, 3:], 0.0, 1e-30, "attitude–bias covariance after the fix")
+
+
+def test_star_fix_flag_survives_state_dict_and_trajectories_without_a_fix_stay_on_the_prior(gen, tmp_path):
+    """Frames of 5, 1, 0 and 2 parallel stars: the first trajectory is fixed, the others run from their prior
+    exactly as the prior-start MEKF (bit for bit, their one star used by the Kalman update) and stay
+    unflagged; the flag survives ``state_dict``/``load_state_dict`` and a checkpoint (which a prior-start MEKF
+    refuses, naming the option), and the next frame, which
+    fixes the others, gives the same result bit for bit in the restored filter.  ``reset`` forgets it; a state of
+    another batch shape or kind is refused."""
+    from agsf_torch.storage.checkpoint import load_checkpoint, save_checkpoint
+
+    B, M, sigma = 4, 5, 1e-5
+    truth = random_mrps(B, gen)
+    mix = _wrong_prior(gen, truth, 0.01, True, att_var=1e-4)
+    model = AttitudeModel(estimate_bias=True)
+    r = random_unit_vectors(gen, B, M)
+    r[3, 1] = r[3, 0]  # two parallel stars: no attitude
+    mask = torch.tensor([[True] * 5, [True] + [False] * 4, [False] * 5, [True, True, False, False, False]])
+    meas = StarVectorMeasurement(r, mask, sigma)
+    y = _frame(gen, truth, r, sigma)
+    fixed = MultiplicativeEKF(model, start="star_fix")
+    assert fixed.state_dict() == {"initialised": None} and fixed.initialised is None
+    post = fixed.update(mix, y, meas)
+    assert fixed.initialised.tolist() == [True, False, False, False]
+    ref = MultiplicativeEKF(model).update(mix, y, meas)
+    assert torch.equal(post.means[1:], ref.means[1:]) and torch.equal(post.covs[1:], ref.covs[1:])
+    assert not torch.equal(post.means[0], ref.means[0])
+
+    restored = MultiplicativeEKF(model, start="star_fix")
+    restored.load_state_dict(fixed.state_dict())
+    assert torch.equal(restored.initialised, fixed.initialised)
+    path = save_checkpoint(tmp_path / "ck.pt", {"f": post}, {"f": fixed})
+    from_disk = MultiplicativeEKF(model, start="star_fix")
+    mixtures, _ = load_checkpoint(path, {"f": from_disk})
+    assert torch.equal(from_disk.initialised, fixed.initialised)
+    with pytest.raises(ValueError, match="start is 'star_fix' in the checkpoint, absent in this filter"):
+        load_checkpoint(path, {"f": MultiplicativeEKF(model)})  # a prior-start MEKF records no start: as before
+
+    full = StarVectorMeasurement(random_unit_vectors(gen, B, M), sigma=sigma)
+    y2 = _frame(gen, truth, full.r_inertial, sigma)
+    outs = [f.update(m, y2, full) for f, m in ((fixed, post), (restored, post), (from_disk, mixtures["f"]))]
+    for out in outs[1:]:
+        assert torch.equal(out.means, outs[0].means) and torch.equal(out.covs, outs[0].covs)
+    assert fixed.initialised.tolist() == [True] * B
+    assert fixed.diagnostics["dof"].tolist() == [15.0, 0.0, 0.0, 0.0]  # the newly fixed take no Kalman update
+
+    fixed.reset()
+    assert fixed.initialised is None and fixed.state_dict() == {"initialised": None}
+    restored.update(outs[1], y2, full)
+    with pytest.raises(ValueError, match=r"covers trajectories of shape \(4,\), the belief has batch shape \(2,\)"):
+        two = StarVectorMeasurement(full.r_inertial[:2], sigma=sigma)
+        restored.update(GaussianMixture.from_gaussian(mix.means[:2, 0], mix.covs[:2, 0]), y2[:2], two)
+    for bad in ({}, {"initialised": [True]}, {"initialised": torch.ones(4)}, {"x": None, "initialised": None}):
+        with pytest.raises(ValueError, match="initialised"):
+            restored.load_state_dict(bad)
+    assert restored.initialised.tolist() == [True] * B  # refused states change nothing
+
+
+def test_start_prior_is_todays_mekf_and_star_fix_after_the_fix_runs_it_bit_for_bit(gen):
+    """``start="prior"`` (default) keeps no run state and gives the same bits as before the option (the same code
+    path: its state is ``{}``, its steps the base class's); a star-fix MEKF once every trajectory is fixed makes
+    exactly the prior-start MEKF's updates, gated or not.  Bad starts are refused: other filters take
+    ``"prior"`` only, unknown names none, and ``start="star_fix"`` with a measurement that is not a star-vector one
+    is refused at the update, before anything changes."""
+    from agsf_torch.filters.registry import make_filter
+
+    B, M, sigma = 5, 4, 1e-5
+    truth = random_mrps(B, gen)
+    model = AttitudeModel(estimate_bias=True)
+    mix = _wrong_prior(gen, truth, 1e-3, True, att_var=1e-6)
+    r = random_unit_vectors(gen, B, M)
+    meas = StarVectorMeasurement(r, sigma=sigma)
+    for gate in (None, 1 - 1e-4):
+        default = MultiplicativeEKF(model, gate_probability=gate)
+        prior = MultiplicativeEKF(model, start="prior", gate_probability=gate)
+        fixed = MultiplicativeEKF(model, start="star_fix", gate_probability=gate)
+        assert default.start == "prior" and default.state_dict() == {} and prior.state_dict() == {}
+        fixed.load_state_dict({"initialised": torch.ones(B, dtype=torch.bool)})
+        a = b = c = mix
+        for _ in range(3):
+            u = 1e-3 * torch.randn(B, 3, generator=gen, dtype=F64)
+            a, b, c = (f.predict(m, u, 0.5) for f, m in ((default, a), (prior, b), (fixed, c)))
+            y = _frame(gen, truth, r, sigma)
+            a, b, c = (f.update(m, y, meas) for f, m in ((default, a), (prior, b), (fixed, c)))
+            for m in (b, c):
+                assert torch.equal(m.means, a.means) and torch.equal(m.covs, a.covs)
+            for key in ("log_likelihood", "nis", "dof"):
+                assert torch.equal(fixed.diagnostics[key], default.diagnostics[key])
+    assert make_filter("MEKF-fix", model).start == "star_fix" and make_filter("MEKF", model).start == "prior"
+    with pytest.raises(TypeError, match="start"):
+        ExtendedKalmanFilter(model, start="star_fix")  # a start of the MEKF's only
+    with pytest.raises(ValueError, match="start must be one of 'prior', 'star_fix', got 'quest'"):
+        MultiplicativeEKF(model, start="quest")
+    fixed = MultiplicativeEKF(model, start="star_fix")
+    fm = FunctionMeasurement(meas.predict, meas.noise_cov())
+    y = _frame(gen, truth, r, sigma)
+    with pytest.raises(ValueError, match="must be a StarVectorMeasurement, got FunctionMeasurement"):
+        fixed.update(mix, y, fm)
+    assert fixed.initialised is None

@@ -20,6 +20,7 @@ def test_registry_names_and_kinds():
         "AGSF": AdaptiveGaussianSumFilter,
         "AGSF-galerkin": AdaptiveGaussianSumFilter,
         "MEKF": MultiplicativeEKF,
+        "MEKF-fix": MultiplicativeEKF,
     }
     assert set(FILTER_NAMES) == set(kinds)  # every registered filter is checked here
     for name in FILTER_NAMES:
@@ -73,7 +74,7 @@ def test_one_dt_check_for_every_filter(name):
     assert_within(dt32, 0.1, relative_bound(0.1, 2.0**-24, 0.0), "a float32 interval of 0.1 s")
     model = AttitudeModel(estimate_bias=False)
     filt = make_filter(name, model)
-    N = 1 if name in ("EKF", "MEKF") else 3
+    N = 3 if FILTERS[name].mixture else 1
     mix = GaussianMixture.from_gaussian(
         torch.zeros(2, 3, dtype=torch.float64), 1e-4 * torch.eye(3, dtype=torch.float64).expand(2, 3, 3), N
     )

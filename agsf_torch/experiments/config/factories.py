@@ -62,4 +62,5 @@ def loop_options(cfg: ExperimentConfig) -> dict:
         "seed": cfg.seed,
         "estimate_bias": cfg.estimate_bias,
         "noise_model": cfg.star_noise_model,
+        "uniform_attitude": cfg.prior_attitude == "uniform",
     }

@@ -72,7 +72,10 @@ class _ExperimentFields:
         omega0: truth rate magnitude per axis (rad/s) — guess 2π/100.
         rate_axes: truth rate ``ω = ω₀ · rate_axes`` — guess [1, 1, 0].
         estimate_bias: ``False``: 3-state, bias known (paper); ``True``: 6-state.
-        prior_var: prior MRP variance per axis — paper: 1e-3.
+        prior_var: prior MRP variance per axis — paper: 1e-3 (an error of θ per axis: ``tan²(θ/4)``).
+        prior_attitude: where the filters' prior mean lies: ``"gaussian"`` (drawn from ``N(truth, P₀)``, consistent
+            with the prior covariance) or ``"uniform"`` (a uniformly random attitude, independent of the truth: a
+            lost-in-space start; ``P₀`` then only says how wide the filters take their prior to be).
         prior_bias_sigma_deg_per_hr: prior bias σ (6-state).
         components: N of the Gaussian sums.
         spread: share of the principal prior variance carried by the component means.
@@ -104,6 +107,7 @@ class _ExperimentFields:
     rate_axes: list = field(default_factory=lambda: [1.0, 1.0, 0.0])
     estimate_bias: bool = False
     prior_var: float = 1e-3
+    prior_attitude: str = "gaussian"
     prior_bias_sigma_deg_per_hr: float = 0.2
     components: int = 5
     spread: float = 0.5
@@ -171,6 +175,10 @@ class _ExperimentFields:
             raise ValueError(f"config key 'spread' must lie in (0, 1), got {self.spread!r}")
         if self.fov_deg >= 180.0:
             raise ValueError(f"config key 'fov_deg' must be < 180, got {self.fov_deg!r}")
+        if self.prior_attitude not in ("gaussian", "uniform"):
+            raise ValueError(
+                f"config key 'prior_attitude' must be 'gaussian' or 'uniform', got {self.prior_attitude!r}"
+            )
         if self.star_noise_model not in ("isotropic", "tangent"):
             raise ValueError(
                 f"config key 'star_noise_model' must be 'isotropic' or 'tangent', got {self.star_noise_model!r}"

@@ -17,7 +17,7 @@ from torch import Tensor
 from ...attitude.inputs import AttitudeInputs, as_float64
 from ...consistency import nees, rms
 from ...filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
-from ...rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector
+from ...rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector, uniform_mrp
 
 __all__ = [
     "FilterSetup",
@@ -127,6 +127,7 @@ def monte_carlo_steps(
     estimate_bias: bool = False,
     noise_model: str = "isotropic",
     gyro_hold_sigma: float | None = None,
+    uniform_attitude: bool = False,
 ):
     """Drive every filter over ``num_steps`` gyro periods, yielding one :class:`SimulatedStep` per period.
 
@@ -153,6 +154,8 @@ def monte_carlo_steps(
         truth_p, truth_b = as_float64(info["truth_mrp"]), as_float64(info["truth_bias"])
         gen = torch.Generator().manual_seed(int(seed) + PRIOR_SEED_OFFSET)
         mean0 = sample_prior(torch.cat((truth_p, truth_b), -1)[:, :n], prior_cov, gen)
+        if uniform_attitude:  # a lost-in-space start: the prior's attitude uniformly random, whatever the truth
+            mean0 = torch.cat((uniform_mrp(truth_p.shape[0], gen), mean0[:, 3:]), -1)
     elif "initial_mrp" in info:  # no truth: the filters start at the environment's initial estimate
         truth_p, truth_b = None, as_float64(info["initial_bias"])
         mean0 = torch.cat((as_float64(info["initial_mrp"]), truth_b), -1)[:, :n]
@@ -248,6 +251,7 @@ def run_monte_carlo(
     callback=None,
     noise_model: str = "isotropic",
     gyro_hold_sigma: float | None = None,
+    uniform_attitude: bool = False,
     label: str = "monte carlo",
 ) -> MonteCarloResult:
     """Run every filter over ``num_steps`` gyro periods of a batched environment.
@@ -269,6 +273,8 @@ def run_monte_carlo(
         gyro_hold_sigma: σ_h of :class:`~agsf_torch.attitude.gyro_hold.GyroHold`, which bridges
             gyro samples the environment marks invalid (``gyro_valid``); default
             ``σ_v/√Δt`` of the first filter's model.
+        uniform_attitude: the filters' prior attitude uniformly random, independent of the truth (a lost-in-space
+            start; ``prior_cov`` then only says how wide the filters take their prior to be).
 
     Per-step extras of every trace (besides the filter's own diagnostics):
     ``gate_rejected [B, T]`` (star blocks rejected by the filter's innovation gate;
@@ -288,6 +294,7 @@ def run_monte_carlo(
         estimate_bias=estimate_bias,
         noise_model=noise_model,
         gyro_hold_sigma=gyro_hold_sigma,
+        uniform_attitude=uniform_attitude,
     )
     if progress:
         from .progress import progress_bar
