@@ -8,7 +8,9 @@ sensors can beat (the filter is optimal for the linear model).  The scenario: a 
 ``Δt``; a star frame every ``T = kΔt`` with ``m`` stars of noise ``σ`` (rad per axis across each direction).
 
 **Between frames** the MEKF's own error-state transition and Farrenkopf discrete noise at ``ω̂ = 0``
-(:meth:`MultiplicativeEKF.transition`, ``discrete_noise="farrenkopf"``), composed over the ``k`` steps:
+(:meth:`MultiplicativeEKF.transition`, ``discrete_noise="farrenkopf"``), composed over the ``k`` steps (for a
+body turning at a constant rate ``ω``, ``rate=``: the transition at that rate with the exact discrete noise, a
+time-invariant model all the same):
 
 .. math::
 
@@ -202,6 +204,7 @@ def riccati_floor(
     *,
     dt: float | None = None,
     directions: Any = None,
+    rate: Any = None,
 ) -> Floor:
     """The steady-state error covariance of the MEKF on a gyro and a star camera (module docstring).
 
@@ -216,6 +219,11 @@ def riccati_floor(
             frame; at ``ω̂ = 0`` the floor does not depend on it, only :attr:`Floor.P_mean` does).
         directions: star directions ``[K, 3]`` (body frame) over which the per-star information is averaged
             (:func:`frame_information`), or ``None`` for isotropic directions.
+        rate: a constant body rate ``ω`` ``[3]`` (rad/s), or ``None`` for ``ω = 0``.  A turning body carries its
+            error, fixed in inertial space, past the camera's directions: the error-state transition
+            ``Φ = e^{-[ω×]Δt}…`` (with the exact discrete noise, :meth:`MultiplicativeEKF.transition`) is then no
+            longer the identity on the attitude, while the model stays time-invariant (the floor still solves a
+            DARE); a narrow-field camera's boresight axis is observed through the other axes as the body turns.
 
     Returns:
         :class:`Floor` (``n = 6`` with ``sigma_u``, 3 without).
@@ -241,8 +249,12 @@ def riccati_floor(
         raise ValueError(f"frame_interval / dt must be a positive integer (steps per frame), got {T!r} / {dt!r}")
     J = frame_information(stars_per_frame, sigma_star, directions)
 
+    omega = torch.zeros(3, dtype=torch.float64) if rate is None else torch.as_tensor(rate, dtype=torch.float64)
+    if omega.shape != (3,) or not bool(torch.isfinite(omega).all()):
+        raise ValueError(f"rate must be a finite body rate [3] (rad/s) or None, got {rate!r}")
     model = AttitudeModel(estimate_bias=sigma_u is not None, sigma_v=sigma_v, sigma_u=sigma_u or 0.0)
-    Phi, Q = MultiplicativeEKF(model).transition(torch.zeros(3, dtype=torch.float64), dt)
+    noise = "farrenkopf" if rate is None else "exact"  # the same at ω = 0; exact for a turning body
+    Phi, Q = MultiplicativeEKF(model, discrete_noise=noise).transition(omega, dt)
     n = Phi.shape[-1]
     eye = torch.eye(n, dtype=torch.float64)
     Phi_T, Q_T = eye, torch.zeros(n, n, dtype=torch.float64)
