@@ -1,5 +1,5 @@
 """Filters sharing one contract (:class:`~agsf_torch.filters.base.Filter`): EKF, GSF, the adaptive
-GSF (with its weight updates) and the multiplicative EKF, built on one base with small steps."""
+GSF (with its weight updates), the multiplicative EKF and USQUE, built on one base with small steps."""
 
 from .adaptive import AdaptiveGaussianSumFilter
 from .base import BaseFilter, Filter
@@ -7,6 +7,7 @@ from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
 from .multiplicative import MultiplicativeEKF
 from .options import FilterOptions
 from .step_diagnostics import StepDiagnostics
+from .unscented_quaternion import USQUE
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
 
 __all__ = [
@@ -17,6 +18,7 @@ __all__ = [
     "GaussianSumFilter",
     "AdaptiveGaussianSumFilter",
     "MultiplicativeEKF",
+    "USQUE",
     "WeightUpdate",
     "PenaltyWeightUpdate",
     "GalerkinWeightUpdate",

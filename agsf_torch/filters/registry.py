@@ -27,6 +27,7 @@ from .base import BaseFilter, Filter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
 from .multiplicative import MultiplicativeEKF
 from .options import ConfigOption, FilterOptions, config_options
+from .unscented_quaternion import USQUE
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
 
 __all__ = [
@@ -114,6 +115,7 @@ FILTERS: dict[str, FilterSpec] = {
             False,
             fixed={"start": "star_fix"},
         ),
+        FilterSpec("USQUE", "unscented quaternion estimator (one component; Crassidis & Markley 2003)", USQUE, False),
     )
 }
 #: Every registered name, in registry order.
