@@ -1,11 +1,12 @@
 """Filters sharing one contract (:class:`~agsf_torch.filters.base.Filter`): EKF, GSF, the adaptive
-GSF (with its weight updates), the multiplicative EKF and USQUE, built on one base with small steps."""
+GSF (with its weight updates), the multiplicative EKF, USQUE and the particle filter, built on one base with small steps."""
 
 from .adaptive import AdaptiveGaussianSumFilter
 from .base import BaseFilter, Filter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
 from .multiplicative import MultiplicativeEKF
 from .options import FilterOptions
+from .particle import ParticleFilter, ParticleOptions
 from .step_diagnostics import StepDiagnostics
 from .unscented_quaternion import USQUE
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
@@ -19,6 +20,8 @@ __all__ = [
     "AdaptiveGaussianSumFilter",
     "MultiplicativeEKF",
     "USQUE",
+    "ParticleFilter",
+    "ParticleOptions",
     "WeightUpdate",
     "PenaltyWeightUpdate",
     "GalerkinWeightUpdate",

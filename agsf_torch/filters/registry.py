@@ -27,6 +27,7 @@ from .base import BaseFilter, Filter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
 from .multiplicative import MultiplicativeEKF
 from .options import ConfigOption, FilterOptions, config_options
+from .particle import ParticleFilter, ParticleOptions
 from .unscented_quaternion import USQUE
 from .weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate, WeightUpdate
 
@@ -54,6 +55,8 @@ class FilterSpec:
         weight_update: the weight update class of an adaptive filter (built from its own
             options and passed as ``weight_update=``), or ``None``.
         fixed: constructor arguments of ``cls`` this entry fixes (``MEKF-fix``: ``start="star_fix"``).
+        options: a dataclass declaring options of ``cls`` beyond :class:`FilterOptions` (the particle filter's
+            :class:`~agsf_torch.filters.particle.ParticleOptions`), or ``None``.
     """
 
     name: str
@@ -62,6 +65,7 @@ class FilterSpec:
     mixture: bool
     weight_update: type[WeightUpdate] | None = None
     fixed: Mapping[str, Any] = field(default_factory=dict)
+    options: type | None = None
 
     @property
     def adaptive(self) -> bool:
@@ -71,7 +75,7 @@ class FilterSpec:
     @property
     def option_names(self) -> frozenset[str]:
         """The options this filter reads: every :class:`FilterOptions` field and its weight update's."""
-        classes = (FilterOptions,) + ((self.weight_update,) if self.weight_update is not None else ())
+        classes = (FilterOptions,) + tuple(c for c in (self.weight_update, self.options) if c is not None)
         return frozenset(f.name for cls in classes for f in dataclasses.fields(cls) if f.init)
 
     def build(self, model: ContinuousModel, **options: Any) -> Filter:
@@ -80,6 +84,8 @@ class FilterSpec:
         FilterOptions(**kwargs)  # validated here, whatever the filter does with them
         if self.weight_update is not None:
             kwargs["weight_update"] = self.weight_update(**_own(self.weight_update, options))
+        if self.options is not None:
+            kwargs.update(dataclasses.asdict(self.options(**_own(self.options, options))))
         return self.cls(model, **kwargs, **self.fixed)
 
 
@@ -116,6 +122,13 @@ FILTERS: dict[str, FilterSpec] = {
             fixed={"start": "star_fix"},
         ),
         FilterSpec("USQUE", "unscented quaternion estimator (one component; Crassidis & Markley 2003)", USQUE, False),
+        FilterSpec(
+            "PF",
+            "regularised particle filter (Musso, Oudjane & Le Gland 2001), particles as the mixture's components",
+            ParticleFilter,
+            False,
+            options=ParticleOptions,
+        ),
     )
 }
 #: Every registered name, in registry order.
@@ -124,7 +137,7 @@ FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)
 ADAPTIVE_FILTERS: tuple[str, ...] = tuple(n for n, s in FILTERS.items() if s.adaptive)
 #: The dataclasses that declare the registered filters' options.
 OPTION_CLASSES: tuple[type, ...] = (FilterOptions,) + tuple(
-    dict.fromkeys(s.weight_update for s in FILTERS.values() if s.weight_update is not None)
+    dict.fromkeys(c for s in FILTERS.values() for c in (s.weight_update, s.options) if c is not None)
 )
 #: The options a configuration file can set, by name (:func:`~agsf_torch.filters.options.config_options`).
 CONFIG_OPTIONS: dict[str, ConfigOption] = config_options(*OPTION_CLASSES)

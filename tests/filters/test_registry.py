@@ -6,7 +6,14 @@ import pytest
 import torch
 
 from agsf_torch import GaussianMixture
-from agsf_torch.filters import USQUE, AdaptiveGaussianSumFilter, Filter, GaussianSumFilter, MultiplicativeEKF
+from agsf_torch.filters import (
+    USQUE,
+    AdaptiveGaussianSumFilter,
+    Filter,
+    GaussianSumFilter,
+    MultiplicativeEKF,
+    ParticleFilter,
+)
 from agsf_torch.filters.registry import ADAPTIVE_FILTERS, FILTER_NAMES, FILTERS, make_filter
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from tests.helpers import F64, assert_within, relative_bound
@@ -22,6 +29,7 @@ def test_registry_names_and_kinds():
         "MEKF": MultiplicativeEKF,
         "MEKF-fix": MultiplicativeEKF,
         "USQUE": USQUE,
+        "PF": ParticleFilter,
     }
     assert set(FILTER_NAMES) == set(kinds)  # every registered filter is checked here
     for name in FILTER_NAMES:
