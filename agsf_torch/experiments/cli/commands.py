@@ -126,6 +126,27 @@ def adaptation_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def validate_command(args: argparse.Namespace) -> int:
+    """``agsf validate``: every scenario × filter scored against the floor. Returns the exit code."""
+    from ..studies.validate import SCENARIOS, run_validation, validation_table
+
+    _threads(args)
+    names = list(SCENARIOS) if "all" in args.scenario else list(dict.fromkeys(args.scenario))
+    summaries = run_validation(
+        names,
+        Path(args.out),
+        runs=args.runs,
+        filters=None if args.filter is None else list(dict.fromkeys(args.filter)),
+        density_samples=args.density_samples,
+        overrides=list(args.set),
+        progress=not args.quiet,
+        force=args.force,
+    )
+    print(validation_table(summaries))
+    print(f"results: {args.out}/validation.json, {args.out}/results.md, {args.out}/*.png")
+    return 0
+
+
 def sweep_command(args: argparse.Namespace) -> int:
     """``agsf sweep``: a resumable grid of configurations, locally or on Ray. Returns the exit code."""
     from ..config.loader import load_config

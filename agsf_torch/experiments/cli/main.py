@@ -12,6 +12,9 @@ Subcommands:
 * ``agsf adaptation [--scenario …] [--runs R] [--samples K] --out DIR`` — where adapting
   the weights pays: RMS, NEES and the density score against an exact-density reference
   for EKF, GSF, both adaptive filters and the MEKF (:mod:`agsf_torch.experiments.studies.adaptation`).
+* ``agsf validate [--scenario …] [--filter …] [--runs R] --out DIR`` — every scenario × filter against the
+  Riccati floor: steady-state RMS, ANEES, NIS, divergence, convergence time, density score and cost, with
+  intervals over runs (:mod:`agsf_torch.experiments.studies.validate`).
 * ``agsf sweep CONFIG --grid key=v1,v2 … --out DIR [--backend ray [--address ADDR]]`` — a
   resumable grid, in this process (each configuration's files written by a worker process while the next
   runs) or as Ray tasks; ends with a table of every configuration (printed and written to ``results.md``).
@@ -56,6 +59,7 @@ from .commands import (
     simulate_command,
     soak_command,
     sweep_command,
+    validate_command,
 )
 from .terminal import (
     FORCE_HELP,
@@ -170,6 +174,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/adaptation", help="output folder")
     common(p)
     p.set_defaults(func=adaptation_command)
+
+    from ..studies.validate import SCENARIOS as VALIDATION_SCENARIOS
+    from ..studies.validate import VALIDATION_FILTERS
+
+    p = sub.add_parser(
+        "validate",
+        help="every scenario × filter against the Riccati floor: RMS, ANEES, NIS, divergence, convergence, density, cost",
+    )
+    p.add_argument(
+        "--scenario",
+        nargs="+",
+        default=["all"],
+        choices=["all", *VALIDATION_SCENARIOS],
+        help="scenarios to run (default: all)",
+    )
+    p.add_argument(
+        "--filter",
+        nargs="+",
+        default=None,
+        choices=list(VALIDATION_FILTERS),
+        help="filters to run (default: each scenario's own)",
+    )
+    p.add_argument("--runs", type=positive_int, default=32, help="Monte Carlo runs per scenario (≥ 2)")
+    p.add_argument(
+        "--density-samples",
+        type=int,
+        default=256,
+        help="exact-density reference samples per run where the reference is run (0: no density score)",
+    )
+    p.add_argument("--out", default="runs/validate", help="output folder")
+    common(p)
+    p.set_defaults(func=validate_command)
 
     p = sub.add_parser("sweep", help="a grid of configurations, each one batched Monte Carlo")
     p.add_argument("config", help="base TOML file or preset")

@@ -79,7 +79,7 @@ class _ExperimentFields:
         prior_bias_sigma_deg_per_hr: prior bias σ (6-state).
         components: N of the Gaussian sums.
         spread: share of the principal prior variance carried by the component means.
-        filters: which of ``FILTER_NAMES`` to run (EKF, GSF, AGSF, AGSF-galerkin, MEKF).
+        filters: which of ``FILTER_NAMES`` to run (EKF, GSF, AGSF, AGSF-galerkin, MEKF, MEKF-fix, USQUE, PF).
         seed: seeds truth, noise and prior draws (trajectory ``i``: ``seed + i``), an integer with
             ``0 ≤ seed`` and ``seed + runs − 1 ≤ MAX_SEED``.
         filter_sigma_s_scale: the filters assume ``σ_s × scale`` (1: the simulated value;
