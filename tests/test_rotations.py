@@ -167,3 +167,19 @@ def test_attitude_error_jacobian_is_the_derivative_of_the_error_vector():
         relative_bound(four, 1e-7, 1e-7),
         "error-vector Jacobian at p = 0",
     )
+
+
+def test_uniform_mrp_is_haar_distributed():
+    """Uniform attitudes: short MRPs (|p| ≤ 1) whose attitude matrices average to zero entrywise (E[C] = 0 under the
+    Haar measure; each entry has variance 1/3) and whose rotation angle has E[cos θ] = −1/2 (density
+    (1 − cos θ)/π on [0, π], so E[trace C] = E[1 + 2 cos θ] = 0)."""
+    from tests.helpers import assert_statistic
+
+    N = 20000
+    p = rot.uniform_mrp(N, torch.Generator().manual_seed(5))
+    assert p.shape == (N, 3) and bool((p.norm(dim=-1) <= 1.0 + 1e-15).all())
+    C = rot.mrp_to_dcm(p).reshape(N, 9).numpy()
+    assert_statistic(C.mean(0), np.zeros(9), np.full(9, np.sqrt(1.0 / 3.0 / N)), "E[C]", false_failure=1e-4)
+    cos = (C[:, 0] + C[:, 4] + C[:, 8] - 1.0) / 2.0
+    # Var cos θ = E[cos²θ] − ¼ = ½ − ¼ = ¼ under the density (1 − cos θ)/π
+    assert_statistic(cos.mean(), -0.5, np.sqrt(0.25 / N), "E[cos θ]", false_failure=1e-4)

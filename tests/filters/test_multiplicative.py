@@ -25,6 +25,7 @@ from agsf_torch.filters import ExtendedKalmanFilter
 from agsf_torch.filters.multiplicative import MultiplicativeEKF, error_state_to_mrp, mrp_to_error_state
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, StarVectorMeasurement
 from envs.gyro import Gyro
+from tests.filters.one_component_attitude import assert_bad_input_refused_before_anything_changes
 from tests.helpers import (
     F64,
     assert_statistic,
@@ -380,46 +381,7 @@ def test_bad_inputs_raise_before_anything_changes(gen):
     y = meas.predict(mix.means[:, 0])
     u = torch.zeros(4, 3, dtype=F64)
     mekf.predict(mix, u, 0.1)
-    diag_before = mekf.diagnostics
-    means_before, covs_before = mix.means.clone(), mix.covs.clone()
-
-    three = GaussianMixture.from_gaussian(mix.means[:, 0], mix.covs[:, 0], 3)
-    with pytest.raises(ValueError, match="one-component"):
-        mekf.predict(three, u, 0.1)
-    with pytest.raises(ValueError, match="one-component"):
-        mekf.update(three, y, meas)
-    with pytest.raises(ValueError, match="state dimension 6 != model state_dim 3"):
-        MultiplicativeEKF(AttitudeModel()).predict(mix, u, 0.1)
-    with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 3\]"):
-        mekf.predict(mix, torch.zeros(4, 2, dtype=F64), 0.1)
-    with pytest.raises(ValueError, match="u has shape"):
-        mekf.predict(mix, torch.zeros(5, 3, dtype=F64), 0.1)
-    u_nan = u.clone()
-    u_nan[1, 2] = float("nan")
-    with pytest.raises(ValueError, match="u must be finite"):
-        mekf.predict(mix, u_nan, 0.1)
-    with pytest.raises(ValueError, match="gyro reading"):
-        mekf.predict(mix, None, 0.1)
-    for dt in (0.0, -0.1, float("nan"), float("inf"), True):
-        with pytest.raises(ValueError, match="dt"):
-            mekf.predict(mix, u, dt)
-    with pytest.raises(ValueError, match="predicts 15"):
-        mekf.update(mix, y[:, :12], meas)
-    y_inf = y.clone()
-    y_inf[0, 0] = float("inf")
-    with pytest.raises(ValueError, match="y must be finite"):
-        mekf.update(mix, y_inf, meas)
-    with pytest.raises(ValueError, match="y has shape"):
-        mekf.update(mix, y[:3], meas)
-    with pytest.raises(TypeError, match="MeasurementModel"):
-        mekf.update(mix, y, lambda x: x)
-    broken = mix.replace(
-        covs=mix.covs * torch.tensor([1.0, -1.0, 1.0, 1.0], dtype=F64)[:, None, None, None], validate=False
-    )
-    with pytest.raises(ValueError, match=r"not positive definite in the input belief at trajectory index \(1,\)"):
-        mekf.predict(broken, u, 0.1)
-    assert mekf.diagnostics is diag_before
-    assert torch.equal(mix.means, means_before) and torch.equal(mix.covs, covs_before)
+    assert_bad_input_refused_before_anything_changes(mekf, mix, u, y, meas)
 
     with pytest.raises(TypeError, match="AttitudeModel"):
         MultiplicativeEKF(StarVectorMeasurement(r))  # type: ignore[arg-type]

@@ -33,6 +33,7 @@ from agsf_torch.filters.unscented_quaternion import (
     unscented_weights,
 )
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
+from tests.filters.one_component_attitude import assert_bad_input_refused_before_anything_changes
 from tests.helpers import F64, assert_within, random_mrps, random_spd, random_unit_vectors, relative_bound
 
 
@@ -510,46 +511,7 @@ def test_bad_inputs_raise_before_anything_changes(gen):
     y = meas.predict(mix.means[:, 0])
     u = torch.zeros(4, 3, dtype=F64)
     usque.predict(mix, u, 0.1)
-    diag_before = usque.diagnostics
-    means_before, covs_before = mix.means.clone(), mix.covs.clone()
-
-    three = GaussianMixture.from_gaussian(mix.means[:, 0], mix.covs[:, 0], 3)
-    with pytest.raises(ValueError, match="one-component"):
-        usque.predict(three, u, 0.1)
-    with pytest.raises(ValueError, match="one-component"):
-        usque.update(three, y, meas)
-    with pytest.raises(ValueError, match="state dimension 6 != model state_dim 3"):
-        USQUE(AttitudeModel()).predict(mix, u, 0.1)
-    with pytest.raises(ValueError, match=r"u must have shape \[\.\.\., 3\]"):
-        usque.predict(mix, torch.zeros(4, 2, dtype=F64), 0.1)
-    with pytest.raises(ValueError, match="u has shape"):
-        usque.predict(mix, torch.zeros(5, 3, dtype=F64), 0.1)
-    with pytest.raises(ValueError, match="u must be finite"):
-        usque.predict(mix, torch.full((4, 3), float("nan"), dtype=F64), 0.1)
-    with pytest.raises(ValueError, match="gyro reading"):
-        usque.predict(mix, None, 0.1)
-    for dt in (0.0, -0.1, float("nan"), float("inf"), True):
-        with pytest.raises(ValueError, match="dt"):
-            usque.predict(mix, u, dt)
-    with pytest.raises(ValueError, match="predicts 15"):
-        usque.update(mix, y[:, :12], meas)
-    y_inf = y.clone()
-    y_inf[0, 0] = float("inf")
-    with pytest.raises(ValueError, match="y must be finite"):
-        usque.update(mix, y_inf, meas)
-    with pytest.raises(ValueError, match="y has shape"):
-        usque.update(mix, y[:3], meas)
-    with pytest.raises(TypeError, match="MeasurementModel"):
-        usque.update(mix, y, lambda x: x)
-    broken = mix.replace(
-        covs=mix.covs * torch.tensor([1.0, -1.0, 1.0, 1.0], dtype=F64)[:, None, None, None], validate=False
-    )
-    with pytest.raises(ValueError, match=r"not positive definite in the input belief at trajectory index \(1,\)"):
-        usque.predict(broken, u, 0.1)
-    with pytest.raises(ValueError, match=r"not positive definite in the input belief at trajectory index \(1,\)"):
-        usque.update(broken, y, meas)
-    assert usque.diagnostics is diag_before
-    assert torch.equal(mix.means, means_before) and torch.equal(mix.covs, covs_before)
+    assert_bad_input_refused_before_anything_changes(usque, mix, u, y, meas)
 
     with pytest.raises(TypeError, match="AttitudeModel"):
         USQUE(meas)  # type: ignore[arg-type]

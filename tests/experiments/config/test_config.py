@@ -157,3 +157,10 @@ def test_the_weight_updates_compile_follows_the_filters_switch_unless_set():
     assert load_config("case1", ["compile=false"]).compile is False
     with pytest.raises(ValueError, match=r"config key 'compile' must be true or false \(or 'auto'\), got 'maybe'"):
         load_config("case1", ["compile=maybe"])
+
+
+def test_the_prior_attitude_is_gaussian_or_uniform():
+    assert load_config("case1", ['prior_attitude="uniform"']).prior_attitude == "uniform"
+    assert load_config("lost_in_space").prior_attitude == "uniform"
+    with pytest.raises(ValueError, match="config key 'prior_attitude' must be 'gaussian' or 'uniform', got 'flat'"):
+        load_config("case1", ['prior_attitude="flat"'])

@@ -84,6 +84,22 @@ def test_the_star_fix_starts_the_mekf_at_the_first_frame_with_two_stars(study):
     assert single["MEKF-fix"]["rms_t_arcsec"] == single["MEKF"]["rms_t_arcsec"]
 
 
+def test_lost_in_space_the_star_fix_solves_a_uniform_start(tmp_path):
+    """A uniformly random prior attitude (``prior_attitude = "uniform"``): the filters start tens of degrees off
+    (the mean error of a uniform attitude is ~126°), and the star-fix MEKF is on the stars from its first frame."""
+    summaries = run_validation(
+        ["lost_in_space"],
+        tmp_path / "lis",
+        runs=8,
+        filters=["MEKF-fix", "GSF"],
+        overrides=["duration=3.0", *EAGER],
+        progress=False,
+    )
+    m = summaries["lost_in_space"]["filters"]
+    assert m["GSF"]["rms_t_arcsec"][0] > 20 * 3600  # > 20° RMS after the first step
+    assert m["MEKF-fix"]["diverged_fraction"] == 0.0 and max(m["MEKF-fix"]["rms_steady_arcsec"]) < 10.0
+
+
 def test_figures_and_the_table_in_words(study):
     out, summaries = study
     for name in summaries:
