@@ -3,7 +3,7 @@
 # at 1, 0.5 and 0.2 Hz), 100 Monte Carlo runs each, EKF / GSF / adaptive GSF with the
 # paper's and with the Galerkin weight update on identical truth and measurements
 # (5.6–6 s on 2 idle cores of an AMD EPYC VM, the three cases side by side; several times longer when the cores
-# are shared; about 70 s the first time on a machine, which compiles the filters' kernels once).  Progress bars on stderr; at the end,
+# are shared; a few minutes the first time on a machine, which compiles the filters' kernels once).  Progress bars on stderr; at the end,
 # the tables and where the outputs are (folder, results.md, figures, the TensorBoard command).
 set -euo pipefail
 if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then
@@ -18,7 +18,7 @@ out="${1:-runs/reproduce}"
 if [ -e "$out/experiment.json" ]; then
     out="$out-$(date +%Y%m%d-%H%M%S)"   # never overwrite an earlier result
 fi
-echo "reproducing the paper's three cases into $out (about 6 s on 2 idle cores; ~70 s the first time, compiling)..." >&2
+echo "reproducing the paper's three cases into $out (about 6-10 s on 2 idle cores; a few minutes the first time, compiling)..." >&2
 start=$SECONDS
 .venv/bin/agsf reproduce --case all --out "$out"
 echo "main job done in $((SECONDS - start)) s; outputs in $(cd "$out" && pwd)/"

@@ -41,7 +41,7 @@ MEASURES = (
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("validate") / "study"
     summaries = run_validation(
-        ["case1-iterated", "single_vector-90deg"],
+        ["case1", "single_vector-90deg"],
         out,
         runs=4,
         filters=FILTERS,
@@ -55,7 +55,7 @@ def study(tmp_path_factory):
 def test_every_scenario_and_filter_has_every_measure_on_disk(study):
     out, summaries = study
     on_disk = json.loads((out / "validation.json").read_text())
-    assert set(on_disk) == {"case1-iterated", "single_vector-90deg"}
+    assert set(on_disk) == {"case1", "single_vector-90deg"}
     for name, s in on_disk.items():
         assert list(s["filters"]) == [f for f in SCENARIOS[name].filters if f in FILTERS]
         assert s["runs"] == 4 and len(s["floor_arcsec"]) == 3
@@ -68,7 +68,7 @@ def test_every_scenario_and_filter_has_every_measure_on_disk(study):
             assert 0.0 <= lo <= m["diverged_fraction"] <= hi <= 1.0
             assert m["cost_per_step_s"] > 0
             assert not any(k.endswith("_t_arcsec") for k in m)  # the figures' series stay out of the JSON
-    assert on_disk["case1-iterated"]["filters"]["GSF"]["density_score"] is not None  # the reference is run there
+    assert on_disk["case1"]["filters"]["GSF"]["density_score"] is not None  # the reference is run there
     assert on_disk["single_vector-90deg"]["filters"]["GSF"]["density_score"] is None  # and not there
     assert on_disk["single_vector-90deg"]["stars_per_frame_mean"] == 1.0
 
@@ -78,7 +78,7 @@ def test_the_star_fix_starts_the_mekf_at_the_first_frame_with_two_stars(study):
     after 3 s no run is off by more than a few arcseconds; with one star a frame no frame fixes an attitude and
     MEKF-fix is the MEKF, bit for bit."""
     _, summaries = study
-    fixed = summaries["case1-iterated"]["filters"]["MEKF-fix"]
+    fixed = summaries["case1"]["filters"]["MEKF-fix"]
     assert fixed["diverged_fraction"] == 0.0 and max(fixed["rms_steady_arcsec"]) < 10.0
     single = summaries["single_vector-90deg"]["filters"]
     assert single["MEKF-fix"]["rms_t_arcsec"] == single["MEKF"]["rms_t_arcsec"]
@@ -106,7 +106,7 @@ def test_figures_and_the_table_in_words(study):
         assert (out / f"{name}.png").stat().st_size > 10_000
     assert (out / "summary.png").stat().st_size > 10_000
     text = (out / "results.md").read_text()
-    assert "| case1-iterated | MEKF-fix |" in text
+    assert "| case1 | MEKF-fix |" in text
     assert text.count("- **") == 2 and ("use " in text or "no filter is consistent" in text)
 
 
