@@ -241,17 +241,16 @@ def test_simulate_shows_progress_unless_quiet_and_sets_the_threads(tmp_path, mon
 
 def test_without_threads_torch_is_capped_at_the_cpus_the_process_may_use(tmp_path, monkeypatch):
     """Torch's default counts the machine's cores; a CPU quota of 2 on a 16-thread default runs 2 threads."""
+    import joblib
     import torch
-
-    from agsf_torch import processes
 
     calls: list[int] = []
     monkeypatch.setattr(torch, "set_num_threads", calls.append)
     monkeypatch.setattr(torch, "get_num_threads", lambda: 16)
-    monkeypatch.setattr(processes, "available_cpus", lambda: 2)
+    monkeypatch.setattr(joblib, "cpu_count", lambda only_physical_cores=False: 2)
     code, _, _ = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "a")])
     assert code == 0 and calls == [2]
-    monkeypatch.setattr(processes, "available_cpus", lambda: 32)
+    monkeypatch.setattr(joblib, "cpu_count", lambda only_physical_cores=False: 32)
     code, _, _ = _agsf(["simulate", "--runs", "2", "--steps", "3", "--quiet", "--out", str(tmp_path / "b")])
     assert code == 0 and calls == [2]  # more CPUs than threads: torch's default stands
 
