@@ -31,8 +31,6 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-import joblib
-
 from ...storage.files import remove_partial
 from .worker_pool import WorkerPool, fork_available
 
@@ -195,6 +193,8 @@ def default_writers() -> int:
     """Worker processes of a command that writes files beside its work (:func:`writing_beside`): one where fork is
     available and the process may use two CPUs or more, else none (a worker on the only CPU would take its time from
     the filters)."""
+    import joblib
+
     return 1 if joblib.cpu_count(only_physical_cores=False) >= 2 and fork_available() else 0
 
 
@@ -213,6 +213,8 @@ def writing_beside(threads: int | None = None):
 
     check_threads(threads)
     writers = default_writers()
+    import joblib
+
     before = torch.get_num_threads()
     with FileWriter(writers) as writer:
         try:

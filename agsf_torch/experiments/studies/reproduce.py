@@ -17,8 +17,6 @@ import importlib
 import json
 from pathlib import Path
 
-import joblib
-
 from ...filters.registry import ADAPTIVE_FILTERS
 from ...storage.files import write_json, write_text
 from ..config.loader import load_config
@@ -108,6 +106,8 @@ def default_jobs(cases: int) -> int:
     """Cases at once by default: all of them where fork is available (:func:`agsf_torch.experiments.run.worker_pool.fork_available`) and the process
     may use two CPUs or more (three cases on two cores take turns on both, which balances better than two at once
     then one), else 1."""
+    import joblib
+
     return cases if cases > 1 and fork_available() and joblib.cpu_count(only_physical_cores=False) >= 2 else 1
 
 

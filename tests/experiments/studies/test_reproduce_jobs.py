@@ -101,7 +101,9 @@ def test_without_fork_cases_run_one_after_another_by_default_and_side_by_side_is
 @pytest.mark.parametrize(("cpus", "cases", "expected"), [(1, 3, 1), (2, 3, 3), (8, 3, 3), (2, 1, 1)])
 def test_by_default_every_case_runs_at_once_on_two_cpus_or_more(monkeypatch, cpus, cases, expected):
     monkeypatch.setattr(reproduce_module, "fork_available", lambda: True)
-    monkeypatch.setattr(reproduce_module.joblib, "cpu_count", lambda only_physical_cores=False: cpus)
+    import joblib
+
+    monkeypatch.setattr(joblib, "cpu_count", lambda only_physical_cores=False: cpus)
     assert default_jobs(cases) == expected
     assert check_jobs(None, cases) == expected
 
