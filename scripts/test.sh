@@ -39,5 +39,6 @@ if [ $# -eq 0 ]; then
         .venv/bin/python -m pytest -q -n 2 --seed 2 --jitter-ulps 4 \
         tests/fpke tests/test_fpke.py tests/test_qp.py tests/test_update.py tests/test_propagation.py \
         tests/test_gating.py tests/test_rotations.py tests/test_mixture.py tests/filters/test_galerkin.py \
-        tests/filters/test_adaptive.py tests/filters/test_multiplicative.py tests/density tests/models tests/fused
+        tests/filters/test_adaptive.py tests/filters/test_multiplicative.py tests/filters/test_unscented_quaternion.py \
+        tests/filters/test_particle.py tests/attitude/test_floor.py tests/density tests/models tests/fused
 fi
