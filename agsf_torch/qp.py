@@ -49,6 +49,7 @@ __all__ = [
     "QPResult",
     "solve_simplex_qp",
     "kkt_residual",
+    "hold_at_zero",
     "solve_simplex_qp_clarabel",
     "solve_simplex_qp_cvxpy",
 ]
@@ -139,6 +140,32 @@ def kkt_residual(H: Tensor, c: Tensor, w: Tensor) -> Tensor:
     comp = (w.clamp_min(0) * mu).abs().amax(-1)
     scale = 1.0 + H.abs().flatten(-2).amax(-1) + c.abs().amax(-1)
     return torch.maximum(primal, torch.maximum(dual, comp) / scale)
+
+
+def hold_at_zero(H: Tensor, c: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
+    """The simplex QP ``(H, c)`` with ``wᵢ`` held at zero wherever ``active [..., N]`` is ``False``.
+
+    Row and column ``i`` of ``H`` become ``hᵢ eᵢ`` (``h`` the largest active diagonal entry) and ``cᵢ`` becomes
+    ``2(max|H| + max|c|)`` over the active entries, above any value of the equality multiplier
+    ``ν = (Hw + c)ⱼ`` (``|ν| ≤ max|H| + max|c|`` for ``w`` on the simplex): the KKT point of the new problem has
+    ``wᵢ = 0`` and, on the active entries, is the KKT point of the problem restricted to them.  Each problem needs
+    one active entry.
+
+    Args:
+        H: ``[..., N, N]``; c: ``[..., N]``; active: ``[..., N]`` bool.
+
+    Returns:
+        ``(H', c')``.
+    """
+    both = active[..., :, None] & active[..., None, :]
+    H_act = torch.where(both, H, torch.zeros_like(H))
+    c_act = torch.where(active, c, torch.zeros_like(c))
+    scale = H_act.abs().flatten(-2).amax(-1) + c_act.abs().amax(-1)
+    h = H_act.diagonal(dim1=-2, dim2=-1).amax(-1)
+    h = torch.where(h > 0, h, torch.ones_like(h))
+    eye = torch.eye(H.shape[-1], dtype=torch.bool, device=H.device)
+    held = torch.where(eye & ~active[..., None, :], h[..., None, None], torch.zeros_like(H))
+    return torch.where(both, H, held), torch.where(active, c, (2.0 * scale + h)[..., None].expand_as(c))
 
 
 def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int | None = 4096) -> QPResult:

@@ -4,6 +4,7 @@ GSF (with its weight updates), the multiplicative EKF, USQUE and the particle fi
 from .adaptive import AdaptiveGaussianSumFilter
 from .base import BaseFilter, Filter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
+from .management import MixtureManagement
 from .multiplicative import MultiplicativeEKF
 from .options import FilterOptions
 from .particle import ParticleFilter, ParticleOptions
@@ -18,6 +19,7 @@ __all__ = [
     "ExtendedKalmanFilter",
     "GaussianSumFilter",
     "AdaptiveGaussianSumFilter",
+    "MixtureManagement",
     "MultiplicativeEKF",
     "USQUE",
     "ParticleFilter",

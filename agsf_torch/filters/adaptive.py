@@ -103,7 +103,10 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
     def _adapt_weights(
         self, prior: GaussianMixture, propagated: GaussianMixture, u: Tensor | None, dt: float
     ) -> tuple[GaussianMixture, dict[str, Any]]:
-        log_weights, extra = self.weight_update(self.model, prior, propagated, u, dt, enabled=self.adapt)
+        weight_map = self.weight_map if self.management is not None else None
+        log_weights, extra = self.weight_update(
+            self.model, prior, propagated, u, dt, enabled=self.adapt, weight_map=weight_map
+        )
         if log_weights is None:
             return propagated, extra
         return propagated.replace(log_weights=log_weights, validate=False), extra

@@ -182,7 +182,13 @@ class BaseFilter:
         compile_fused: bool = False,
         repair_covariance: bool = False,
         min_eigenvalue: float = 1e-12,
+        management: Any = None,
     ) -> None:
+        if management is not None:  # a Gaussian-sum filter takes it before this point
+            raise ValueError(
+                f"management (mixture management) applies to Gaussian-sum filters; {type(self).__name__} carries "
+                "no managed mixture"
+            )
         if not isinstance(model, self.model_type):
             raise TypeError(f"{type(self).__name__} needs a {self.model_type.__name__}, got {type(model).__name__}")
         n = getattr(model, "state_dim", None)
@@ -258,12 +264,26 @@ class BaseFilter:
             The belief at ``t + dt``.
         """
         u, dt = self._validate_predict(mixture, u, dt)
+        mixture, managed = self._manage(mixture, "predict", u=u)
         propagated, repairs = self._propagate(mixture, u, dt)
         adapted, extra = self._adapt_weights(mixture, propagated, u, dt)
         self.diagnostics = StepDiagnostics(
-            {"weight_entropy": adapted.entropy_of_weights(), "covariance_repairs": repairs, **extra}
+            {"weight_entropy": adapted.entropy_of_weights(), "covariance_repairs": repairs, **managed, **extra}
         )
         return adapted
+
+    def _manage(
+        self,
+        mixture: GaussianMixture,
+        step: str,
+        *,
+        u: Tensor | None = None,
+        measurement: MeasurementModel | None = None,
+    ) -> tuple[GaussianMixture, dict[str, Tensor]]:
+        """Hook before a propagation (``step = "predict"``, input ``u``) or an update (``"update"``, the
+        ``measurement``): the mixture to go on with and diagnostics; by default the mixture as it is.  A
+        Gaussian-sum filter's mixture management runs here (:mod:`agsf_torch.filters.management`)."""
+        return mixture, {}
 
     def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
         """Check the mixture, ``dt`` and ``u`` before anything changes; return ``(u [..., m] or None, dt)``."""
@@ -302,6 +322,7 @@ class BaseFilter:
             The posterior belief; trajectories without a valid entry are returned unchanged.
         """
         y = self._validate_update(mixture, y, measurement)
+        mixture, managed = self._manage(mixture, "update", measurement=measurement)
         frame = self._update_frame(mixture, measurement)
         mask, gate = self._gate(frame, y)
         result = self._kalman_step(frame, y, mask)
@@ -315,6 +336,7 @@ class BaseFilter:
                 "dof": result.dof,
                 "weight_entropy": posterior.entropy_of_weights(),
                 "covariance_repairs": repairs,
+                **managed,
                 **gate,
             }
         )

@@ -7,9 +7,16 @@ from typing import Any
 from torch import Tensor
 
 from ..mixture import GaussianMixture
-from ..models.base import ContinuousModel
+from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
 from .base import BaseFilter
+from .management import (
+    MANAGEMENT_DIAGNOSTICS,
+    MixtureManagement,
+    entropy_nonlinearity,
+    measurement_nonlinearity,
+    pad_mixture,
+)
 
 __all__ = ["GaussianSumFilter", "ExtendedKalmanFilter"]
 
@@ -41,23 +48,85 @@ class GaussianSumFilter(BaseFilter):
     transition-matrix form (:func:`agsf_torch.propagation.propagate_moments`) and
     re-expresses it in the model's canonical chart.
 
+    With ``management`` (:class:`~agsf_torch.filters.management.MixtureManagement`) the mixture has
+    ``capacity`` slots (a smaller one is padded with inactive slots at the first step): before each
+    propagation the components are pruned, merged and split where the propagation is nonlinear, before each
+    update split where the measurement is; both steps then also report ``active_components``, ``splits``,
+    ``merges`` and ``prunes`` (``[...]``, int64, this step's).
+
     Args:
         model: the continuous-time model.
         substeps: RK4 steps per ``predict`` interval.
+        management: a :class:`~agsf_torch.filters.management.MixtureManagement`, or ``None`` (default: the
+            components the mixture starts with, never split, merged or pruned).
         **options: ``update_iterations``, ``gate_probability``, ``repair_covariance``,
             ``min_eigenvalue`` (:class:`~agsf_torch.filters.base.BaseFilter`).
     """
 
-    def __init__(self, model: ContinuousModel, *, substeps: int = 1, **options) -> None:
+    def __init__(
+        self, model: ContinuousModel, *, substeps: int = 1, management: MixtureManagement | None = None, **options
+    ) -> None:
+        if management is not None and not isinstance(management, MixtureManagement):
+            raise TypeError(f"management must be a MixtureManagement or None, got {type(management).__name__}")
+        if management is not None and self.num_components == 1:
+            raise ValueError(
+                f"management (mixture management) needs a Gaussian sum; {type(self).__name__} has one component"
+            )
         super().__init__(model, **options)
         if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
         self.substeps = int(substeps)
+        self.management = management
+        self.weight_map: Any = None  # the last management pass's action on the weights ([..., K, K])
         self._contract_checked: ContinuousModel | None = None  # the model check_contract passed for
 
     def checkpoint_options(self) -> dict[str, Any]:
-        """The base filter's options and ``substeps`` (:meth:`BaseFilter.checkpoint_options`)."""
-        return {**super().checkpoint_options(), "substeps": self.substeps}
+        """The base filter's options, ``substeps`` and, when managed, ``management``
+        (:meth:`BaseFilter.checkpoint_options`)."""
+        options = {**super().checkpoint_options(), "substeps": self.substeps}
+        if self.management is not None:
+            options["management"] = self.management.as_dict()
+        return options
+
+    def check_mixture(self, mixture: GaussianMixture) -> None:
+        """As the base filter's; with management, at most ``capacity`` components."""
+        super().check_mixture(mixture)
+        if self.management is not None and mixture.num_components > self.management.capacity:
+            raise ValueError(
+                f"management capacity {self.management.capacity} is below the mixture's {mixture.num_components} "
+                f"components: raise capacity to at least {mixture.num_components}"
+            )
+
+    def diagnostic_keys(self, step: str) -> tuple[str, ...]:
+        """The base filter's, and with management :data:`~agsf_torch.filters.management.MANAGEMENT_DIAGNOSTICS`."""
+        keys = super().diagnostic_keys(step)
+        return keys + MANAGEMENT_DIAGNOSTICS if self.management is not None else keys
+
+    def _manage(
+        self,
+        mixture: GaussianMixture,
+        step: str,
+        *,
+        u: Tensor | None = None,
+        measurement: MeasurementModel | None = None,
+    ) -> tuple[GaussianMixture, dict[str, Tensor]]:
+        """The mixture padded to ``capacity``, pruned, merged and split (:meth:`MixtureManagement.apply`): by the
+        entropy test before a propagation, by the measurement's curvature before an update."""
+        mg = self.management
+        if mg is None:
+            return mixture, {}
+        mixture = pad_mixture(mixture, mg.capacity)
+        score = axis = None
+        threshold = 0.0
+        if step == "predict" and mg.split_entropy_rate > 0:
+            score, axis = entropy_nonlinearity(self.model, mixture.means, mixture.covs, u)
+            threshold = mg.split_entropy_rate
+        elif step == "update" and mg.split_measurement > 0 and measurement is not None:
+            score, axis = measurement_nonlinearity(mixture.means, mixture.covs, measurement)
+            threshold = mg.split_measurement
+        result = mg.apply(mixture, self.model, score, axis, threshold)
+        self.weight_map = result.weight_map
+        return result.mixture, result.counts
 
     def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
         """As the base class's, the model's shape contract at the first ``predict`` with it

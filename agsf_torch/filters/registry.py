@@ -25,6 +25,7 @@ from ..models.base import ContinuousModel
 from .adaptive import AdaptiveGaussianSumFilter
 from .base import BaseFilter, Filter
 from .gaussian_sum import ExtendedKalmanFilter, GaussianSumFilter
+from .management import MixtureManagement
 from .multiplicative import MultiplicativeEKF
 from .options import ConfigOption, FilterOptions, config_options
 from .particle import ParticleFilter, ParticleOptions
@@ -57,6 +58,8 @@ class FilterSpec:
         fixed: constructor arguments of ``cls`` this entry fixes (``MEKF-fix``: ``start="star_fix"``).
         options: a dataclass declaring options of ``cls`` beyond :class:`FilterOptions` (the particle filter's
             :class:`~agsf_torch.filters.particle.ParticleOptions`), or ``None``.
+        managed: the entry manages its mixture: built with ``management=MixtureManagement(...)`` from the
+            :class:`~agsf_torch.filters.management.MixtureManagement` options.
     """
 
     name: str
@@ -66,6 +69,7 @@ class FilterSpec:
     weight_update: type[WeightUpdate] | None = None
     fixed: Mapping[str, Any] = field(default_factory=dict)
     options: type | None = None
+    managed: bool = False
 
     @property
     def adaptive(self) -> bool:
@@ -75,7 +79,9 @@ class FilterSpec:
     @property
     def option_names(self) -> frozenset[str]:
         """The options this filter reads: every :class:`FilterOptions` field and its weight update's."""
-        classes = (FilterOptions,) + tuple(c for c in (self.weight_update, self.options) if c is not None)
+        classes = (FilterOptions,) + tuple(
+            c for c in (self.weight_update, self.options, MixtureManagement if self.managed else None) if c is not None
+        )
         return frozenset(f.name for cls in classes for f in dataclasses.fields(cls) if f.init)
 
     def build(self, model: ContinuousModel, **options: Any) -> Filter:
@@ -86,6 +92,8 @@ class FilterSpec:
             kwargs["weight_update"] = self.weight_update(**_own(self.weight_update, options))
         if self.options is not None:
             kwargs.update(dataclasses.asdict(self.options(**_own(self.options, options))))
+        if self.managed:
+            kwargs["management"] = MixtureManagement(**_own(MixtureManagement, options))
         return self.cls(model, **kwargs, **self.fixed)
 
 
@@ -113,6 +121,29 @@ FILTERS: dict[str, FilterSpec] = {
             True,
             GalerkinWeightUpdate,
         ),
+        FilterSpec(
+            "GSF-managed",
+            "GSF whose mixture splits, merges and prunes (filters.management)",
+            GaussianSumFilter,
+            True,
+            managed=True,
+        ),
+        FilterSpec(
+            "AGSF-managed",
+            "adaptive GSF (the paper's weight QP) whose mixture splits, merges and prunes",
+            AdaptiveGaussianSumFilter,
+            True,
+            PenaltyWeightUpdate,
+            managed=True,
+        ),
+        FilterSpec(
+            "AGSF-galerkin-managed",
+            "adaptive GSF (the Galerkin update) whose mixture splits, merges and prunes",
+            AdaptiveGaussianSumFilter,
+            True,
+            GalerkinWeightUpdate,
+            managed=True,
+        ),
         FilterSpec("MEKF", "multiplicative EKF (one component), the industry baseline", MultiplicativeEKF, False),
         FilterSpec(
             "MEKF-fix",
@@ -137,7 +168,12 @@ FILTER_NAMES: tuple[str, ...] = tuple(FILTERS)
 ADAPTIVE_FILTERS: tuple[str, ...] = tuple(n for n, s in FILTERS.items() if s.adaptive)
 #: The dataclasses that declare the registered filters' options.
 OPTION_CLASSES: tuple[type, ...] = (FilterOptions,) + tuple(
-    dict.fromkeys(c for s in FILTERS.values() for c in (s.weight_update, s.options) if c is not None)
+    dict.fromkeys(
+        c
+        for s in FILTERS.values()
+        for c in (s.weight_update, s.options, MixtureManagement if s.managed else None)
+        if c is not None
+    )
 )
 #: The options a configuration file can set, by name (:func:`~agsf_torch.filters.options.config_options`).
 CONFIG_OPTIONS: dict[str, ConfigOption] = config_options(*OPTION_CLASSES)

@@ -77,7 +77,19 @@ __all__ = [
 ]
 
 #: Every filter the study compares, in table order.
-VALIDATION_FILTERS = ("EKF", "GSF", "AGSF", "AGSF-galerkin", "MEKF", "MEKF-fix", "USQUE", "PF")
+VALIDATION_FILTERS = (
+    "EKF",
+    "GSF",
+    "AGSF",
+    "AGSF-galerkin",
+    "GSF-managed",
+    "AGSF-managed",
+    "AGSF-galerkin-managed",
+    "MEKF",
+    "MEKF-fix",
+    "USQUE",
+    "PF",
+)
 #: A run whose attitude error at the end exceeds this (deg) has diverged.
 DIVERGED_DEG = 1.0
 #: At how many steps of a run (evenly spread, the last included) the density score is evaluated: scoring a
@@ -130,13 +142,18 @@ SCENARIOS: dict[str, Scenario] = {
     ),
     "single_vector-10deg": Scenario("case1", (*_SINGLE, _prior_var(10.0)), "one star per frame, 10° per axis"),
     "single_vector-30deg": Scenario("case1", (*_SINGLE, _prior_var(30.0)), "one star per frame, 30° per axis"),
-    "single_vector-90deg": Scenario("case1", (*_SINGLE, _prior_var(90.0)), "one star per frame, 90° per axis"),
+    "single_vector-90deg": Scenario(
+        "case1", (*_SINGLE, _prior_var(90.0)), "one star per frame, 90° per axis", density=True
+    ),
     "single_vector-uniform": Scenario(
         "case1",
         (*_SINGLE, 'prior_attitude="uniform"', "prior_var=1.0"),
         "one star per frame, a uniformly random prior attitude",
+        density=True,
     ),
-    "outage": Scenario("outage", (), "ten minutes without frames after convergence, then two stars a frame again"),
+    "outage": Scenario(
+        "outage", (), "ten minutes without frames after convergence, then two stars a frame again", density=True
+    ),
     "lost_in_space": Scenario("lost_in_space", (), "a uniformly random prior attitude, the paper's frames"),
     "wide_prior": Scenario("wide_prior", (), "30° per axis, two stars every 10 s"),
 }

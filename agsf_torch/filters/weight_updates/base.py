@@ -21,7 +21,7 @@ from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...models.derived import provides
 from ...propagation import moment_derivatives
-from ...qp import MAX_COMPONENTS
+from ...qp import MAX_COMPONENTS, hold_at_zero
 from ..options import option, positive_int
 
 __all__ = [
@@ -46,6 +46,14 @@ def has_gaussian_moments(model: ContinuousModel) -> bool:
     return provides(model, "fokker_planck_moments", ContinuousModel)
 
 
+def held_qp(run: WeightUpdateRun, H: Tensor, c: Tensor, log_weights: Tensor) -> tuple[Tensor, Tensor]:
+    """``(H, c)`` with the weights of inactive components (``−inf`` in ``log_weights [..., N]``) held at zero when
+    the mixture is managed (:func:`~agsf_torch.qp.hold_at_zero`); as they are otherwise."""
+    if not run.hold_inactive:
+        return H, c
+    return hold_at_zero(H, c, torch.isfinite(log_weights))
+
+
 def check_finite_matrix(name: str, value: Tensor) -> None:
     bad = ~torch.isfinite(value).flatten(-2).all(-1)
     if bool(bad.any()):
@@ -60,11 +68,14 @@ class WeightUpdateRun:
         step: intervals counted since the run started.
         elapsed: time since the last adaptation or measurement update (s).
         reference: the penalty update's reference log-weights ``[..., N]`` (``None`` before the first).
+        hold_inactive: set while :meth:`WeightUpdate.compute` runs for a managed mixture: the QP holds inactive
+            components at zero weight (:func:`held_qp`).
     """
 
     step: int = 0
     elapsed: float = 0.0
     reference: Tensor | None = None
+    hold_inactive: bool = False  # during compute: the mixture is managed (inactive slots' weights held at zero)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -144,6 +155,7 @@ class WeightUpdate:
         dt: float,
         *,
         enabled: bool = True,
+        weight_map: Tensor | None = None,
     ) -> tuple[Tensor | None, dict[str, Any]]:
         """Count the interval and, on the cadence, return new log-weights ``[..., N]``.
 
@@ -151,6 +163,10 @@ class WeightUpdate:
             prior: the belief before the interval; propagated: after it (weights unchanged).
             u: input ``[..., m]`` (one per trajectory) or ``None``; dt: the interval (s).
             enabled: ``False`` counts the interval without adapting.
+            weight_map: ``T [..., N, N]``, the action on the weights of the mixture management that ran before this
+                interval (:class:`~agsf_torch.filters.management.ManagementResult`), or ``None``: the reference
+                weights, if any, are mapped by it (``w ↦ Tw``, renormalised).  With it, the weight QP holds the
+                weights of inactive components (``−inf`` log-weight) at zero (:func:`~agsf_torch.qp.hold_at_zero`).
 
         Returns:
             ``(log_weights or None, diagnostics)``; ``None`` when this interval is not adapted.
@@ -158,10 +174,26 @@ class WeightUpdate:
         if enabled:
             self.check(propagated)
         step, elapsed = self.run.step + 1, self.run.elapsed + float(dt)
+        reference = self.run.reference
+        if weight_map is not None and reference is not None:
+            K = weight_map.shape[-1]
+            if reference.shape[-1] < K:  # recorded before the mixture was padded
+                pad = reference.new_full((*reference.shape[:-1], K - reference.shape[-1]), float("-inf"))
+                reference = torch.cat((reference, pad), -1)
+            mapped = (weight_map @ reference.exp().unsqueeze(-1)).squeeze(-1)
+            reference = torch.log(mapped) - torch.log(mapped.sum(-1, keepdim=True))
         if not enabled or step % self.cadence != 0 or propagated.num_components == 1:
-            self.run.step, self.run.elapsed = step, elapsed
+            self.run.step, self.run.elapsed, self.run.reference = step, elapsed, reference
             return None, {"weights_adapted": False}
-        log_weights, extra = self.compute(model, prior, propagated, u, elapsed)
+        before = self.run.reference
+        self.run.reference, self.run.hold_inactive = reference, weight_map is not None
+        try:
+            log_weights, extra = self.compute(model, prior, propagated, u, elapsed)
+        except BaseException:
+            self.run.reference = before
+            raise
+        finally:
+            self.run.hold_inactive = False
         self.run.step, self.run.elapsed = step, 0.0
         return log_weights, {**extra, "weights_adapted": True}
 

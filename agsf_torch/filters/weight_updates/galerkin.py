@@ -13,7 +13,7 @@ from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...qp import kkt_residual, solve_simplex_qp
 from ..options import option
-from .base import QuadratureUpdate, check_finite_matrix, component_rates, has_gaussian_moments
+from .base import QuadratureUpdate, check_finite_matrix, component_rates, has_gaussian_moments, held_qp
 
 __all__ = ["GalerkinWeightUpdate"]
 
@@ -136,8 +136,11 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         c = ((elapsed * G.drift - G.mass) @ w0.unsqueeze(-1)).squeeze(-1)
         eps = self.tikhonov * G.mass.diagonal(dim1=-2, dim2=-1).amax(-1)
         eye = torch.eye(N, dtype=w0.dtype, device=w0.device)
-        res = solve_simplex_qp(G.mass + eps[..., None, None] * eye, c - eps[..., None] * w0)
-        w_new = res.w.clamp_min(0.0)
+        active = torch.isfinite(propagated.log_weights)
+        res = solve_simplex_qp(
+            *held_qp(self.run, G.mass + eps[..., None, None] * eye, c - eps[..., None] * w0, propagated.log_weights)
+        )
+        w_new = torch.where(active | (not self.run.hold_inactive), res.w.clamp_min(0.0), 0.0)
         w_new = w_new / w_new.sum(-1, keepdim=True)
         dw = w_new - w0
         change = (dw.unsqueeze(-2) @ G.mass @ dw.unsqueeze(-1)).squeeze(-1).squeeze(-1)

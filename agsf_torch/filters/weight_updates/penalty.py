@@ -14,7 +14,7 @@ from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...qp import solve_simplex_qp
 from ..options import option
-from .base import QuadratureUpdate, component_rates
+from .base import QuadratureUpdate, component_rates, held_qp
 
 __all__ = ["PenaltyWeightUpdate"]
 
@@ -154,10 +154,11 @@ class PenaltyWeightUpdate(QuadratureUpdate):
         else:
             w_ref = w_prop
         eye = torch.eye(N, dtype=means.dtype, device=means.device)
-        if self.scaling == "trace":
-            tr = Lmat.scaled.diagonal(dim1=-2, dim2=-1).sum(-1)
+        active = torch.isfinite(propagated.log_weights)
+        if self.scaling == "trace":  # the mean diagonal entry over the active components
+            tr = (Lmat.scaled.diagonal(dim1=-2, dim2=-1) * active).sum(-1)
             tiny = torch.finfo(means.dtype).tiny
-            Ls = Lmat.scaled / (tr / N).clamp_min(tiny)[..., None, None]
+            Ls = Lmat.scaled / (tr / active.sum(-1)).clamp_min(tiny)[..., None, None]
         else:
             Ls = Lmat.full()
             if not bool(torch.isfinite(Ls).all()):
@@ -165,8 +166,8 @@ class PenaltyWeightUpdate(QuadratureUpdate):
                 raise ValueError(
                     f"unscaled FPKE matrix overflows at trajectory index {tuple(idx)}; use scaling='trace'"
                 )
-        res = solve_simplex_qp(Ls + self.reg * eye, -self.reg * w_ref)
-        w_new = res.w.clamp_min(0.0)
+        res = solve_simplex_qp(*held_qp(self.run, Ls + self.reg * eye, -self.reg * w_ref, propagated.log_weights))
+        w_new = torch.where(active | (not self.run.hold_inactive), res.w.clamp_min(0.0), 0.0)
         w_new = w_new / w_new.sum(-1, keepdim=True)
         log_w = torch.log(w_new)
         log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)  # normalised to rounding in the log domain

@@ -1,0 +1,522 @@
+"""Mixture management: a Gaussian sum of fixed capacity that splits, merges and prunes its components.
+
+The mixture keeps its shape ``[..., K]`` (``K`` = :attr:`MixtureManagement.capacity`): a component that is
+not in use is an *inactive slot*, with log-weight ``−inf`` (weight zero), so every trajectory advances in one
+tensor program however many components it carries.  An inactive slot holds a copy of its trajectory's heaviest
+component (a finite, positive definite Gaussian): it takes no part in the estimate, the likelihood, the weight
+QP (held at zero, :func:`agsf_torch.qp.hold_at_zero`) or the density, and costs nothing that could fail.
+
+Each management pass (:meth:`MixtureManagement.apply`) runs, batched over trajectories:
+
+1. **prune**: a component whose weight is below ``prune_weight`` becomes inactive (never the heaviest);
+2. **merge** (Runnalls 2007): ``merge_rounds`` rounds in which every pair of *mutual* nearest components by
+   Runnalls' bound on the Kullback–Leibler discrimination of the merged mixture from the original,
+
+   .. math:: B_{ij} = ½\\big[(w_i + w_j)\\log\\det P_{ij} - w_i \\log\\det P_i - w_j \\log\\det P_j\\big]
+
+   merges where ``B_ij ≤ merge_bound`` (nats), moment-preserving and in the chart of the heavier
+   (``model.align``: the attitude's MRP set or its shadow), into the heavier's slot;
+3. **split**: a component whose nonlinearity score exceeds its threshold is split along the axis the score
+   names into three, preserving its mean and covariance exactly (:data:`SPLIT_WEIGHTS`), into free slots,
+   heaviest candidates first; where no two slots are free, the pair of least bound is merged first when the
+   pair is lighter than the candidate.
+
+The scores (:func:`measurement_nonlinearity` before an update, :func:`entropy_nonlinearity` before a
+propagation) are taken along the axes ``s_k = L e_k`` of each component (``P = LLᵀ``): relative to the
+component's own covariance, so the thresholds do not depend on the state's units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..mixture import GaussianMixture
+from ..models.base import ContinuousModel, MeasurementModel
+from ..qp import MAX_COMPONENTS
+from .options import option, positive_int
+
+__all__ = [
+    "MixtureManagement",
+    "ManagementResult",
+    "MANAGEMENT_DIAGNOSTICS",
+    "SPLIT_WEIGHTS",
+    "SPLIT_OFFSETS",
+    "SPLIT_VARIANCE",
+    "pad_mixture",
+    "runnalls_bound",
+    "measurement_nonlinearity",
+    "entropy_nonlinearity",
+]
+
+#: Keys a managed filter adds to ``diagnostics`` after ``predict`` and ``update`` (each ``[...]``, int64).
+MANAGEMENT_DIAGNOSTICS = ("active_components", "splits", "merges", "prunes")
+
+#: The three-way split of a unit Gaussian along one axis: weights and offsets (in standard deviations) of
+#: DeMars, Bishop & Jah (2013), with the children's variance chosen so that the split keeps the variance exactly:
+#: ``Σ wⱼ (σ² + μⱼ²) = 1``.
+SPLIT_WEIGHTS = (0.2252246249, 0.5495507502, 0.2252246249)
+SPLIT_OFFSETS = (-1.0575154615, 0.0, 1.0575154615)
+SPLIT_VARIANCE = 1.0 - sum(w * m * m for w, m in zip(SPLIT_WEIGHTS, SPLIT_OFFSETS, strict=True))
+
+#: Largest accepted ``merge_bound`` (nats): at ½ nat two equal components three standard deviations apart
+#: (a clearly bimodal pair) already merge.
+MAX_MERGE_BOUND = 0.5
+
+
+def _nonnegative(name: str, value: Any, upper: float = math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) <= upper:
+        bound = "a finite number ≥ 0" if upper == math.inf else f"a number in [0, {upper}]"
+        raise ValueError(f"{name} must be {bound}, got {value!r}")
+    if not math.isfinite(float(value)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MixtureManagement:
+    """Options of a Gaussian-sum filter's mixture management (module docstring); ``0`` switches a step off.
+
+    Example::
+
+        GaussianSumFilter(model, management=MixtureManagement())                # the defaults
+        AdaptiveGaussianSumFilter(model, management=MixtureManagement(capacity=32, split_measurement=0.5))
+
+    Attributes:
+        capacity: ``K``, the mixture's slots (≥ the initial component count; ≤ the weight QP's limit).  A mixture
+            given with fewer components is padded with inactive slots at the filter's first step.
+        prune_weight: weight (dimensionless, in [0, 0.5)) below which a component is dropped; the heaviest is
+            never dropped.  Default 1e-4, as the ACTS Gaussian-sum fitter.
+        merge_bound: Runnalls' bound ``B_ij`` (nats) at or below which a mutual-nearest pair merges, in
+            ``[0, 0.5]``.  Default 1e-3 nats: pairs that the merged Gaussian describes to within a thousandth of
+            a nat; a split's own children (bound ≥ 0.014 w of their parent's weight w) stay apart above a parent
+            weight of 0.07.
+        merge_rounds: rounds of mutual-nearest merging per pass (each merges disjoint pairs in parallel).
+        split_measurement: split before a measurement update where the measurement's curvature along a
+            component's axis, ``½‖h(m + s_k) + h(m − s_k) − 2h(m)‖`` in noise standard deviations (the
+            diagonal of ``R``, valid entries only), exceeds this (dimensionless; the linearisation's error
+            at one standard deviation along that axis, in units of the noise).  Default 1.
+        split_entropy_rate: split before a propagation where the rate at which the linearised propagation
+            misjudges the entropy, ``|E[∇·f] − ∇·f(m)|`` (nats/s; DeMars, Bishop & Jah's test in continuous
+            time, the expectation to second order from the axes ``±s_k``), exceeds this.  Default 0.05 nats/s.
+    """
+
+    capacity: int = field(
+        default=16, metadata=option("managed filters: slots K of the mixture (≥ components)", config="int")
+    )
+    prune_weight: float = field(
+        default=1e-4,
+        metadata=option("managed filters: drop components below this weight (0: never)", config="float"),
+    )
+    merge_bound: float = field(
+        default=1e-3,
+        metadata=option(
+            "managed filters: merge mutual-nearest pairs with Runnalls' bound ≤ this (nats)", config="float"
+        ),
+    )
+    merge_rounds: int = field(
+        default=2, metadata=option("managed filters: rounds of pairwise merging per pass", config="int")
+    )
+    split_measurement: float = field(
+        default=1.0,
+        metadata=option(
+            "managed filters: split before an update where h's curvature at 1 sigma exceeds this many noise sds "
+            "(0: never)",
+            config="float",
+        ),
+    )
+    split_entropy_rate: float = field(
+        default=0.05,
+        metadata=option(
+            "managed filters: split before propagation where linearisation misjudges entropy by > this (nats/s; "
+            "0: never)",
+            config="float",
+        ),
+    )
+
+    def __post_init__(self) -> None:
+        positive_int("capacity", self.capacity)
+        if self.capacity > MAX_COMPONENTS:
+            raise ValueError(f"capacity must be ≤ {MAX_COMPONENTS} (the weight QP's limit), got {self.capacity}")
+        _nonnegative("prune_weight", self.prune_weight)
+        if not self.prune_weight < 0.5:
+            raise ValueError(
+                f"prune_weight must be < 0.5 (a larger one would drop every component but the heaviest), "
+                f"got {self.prune_weight!r}"
+            )
+        if isinstance(self.merge_bound, (int, float)) and not isinstance(self.merge_bound, bool):
+            if float(self.merge_bound) > MAX_MERGE_BOUND:
+                raise ValueError(
+                    f"merge_bound must be ≤ {MAX_MERGE_BOUND} nats: a larger bound merges clearly separate components "
+                    f"(at {MAX_MERGE_BOUND}, two equal ones 3 standard deviations apart), got {self.merge_bound!r}"
+                )
+        _nonnegative("merge_bound", self.merge_bound, MAX_MERGE_BOUND)
+        positive_int("merge_rounds", self.merge_rounds)
+        _nonnegative("split_measurement", self.split_measurement)
+        _nonnegative("split_entropy_rate", self.split_entropy_rate)
+        for name in ("prune_weight", "merge_bound", "split_measurement", "split_entropy_rate"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        object.__setattr__(self, "capacity", int(self.capacity))
+        object.__setattr__(self, "merge_rounds", int(self.merge_rounds))
+
+    def as_dict(self) -> dict[str, Any]:
+        """The options by name (for checkpoints and reports)."""
+        return dataclasses.asdict(self)
+
+    def apply(
+        self,
+        mixture: GaussianMixture,
+        model: ContinuousModel,
+        score: Tensor | None = None,
+        axis: Tensor | None = None,
+        threshold: float = 0.0,
+    ) -> ManagementResult:
+        """One management pass: prune, merge, then split the components whose ``score > threshold``.
+
+        Args:
+            mixture: ``K = capacity`` slots (padded already: :func:`pad_mixture`), batch ``[...]``.
+            model: the filter's model (``align`` and ``canonicalize`` for the charts).
+            score: ``[..., K]`` nonlinearity scores, or ``None`` (no split); axis: ``[..., K]`` int64, the axis
+                ``k`` of each component to split along (``s_k = L e_k``, ``P = LLᵀ``).
+            threshold: split where ``score > threshold``.
+
+        Returns:
+            :class:`ManagementResult`.
+        """
+        log_w, means, covs = mixture.log_weights, mixture.means, mixture.covs
+        K = log_w.shape[-1]
+        T = torch.eye(K, dtype=means.dtype, device=means.device).expand(*log_w.shape, K).clone()
+        counts = {}
+        log_w, T, counts["prunes"] = self._prune(log_w, T)
+        merges = torch.zeros_like(counts["prunes"])
+        for _ in range(self.merge_rounds if self.merge_bound > 0 else 0):
+            log_w, means, covs, T, merged = _merge_round(log_w, means, covs, T, model, self.merge_bound)
+            merges = merges + merged
+        splits = torch.zeros_like(merges)
+        if score is not None:
+            want = torch.isfinite(log_w) & (score > threshold)
+            if bool(want.any()):
+                log_w, means, covs, T, forced = _make_room(log_w, means, covs, T, model, want)
+                merges = merges + forced
+                log_w, means, covs, T, splits = _split(log_w, means, covs, T, want, axis)
+                means, covs = model.canonicalize(means, covs)
+        counts["merges"], counts["splits"] = merges, splits
+        log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
+        means, covs = _fill_inactive(log_w, means, covs)
+        counts["active_components"] = torch.isfinite(log_w).sum(-1)
+        managed = mixture.replace(log_weights=log_w, means=means, covs=covs, validate=False)
+        return ManagementResult(managed, T, counts)
+
+    def _prune(self, log_w: Tensor, T: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        if self.prune_weight <= 0.0:
+            return log_w, T, torch.zeros(log_w.shape[:-1], dtype=torch.int64, device=log_w.device)
+        heaviest = torch.nn.functional.one_hot(log_w.argmax(-1), log_w.shape[-1]).bool()
+        drop = torch.isfinite(log_w) & (log_w < math.log(self.prune_weight)) & ~heaviest
+        log_w = log_w.masked_fill(drop, -math.inf)
+        return log_w, T.masked_fill(drop[..., None], 0.0), drop.sum(-1)
+
+
+@dataclass(frozen=True)
+class ManagementResult:
+    """A management pass's outcome.
+
+    Attributes:
+        mixture: the managed mixture (normalised, inactive slots filled, canonical chart).
+        weight_map: ``T [..., K, K]``: the pass's action on weights, ``w ↦ T w`` before normalisation (a merge adds
+            a row into another, a split scales one into three, a prune zeroes one).  The penalty weight update
+            maps its reference weights by it.
+        counts: ``active_components``, ``splits``, ``merges``, ``prunes``, each ``[...]`` int64.
+    """
+
+    mixture: GaussianMixture
+    weight_map: Tensor
+    counts: dict[str, Tensor]
+
+
+def pad_mixture(mixture: GaussianMixture, capacity: int) -> GaussianMixture:
+    """``mixture`` with ``capacity − N`` inactive slots appended (log-weight ``−inf``, a copy of the heaviest).
+
+    Raises:
+        ValueError: naming ``capacity`` when the mixture has more components than slots.
+    """
+    N = mixture.num_components
+    if N > capacity:
+        raise ValueError(
+            f"management capacity {capacity} is below the mixture's {N} components: raise capacity to at least {N}"
+        )
+    if N == capacity:
+        return mixture
+    extra = capacity - N
+    log_w = torch.cat((mixture.log_weights, mixture.log_weights.new_full((*mixture.batch_shape, extra), -math.inf)), -1)
+    means = torch.cat((mixture.means, mixture.means[..., :1, :].expand(*mixture.batch_shape, extra, -1)), -2)
+    covs = torch.cat((mixture.covs, mixture.covs[..., :1, :, :].expand(*mixture.batch_shape, extra, -1, -1)), -3)
+    means, covs = _fill_inactive(log_w, means, covs)
+    return mixture.replace(log_weights=log_w, means=means, covs=covs, validate=False)
+
+
+def _fill_inactive(log_w: Tensor, means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
+    """Inactive slots hold a copy of their trajectory's heaviest component."""
+    inactive = ~torch.isfinite(log_w)
+    if not bool(inactive.any()):
+        return means, covs
+    best = log_w.argmax(-1)
+    m_best = torch.gather(means, -2, best[..., None, None].expand(*best.shape, 1, means.shape[-1]))
+    P_best = torch.gather(covs, -3, best[..., None, None, None].expand(*best.shape, 1, *covs.shape[-2:]))
+    means = torch.where(inactive[..., None], m_best, means)
+    covs = torch.where(inactive[..., None, None], P_best, covs)
+    return means, covs
+
+
+def _logdet(P: Tensor) -> Tensor:
+    L, info = torch.linalg.cholesky_ex(P)
+    logdet = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+    return torch.where(info == 0, logdet, torch.full_like(logdet, math.nan))
+
+
+def runnalls_bound(
+    log_w: Tensor, means: Tensor, covs: Tensor, model: ContinuousModel
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Runnalls' bound for every pair ``i < j`` and the merged moments in the chart of the heavier.
+
+    .. math:: m_{ij} = (w_i m_i + w_j m_j)/w,\\quad
+              P_{ij} = (w_i P_i + w_j P_j)/w + \\frac{w_i w_j}{w^2}(m_i − m_j)(m_i − m_j)^T,\\quad w = w_i + w_j
+
+    Args:
+        log_w: ``[..., K]`` normalised (``−inf``: inactive); means: ``[..., K, n]``; covs: ``[..., K, n, n]``.
+
+    Returns:
+        ``(bound [..., K, K]`` nats, ``+inf`` on the diagonal and for inactive slots, ``pair [K, K]`` int64 index of
+        the pair ``(min, max)`` into the next two, ``merged means [..., K(K−1)/2, n]``, ``merged covs``).
+    """
+    K = log_w.shape[-1]
+    iu, ju = torch.triu_indices(K, K, 1, device=log_w.device)
+    w = log_w.exp()
+    heavier_first = log_w[..., iu] >= log_w[..., ju]  # [..., M]
+    a = torch.where(heavier_first, iu, ju)  # the keeper's index per pair
+    b = torch.where(heavier_first, ju, iu)
+    ma = torch.gather(means, -2, a[..., None].expand(*a.shape, means.shape[-1]))
+    mb = torch.gather(means, -2, b[..., None].expand(*b.shape, means.shape[-1]))
+    Pa = torch.gather(covs, -3, a[..., None, None].expand(*a.shape, *covs.shape[-2:]))
+    Pb = torch.gather(covs, -3, b[..., None, None].expand(*b.shape, *covs.shape[-2:]))
+    mb, Pb = model.align(mb, Pb, ma)  # the lighter in the heavier's chart
+    wa, wb = torch.gather(w, -1, a), torch.gather(w, -1, b)
+    wsum = (wa + wb).clamp_min(torch.finfo(w.dtype).tiny)
+    fa, fb = wa / wsum, wb / wsum
+    m = fa[..., None] * ma + fb[..., None] * mb
+    d = ma - mb
+    P = (
+        fa[..., None, None] * Pa
+        + fb[..., None, None] * Pb
+        + (fa * fb)[..., None, None] * d[..., :, None] * d[..., None, :]
+    )
+    P = 0.5 * (P + P.transpose(-1, -2))
+    ld = _logdet(covs)  # [..., K]
+    ld_a, ld_b = torch.gather(ld, -1, a), torch.gather(ld, -1, b)
+    bound = 0.5 * ((wa + wb) * _logdet(P) - wa * ld_a - wb * ld_b)
+    active = torch.isfinite(log_w)
+    ok = torch.gather(active, -1, a) & torch.gather(active, -1, b) & torch.isfinite(bound)
+    bound = torch.where(ok, bound.clamp_min(0.0), torch.full_like(bound, math.inf))
+    full = bound.new_full((*log_w.shape, K), math.inf)
+    full[..., iu, ju] = bound
+    full[..., ju, iu] = bound
+    pair = torch.zeros(K, K, dtype=torch.int64, device=log_w.device)
+    pair[iu, ju] = torch.arange(iu.numel(), device=log_w.device)
+    pair[ju, iu] = pair[iu, ju]
+    return full, pair, m, P
+
+
+def _apply_merges(
+    log_w: Tensor,
+    means: Tensor,
+    covs: Tensor,
+    T: Tensor,
+    keep: Tensor,
+    partner: Tensor,
+    pair: Tensor,
+    m: Tensor,
+    P: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Merge ``partner[i]`` into ``i`` where ``keep[..., i]`` (disjoint pairs)."""
+    idx = pair[torch.arange(keep.shape[-1], device=keep.device), partner]  # [..., K]
+    m_new = torch.gather(m, -2, idx[..., None].expand(*idx.shape, m.shape[-1]))
+    P_new = torch.gather(P, -3, idx[..., None, None].expand(*idx.shape, *P.shape[-2:]))
+    absorbed = _scatter_slots(torch.zeros_like(keep), torch.where(keep, partner, keep.shape[-1]), keep)
+    lw_partner = torch.gather(log_w, -1, partner)
+    log_w = torch.where(keep, torch.logaddexp(log_w, lw_partner), log_w).masked_fill(absorbed, -math.inf)
+    T_partner = torch.gather(T, -2, partner[..., None].expand_as(T))
+    T = torch.where(keep[..., None], T + T_partner, T).masked_fill(absorbed[..., None], 0.0)
+    means = torch.where(keep[..., None], m_new, means)
+    covs = torch.where(keep[..., None, None], P_new, covs)
+    return log_w, means, covs, T
+
+
+def _merge_round(
+    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, bound_max: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """One round: every mutual-nearest pair with bound ≤ ``bound_max`` merges into the heavier's slot."""
+    K = log_w.shape[-1]
+    log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
+    bound, pair, m, P = runnalls_bound(log_w, means, covs, model)
+    best, partner = bound.min(-1)
+    slots = torch.arange(K, device=log_w.device)
+    mutual = torch.gather(partner, -1, partner) == slots
+    heavier = (log_w > torch.gather(log_w, -1, partner)) | (
+        (log_w == torch.gather(log_w, -1, partner)) & (slots < partner)
+    )
+    keep = mutual & heavier & (best <= bound_max)
+    log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, pair, m, P)
+    return log_w, means, covs, T, keep.sum(-1)
+
+
+def _make_room(
+    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, want: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Where a split is wanted and fewer than two slots are free, merge the pair of least bound if it is lighter
+    than the heaviest candidate (one pair per trajectory)."""
+    free = (~torch.isfinite(log_w)).sum(-1)
+    need = want.any(-1) & (free < len(SPLIT_WEIGHTS) - 1)
+    if not bool(need.any()):
+        return log_w, means, covs, T, torch.zeros_like(free)
+    K = log_w.shape[-1]
+    log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
+    bound, pair, m, P = runnalls_bound(log_w, means, covs, model)
+    flat = bound.flatten(-2).argmin(-1)
+    i, j = flat // K, flat % K
+    lw_i, lw_j = torch.gather(log_w, -1, i[..., None])[..., 0], torch.gather(log_w, -1, j[..., None])[..., 0]
+    keeper = torch.where(lw_i >= lw_j, i, j)
+    other = torch.where(lw_i >= lw_j, j, i)
+    candidate = torch.where(want, log_w, torch.full_like(log_w, -math.inf)).amax(-1)
+    lighter = torch.logaddexp(lw_i, lw_j) < candidate
+    ok = need & lighter & torch.isfinite(bound.flatten(-2).amin(-1))
+    keep = torch.nn.functional.one_hot(keeper, K).bool() & ok[..., None]
+    partner = torch.where(keep, other[..., None].expand_as(keep), torch.arange(K, device=log_w.device))
+    log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, pair, m, P)
+    return log_w, means, covs, T, ok.long()
+
+
+def _scatter_slots(base: Tensor, dest: Tensor, src: Tensor) -> Tensor:
+    """``base`` with ``base[..., dest[..., i]] = src[..., i]`` wherever ``dest < K`` (``dest == K``: nowhere).
+    The destinations below ``K`` must be distinct within a trajectory."""
+    padded = torch.cat((base, base.new_zeros((*base.shape[:-1], 1))), -1)
+    return padded.scatter(-1, dest, src)[..., : base.shape[-1]]
+
+
+def _split(
+    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, want: Tensor, axis: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Split the wanted components, heaviest first, into free slots (``len(SPLIT_WEIGHTS) − 1`` each)."""
+    K, n = log_w.shape[-1], means.shape[-1]
+    S = len(SPLIT_WEIGHTS) - 1  # new slots per split
+    free = ~torch.isfinite(log_w)
+    n_free = free.sum(-1, keepdim=True)
+    # rank of each wanted component by weight (0: heaviest)
+    key = torch.where(want, log_w, torch.full_like(log_w, -math.inf))
+    order = key.argsort(dim=-1, descending=True, stable=True)
+    rank = torch.empty_like(order).scatter_(-1, order, torch.arange(K, device=log_w.device).expand_as(order))
+    allowed = want & (rank < n_free // S)
+    # the free slots, in slot order
+    free_slots = (~free).to(torch.int64).argsort(dim=-1, stable=True)  # free ones first
+    source = torch.arange(K, device=log_w.device).expand_as(log_w).clone()
+    offset = torch.zeros_like(log_w)
+    share = torch.ones_like(log_w)
+    centre = SPLIT_WEIGHTS[S // 2]
+    share = torch.where(allowed, torch.full_like(share, centre), share)
+    children = [(w, m) for k, (w, m) in enumerate(zip(SPLIT_WEIGHTS, SPLIT_OFFSETS, strict=True)) if k != S // 2]
+    for c, (wc, mc) in enumerate(children):  # the two outer children, each into its own free slot
+        slot = torch.gather(free_slots, -1, (S * rank + c).clamp_max(K - 1))  # [..., K]
+        dest = torch.where(allowed, slot, K)  # K: no slot
+        source = _scatter_slots(source, dest, torch.arange(K, device=log_w.device).expand_as(dest))
+        offset = _scatter_slots(offset, dest, torch.full_like(offset, mc))
+        share = _scatter_slots(share, dest, torch.full_like(share, wc))
+    child = offset != 0.0
+    split_parent = allowed | child
+    parent_axis = torch.gather(axis, -1, source)
+    P_src = torch.gather(covs, -3, source[..., None, None].expand(*source.shape, n, n))
+    m_src = torch.gather(means, -2, source[..., None].expand(*source.shape, n))
+    L = torch.linalg.cholesky(P_src)
+    d = torch.gather(L, -1, parent_axis[..., None, None].expand(*source.shape, n, 1))[..., 0]  # column k of L
+    m_split = m_src + offset[..., None] * d
+    P_split = P_src - (1.0 - SPLIT_VARIANCE) * d[..., :, None] * d[..., None, :]
+    P_split = 0.5 * (P_split + P_split.transpose(-1, -2))
+    lw_src = torch.gather(log_w, -1, source)
+    log_w = torch.where(split_parent, lw_src + torch.log(share), log_w)
+    T_src = torch.gather(T, -2, source[..., None].expand_as(T))
+    T = torch.where(split_parent[..., None], share[..., None] * T_src, T)
+    means = torch.where(split_parent[..., None], m_split, means)
+    covs = torch.where(split_parent[..., None, None], P_split, covs)
+    return log_w, means, covs, T, allowed.sum(-1)
+
+
+def _axes(means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
+    """The points ``m``, ``m ± s_k`` (``s_k = L e_k``, ``P = LLᵀ``): ``[..., K, 2n + 1, n]``, and ``L``."""
+    L = torch.linalg.cholesky(covs)
+    s = L.transpose(-1, -2)  # row k: s_k
+    m = means.unsqueeze(-2)
+    return torch.cat((m, m + s, m - s), -2), L
+
+
+def measurement_nonlinearity(means: Tensor, covs: Tensor, measurement: MeasurementModel) -> tuple[Tensor, Tensor]:
+    """The measurement's curvature along each component's axes, in noise standard deviations.
+
+    .. math:: ν_k = ½ \\Big\\| \\frac{h(m + s_k) + h(m - s_k) - 2h(m)}{σ} \\Big\\|,\\qquad s_k = L e_k,\\; P = LL^T
+
+    with ``σ`` the square roots of ``R``'s diagonal and the sum over the valid entries (``measurement.mask()``):
+    the second-order error of the linearised prediction one standard deviation along ``s_k``.
+
+    Args:
+        means: ``[..., K, n]``; covs: ``[..., K, n, n]``.
+
+    Returns:
+        ``(score [..., K] = max_k ν_k, axis [..., K]`` int64 ``= argmax_k ν_k)``.
+    """
+    n = means.shape[-1]
+    pts, _ = _axes(means, covs)
+    lead = pts.shape[:-3]
+    K = pts.shape[-3]
+    x = pts.reshape(*lead, K * (2 * n + 1), n).movedim(-2, 0)  # the points lead, as in the Kalman update
+    h = measurement.predict(x).movedim(0, -2)
+    h = h.reshape(*lead, K, 2 * n + 1, h.shape[-1])
+    c = h[..., 1 : n + 1, :] + h[..., n + 1 :, :] - 2.0 * h[..., :1, :]  # [..., K, n, d]
+    var = measurement.noise_cov().diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(means.dtype).tiny)
+    z2 = c * c / var[..., None, None, :]
+    mask = measurement.mask()
+    if mask is not None:
+        z2 = z2 * mask[..., None, None, :].to(z2.dtype)
+    nu = 0.5 * z2.sum(-1).sqrt()  # [..., K, n]
+    return nu.max(-1)
+
+
+def entropy_nonlinearity(
+    model: ContinuousModel, means: Tensor, covs: Tensor, u: Tensor | None
+) -> tuple[Tensor, Tensor]:
+    """How fast the linearised propagation misjudges each component's entropy (nats/s), and along which axis.
+
+    For ``dx = f dt + G dW`` the entropy of the density changes at ``E[∇·f] + ½E[‖∇ log p‖²_{GQGᵀ}]``, the
+    linearisation's at ``∇·f(m) + ½ tr(P⁻¹GQGᵀ)``; for a Gaussian the diffusion terms agree, and
+
+    .. math:: |E[∇·f] - ∇·f(m)| ≈ ½ \\Big| Σ_k δ_k \\Big|,\\qquad
+              δ_k = ∇·f(m + s_k) + ∇·f(m - s_k) - 2∇·f(m)
+
+    (exact for a divergence quadratic in the state), ``∇·f = tr ∂f/∂x`` (``model.drift_jacobian``).  The axis is
+    ``argmax_k |δ_k|``.
+
+    Args:
+        means: ``[..., K, n]``; covs: ``[..., K, n, n]``; u: ``[..., m]`` or ``None``.
+
+    Returns:
+        ``(score [..., K]`` nats/s, ``axis [..., K]`` int64).
+    """
+    n = means.shape[-1]
+    pts, _ = _axes(means, covs)
+    lead = pts.shape[:-3]
+    K = pts.shape[-3]
+    u_c = None if u is None else u.unsqueeze(-2)
+    A = model.drift_jacobian(pts.reshape(*lead, K * (2 * n + 1), n), u_c)
+    div = A.diagonal(dim1=-2, dim2=-1).sum(-1).reshape(*lead, K, 2 * n + 1)
+    delta = div[..., 1 : n + 1] + div[..., n + 1 :] - 2.0 * div[..., :1]  # [..., K, n]
+    return 0.5 * delta.sum(-1).abs(), delta.abs().argmax(-1)
