@@ -1,0 +1,306 @@
+"""Mixture management (agsf_torch.filters.management): the split, merge and prune steps against their formulas,
+inactive slots that change nothing, the nonlinearity scores against closed forms, the filters and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from agsf_torch import GaussianMixture
+from agsf_torch.filters import (
+    AdaptiveGaussianSumFilter,
+    ExtendedKalmanFilter,
+    GaussianSumFilter,
+    MixtureManagement,
+    MultiplicativeEKF,
+)
+from agsf_torch.filters.management import (
+    MANAGEMENT_DIAGNOSTICS,
+    SPLIT_OFFSETS,
+    SPLIT_VARIANCE,
+    SPLIT_WEIGHTS,
+    entropy_nonlinearity,
+    measurement_nonlinearity,
+    pad_mixture,
+    runnalls_bound,
+)
+from agsf_torch.filters.registry import CONFIG_OPTIONS, make_filter
+from agsf_torch.models import AttitudeModel, StarVectorMeasurement
+from agsf_torch.models.benchmarks import SineDriftModel
+from agsf_torch.models.linear import LinearModel
+from tests.helpers import F64, assert_within, random_mrps, random_spd, random_unit_vectors, relative_bound
+
+EPS = float(np.finfo(np.float64).eps)
+
+#: Management that never acts: the mixture is only padded.
+IDLE = dict(prune_weight=0.0, merge_bound=0.0, split_measurement=0.0, split_entropy_rate=0.0)
+
+
+def _np_moments(w, m, P):
+    """Mixture moments in numpy, ``w [N]``, ``m [N, n]``, ``P [N, n, n]``."""
+    w = np.asarray(w, dtype=np.float64)
+    mean = (w[:, None] * m).sum(0)
+    d = m - mean
+    return mean, (w[:, None, None] * (P + d[:, :, None] * d[:, None, :])).sum(0)
+
+
+def _linear_model(n=3):
+    return LinearModel(A=0.1 * torch.eye(n, dtype=F64), G=torch.eye(n, dtype=F64), Q=1e-3 * torch.eye(n, dtype=F64))
+
+
+def test_the_split_table_keeps_a_unit_gaussians_moments():
+    w, mu = np.array(SPLIT_WEIGHTS), np.array(SPLIT_OFFSETS)
+    assert_within(w.sum(), 1.0, 2 * EPS, "split weights sum")
+    assert_within((w * mu).sum(), 0.0, 4 * EPS, "split mean")
+    assert_within((w * (SPLIT_VARIANCE + mu**2)).sum(), 1.0, 8 * EPS, "split variance")
+    assert 0.0 < SPLIT_VARIANCE < 1.0
+
+
+def test_a_split_keeps_the_mixtures_mean_and_covariance(gen):
+    B, K, n = 5, 8, 3
+    model = _linear_model(n)
+    means = torch.randn(B, 2, n, generator=gen, dtype=F64)
+    covs = random_spd(gen, B, 2, n=n)
+    mix = pad_mixture(
+        GaussianMixture(weights=torch.tensor([0.7, 0.3], dtype=F64).expand(B, 2), means=means, covs=covs), K
+    )
+    score = torch.zeros(B, K, dtype=F64)
+    score[:, 0] = 2.0
+    axis = torch.randint(0, n, (B, K), generator=gen)
+    out = MixtureManagement(capacity=K, **{**IDLE, "split_measurement": 1.0}).apply(mix, model, score, axis, 1.0)
+    assert out.counts["splits"].tolist() == [1] * B
+    assert out.counts["active_components"].tolist() == [4] * B
+    w = out.mixture.weights.numpy()
+    for b in range(B):
+        m0, P0 = _np_moments([0.7, 0.3], means[b].numpy(), covs[b].numpy())
+        m1, P1 = _np_moments(w[b], out.mixture.means[b].numpy(), out.mixture.covs[b].numpy())
+        scale = float(np.abs(P0).max())
+        assert_within(m1, m0, 32 * EPS * (np.abs(means[b].numpy()).max() + math.sqrt(scale)), "mean after a split")
+        assert_within(P1, P0, 64 * EPS * scale, "covariance after a split")
+    # the children sit along column k of the parent's Cholesky factor
+    L = torch.linalg.cholesky(covs[:, 0])
+    d = L[torch.arange(B), :, axis[:, 0]]
+    active = torch.isfinite(out.mixture.log_weights)
+    for b in range(B):
+        offsets = out.mixture.means[b][active[b]] - means[b, 0]
+        along = offsets @ d[b] / (d[b] @ d[b])
+        expected = sorted([0.0, SPLIT_OFFSETS[0], SPLIT_OFFSETS[2]])
+        got = sorted(along[[0, 2, 3]].tolist())  # slot 1 is the other component
+        assert_within(got, expected, 64 * EPS * (1 + float(means[b].abs().max() / d[b].norm())), "offsets")
+
+
+def test_runnalls_bound_and_merged_moments_follow_the_formulas(gen):
+    n = 2
+    model = _linear_model(n)
+    w = torch.tensor([[0.5, 0.3, 0.2]], dtype=F64)
+    means = torch.randn(1, 3, n, generator=gen, dtype=F64)
+    covs = random_spd(gen, 1, 3, n=n)
+    bound, pair, m, P = runnalls_bound(w.log(), means, covs, model)
+    wn, mn, Pn = w[0].numpy(), means[0].numpy(), covs[0].numpy()
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        ws = wn[i] + wn[j]
+        mm = (wn[i] * mn[i] + wn[j] * mn[j]) / ws
+        d = mn[i] - mn[j]
+        PP = (wn[i] * Pn[i] + wn[j] * Pn[j]) / ws + wn[i] * wn[j] / ws**2 * np.outer(d, d)
+        expected = 0.5 * (
+            ws * np.linalg.slogdet(PP)[1] - wn[i] * np.linalg.slogdet(Pn[i])[1] - wn[j] * np.linalg.slogdet(Pn[j])[1]
+        )
+        logdets = abs(np.linalg.slogdet(PP)[1]) + abs(np.linalg.slogdet(Pn[i])[1]) + abs(np.linalg.slogdet(Pn[j])[1])
+        assert_within(bound[0, i, j], expected, 64 * EPS * (1 + logdets), f"bound of ({i}, {j})")
+        assert_within(bound[0, j, i], expected, 64 * EPS * (1 + logdets), f"bound of ({j}, {i})")
+        k = int(pair[i, j])
+        assert_within(m[0, k], mm, 16 * EPS * np.abs(mn).max(), f"merged mean ({i}, {j})")
+        assert_within(P[0, k], PP, 32 * EPS * np.abs(PP).max(), f"merged covariance ({i}, {j})")
+    assert bool(torch.isinf(bound[0].diagonal()).all())
+
+
+def test_mutual_nearest_pairs_merge_in_one_round_and_keep_the_moments(gen):
+    n = 2
+    model = _linear_model(n)
+    base = torch.randn(2, n, generator=gen, dtype=F64) * 10
+    means = torch.stack((base[0], base[0] + 1e-3, base[1], base[1] - 1e-3))[None]
+    covs = torch.eye(n, dtype=F64).expand(1, 4, n, n)
+    mix = pad_mixture(
+        GaussianMixture(weights=torch.tensor([[0.4, 0.1, 0.3, 0.2]], dtype=F64), means=means, covs=covs), 6
+    )
+    out = MixtureManagement(capacity=6, **{**IDLE, "merge_bound": 1e-3, "merge_rounds": 1}).apply(mix, model)
+    assert out.counts["merges"].tolist() == [2]
+    assert out.counts["active_components"].tolist() == [2]
+    active = torch.isfinite(out.mixture.log_weights[0])
+    assert active.tolist() == [True, False, True, False, False, False]  # merged into the heavier's slots
+    m0, P0 = _np_moments([0.4, 0.1, 0.3, 0.2], means[0].numpy(), covs[0].numpy())
+    m1, P1 = _np_moments(out.mixture.weights[0].numpy(), out.mixture.means[0].numpy(), out.mixture.covs[0].numpy())
+    assert_within(m1, m0, 64 * EPS * float(means.abs().max()), "mean after merging")
+    assert_within(P1, P0, 64 * EPS * float(means.abs().max()) ** 2, "covariance after merging")
+
+
+def test_prune_drops_light_components_but_never_the_heaviest():
+    model = _linear_model(1)
+    means = torch.tensor([[[0.0], [5.0], [9.0]]], dtype=F64)
+    covs = torch.ones(1, 3, 1, 1, dtype=F64)
+    mix = GaussianMixture(weights=torch.tensor([[0.99995, 4e-5, 1e-5]], dtype=F64), means=means, covs=covs)
+    out = MixtureManagement(capacity=3, **{**IDLE, "prune_weight": 1e-4}).apply(mix, model)
+    assert out.counts["prunes"].tolist() == [2]
+    assert torch.isfinite(out.mixture.log_weights[0]).tolist() == [True, False, False]
+    assert_within(out.mixture.log_weights[0, 0], 0.0, 4 * EPS, "the survivor's log-weight")
+    # the inactive slots hold a copy of the heaviest
+    assert torch.equal(out.mixture.means[0, 1], means[0, 0])
+    # a lone heaviest below the threshold is kept
+    lone = GaussianMixture(weights=torch.tensor([[1 / 3] * 3], dtype=F64), means=means, covs=covs)
+    kept = MixtureManagement(capacity=3, **{**IDLE, "prune_weight": 0.4}).apply(lone, model)
+    assert kept.counts["active_components"].tolist() == [1]
+
+
+def test_the_weight_map_carries_the_old_weights_to_the_new(gen):
+    n = 2
+    model = _linear_model(n)
+    means = torch.stack(
+        (torch.zeros(3, n, dtype=F64), torch.zeros(3, n, dtype=F64) + 1e-4, torch.ones(3, n, dtype=F64) * 5), 1
+    )
+    covs = torch.eye(n, dtype=F64).expand(3, 3, n, n)
+    w = torch.tensor([0.5, 0.3, 0.2], dtype=F64).expand(3, 3)
+    mix = pad_mixture(GaussianMixture(weights=w, means=means, covs=covs), 8)
+    score = torch.zeros(3, 8, dtype=F64)
+    score[:, 2] = 5.0
+    out = MixtureManagement(capacity=8, prune_weight=0.0, merge_bound=1e-3, split_measurement=1.0).apply(
+        mix, model, score, torch.zeros(3, 8, dtype=torch.int64), 1.0
+    )
+    mapped = (out.weight_map @ mix.weights.unsqueeze(-1)).squeeze(-1)
+    assert_within(mapped / mapped.sum(-1, keepdim=True), out.mixture.weights, 8 * EPS, "T w against the new weights")
+
+
+def test_measurement_nonlinearity_of_a_quadratic_measurement_is_its_closed_form():
+    from agsf_torch.models.function_measurement import FunctionMeasurement
+
+    sigma = 0.2
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[sigma**2]], dtype=F64))
+    means = torch.tensor([[[0.3], [-2.0]]], dtype=F64)
+    covs = torch.tensor([[[[0.5]], [[0.01]]]], dtype=F64)
+    score, axis = measurement_nonlinearity(means, covs, meas)
+    # h(m + s) + h(m − s) − 2h(m) = 2s² = 2P: ν = ½ · 2P / σ = P / σ
+    expected = covs[0, :, 0, 0] / sigma
+    assert_within(score[0], expected, 16 * EPS * (1 + means.abs().max() ** 2) / sigma, "ν of x²")
+    assert axis.tolist() == [[0, 0]]
+
+
+def test_entropy_nonlinearity_of_the_sine_drift_is_its_closed_form():
+    model = SineDriftModel()
+    means = torch.tensor([[[0.0], [1.0], [math.pi / 2]]], dtype=F64)
+    var = torch.tensor([4.0, 0.25, 1.0], dtype=F64)
+    covs = var.reshape(1, 3, 1, 1)
+    score, _ = entropy_nonlinearity(model, means, covs, None)
+    # ∇·f = cos x: ½|cos(m + s) + cos(m − s) − 2 cos m| = |cos m (cos s − 1)|
+    s = var.sqrt()
+    expected = (torch.cos(means[0, :, 0]) * (torch.cos(s) - 1.0)).abs()
+    assert_within(score[0], expected, 16 * EPS, "entropy rate of the sine drift")
+
+
+def _attitude_problem(gen, B=4, N=5, sigma=1e-4, var=1e-3, stars=3):
+    model = AttitudeModel(estimate_bias=True)
+    truth = random_mrps(B, gen, max_norm=0.5)
+    prior_var = torch.tensor([var] * 3 + [1e-10] * 3, dtype=F64)
+    mean0 = torch.cat(
+        (truth + var**0.5 * torch.randn(B, 3, generator=gen, dtype=F64), torch.zeros(B, 3, dtype=F64)), -1
+    )
+    mix = GaussianMixture.from_gaussian(mean0, torch.diag(prior_var).expand(B, 6, 6), N)
+    r = random_unit_vectors(gen, B, stars)
+    y = StarVectorMeasurement(r, sigma=sigma).predict(truth) + sigma * torch.randn(
+        B, 3 * stars, generator=gen, dtype=F64
+    )
+    u = 1e-3 * torch.randn(B, 3, generator=gen, dtype=F64)
+    return model, mix, StarVectorMeasurement(r, sigma=sigma), y, u
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_idle_management_only_pads_and_changes_no_estimate(gen, fused):
+    model, mix, meas, y, u = _attitude_problem(gen)
+    plain = GaussianSumFilter(model, fused=fused)
+    managed = GaussianSumFilter(model, fused=fused, management=MixtureManagement(capacity=8, **IDLE))
+    a, b = mix, mix
+    for _ in range(3):
+        a = plain.update(plain.predict(a, u, 0.1), y, meas)
+        b = managed.update(managed.predict(b, u, 0.1), y, meas)
+    assert b.num_components == 8
+    assert bool(torch.isinf(b.log_weights[:, 5:]).all())
+    ma, Pa = plain.estimate(a)
+    mb, Pb = managed.estimate(b)
+    assert_within(mb, ma, relative_bound(ma, 1e-12, 1e-12 * float(ma.abs().max())), "estimate with idle slots")
+    assert_within(Pb, Pa, relative_bound(Pa, 1e-10, 1e-12 * float(Pa.abs().max())), "covariance with idle slots")
+    assert_within(b.log_weights[:, :5], a.log_weights, relative_bound(a.log_weights, 1e-10, 1e-12), "log-weights")
+    assert set(MANAGEMENT_DIAGNOSTICS) <= set(managed.diagnostics)
+    assert set(managed.diagnostic_keys("update")) == set(managed.diagnostics)
+    assert managed.diagnostics["active_components"].tolist() == [5] * 4
+
+
+@pytest.mark.parametrize("weight_update", ["penalty", "galerkin"])
+def test_idle_management_leaves_the_adaptive_weights_as_they_were(gen, weight_update):
+    model, mix, meas, y, u = _attitude_problem(gen, var=1e-2)
+    plain = AdaptiveGaussianSumFilter(model, weight_update=weight_update)
+    managed = AdaptiveGaussianSumFilter(
+        model, weight_update=weight_update, management=MixtureManagement(capacity=16, **IDLE)
+    )
+    a = plain.update(plain.predict(mix, u, 0.5), y, meas)
+    b = managed.update(managed.predict(mix, u, 0.5), y, meas)
+    a, b = plain.predict(a, u, 0.5), managed.predict(b, u, 0.5)
+    # the QPs differ in method (an interior point above 12 components): they agree to their KKT accuracy, 1e-9
+    assert_within(b.weights[:, :5], a.weights, 1e-9, "adapted weights with idle slots")
+    assert bool(torch.isinf(b.log_weights[:, 5:]).all())
+
+
+def test_a_wide_prior_splits_before_the_update_and_the_mixture_stays_consistent(gen):
+    model, mix, meas, y, u = _attitude_problem(gen, N=3, var=0.05, sigma=1e-4, stars=1)
+    filt = GaussianSumFilter(model, management=MixtureManagement(capacity=12))
+    post = filt.update(filt.predict(mix, u, 0.1), y, meas)
+    d = filt.diagnostics
+    assert bool((d["splits"] > 0).all())
+    assert d["active_components"].tolist() == torch.isfinite(post.log_weights).sum(-1).tolist()
+    assert_within(post.weights.sum(-1), 1.0, 16 * EPS, "normalised weights")
+    assert bool(torch.linalg.cholesky_ex(post.covs).info.eq(0).all())
+
+
+def test_registry_builds_the_managed_filters_with_their_options():
+    model = AttitudeModel()
+    filt = make_filter("AGSF-galerkin-managed", model, capacity=8, merge_bound=0.01)
+    assert filt.management == MixtureManagement(capacity=8, merge_bound=0.01)
+    assert make_filter("GSF", model).management is None
+    for name in ("capacity", "prune_weight", "merge_bound", "merge_rounds", "split_measurement", "split_entropy_rate"):
+        assert name in CONFIG_OPTIONS
+    assert make_filter("GSF-managed", model).checkpoint_options()["management"]["capacity"] == 16
+    assert "management" not in make_filter("GSF", model).checkpoint_options()
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"capacity": 0}, "capacity"),
+        ({"capacity": 65}, "capacity"),
+        ({"prune_weight": -1e-3}, "prune_weight"),
+        ({"prune_weight": 0.5}, "prune_weight"),
+        ({"merge_bound": float("nan")}, "merge_bound"),
+        ({"merge_bound": 1.0}, "merge_bound"),
+        ({"merge_rounds": 0}, "merge_rounds"),
+        ({"split_measurement": float("inf")}, "split_measurement"),
+        ({"split_entropy_rate": -1.0}, "split_entropy_rate"),
+    ],
+)
+def test_bad_options_are_refused_by_name(options, match):
+    with pytest.raises(ValueError, match=match):
+        MixtureManagement(**options)
+
+
+def test_management_on_the_wrong_filter_or_mixture_is_refused(gen):
+    model, mix, meas, y, u = _attitude_problem(gen, N=5)
+    with pytest.raises(ValueError, match="management"):
+        ExtendedKalmanFilter(model, management=MixtureManagement())
+    with pytest.raises(ValueError, match="management"):
+        MultiplicativeEKF(model, management=MixtureManagement())
+    with pytest.raises(TypeError, match="management"):
+        GaussianSumFilter(model, management={"capacity": 4})
+    filt = GaussianSumFilter(model, management=MixtureManagement(capacity=4))
+    with pytest.raises(ValueError, match="capacity"):
+        filt.predict(mix, u, 0.1)
+    with pytest.raises(ValueError, match="capacity"):
+        pad_mixture(mix, 4)
