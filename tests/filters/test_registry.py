@@ -26,6 +26,9 @@ def test_registry_names_and_kinds():
         "GSF": GaussianSumFilter,
         "AGSF": AdaptiveGaussianSumFilter,
         "AGSF-galerkin": AdaptiveGaussianSumFilter,
+        "GSF-managed": GaussianSumFilter,
+        "AGSF-managed": AdaptiveGaussianSumFilter,
+        "AGSF-galerkin-managed": AdaptiveGaussianSumFilter,
         "MEKF": MultiplicativeEKF,
         "MEKF-fix": MultiplicativeEKF,
         "USQUE": USQUE,
@@ -40,7 +43,19 @@ def test_registry_names_and_kinds():
     assert ADAPTIVE_FILTERS == adaptive
     assert make_filter("AGSF-galerkin", model).weight_update.name == "galerkin"
     assert make_filter("AGSF", model, reg=3.0).weight_update.reg == 3.0
-    assert [n for n in FILTER_NAMES if FILTERS[n].mixture] == ["GSF", "AGSF", "AGSF-galerkin"]
+    assert [n for n in FILTER_NAMES if FILTERS[n].mixture] == [
+        "GSF",
+        "AGSF",
+        "AGSF-galerkin",
+        "GSF-managed",
+        "AGSF-managed",
+        "AGSF-galerkin-managed",
+    ]
+    assert [n for n in FILTER_NAMES if make_filter(n, model).__dict__.get("management") is not None] == [
+        "GSF-managed",
+        "AGSF-managed",
+        "AGSF-galerkin-managed",
+    ]
 
 
 def test_registry_refuses_unknown_names_and_options():

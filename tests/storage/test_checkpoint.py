@@ -10,18 +10,24 @@ import torch
 
 import envs
 from agsf_torch import GaussianMixture
-from agsf_torch.filters import AdaptiveGaussianSumFilter, ExtendedKalmanFilter, GaussianSumFilter, PenaltyWeightUpdate
+from agsf_torch.filters import (
+    AdaptiveGaussianSumFilter,
+    ExtendedKalmanFilter,
+    GaussianSumFilter,
+    MixtureManagement,
+    PenaltyWeightUpdate,
+)
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.storage.checkpoint import FORMAT, load_checkpoint, save_checkpoint
 from tests.helpers import F64
 
 
-def _setup():
+def _setup(management=None):
     env = envs.StarTrackerAttitudeVectorEnv(num_envs=3, max_steps=50, star_period=0.5)
     model = AttitudeModel(estimate_bias=True)
     filters = {
-        "gsf": GaussianSumFilter(model),
-        "agsf": AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=2)),
+        "gsf": GaussianSumFilter(model, management=management),
+        "agsf": AdaptiveGaussianSumFilter(model, weight_update=PenaltyWeightUpdate(cadence=2), management=management),
     }
     return env, filters
 
@@ -45,18 +51,19 @@ def _steps(env, filters, mixtures, n):
     return mixtures
 
 
-def test_resume_is_bit_identical(tmp_path):
-    env, filters = _setup()
+@pytest.mark.parametrize("management", [None, MixtureManagement(capacity=6)], ids=["fixed", "managed"])
+def test_resume_is_bit_identical(tmp_path, management):
+    env, filters = _setup(management)
     mix0 = _start(env)
     straight = _steps(env, filters, {"gsf": mix0, "agsf": mix0}, 20)
 
-    env, filters = _setup()
+    env, filters = _setup(management)
     mix0 = _start(env)
     half = _steps(env, filters, {"gsf": mix0, "agsf": mix0}, 9)
     path = save_checkpoint(tmp_path / "run.pt", half, filters, {"env": env.state_dict()})
     del env, filters, half
 
-    env, filters = _setup()
+    env, filters = _setup(management)
     mixtures, extra = load_checkpoint(path, filters)
     env.load_state_dict(extra["env"])
     resumed = _steps(env, filters, mixtures, 11)

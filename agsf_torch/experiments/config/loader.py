@@ -25,7 +25,7 @@ from typing import Any
 import tomllib
 
 from ...constants import DEFAULT_SIGMA_U, DEFAULT_SIGMA_V, DEG_PER_HOUR
-from ...filters.registry import ADAPTIVE_FILTERS, CONFIG_OPTIONS, FILTER_NAMES
+from ...filters.registry import ADAPTIVE_FILTERS, CONFIG_OPTIONS, FILTER_NAMES, filter_spec
 
 __all__ = [
     "REPLAY_IGNORED",
@@ -214,6 +214,13 @@ class _ExperimentFields:
             raise ValueError(
                 f"config key 'components' must be ≤ {MAX_COMPONENTS} with an adaptive filter (the weight QP's limit), "
                 f"got {self.components}"
+            )
+        managed = [f for f in self.filters if filter_spec(f).managed]
+        capacity = getattr(self, "capacity", CONFIG_OPTIONS["capacity"].default)
+        if managed and isinstance(capacity, int) and capacity < self.components:
+            raise ValueError(
+                f"config key 'capacity' ({capacity}) must be ≥ 'components' ({self.components}) for the managed "
+                f"filter(s) {', '.join(managed)}: the mixture's slots hold its components"
             )
         if not 0 <= self.seed <= MAX_SEED - (self.runs - 1):
             raise ValueError(f"config key 'seed' must lie in [0, {MAX_SEED} − (runs − 1)], got {self.seed!r}")

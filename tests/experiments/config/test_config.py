@@ -164,3 +164,11 @@ def test_the_prior_attitude_is_gaussian_or_uniform():
     assert load_config("lost_in_space").prior_attitude == "uniform"
     with pytest.raises(ValueError, match="config key 'prior_attitude' must be 'gaussian' or 'uniform', got 'flat'"):
         load_config("case1", ['prior_attitude="flat"'])
+
+
+def test_a_managed_filters_capacity_below_the_components_is_refused_by_name():
+    with pytest.raises(ValueError, match="'capacity'"):
+        load_config("case1", ['filters=["GSF-managed"]', "components=9", "capacity=8"])
+    cfg = load_config("case1", ['filters=["GSF", "GSF-managed"]', "components=9", "capacity=9"])
+    assert cfg.filter_options()["capacity"] == 9
+    assert load_config("case1", ['filters=["GSF"]', "components=9", "capacity=4"]).components == 9  # unmanaged: unused
