@@ -13,7 +13,9 @@ open); :func:`write_figures` saves them:
   component weights, stacked (each band's thickness one component's weight);
 * ``fpke.png`` (:func:`fpke_figure`): the fraction of the FPKE residual ``wᵀLw`` the weight update leaves (mean over the
   runs) with the propagated weights (before the weight update) and the adapted
-  weights (after it).
+  weights (after it);
+* ``mixture.png`` (:func:`mixture_figure`), only with a managed filter: the life of each managed filter's mixture,
+  the components in use (mean and min–max over the runs) and the splits, merges and prunes so far (mean per run).
 
 Panels, titles and the figure legends (``"outside lower center"``) are placed by matplotlib's constrained layout.
 
@@ -38,6 +40,7 @@ __all__ = [
     "DEG_PER_HOUR_PER_RAD_PER_S",
     "axes_figure",
     "fpke_figure",
+    "mixture_figure",
     "rms_figure",
     "weights_figure",
     "runtime_rc_params",
@@ -375,9 +378,121 @@ def fpke_figure(summary: dict[str, Any]) -> Any:
     return fig
 
 
+#: The panels of :func:`mixture_figure` after the first: summary key, title and axis label of each event.
+_MIXTURE_EVENTS = (
+    ("splits", "splits so far: one component into three", "splits per run"),
+    ("merges", "merges so far: a pair into one", "merges per run"),
+    ("prunes", "prunes so far: a light component dropped", "prunes per run"),
+)
+
+
+def _managed(summary: dict[str, Any]) -> list[str]:
+    """The filters of ``summary`` that manage their mixture (those with ``active_components_mean``)."""
+    return [name for name, f in summary["filters"].items() if "active_components_mean" in f]
+
+
+def mixture_figure(summary: dict[str, Any]) -> Any:
+    """``mixture.png``: the life of each managed filter's mixture against time (s), four panels sharing the time axis.
+
+    The first: the components in use at the end of each step (count), the mean over the runs
+    (``active_components_mean [T]``) as a line and the fewest to the most (``active_components_min_max``, two
+    ``[T]``) as a band.  Then one panel each for the splits, merges and prunes up to and including each step,
+    per run, mean over the runs (``splits_cumulative_mean [T]`` and the like; count per trajectory).  Counts hold
+    from one step to the next, so they are drawn as steps; each filter has its colour and its line style, so that
+    filters whose curves coincide stay visible.  Lines: ``"{filter}/active_mean"`` (band
+    ``"{filter}/active_band"``), ``"{filter}/splits_cumulative"``, ``"{filter}/merges_cumulative"``,
+    ``"{filter}/prunes_cumulative"``.  Without a managed filter, a panel saying so.
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    from matplotlib.ticker import MaxNLocator
+
+    managed = _managed(summary)
+    if not managed:
+        fig = _figure((6.0, 2.5))
+        ax = fig.add_subplot()
+        ax.axis("off")
+        ax.text(
+            0.5,
+            0.5,
+            "no managed filter in this experiment:\nno splits, merges or prunes to show",
+            ha="center",
+            va="center",
+            transform=ax.transAxes,
+        )
+        return fig
+    t = np.asarray(summary["time_s"], dtype=float)
+    colors = _filter_colors(summary)
+    styles = {name: _LINESTYLES[i % len(_LINESTYLES)] for i, name in enumerate(managed)}
+    stars = _star_times(summary)
+    runs = _runs(summary)
+    fig = _figure((8.5, 9.0))
+    axs = fig.subplots(1 + len(_MIXTURE_EVENTS), 1, sharex=True, squeeze=True)
+    ax, tops = axs[0], [0.0] * len(axs)  # each panel's largest value
+    for name in managed:
+        f = summary["filters"][name]
+        lo, hi = (np.asarray(v, dtype=float) for v in f["active_components_min_max"])
+        tops[0] = max(tops[0], float(np.nanmax(hi)))
+        ax.fill_between(t, lo, hi, color=colors[name], alpha=0.2, lw=0, step="post", gid=f"{name}/active_band")
+        ax.plot(
+            t,
+            f["active_components_mean"],
+            color=colors[name],
+            ls=styles[name],
+            lw=1.4,
+            drawstyle="steps-post",
+            gid=f"{name}/active_mean",
+        )
+    ax.set(title="components in use at the end of each step", ylabel="components (count)")
+    for row, (key, title, ylabel) in enumerate(_MIXTURE_EVENTS, 1):
+        ax = axs[row]
+        for name in managed:
+            cumulative = np.asarray(summary["filters"][name][f"{key}_cumulative_mean"], dtype=float)
+            tops[row] = max(tops[row], float(np.nanmax(cumulative)))
+            ax.plot(
+                t,
+                cumulative,
+                color=colors[name],
+                ls=styles[name],
+                lw=1.4,
+                drawstyle="steps-post",
+                gid=f"{name}/{key}_cumulative",
+            )
+        ax.set(title=title, ylabel=f"{ylabel}\n(count, mean)")
+    star = None
+    for ax, top in zip(axs, tops, strict=True):
+        star = _mark_star_frames(ax, stars, top=True)
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True, nbins=5))
+        ax.set_xlim(float(t[0]), float(t[-1]))
+        ax.set_ylim(0.0, 1.12 * top if top > 0 else 1.0)  # headroom below the star-frame marks on the top edge
+        ax.grid(True, alpha=0.3)
+        ax.title.set_fontsize(9)
+    axs[-1].set_xlabel("time (s)")
+    handles: list[Any] = [Line2D([], [], color=colors[name], ls=styles[name], lw=1.4) for name in managed]
+    labels = [f"{name}: mean over {runs} runs" for name in managed]
+    handles.append(Patch(facecolor="0.5", alpha=0.35))
+    labels.append("fewest to most components over the runs")
+    if star is not None:
+        handles.append(star)
+        labels.append("star frame")
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 3), fontsize=9, frameon=False)
+    fig.suptitle(
+        f"{_label(summary)}: the mixture of each managed filter over {runs} runs:\n"
+        "components in use, and splits, merges and prunes so far per run",
+        fontsize=11,
+    )
+    return fig
+
+
 #: file name → the function that builds it, the longest to draw first (the order a writer's workers take them in).
-FIGURES = {"axes.png": axes_figure, "rms.png": rms_figure, "weights.png": weights_figure, "fpke.png": fpke_figure}
-_DPI = {"rms.png": 110, "axes.png": 100, "weights.png": 100, "fpke.png": 110}
+FIGURES = {
+    "axes.png": axes_figure,
+    "rms.png": rms_figure,
+    "weights.png": weights_figure,
+    "fpke.png": fpke_figure,
+    "mixture.png": mixture_figure,
+}
+_DPI = {"rms.png": 110, "axes.png": 100, "weights.png": 100, "fpke.png": 110, "mixture.png": 100}
 
 
 def _label(summary: dict[str, Any]) -> str:
@@ -418,12 +533,15 @@ def runtime_rc_params() -> dict[str, Any]:
 
 
 def write_figures(out: Path, summary: dict[str, Any], writer: FileWriter | None = None) -> list[Path]:
-    """Write ``axes.png``, ``rms.png`` (these two with the truth only), ``weights.png`` and ``fpke.png`` into ``out``
-    (each through ``writer``, a
+    """Write ``axes.png``, ``rms.png`` (these two with the truth only), ``weights.png``, ``fpke.png`` and, with a
+    managed filter, ``mixture.png`` into ``out`` (each through ``writer``, a
     :class:`~agsf_torch.experiments.run.file_writer.FileWriter`, if given: then they may still be being drawn when this returns, by a process
     given this one's matplotlib settings); returns their paths."""
     truth = summary.get("scored_against_truth", True)  # rms.png and axes.png plot the errors against the truth
-    paths = [Path(out) / fname for fname in FIGURES if truth or fname not in ("rms.png", "axes.png")]
+    skipped = set() if truth else {"rms.png", "axes.png"}
+    if not _managed(summary):
+        skipped.add("mixture.png")
+    paths = [Path(out) / fname for fname in FIGURES if fname not in skipped]
     rc = runtime_rc_params() if writer is not None else None
     for path in paths:
         if writer is None:

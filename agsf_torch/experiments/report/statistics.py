@@ -19,6 +19,7 @@ __all__ = [
     "clopper_pearson",
     "paired_difference",
     "minus_gsf_key",
+    "mixture_life",
     "error_windows",
     "WINDOW_TEXT",
 ]
@@ -68,7 +69,8 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
     * ``nis_per_expected``: ``Σ NIS / Σ E[NIS]`` over every star frame and run (``E[NIS]`` = 2 per valid star,
       :func:`~agsf_torch.consistency.nis_per_expected`), 1 for a consistent filter, with ``nis_band_95``, the
       95 % band a consistent filter's ratio lies in; the consistency measure that needs no truth.  Absent
-      without a star frame.
+      without a star frame;
+    * managed filters (``active_components`` in ``data``): their mixture's life (:func:`mixture_life`).
 
     Without the truth (``runs.npz`` of a replay of flight data: no ``error_angle``) the scores against it
     (``rms_deg``, the windows, NEES, the errors, the paired differences) are absent, and ``scored_against_truth``
@@ -121,6 +123,10 @@ def summarize(data: dict[str, np.ndarray], cfg: ExperimentConfig) -> dict[str, A
                 entry[f"{key}_mean"] = data[f"{name}/{key}"].mean(0).tolist()
         if f"{name}/fpke_error_after" in data:
             entry.update(fpke_ratio(data[f"{name}/fpke_error_before"], data[f"{name}/fpke_error_after"]))
+        if f"{name}/active_components" in data:  # a managed filter (agsf_torch.filters.management)
+            entry.update(
+                mixture_life(*(data[f"{name}/{k}"] for k in ("active_components", "splits", "merges", "prunes")))
+            )
         for key in ("gate_rejected", "gyro_held"):
             if f"{name}/{key}" in data:
                 entry[f"{key}_total"] = int(data[f"{name}/{key}"].sum())
@@ -158,6 +164,29 @@ def fpke_ratio(before: np.ndarray, after: np.ndarray) -> dict[str, Any]:
         mean = np.nanmean(ratio, 0)
         lo, hi = np.nanpercentile(ratio, [10.0, 90.0], axis=0)
     return {"fpke_ratio_mean": mean.tolist(), "fpke_ratio_p10_p90": [lo.tolist(), hi.tolist()]}
+
+
+def mixture_life(active: np.ndarray, splits: np.ndarray, merges: np.ndarray, prunes: np.ndarray) -> dict[str, Any]:
+    """A managed filter's mixture over the run from its per-step counts (``runs.npz``, each ``[B, T]``, integers).
+
+    Args:
+        active: components in use at the end of each step; splits, merges, prunes: the events of each step
+            (its predict and its update together), counts.
+
+    Returns:
+        ``active_components_mean`` ``[T]`` (count, mean over the runs), ``active_components_min_max`` (two ``[T]``
+        lists: the fewest and the most over the runs), and ``splits_cumulative_mean``, ``merges_cumulative_mean``,
+        ``prunes_cumulative_mean`` ``[T]``: per run the events up to and including each step, mean over the runs
+        (count per trajectory).
+    """
+    active = np.asarray(active, dtype=np.float64)
+    out: dict[str, Any] = {
+        "active_components_mean": active.mean(0).tolist(),
+        "active_components_min_max": [active.min(0).tolist(), active.max(0).tolist()],
+    }
+    for key, counts in (("splits", splits), ("merges", merges), ("prunes", prunes)):
+        out[f"{key}_cumulative_mean"] = np.cumsum(np.asarray(counts, dtype=np.float64), 1).mean(0).tolist()
+    return out
 
 
 def mean_ci95(values: np.ndarray) -> tuple[float, float, float]:

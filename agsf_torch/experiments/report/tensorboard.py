@@ -17,6 +17,11 @@ run filter selects cases or configurations (``tensorboard --logdir runs/reproduc
         weights/entropy          mean entropy of the mixture weights (nat)  ┐ mixtures only:
         weights/component_<i>    weight of component i in the first run     │ not for one
         weights/all_runs         histogram of the weights over the runs     ┘ Gaussian
+        mixture/active_components                                           ┐ managed filters
+                                 components in use at the step's end, mean  │ only (count):
+        mixture/splits           the step's splits (predict and update),    │ means over the
+        mixture/merges           merges and prunes; per run, mean           │ runs
+        mixture/prunes                                                      ┘
         time_axis                (text, shown as time_axis/text_summary) what the step counts
 
 Time axis
@@ -145,7 +150,8 @@ def write_tensorboard(
 def filter_events(data: dict[str, np.ndarray], summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """What each filter's run holds, from the experiment's arrays and summary: per filter ``{"text": the time axis
     text, "scalars": {tag: (steps [k], values [k])}, "histograms": (steps [h], values [h, B·N])}`` (histograms
-    ``None`` for one Gaussian); the steps are the simulated times of :func:`time_steps`."""
+    ``None`` for one Gaussian); the steps are the simulated times of :func:`time_steps`.  A managed filter's
+    ``mixture/…`` scalars are the means over the runs of its ``[B, T]`` counts (module docstring)."""
     frames = np.asarray(data["star_frame"], dtype=bool)
     t = np.asarray(data["time"], dtype=np.float64)
     steps, unit = time_steps(t)
@@ -169,6 +175,9 @@ def filter_events(data: dict[str, np.ndarray], summary: dict[str, Any]) -> dict[
             series["weights/entropy"] = np.asarray(data[f"{name}/weight_entropy"], dtype=np.float64).mean(0)
             for i in range(weights.shape[-1]):
                 series[f"weights/component_{i}"] = np.asarray(weights[0, :, i], dtype=np.float64)
+        if f"{name}/active_components" in data:  # a managed filter: its mixture's life, [B, T] counts each
+            for key in ("active_components", "splits", "merges", "prunes"):
+                series[f"mixture/{key}"] = np.asarray(data[f"{name}/{key}"], dtype=np.float64).mean(0)
         scalars = {key: (steps, values) for key, values in series.items()}
         nis = data.get(f"{name}/nis")
         if nis is not None:

@@ -5,7 +5,7 @@ Folder layout (``out``)::
     experiment.json   the configuration and its digest (guards against overwriting another experiment)
     runs.npz          per-run data of every filter (the source of every number in summary.json)
     summary.json      the numbers behind every figure and the between-update statistics
-    rms.png, axes.png, weights.png, fpke.png
+    rms.png, axes.png, weights.png, fpke.png, and mixture.png with a managed filter
     tensorboard/      event files (scalars per step, weight histograms)
 """
 
@@ -204,6 +204,10 @@ RUN_UNITS = {
     "gate_rejected": "count (star blocks the gate rejected)",
     "fpke_error_before": "FPKE residual (1/s) before the weight update",
     "fpke_error_after": "FPKE residual (1/s) after the weight update",
+    "active_components": "count (managed filters: components in use at the step's end)",
+    "splits": "count (managed filters: components split in the step's predict and update)",
+    "merges": "count (managed filters: pairs merged in the step's predict and update)",
+    "prunes": "count (managed filters: components pruned in the step's predict and update)",
 }
 
 

@@ -14,13 +14,38 @@ import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from agsf_torch.experiments.config.loader import load_config
-from agsf_torch.experiments.report.figures import axes_figure, fpke_figure, rms_figure, weights_figure, write_figures
+from agsf_torch.experiments.report.figures import (
+    axes_figure,
+    fpke_figure,
+    mixture_figure,
+    rms_figure,
+    weights_figure,
+    write_figures,
+)
 from agsf_torch.experiments.report.statistics import summarize
 from tests.helpers import assert_within, relative_bound
 
 ARCSEC = 180.0 / math.pi * 3600.0  # rad → arcsec, written out independently of the module
 DEG_PER_HOUR = 180.0 / math.pi * 3600.0  # rad/s → deg/h
 FILTERS = ["EKF", "GSF", "AGSF"]
+MANAGED = ["GSF-managed", "AGSF-managed"]
+
+
+def _management_counts(runs: int, steps: int, frames: np.ndarray, components: int, managed: int) -> dict:
+    """Synthetic counts of the ``managed``-th managed filter (``[runs, steps]`` int64 each, the keys ``runs.npz``
+    holds): every run merges all but two of its components at the first step; some runs (the even ones for the
+    first filter, run 1 alone for the second) split one component at every star frame and, the step after, merge
+    one pair and prune one component.  ``active_components`` follows: a split makes one component three."""
+    splits, merges, prunes = (np.zeros((runs, steps), np.int64) for _ in range(3))
+    merges[:, 0] = components - 2
+    busy = np.arange(runs) % 2 == 0 if managed == 0 else np.arange(runs) == 1
+    at = np.flatnonzero(frames)
+    after = at[at + 1 < steps] + 1
+    splits[np.ix_(busy, at)] = 1
+    merges[np.ix_(busy, after)] += 1
+    prunes[np.ix_(busy, after)] = 1
+    active = components + np.cumsum(2 * splits - merges - prunes, 1)
+    return {"active_components": active, "splits": splits, "merges": merges, "prunes": prunes}
 
 
 def _summary(n: int = 3, components: int = 3, runs: int = 4, steps: int = 40, filters=FILTERS) -> dict:
@@ -60,6 +85,9 @@ def _summary(n: int = 3, components: int = 3, runs: int = 4, steps: int = 40, fi
             f"{name}/weights": weights,
             f"{name}/weight_entropy": np.zeros((runs, steps)),
         }
+        if name in MANAGED:
+            counts = _management_counts(runs, steps, frames, components, MANAGED.index(name))
+            data |= {f"{name}/{key}": values for key, values in counts.items()}
         if name == "AGSF":
             data[f"{name}/fpke_error_before"] = rng.uniform(1.0, 10.0, size=(runs, steps))
             data[f"{name}/fpke_error_after"] = data[f"{name}/fpke_error_before"] / 2
@@ -92,6 +120,11 @@ def summary3():
 @pytest.fixture(scope="module")
 def summary6():
     return _summary(n=6)
+
+
+@pytest.fixture(scope="module")
+def summary_managed():
+    return _summary(filters=["EKF", *MANAGED])
 
 
 def test_axes_figure_plots_the_rms_error_of_each_filter_in_arcsec_beside_3_rms_sigma(summary3):
@@ -228,6 +261,59 @@ def test_fpke_figure_shows_the_fraction_of_the_residual_the_update_leaves(summar
     assert "no FPKE residual recorded by: EKF, GSF" in ax.get_title()  # who does not record it
 
 
+def test_mixture_figure_draws_each_managed_filters_count_and_its_events_so_far(summary_managed):
+    """The count in use, mean and fewest–most over the runs, and the splits, merges and prunes up to each step per
+    run, mean over the runs: the fixture's counts (:func:`_management_counts`) summed here step by step."""
+    fig = mixture_figure(summary_managed)
+    lines = _lines(fig)
+    t = np.array(summary_managed["time_s"])
+    frames = np.array(summary_managed["star_frame"])
+    runs, steps = 4, len(t)
+    for i, name in enumerate(MANAGED):
+        counts = {k: v.tolist() for k, v in _management_counts(runs, steps, frames, 3, i).items()}
+        active = counts["active_components"]
+        mean = [sum(active[b][k] for b in range(runs)) / runs for k in range(steps)]
+        _plotted(lines[f"{name}/active_mean"].get_xdata(), t, "time (s)")
+        _plotted(lines[f"{name}/active_mean"].get_ydata(), mean, "mean count in use")
+        lo, hi = summary_managed["filters"][name]["active_components_min_max"]
+        assert lo == [min(active[b][k] for b in range(runs)) for k in range(steps)]
+        assert hi == [max(active[b][k] for b in range(runs)) for k in range(steps)]
+        band = next(c for ax in fig.axes for c in ax.collections if c.get_gid() == f"{name}/active_band")
+        ys = np.concatenate([p.vertices[:, 1] for p in band.get_paths()])
+        assert (ys.min(), ys.max()) == (2.0, 4.0)  # two components, four at the frames of the busy runs
+        for key in ("splits", "merges", "prunes"):
+            so_far = [sum(counts[key][b][j] for b in range(runs) for j in range(k + 1)) / runs for k in range(steps)]
+            _plotted(lines[f"{name}/{key}_cumulative"].get_ydata(), so_far, f"{key} so far per run")
+    # by hand: the first filter's two busy runs split at 4 frames, merge and prune after 3 of them; the second's one
+    for name, (splits, merges, prunes, at_frame) in zip(MANAGED, [(2.0, 2.5, 1.5, 3.0), (1.0, 1.75, 0.75, 2.5)]):
+        assert lines[f"{name}/splits_cumulative"].get_ydata()[-1] == splits
+        assert lines[f"{name}/merges_cumulative"].get_ydata()[-1] == merges
+        assert lines[f"{name}/prunes_cumulative"].get_ydata()[-1] == prunes
+        assert set(np.asarray(lines[f"{name}/active_mean"].get_ydata())[frames]) == {at_frame}
+        assert set(np.asarray(lines[f"{name}/active_mean"].get_ydata())[~frames]) == {2.0}
+    assert not any(gid.startswith("EKF/") for gid in lines)  # not managed: not drawn
+    top, *events = fig.axes
+    assert top.get_ylabel() == "components (count)" and "in use" in top.get_title()
+    for ax, key in zip(events, ("splits", "merges", "prunes"), strict=True):
+        assert key in ax.get_title() and f"{key} per run" in ax.get_ylabel() and "count" in ax.get_ylabel()
+    assert fig.axes[-1].get_xlabel() == "time (s)"
+    texts = _legend_texts(fig)
+    assert len(fig.legends) == 1 and [f"{name}: mean over 4 runs" for name in MANAGED] == texts[:2]
+    assert "fewest to most components over the runs" in texts and "star frame" in texts
+    assert "4 runs" in fig.get_suptitle()
+
+
+def test_mixture_figure_without_managed_filters_says_so(summary3):
+    fig = mixture_figure(summary3)
+    assert any("no managed filter" in t.get_text() for ax in fig.axes for t in ax.texts)
+
+
+def test_write_figures_adds_the_mixture_figure_when_a_filter_is_managed(summary_managed, tmp_path):
+    paths = write_figures(tmp_path, summary_managed)
+    assert sorted(p.name for p in paths) == ["axes.png", "fpke.png", "mixture.png", "rms.png", "weights.png"]
+    assert (tmp_path / "mixture.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_write_figures_writes_the_four_pngs_and_leaves_no_pyplot_figure_open(summary6, tmp_path):
     import matplotlib.pyplot as plt
 
@@ -280,7 +366,16 @@ def test_every_text_is_inside_the_figure_and_clear_of_the_other_panels(figure, n
     """Placed by matplotlib's constrained layout: each panel's tick labels, axis labels and title, the figure legend
     and the figure title lie inside the figure, and none runs into another panel or, for the figure's title and
     legend, into any panel's texts."""
-    fig = figure(summary3 if n == 3 else summary6)
+    _assert_texts_clear(figure(summary3 if n == 3 else summary6), figure)
+
+
+def test_every_text_of_the_mixture_figure_is_inside_it_and_clear_of_the_other_panels(summary_managed):
+    """As every figure (the test above), for the mixture figure of two managed filters."""
+    _assert_texts_clear(mixture_figure(summary_managed), mixture_figure)
+
+
+def _assert_texts_clear(fig, figure) -> None:
+    """The texts of ``fig`` (drawn by ``figure``) inside it and clear of the other panels (the tests above)."""
     renderer = FigureCanvasAgg(fig).get_renderer()
     fig.draw(renderer)
     fig_box = fig.bbox

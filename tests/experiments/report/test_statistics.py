@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agsf_torch.experiments.report.statistics import WINDOW_TEXT, clopper_pearson, error_windows
+from agsf_torch.experiments.report.statistics import WINDOW_TEXT, clopper_pearson, error_windows, mixture_life
 from agsf_torch.experiments.studies.reproduce import results_table
 from tests.helpers import assert_within, relative_bound
 
@@ -125,3 +125,20 @@ def test_clopper_pearson_is_the_exact_binomial_interval():
     # the inverse incomplete beta function is accurate to a few ulps here (p away from 0 and 1); 1e-12 relative
     assert_within(got, want, relative_bound(want, 1e-12, 0.0), "Clopper–Pearson interval")
     assert np.isnan(clopper_pearson(0, 0)).all()
+
+
+def test_mixture_life_is_the_mean_and_range_of_the_count_and_the_mean_of_the_events_so_far():
+    """Two runs of three steps: run 0 splits five components into fifteen, then prunes fourteen; run 1 merges two."""
+    life = mixture_life(
+        active=np.array([[5, 15, 1], [5, 5, 3]]),
+        splits=np.array([[0, 5, 0], [0, 0, 0]]),
+        merges=np.array([[0, 0, 0], [0, 0, 2]]),
+        prunes=np.array([[0, 0, 14], [0, 0, 0]]),
+    )
+    assert life == {
+        "active_components_mean": [5.0, 10.0, 2.0],
+        "active_components_min_max": [[5.0, 5.0, 1.0], [5.0, 15.0, 3.0]],
+        "splits_cumulative_mean": [0.0, 2.5, 2.5],
+        "merges_cumulative_mean": [0.0, 0.0, 1.0],
+        "prunes_cumulative_mean": [0.0, 0.0, 7.0],
+    }

@@ -28,7 +28,7 @@ from agsf_torch.experiments.report.tensorboard import (
 from agsf_torch.experiments.run.experiment import run_experiment
 from agsf_torch.experiments.studies.reproduce import reproduce
 from agsf_torch.experiments.sweep import run_sweep
-from tests.helpers import EAGER, assert_within, relative_bound
+from tests.helpers import EAGER, assert_within, event_records, relative_bound
 
 BASE = ["runs=2", "duration=0.5", 'filters=["EKF","GSF"]', "components=2"]
 GRID = {"reg": [0.5, 1.0]}
@@ -397,3 +397,64 @@ def test_a_filter_run_holds_its_text_scalars_and_histograms_as_tensorboard_reads
         assert sum(h.bucket) == values.size
     (text,) = acc.Tensors("time_axis/text_summary")
     assert text.step == 0 and tensor_util.make_ndarray(text.tensor_proto).item().decode() == events["text"]
+
+
+# -------------------------------------------------------------- managed filters: the mixture's life
+
+
+def _mixture_means(data, name: str) -> dict[str, list[float]]:
+    """The ``mixture/…`` curves of a managed filter as this test computes them: each step's count summed over the
+    runs by hand and divided by their number (small integers over a power of two or a few runs: exact in float32
+    for the counts used here, so compared exactly)."""
+    out = {}
+    for key in ("active_components", "splits", "merges", "prunes"):
+        counts = np.asarray(data[f"{name}/{key}"]).tolist()
+        out[f"mixture/{key}"] = [sum(run[k] for run in counts) / len(counts) for k in range(len(counts[0]))]
+    return out
+
+
+def test_a_managed_filters_run_holds_its_mixtures_count_and_events_per_step(tmp_path):
+    """``mixture/active_components`` and ``mixture/splits``, ``merges``, ``prunes``: per step (simulated ms) the mean
+    over the runs of the counts in ``data``; a filter without management has none."""
+    from agsf_torch.experiments.report.tensorboard import write_tensorboard
+
+    T, B = 5, 4
+    data = {
+        "time": np.arange(1, T + 1) * 0.1,
+        "star_frame": np.array([False, True, False, True, False]),
+        "GSF/weights": np.full((B, T, 2), 0.5),
+        "GSF/weight_entropy": np.zeros((B, T)),
+        "GSF-managed/weights": np.full((B, T, 3), 1 / 3),
+        "GSF-managed/weight_entropy": np.zeros((B, T)),
+        "GSF-managed/active_components": np.array([[3, 7, 5, 5, 4], [3, 3, 2, 2, 2], [2, 4, 4, 6, 1], [3, 3, 3, 3, 3]]),
+        "GSF-managed/splits": np.array([[0, 2, 0, 0, 0], [0, 0, 0, 0, 0], [0, 1, 0, 1, 0], [0, 0, 0, 0, 0]]),
+        "GSF-managed/merges": np.array([[0, 0, 1, 0, 1], [0, 0, 1, 0, 0], [1, 0, 0, 0, 2], [0, 0, 0, 0, 0]]),
+        "GSF-managed/prunes": np.array([[0, 0, 1, 0, 0], [0, 0, 0, 0, 0], [0, 0, 0, 0, 3], [0, 0, 0, 0, 0]]),
+    }
+    summary = {"filters": {name: {} for name in ("GSF", "GSF-managed")}}
+    write_tensorboard(tmp_path, data, summary)
+    records = event_records(tmp_path / "tensorboard")
+    assert not [tag for tag in records["GSF"] if tag.startswith("mixture/")]
+    managed = records["GSF-managed"]
+    expected = _mixture_means(data, "GSF-managed")
+    assert expected["mixture/active_components"] == [2.75, 4.25, 3.5, 4.0, 2.5]  # by hand, as a check of the sums
+    assert expected["mixture/prunes"] == [0.0, 0.0, 0.25, 0.0, 0.75]
+    for tag, values in expected.items():
+        assert [step for step, _ in managed[tag]] == [100, 200, 300, 400, 500], tag
+        assert [value for _, value in managed[tag]] == values, tag
+
+
+def test_an_experiment_with_a_managed_filter_logs_what_runs_npz_records(tmp_path):
+    """End to end (runner, ``runs.npz``, events): the GSF-managed's ``mixture/…`` curves are the means over the runs
+    of its ``runs.npz`` counts, and at the first star frame the update's splits are among them."""
+    cfg = load_config("case1", ["runs=2", "duration=1.5", 'filters=["GSF-managed"]', *EAGER])
+    run_experiment(cfg, tmp_path / "run", progress=False)
+    data = np.load(tmp_path / "run" / "runs.npz")
+    records = event_records(tmp_path / "run" / "tensorboard")["GSF-managed"]
+    steps = np.rint(data["time"] * 1000).astype(int).tolist()
+    for tag, values in _mixture_means(data, "GSF-managed").items():
+        assert [step for step, _ in records[tag]] == steps, tag
+        assert [value for _, value in records[tag]] == values, tag
+    first_frame = int(np.argmax(data["star_frame"]))
+    assert data["GSF-managed/splits"][:, first_frame].min() > 0  # split before the update (predict splits none here)
+    assert (tmp_path / "run" / "mixture.png").exists()

@@ -120,3 +120,48 @@ def test_the_scores_over_every_step_at_once_equal_those_of_each_step(gen, n):
             attitude_error_angle(mean[..., :3], truth[..., :3])[:, t],
             attitude_error_angle(mean[:, t, :3], truth[:, t, :3]),
         )
+
+
+def test_a_managed_filters_counts_of_a_step_cover_its_predict_and_its_update():
+    """``splits``, ``merges`` and ``prunes`` of a step are its predict's plus its update's (as each call reported
+    them, recorded here as it happens), ``active_components`` the update's at a star frame: then the count at
+    each step's end follows from the counts alone, ``K_t = K_{t−1} + 2·splits − merges − prunes`` (a split makes one
+    component three), from the prior's ``K = 5``."""
+    from agsf_torch.filters.management import MANAGEMENT_DIAGNOSTICS, MixtureManagement
+
+    B, T, N = 3, 25, 5  # star frames at 1 s and 2 s (dt = 0.1 s)
+    filt = GaussianSumFilter(AttitudeModel(estimate_bias=False), management=MixtureManagement())
+    calls: list[tuple[str, dict[str, np.ndarray]]] = []
+
+    def recording(step):
+        inner = getattr(filt, step)
+
+        def call(*args, **kwargs):
+            out = inner(*args, **kwargs)
+            calls.append((step, {k: filt.diagnostics[k].numpy().copy() for k in MANAGEMENT_DIAGNOSTICS}))
+            return out
+
+        return call
+
+    filt.predict, filt.update = recording("predict"), recording("update")
+    env = envs.StarTrackerAttitudeVectorEnv(num_envs=B, max_steps=T)
+    res = run_monte_carlo(
+        env, {"gsf": FilterSetup(filt, N)}, num_steps=T, prior_cov=1e-3 * torch.eye(3, dtype=F64), sigma_s=10e-6
+    )
+    extra = res.traces["gsf"].extra
+    steps: list[list[dict[str, np.ndarray]]] = []  # each step's calls: its predict, then its update if any
+    for kind, counts in calls:
+        if kind == "predict":
+            steps.append([])
+        steps[-1].append(counts)
+    assert len(steps) == T
+    assert [len(s) == 2 for s in steps] == res.star_frame.tolist() and res.star_frame.sum() == 2
+    for key in ("splits", "merges", "prunes"):
+        want = np.stack([sum(c[key] for c in s) for s in steps], 1)
+        assert extra[key].dtype == np.int64 and extra[key].shape == (B, T)
+        np.testing.assert_array_equal(extra[key], want, err_msg=key)
+    np.testing.assert_array_equal(extra["active_components"], np.stack([s[-1]["active_components"] for s in steps], 1))
+    # the updates do split here (what a predict-only record would lose), and the bookkeeping closes
+    assert sum(int(s[1]["splits"].sum()) for s in steps if len(s) == 2) > 0
+    change = 2 * extra["splits"] - extra["merges"] - extra["prunes"]
+    np.testing.assert_array_equal(extra["active_components"], N + np.cumsum(change, 1))
