@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from .filters.base import Filter
+from .filters.management import MANAGEMENT_DIAGNOSTICS
 from .mixture import GaussianMixture
 
 __all__ = [
@@ -163,6 +164,18 @@ def initial_mixtures(setups: Mapping[str, FilterSetup], mean: Tensor, cov: Tenso
     return out
 
 
+def _add_update_counts(extra: dict[str, Tensor], update: Mapping[str, Tensor]) -> None:
+    """A managed filter's step diagnostics over its predict and its update: into ``extra`` (the step's, holding the
+    predict's) the update's ``splits``, ``merges`` and ``prunes`` are added (each ``[B]`` int64, counts) and its
+    ``active_components`` replaces the predict's (the count at the step's end); ``update`` is the filter's
+    ``diagnostics`` after the update (:data:`~agsf_torch.filters.management.MANAGEMENT_DIAGNOSTICS`).  Nothing for a
+    filter without management."""
+    if "active_components" not in update or "active_components" not in extra:
+        return
+    for key in MANAGEMENT_DIAGNOSTICS:
+        extra[key] = update[key] if key == "active_components" else extra[key] + update[key]
+
+
 def filter_steps(
     filters: Mapping[str, Filter], mixtures: Mapping[str, GaussianMixture], inputs: Iterable[StepInput]
 ) -> Iterator[LoopStep]:
@@ -200,6 +213,7 @@ def filter_steps(
                 log_likelihood = diag["log_likelihood"]
                 if "gate_rejected" in diag:
                     extra["gate_rejected"] = diag["gate_rejected"]
+                _add_update_counts(extra, diag)
             beliefs[name] = mix
             out[name] = FilterStep(filt, mix, nis, dof, log_likelihood, extra)
         yield LoopStep(index, inp, out)

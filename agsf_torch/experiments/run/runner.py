@@ -17,7 +17,6 @@ from torch import Tensor
 from ...attitude.inputs import AttitudeInputs, as_float64
 from ...consistency import nees, rms
 from ...filter_loop import PRIOR_SEED_OFFSET, FilterSetup, FilterStep, filter_steps, initial_mixtures, sample_prior
-from ...filters.management import MANAGEMENT_DIAGNOSTICS
 from ...rotations import attitude_error_angle, attitude_error_jacobian, attitude_error_vector, uniform_mrp
 
 __all__ = [
@@ -135,8 +134,7 @@ def monte_carlo_steps(
     The environment side of the one filter loop (:func:`agsf_torch.filter_loop.filter_steps`):
     the attitude adapter (:class:`~agsf_torch.attitude.inputs.AttitudeInputs`) turns each
     observation into the filters' input, and the environment is stepped with the first
-    filter's estimate as action; a managed filter's step diagnostics cover its predict and its update
-    (:func:`_add_update_counts`).  Behind :func:`run_monte_carlo` (which keeps every step),
+    filter's estimate as action.  Behind :func:`run_monte_carlo` (which keeps every step),
     the soak and the adaptation study (which keep running statistics); arguments as there.
     """
     first = next(iter(filters))
@@ -187,9 +185,6 @@ def monte_carlo_steps(
             yield adapter(obs, dt, bias, context=(time, truth_p, x_true))
 
     for step in filter_steps({k: s.filter for k, s in filters.items()}, mixtures, inputs()):
-        if step.input.measurement is not None:  # each filter's diagnostics are its update's now
-            for fs in step.filters.values():
-                _add_update_counts(fs.extra, fs.filter.diagnostics)
         action["mrp"] = step.filters[first].mean[:, :3]
         time, truth_p, x_true = step.input.context
         errors = (
@@ -210,17 +205,6 @@ def monte_carlo_steps(
             errors,
             truth0,
         )
-
-
-def _add_update_counts(extra: dict[str, Tensor], update: Mapping[str, Tensor]) -> None:
-    """A managed filter's step diagnostics over its predict and its update: into ``extra`` (the step's, holding the
-    predict's, :attr:`FilterStep.extra`) the update's ``splits``, ``merges`` and ``prunes`` are added (each ``[B]``
-    int64, counts) and its ``active_components`` replaces the predict's (the count at the step's end);
-    ``update`` is the filter's ``diagnostics`` after the update.  Nothing for a filter without management."""
-    if "active_components" not in update or "active_components" not in extra:
-        return
-    for key in MANAGEMENT_DIAGNOSTICS:
-        extra[key] = update[key] if key == "active_components" else extra[key] + update[key]
 
 
 def rotation_sigma(mean: Tensor, cov: Tensor) -> Tensor:
