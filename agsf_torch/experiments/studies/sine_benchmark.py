@@ -21,11 +21,12 @@ from ...filters.gaussian_sum import GaussianSumFilter
 from ...mixture import GaussianMixture
 from ...models.function_measurement import FunctionMeasurement
 
-__all__ = ["sine_prior", "run_sine_benchmark", "DT", "NUM_STEPS"]
+__all__ = ["sine_prior", "run_sine_benchmark", "DT", "NUM_STEPS", "GRID"]
 
 DT = 0.1
 NUM_STEPS = 80
-_GRID = np.linspace(-20.0, 20.0, 4001)
+#: The reference's grid (rad): the FPKE solver's nodes.
+GRID = np.linspace(-20.0, 20.0, 4001)
 
 
 def sine_prior() -> GaussianMixture:
@@ -66,7 +67,7 @@ def run_sine_benchmark(
     Returns:
         name → ISE ``[NUM_STEPS]``, plus ``"time"``.
     """
-    grid = _GRID
+    grid = GRID
     solver = FokkerPlanckGrid(grid, np.sin, lambda x: 0.5 * np.ones_like(x), dt=0.002)
     xg = torch.tensor(grid, dtype=torch.float64)[:, None]
     _, ys = _simulate_truth(seed)
