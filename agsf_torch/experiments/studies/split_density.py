@@ -41,7 +41,7 @@ from ...filters.weight_updates import GalerkinWeightUpdate, PenaltyWeightUpdate
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
 from ...models.benchmarks import SineDriftModel
-from .sine_benchmark import GRID, DT, sine_prior
+from .sine_benchmark import DT, GRID, sine_prior
 
 __all__ = [
     "one_component_prior",
