@@ -14,11 +14,20 @@ import agsf_torch
 
 from ...mixture import GaussianMixture
 
-__all__ = ["median_time", "side_by_side", "attitude_mixture", "WEIGHT_UPDATE_FILTERS", "IMPORT_ROOT"]
+__all__ = [
+    "median_time",
+    "side_by_side",
+    "attitude_mixture",
+    "WEIGHT_UPDATE_FILTERS",
+    "MANAGED_FILTERS",
+    "IMPORT_ROOT",
+]
 
 F64 = torch.float64
 #: The registered filter of each weight update.
 WEIGHT_UPDATE_FILTERS = {"galerkin": "AGSF-galerkin", "penalty": "AGSF"}
+#: The registered filters that manage their mixture (:mod:`agsf_torch.filters.management`).
+MANAGED_FILTERS = ("GSF-managed", "AGSF-managed", "AGSF-galerkin-managed")
 #: The folder this package is imported from (a checkout, or site-packages where it is installed): the benchmark's
 #: subprocesses put it first on their path and import the same code.
 IMPORT_ROOT = Path(agsf_torch.__file__).resolve().parent.parent

@@ -16,9 +16,16 @@ Measured:
   (Galerkin) and 3-state N = 5 B = 1024;
 * the first adaptive step in a new process (import, construction, first predict),
   twice, so the second run shows what the on-disk caches reuse;
-* the weight QP against Clarabel called per problem (as its users call it), N = 5 and 32;
-* peak resident memory of a B = 65,536 × N = 5 GSF sweep and of an adaptive step at B = 8192,
-  each in a fresh process.
+* the weight QP against Clarabel called per problem (as its users call it, :mod:`.weight_qp`), on random
+  strictly convex problems at N = 5, 16 and 32 and on the filters' own (the Galerkin update's at N = 5, 16
+  and 32, the penalty update's at N = 5, the managed Galerkin filter's held QP at capacity 16), B = 8192;
+* mixture management (:mod:`.managed`): GSF-managed predict + update and AGSF-galerkin-managed predict at
+  capacity 16, B = 4096, beside the fused GSF at N = 5;
+* peak resident memory of a B = 65,536 × N = 5 GSF sweep, of an adaptive step at B = 8192 and of one predict +
+  update of each managed filter at capacity 16, B = 8192, each in a fresh process.
+
+Each group of rows is a key of the report (:data:`SECTIONS`); ``run_bench(only=...)`` (and
+``python -m agsf_torch.experiments.bench --only KEY ...``) runs the named groups alone.
 """
 
 from __future__ import annotations
@@ -36,10 +43,32 @@ import torch
 
 from ...storage.files import write_json
 from .fused import bench_compile, bench_propagation, bench_spacecraft, bench_update
-from .harness import IMPORT_ROOT, WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
+from .harness import IMPORT_ROOT, MANAGED_FILTERS, WEIGHT_UPDATE_FILTERS, attitude_mixture, median_time, side_by_side
+from .managed import bench_managed_galerkin, bench_managed_gsf
 from .report import format_table, targets
+from .weight_qp import bench_qp, bench_qp_filter
 
-__all__ = ["run_bench", "format_table", "targets"]
+__all__ = ["run_bench", "format_table", "targets", "SECTIONS", "check_sections"]
+
+#: The report's groups of rows, each the key it is stored under in ``bench.json``, in the order they run.
+SECTIONS = (
+    "propagation",
+    "update",
+    "spacecraft",
+    "adaptive",
+    "first_step",
+    "qp",
+    "qp_filter",
+    "managed",
+    "compile",
+    "main_job",
+    "memory_sweep",
+    "memory_adaptive",
+    "memory_managed",
+)
+#: The random QP sizes (``qp``) and the filters' QP problems with their sizes (``qp_filter``, :mod:`.weight_qp`).
+QP_SIZES = (5, 16, 32)
+QP_FILTER_PROBLEMS = (("galerkin", 5), ("penalty", 5), ("galerkin", 16), ("galerkin-managed", 16), ("galerkin", 32))
 
 F64 = torch.float64
 
@@ -135,33 +164,6 @@ def bench_first_step(cases: tuple[tuple[str, bool], ...]) -> list[dict[str, Any]
     return rows
 
 
-def bench_qp(B: int = 8192, N: int = 5, clarabel_samples: int = 300) -> dict[str, Any]:
-    """The batched torch solver against Clarabel called directly, one problem at a time (the filter's form ``L̃ + λI``)."""
-    from ...qp import kkt_residual, solve_simplex_qp, solve_simplex_qp_clarabel
-
-    gen = torch.Generator().manual_seed(2)
-    A = torch.randn(B, N, N, generator=gen, dtype=F64)
-    H = A @ A.transpose(-1, -2) / N + torch.eye(N, dtype=F64)
-    c = -torch.softmax(torch.randn(B, N, generator=gen, dtype=F64), -1)
-    t_torch = median_time(lambda: solve_simplex_qp(H, c), repeats=5, budget=30.0)
-    res = solve_simplex_qp(H, c)
-    solve_simplex_qp_clarabel(H[:2], c[:2], polish=False)  # warm-up (import)
-    t = time.perf_counter()
-    w_ref = solve_simplex_qp_clarabel(H[:clarabel_samples], c[:clarabel_samples], polish=False)
-    t_clar = (time.perf_counter() - t) / clarabel_samples
-    kkt_clar = kkt_residual(H[:clarabel_samples], c[:clarabel_samples], torch.as_tensor(w_ref))
-    return {
-        "B": B,
-        "N": N,
-        "torch_seconds_per_problem": t_torch / B,
-        "clarabel_seconds_per_problem": t_clar,
-        "speedup": t_clar / (t_torch / B),
-        "torch_max_kkt_residual": float(res.kkt_residual.max()),
-        "clarabel_max_kkt_residual": float(kkt_clar.max()),
-        "max_abs_difference": float((res.w[:clarabel_samples] - torch.as_tensor(w_ref)).abs().max()),
-    }
-
-
 def bench_matmul_peak(size: int = 2048) -> float:
     a = torch.randn(size, size, dtype=F64)
     b = torch.randn(size, size, dtype=F64)
@@ -254,13 +256,34 @@ def bench_main_job(reference: Path | None = None, rounds: int = 3) -> dict[str, 
     return result
 
 
+def check_sections(only: Any) -> tuple[str, ...]:
+    """Validate ``run_bench(only=...)``: ``None`` (every group) or names of :data:`SECTIONS`.
+
+    Raises:
+        ValueError: naming the unknown groups and the known ones.
+    """
+    if only is None:
+        return SECTIONS
+    names = (only,) if isinstance(only, str) else tuple(only)
+    unknown = [k for k in names if k not in SECTIONS]
+    if unknown or not names:
+        raise ValueError(f"unknown bench section(s) {unknown}; known: {', '.join(SECTIONS)}")
+    return tuple(k for k in SECTIONS if k in names)
+
+
 def run_bench(
-    out: Path | None = None, *, compile: bool = True, quick: bool = False, main_job_reference: Path | None = None
+    out: Path | None = None,
+    *,
+    compile: bool = True,
+    quick: bool = False,
+    main_job_reference: Path | None = None,
+    only: Any = None,
 ) -> dict[str, Any]:
-    """Run every measurement; write ``bench.json`` under ``out`` if given (``quick``: small sizes, a smoke run;
-    ``main_job_reference``: a checkout of earlier code whose main job is timed beside this one's,
-    :func:`bench_main_job`)."""
+    """Run every measurement, or the groups named in ``only`` (:data:`SECTIONS`); write ``bench.json`` under
+    ``out`` if given (``quick``: small sizes, a smoke run; ``main_job_reference``: a checkout of earlier code whose
+    main job is timed beside this one's, :func:`bench_main_job`)."""
     main_job_reference = check_reference(main_job_reference)
+    sections = check_sections(only)
     t0 = time.perf_counter()
     report: dict[str, Any] = {
         "machine": {
@@ -269,37 +292,68 @@ def run_bench(
             "cpu_count": os.cpu_count(),
             "python": sys.version.split()[0],
             "load_average_at_start": os.getloadavg()[0],
-        }
+        },
+        "sections": list(sections),
     }
     report["matmul_peak_gflops"] = bench_matmul_peak(512 if quick else 2048) / 1e9
     reps = 2 if quick else 5
-    report["propagation"] = bench_propagation(
-        B=256 if quick else 8192,
-        repeats=reps,
-        compile=compile,
-        filterpy_samples=100 if quick else 2000,
-        peak_flops=report["matmul_peak_gflops"] * 1e9,
-    )
-    report["update"] = bench_update(B=64 if quick else 4096, repeats=reps, compile=compile)
-    report["spacecraft"] = bench_spacecraft(repeats=5 if quick else 50, compile=compile)
-    report["adaptive"] = [
-        bench_adaptive(True, 16 if quick else 256, repeats=reps, compile=compile),
-        bench_adaptive(True, 64 if quick else 4096, repeats=reps, compile=compile, penalty=False),
-        bench_adaptive(False, 32 if quick else 1024, repeats=reps, compile=compile),
-    ]
-    cases = (("galerkin", False), ("penalty", False)) + ((("penalty", True),) if compile else ())
-    report["first_step"] = bench_first_step(cases[:1] if quick else cases)
-    report["qp"] = [bench_qp(B=256 if quick else 8192, N=N, clarabel_samples=20 if quick else 300) for N in (5, 32)]
-    if compile and not quick:
+    if "propagation" in sections:
+        report["propagation"] = bench_propagation(
+            B=256 if quick else 8192,
+            repeats=reps,
+            compile=compile,
+            filterpy_samples=100 if quick else 2000,
+            peak_flops=report["matmul_peak_gflops"] * 1e9,
+        )
+    if "update" in sections:
+        report["update"] = bench_update(B=64 if quick else 4096, repeats=reps, compile=compile)
+    if "spacecraft" in sections:
+        report["spacecraft"] = bench_spacecraft(repeats=5 if quick else 50, compile=compile)
+    if "adaptive" in sections:
+        report["adaptive"] = [
+            bench_adaptive(True, 16 if quick else 256, repeats=reps, compile=compile),
+            bench_adaptive(True, 64 if quick else 4096, repeats=reps, compile=compile, penalty=False),
+            bench_adaptive(False, 32 if quick else 1024, repeats=reps, compile=compile),
+        ]
+    if "first_step" in sections:
+        cases = (("galerkin", False), ("penalty", False)) + ((("penalty", True),) if compile else ())
+        report["first_step"] = bench_first_step(cases[:1] if quick else cases)
+    qp_batch, qp_samples = (256, 20) if quick else (8192, 300)
+    if "qp" in sections:
+        report["qp"] = [bench_qp(B=qp_batch, N=N, clarabel_samples=qp_samples, repeats=reps) for N in QP_SIZES]
+    if "qp_filter" in sections:
+        report["qp_filter"] = [
+            bench_qp_filter(p, B=qp_batch, N=N, clarabel_samples=qp_samples, repeats=reps, compile=compile)
+            for p, N in QP_FILTER_PROBLEMS
+        ]
+    if "managed" in sections:
+        B = 64 if quick else 4096
+        report["managed"] = {
+            "gsf": bench_managed_gsf(B=B, repeats=reps, compile=compile),
+            "galerkin": bench_managed_galerkin(B=B, repeats=reps, compile=compile),
+        }
+    if compile and not quick and "compile" in sections:
         report["compile"] = bench_compile()
-    if not quick:
+    if not quick and "main_job" in sections:
         report["main_job"] = bench_main_job(main_job_reference)
-    report["memory_sweep"] = _peak_rss(
-        ["gsf", "--batch", str(4096 if quick else 65536), "--chunk", "4096" if quick else "16384"]
-    )
-    report["memory_adaptive"] = [
-        _peak_rss(["adaptive", "--update", up, "--batch", str(64 if quick else 8192)]) for up in ("galerkin", "penalty")
-    ]
+    if "memory_sweep" in sections:
+        report["memory_sweep"] = _peak_rss(
+            ["gsf", "--batch", str(4096 if quick else 65536), "--chunk", "4096" if quick else "16384"]
+        )
+    if "memory_adaptive" in sections:
+        report["memory_adaptive"] = [
+            _peak_rss(["adaptive", "--update", up, "--batch", str(64 if quick else 8192)])
+            for up in ("galerkin", "penalty")
+        ]
+    if "memory_managed" in sections:
+        report["memory_managed"] = [
+            _peak_rss(
+                ["managed", "--filter", name, "--batch", str(64 if quick else 8192), "--capacity", "16"]
+                + (["--compile"] if compile else [])
+            )
+            for name in MANAGED_FILTERS
+        ]
+    report["machine"]["load_average_at_end"] = os.getloadavg()[0]
     report["total_seconds"] = time.perf_counter() - t0
     report["targets"] = targets(report)
     if out is not None:

@@ -249,11 +249,7 @@ def axes_figure(summary: dict[str, Any]) -> Any:
     labels = [f"{name}: RMS error over {runs} runs" for name in names]
     handles.append(Line2D([], [], color="0.35", ls="--", lw=0.9))
     labels.append("3 × RMS of the filter's σ")
-    if star is not None:
-        handles.append(star)
-        labels.append("star frame")
-    ncol = min(len(labels), 3)
-    fig.legend(handles, labels, loc="outside lower center", ncol=ncol, fontsize=9, frameon=False)
+    _figure_legend(fig, handles, labels, star, 3)
     what = "error about the true body axes" + (" and gyro bias error" if bias else "")
     state = "" if bias else "\n(the filters' state: the attitude alone, no gyro-bias states)"
     fig.suptitle(
@@ -313,16 +309,21 @@ def weights_figure(summary: dict[str, Any]) -> Any:
             ax.set_xlabel("time (s)")
     handles: list[Any] = [Patch(facecolor=colors[i], alpha=0.8) for i in range(ncomp)]
     labels = [f"component {i}" for i in range(ncomp)]  # 0-based, as runs.npz, the event tags and the errors
-    if star is not None:
-        handles.append(star)
-        labels.append("star frame")
-    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 8), fontsize=9, frameon=False)
+    _figure_legend(fig, handles, labels, star, 8)
     fig.suptitle(
         f"{_label(summary)}: component weights of each mixture filter, run 0 "
         "(stacked: each band's thickness is one component's weight)",
         fontsize=11,
     )
     return fig
+
+
+def _figure_legend(fig: Any, handles: list[Any], labels: list[str], star: Any, columns: int) -> None:
+    """The figure's one legend below its axes: ``handles``/``labels``, then the star-frame mark if drawn, in at most
+    ``columns`` columns."""
+    if star is not None:
+        handles, labels = [*handles, star], [*labels, "star frame"]
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), columns), fontsize=9, frameon=False)
 
 
 def fpke_figure(summary: dict[str, Any]) -> Any:
@@ -472,10 +473,7 @@ def mixture_figure(summary: dict[str, Any]) -> Any:
     labels = [f"{name}: mean over {runs} runs" for name in managed]
     handles.append(Patch(facecolor="0.5", alpha=0.35))
     labels.append("fewest to most components over the runs")
-    if star is not None:
-        handles.append(star)
-        labels.append("star frame")
-    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 3), fontsize=9, frameon=False)
+    _figure_legend(fig, handles, labels, star, 3)
     fig.suptitle(
         f"{_label(summary)}: the mixture of each managed filter over {runs} runs:\n"
         "components in use, and splits, merges and prunes so far per run",

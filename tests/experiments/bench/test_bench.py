@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from agsf_torch.experiments.bench import report as report_module
 from agsf_torch.experiments.bench import run as bench
 from agsf_torch.experiments.bench.peers import _problem, attitude_rk4_step, filterpy_loop, numpy_batch
 from tests.helpers import assert_within, relative_bound
@@ -20,6 +21,94 @@ def test_qp_comparison_reports_agreement():
         assert_within(r["clarabel_max_kkt_residual"], 0.0, 1e-9, f"KKT residual of Clarabel, N = {N}")
         assert_within(r["max_abs_difference"], 0.0, agree, f"torch QP against Clarabel, N = {N}")
         assert r["speedup"] > 0
+
+
+def test_managed_rows_report_their_sides_and_what_management_did():
+    """Small sizes, eager: each row times its two sides (and the reference) and reports what management did."""
+    from agsf_torch.experiments.bench.managed import bench_managed_galerkin, bench_managed_gsf
+    from agsf_torch.filters.management import MANAGEMENT_DIAGNOSTICS
+
+    g = bench_managed_gsf(B=4, capacity=16, repeats=1, compile=False)
+    assert set(g["seconds"]) == {"GSF", "GSF-managed"}
+    assert g["ratio"] == g["seconds"]["GSF-managed"] / g["seconds"]["GSF"]
+    assert (g["B"], g["N"], g["capacity"]) == (4, 5, 16) and "padded to 16 slots" in g["what"]
+    assert set(g["management"]) == {"predict", "update"}
+    for counts in g["management"].values():
+        assert set(counts) == set(MANAGEMENT_DIAGNOSTICS) and 1 <= counts["active_components"] <= 16
+    a = bench_managed_galerkin(B=4, capacity=16, repeats=1, compile=False)
+    assert set(a["seconds"]) == {"GSF", "AGSF-galerkin", "AGSF-galerkin-managed"}
+    assert a["ratio"] == a["seconds"]["AGSF-galerkin-managed"] / a["seconds"]["GSF"]
+    assert a["unmanaged_ratio"] == a["seconds"]["AGSF-galerkin"] / a["seconds"]["GSF"]
+    assert set(a["management"]) == {"predict"}
+
+
+def test_qp_rows_on_the_filters_problems_report_agreement():
+    """Every problem set of the QP rows, small: both solvers meet the KKT conditions of the same problems (Clarabel
+    unpolished to its tolerance; on the Galerkin update's ill-conditioned M at N ≥ 16 the two weights then differ
+    in the flat directions of the objective, so only the residuals are compared)."""
+    from agsf_torch.experiments.bench.run import QP_FILTER_PROBLEMS, QP_SIZES
+    from agsf_torch.experiments.bench.weight_qp import bench_qp_filter
+
+    for problems, N in QP_FILTER_PROBLEMS:
+        r = bench_qp_filter(problems, B=4, N=N, clarabel_samples=2, repeats=1)
+        assert (r["problems"], r["N"], r["B"], r["clarabel_samples"]) == (problems, N, 4, 2)
+        assert_within(r["torch_max_kkt_residual"], 0.0, 1e-12, f"KKT residual of the torch QP, {problems} N = {N}")
+        assert_within(r["clarabel_max_kkt_residual"], 0.0, 1e-9, f"KKT residual of Clarabel, {problems} N = {N}")
+        assert r["speedup"] > 0 and r["what"].startswith("AGSF")
+        assert r["active_components"] == (5 if problems == "galerkin-managed" else N)
+    assert set(QP_SIZES) == {N for _, N in QP_FILTER_PROBLEMS} == {5, 16, 32}
+
+
+def test_the_captured_qp_is_the_one_the_filter_solves():
+    """The Galerkin filter's new weights are the solution of the captured (H, c), renormalised; the managed one's
+    are zero on the held (inactive) slots."""
+    from agsf_torch.experiments.bench.harness import attitude_mixture
+    from agsf_torch.experiments.bench.weight_qp import filter_qp_problems
+    from agsf_torch.filters.management import pad_mixture
+    from agsf_torch.filters.registry import make_filter
+    from agsf_torch.models import AttitudeModel
+    from agsf_torch.qp import solve_simplex_qp
+
+    u = torch.full((3, 3), 0.06, dtype=torch.float64)
+    for problems, name, N in (("galerkin", "AGSF-galerkin", 5), ("galerkin-managed", "AGSF-galerkin-managed", 16)):
+        H, c, _ = filter_qp_problems(problems, 3, N)
+        mix = attitude_mixture(3, 5 if problems == "galerkin-managed" else N, True, torch.Generator().manual_seed(5))
+        if problems == "galerkin-managed":
+            mix = pad_mixture(mix, N)
+        filt = make_filter(name, AttitudeModel(estimate_bias=True), **({"capacity": N} if N == 16 else {}))
+        w = solve_simplex_qp(H, c).w.clamp_min(0.0)
+        w = w / w.sum(-1, keepdim=True)
+        if problems == "galerkin-managed":
+            assert (w[:, 5:] == 0).all()
+        assert_within(filt.predict(mix, u, 0.1).weights, w, 1e-12, f"{name}'s weights against the captured QP's")
+
+
+def test_managed_memory_workload_reports_its_peak():
+    for name in ("GSF-managed", "AGSF-managed", "AGSF-galerkin-managed"):
+        row = bench._peak_rss(["managed", "--filter", name, "--batch", "4", "--capacity", "16"])
+        assert (row["filter"], row["batch"], row["capacity"], row["compiled"]) == (name, 4, 16, False)
+        assert row["peak_rss_mib"] > 0 and name in row["what"]
+
+
+def test_sections_run_alone():
+    """``run_bench(only=...)`` runs the named groups and its report and table hold those alone."""
+    r = bench.run_bench(quick=True, compile=False, only=["managed"])
+    assert r["sections"] == ["managed"] and set(r) == {
+        "machine",
+        "sections",
+        "matmul_peak_gflops",
+        "managed",
+        "total_seconds",
+        "targets",
+    }
+    assert [t["goal"] for t in r["targets"]] == [5.0, 15.0]
+    table = bench.format_table(r)
+    assert "GSF-managed predict + update (capacity 16) ÷ fused GSF (N=5), 6-state B=64" in table
+    assert "star update, 6-state" not in table and "peak RSS" not in table and "| n | N | B |" not in table
+    with pytest.raises(ValueError, match="unknown bench section"):
+        bench.check_sections(["managed", "qp_random"])
+    assert bench.check_sections(None) == bench.SECTIONS
+    assert bench.check_sections(["qp", "managed"]) == ("qp", "managed")  # in the order they run
 
 
 def test_peers_do_the_gsf_propagation_work():
@@ -140,6 +229,41 @@ def test_table_marks_targets():
         "memory_adaptive": [
             {"what": "adaptive", "update": "galerkin", "batch": 8192, "peak_rss_mib": 9000.0, "seconds": 1.0}
         ],
+        "qp_filter": [{**qp, "B": 8192, "N": 16, "problems": "galerkin-managed", "active_components": 5.0}],
+        "managed": {
+            "gsf": {
+                "what": "managed GSF",
+                "B": 4096,
+                "N": 5,
+                "capacity": 16,
+                "compiled": True,
+                "seconds": {"GSF": 0.5, "GSF-managed": 10.0},
+                "ratio": 20.0,
+                "management": {"predict": {"active_components": 5.0, "splits": 0.0, "merges": 0.0, "prunes": 0.0}},
+            },
+            "galerkin": {
+                "what": "managed Galerkin",
+                "B": 4096,
+                "N": 5,
+                "capacity": 16,
+                "compiled": True,
+                "seconds": {"GSF": 0.5, "AGSF-galerkin": 1.0, "AGSF-galerkin-managed": 5.0},
+                "ratio": 10.0,
+                "unmanaged_ratio": 2.0,
+                "management": {"predict": {"active_components": 5.0, "splits": 0.0, "merges": 0.0, "prunes": 0.0}},
+            },
+        },
+        "memory_managed": [
+            {
+                "what": "managed",
+                "filter": "AGSF-managed",
+                "batch": 8192,
+                "capacity": 16,
+                "compiled": True,
+                "peak_rss_mib": 5000.0,
+                "seconds": 1.0,
+            }
+        ],
         "total_seconds": 1.0,
     }
     report["targets"] = bench.targets(report)
@@ -168,6 +292,13 @@ def test_table_marks_targets():
     assert met["peak RSS, B=65536 × N=5 GSF sweep (GB)"] == "yes"
     assert met["peak RSS, galerkin adaptive step at B=8192 (GB)"] == "no"
     assert met["first galerkin step in a new process (s)"] == "yes"
+    managed = "GSF-managed predict + update (capacity 16) ÷ fused GSF (N=5), 6-state B=4096"
+    assert met[managed] == "no" and rows[managed][1] == report_module.MANAGED_GSF_LIMIT
+    assert met["AGSF-galerkin-managed predict (capacity 16) ÷ fused GSF predict (N=5), 6-state B=4096"] == "yes"
+    assert met["weight QP, galerkin-managed problems N=16 B=8192: speed-up per problem over Clarabel"] == "yes"
+    assert met["peak RSS, AGSF-managed predict + update at B=8192, capacity 16 (GB)"] == "no"
+    assert "weight QP, galerkin-managed problems N=16 B=8192, 5 active on average: torch 10.00 µs/problem" in table
+    assert "GSF 500.0 ms, GSF-managed 10000.0 ms → 20.0×" in table
     main = (
         "main job (agsf reproduce --case all): speed-up over the reference code (abc1234), medians of alternated rounds"
     )
