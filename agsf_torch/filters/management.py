@@ -195,6 +195,8 @@ class MixtureManagement:
         log_w, T, counts["prunes"] = self._prune(log_w, T)
         merges = torch.zeros_like(counts["prunes"])
         for _ in range(self.merge_rounds if self.merge_bound > 0 else 0):
+            if not bool((torch.isfinite(log_w).sum(-1) > 1).any()):  # one component everywhere: nothing to merge
+                break
             log_w, means, covs, T, merged = _merge_round(log_w, means, covs, T, model, self.merge_bound)
             merges = merges + merged
         splits = torch.zeros_like(merges)
