@@ -68,6 +68,9 @@ __all__ = [
     "Scenario",
     "SCENARIOS",
     "VALIDATION_FILTERS",
+    "SINGLE_GAUSSIAN_FILTERS",
+    "paired_divergence",
+    "managed_comparisons",
     "DIVERGED_DEG",
     "scenario_config",
     "run_validation_scenario",
@@ -383,10 +386,65 @@ def scenario_measures(res: dict[str, Any], cfg: ExperimentConfig) -> dict[str, A
             "converged_fraction": float(converged.mean()),
             "density_score": None if np.isnan(score).all() else _interval(np.nanmean(score, 0)),
             "cost_per_step_s": r["seconds"] / r["steps"],
+            "diverged_runs": diverged.astype(int).tolist(),
+            "density_score_runs": None if np.isnan(score).all() else np.nanmean(score, 0).tolist(),
             "rms_t_arcsec": (np.sqrt((angle**2).mean(1)) * ARCSEC_PER_RAD).tolist(),
             "sigma3_t_arcsec": (r["sigma3"].mean(1) * ARCSEC_PER_RAD).tolist(),
         }
+    out["comparisons"] = managed_comparisons(out["filters"])
     out["time_s"] = t.tolist()
+    return out
+
+
+#: The filters a managed Gaussian sum is compared with, pair by pair over the same runs: the single Gaussians.
+SINGLE_GAUSSIAN_FILTERS = ("EKF", "MEKF", "MEKF-fix", "USQUE")
+
+
+def paired_divergence(baseline: np.ndarray, managed: np.ndarray) -> dict[str, Any]:
+    """The difference of divergence fractions ``p_baseline − p_managed`` over the same runs, with McNemar's exact
+    conditional 95 % interval.
+
+    Of the ``d = b + c`` discordant runs (``b``: only the baseline diverged, ``c``: only the managed filter), ``b``
+    is binomial ``(d, π)`` given ``d``; the difference is ``(b − c)/R = (d/R)(2π̂ − 1)`` and its interval
+    ``(d/R)(2[π_lo, π_hi] − 1)`` from the Clopper–Pearson interval of ``π``.  It excludes zero exactly where McNemar's
+    exact test rejects equal fractions at 5 %.  With no discordant run the difference is 0 and the interval
+    ``[0, 0]`` (no evidence either way).
+
+    Args:
+        baseline, managed: ``[R]`` 0/1 per run (diverged).
+
+    Returns:
+        ``{"difference", "ci95": [lo, hi], "discordant": d}``.
+    """
+    a, m = np.asarray(baseline, dtype=bool), np.asarray(managed, dtype=bool)
+    b, c, R = int((a & ~m).sum()), int((m & ~a).sum()), a.size
+    d = b + c
+    if d == 0:
+        return {"difference": 0.0, "ci95": [0.0, 0.0], "discordant": 0}
+    lo, hi = clopper_pearson(b, d)
+    return {"difference": (b - c) / R, "ci95": [d / R * (2 * lo - 1), d / R * (2 * hi - 1)], "discordant": d}
+
+
+def managed_comparisons(filters: dict[str, Any]) -> dict[str, Any]:
+    """Each managed filter against each single-Gaussian filter of the scenario (:data:`SINGLE_GAUSSIAN_FILTERS`),
+    run by run: ``"{managed} vs {baseline}"`` → ``diverged`` (:func:`paired_divergence`, > 0: the managed filter
+    diverged in fewer runs) and ``density_score`` (the per-run score's difference managed − baseline, its mean and
+    Student-t 95 % interval; > 0: the managed filter's density is the better; ``None`` without scores)."""
+    out: dict[str, Any] = {}
+    for m in (f for f in filters if f.endswith("-managed")):
+        for b in (f for f in SINGLE_GAUSSIAN_FILTERS if f in filters):
+            fm, fb = filters[m], filters[b]
+            score = None
+            if fm["density_score_runs"] is not None and fb["density_score_runs"] is not None:
+                diff = np.asarray(fm["density_score_runs"]) - np.asarray(fb["density_score_runs"])
+                diff = diff[np.isfinite(diff)]
+                if diff.size >= 2:
+                    mean, lo, hi = mean_ci95(diff)
+                    score = {"difference": mean, "ci95": [lo, hi]}
+            out[f"{m} vs {b}"] = {
+                "diverged": paired_divergence(fb["diverged_runs"], fm["diverged_runs"]),
+                "density_score": score,
+            }
     return out
 
 
@@ -592,4 +650,26 @@ def validation_table(summaries: dict[str, Any]) -> str:
     lines.append("")
     for sname, s in summaries.items():
         lines.append(f"- **{sname}** ({s['description']}): {recommendation(s)}.")
+    pairs = [(sname, pair, c) for sname, s in summaries.items() for pair, c in s.get("comparisons", {}).items()]
+    if pairs:
+        lines += [
+            "",
+            "Managed Gaussian sums against the single Gaussians, run by run (the same runs): the divergence fraction's "
+            "difference baseline − managed (> 0: the managed filter diverged less; McNemar's exact interval) and the "
+            "density score's difference managed − baseline (> 0: the managed density is the better; Student-t).",
+            "",
+            "| scenario | pair | diverged: difference [95 %] (discordant runs) | density score: difference [95 %] |",
+            "| --- | --- | --- | --- |",
+        ]
+        for sname, pair, c in pairs:
+            d, sc = c["diverged"], c["density_score"]
+            score = (
+                "—"
+                if sc is None
+                else f"{_fmt(sc['difference'], 4)} [{_fmt(sc['ci95'][0], 4)}, {_fmt(sc['ci95'][1], 4)}]"
+            )
+            lines.append(
+                f"| {sname} | {pair} | {_fmt(100 * d['difference'])} % [{_fmt(100 * d['ci95'][0])}, "
+                f"{_fmt(100 * d['ci95'][1])}] ({d['discordant']}) | {score} |"
+            )
     return "\n".join(lines)

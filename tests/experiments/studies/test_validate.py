@@ -20,7 +20,7 @@ from agsf_torch.experiments.studies.validate import (
     scenario_config,
     scenario_measures,
 )
-from tests.helpers import EAGER
+from tests.helpers import EAGER, assert_within
 
 #: The filters run end to end here (each scenario's own, less the adaptive ones, whose studies are elsewhere).
 FILTERS = ["EKF", "GSF", "MEKF", "MEKF-fix", "USQUE", "PF"]
@@ -68,8 +68,8 @@ def test_every_scenario_and_filter_has_every_measure_on_disk(study):
             assert 0.0 <= lo <= m["diverged_fraction"] <= hi <= 1.0
             assert m["cost_per_step_s"] > 0
             assert not any(k.endswith("_t_arcsec") for k in m)  # the figures' series stay out of the JSON
-    assert on_disk["case1"]["filters"]["GSF"]["density_score"] is not None  # the reference is run there
-    assert on_disk["single_vector-90deg"]["filters"]["GSF"]["density_score"] is None  # and not there
+    for name in on_disk:  # the reference is run where the scenario asks for it
+        assert (on_disk[name]["filters"]["GSF"]["density_score"] is not None) == SCENARIOS[name].density
     assert on_disk["single_vector-90deg"]["stars_per_frame_mean"] == 1.0
 
 
@@ -177,3 +177,21 @@ def test_every_scenario_builds_and_names_only_registered_filters():
     for name, sc in SCENARIOS.items():
         cfg = scenario_config(name, 2)
         assert list(cfg.filters) == list(sc.filters) and set(sc.filters) <= set(VALIDATION_FILTERS)
+
+
+def test_paired_divergence_is_mcnemars_exact_conditional_interval():
+    from scipy.stats import binomtest
+
+    from agsf_torch.experiments.studies.validate import paired_divergence
+
+    baseline = np.array([1] * 9 + [0] * 23)
+    managed = np.array([0] * 8 + [1] + [0] * 22 + [1])  # 8 runs only the baseline lost, 1 only the managed filter
+    out = paired_divergence(baseline, managed)
+    assert out["discordant"] == 9
+    assert_within(out["difference"], 7 / 32, 1e-15, "difference of fractions")
+    lo, hi = binomtest(8, 9).proportion_ci(0.95, method="exact")  # Clopper-Pearson of π = P(baseline | discordant)
+    assert_within(out["ci95"], [9 / 32 * (2 * lo - 1), 9 / 32 * (2 * hi - 1)], 1e-12, "McNemar interval")
+    assert out["ci95"][0] > 0  # McNemar's exact test: p = 0.039 < 0.05
+    assert binomtest(8, 9).pvalue < 0.05
+    same = paired_divergence(baseline, baseline)
+    assert same == {"difference": 0.0, "ci95": [0.0, 0.0], "discordant": 0}
