@@ -17,8 +17,8 @@ Measured:
 * the first adaptive step in a new process (import, construction, first predict),
   twice, so the second run shows what the on-disk caches reuse;
 * the weight QP against Clarabel called per problem (as its users call it, :mod:`.weight_qp`), on random
-  strictly convex problems at N = 5, 16 and 32 and on the filters' own (the Galerkin update's at N = 5, 16
-  and 32, the penalty update's at N = 5, the managed Galerkin filter's held QP at capacity 16), B = 8192;
+  strictly convex problems at N = 5, 16 and 32 and on the filters' own (the Galerkin and the penalty updates' at
+  N = 5, 16 and 32, the managed Galerkin filter's held QP at capacity 16), B = 8192;
 * mixture management (:mod:`.managed`): GSF-managed predict + update and AGSF-galerkin-managed predict at
   capacity 16, B = 4096, beside the fused GSF at N = 5;
 * peak resident memory of a B = 65,536 × N = 5 GSF sweep, of an adaptive step at B = 8192 and of one predict +
@@ -68,7 +68,15 @@ SECTIONS = (
 )
 #: The random QP sizes (``qp``) and the filters' QP problems with their sizes (``qp_filter``, :mod:`.weight_qp`).
 QP_SIZES = (5, 16, 32)
-QP_FILTER_PROBLEMS = (("galerkin", 5), ("penalty", 5), ("galerkin", 16), ("galerkin-managed", 16), ("galerkin", 32))
+QP_FILTER_PROBLEMS = (
+    ("galerkin", 5),
+    ("penalty", 5),
+    ("galerkin", 16),
+    ("penalty", 16),
+    ("galerkin-managed", 16),
+    ("galerkin", 32),
+    ("penalty", 32),
+)
 
 F64 = torch.float64
 

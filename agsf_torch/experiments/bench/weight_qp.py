@@ -101,11 +101,13 @@ def _captured(module: ModuleType) -> Iterator[list[tuple[Tensor, Tensor]]]:
 
 
 def filter_qp_problems(
-    problems: str, B: int, N: int, compile: bool = False, seed: int = 5
+    problems: str, B: int, N: int, compile: bool = False, seed: int = 5, chunk: int | None = 2048
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """The weight QP ``(H [B, N, N], c [B, N])`` a filter passes its solver in one predict step (one gyro interval,
     0.1 s at 0.06 rad/s per axis) of ``B`` random attitudes (:func:`~.harness.attitude_mixture`, 6-state), captured
-    at the call: built by the filter's own weight update from a real mixture (:data:`FILTER_QP_PROBLEMS`).
+    at the call: built by the filter's own weight update from a real mixture (:data:`FILTER_QP_PROBLEMS`), ``chunk``
+    trajectories at a time, each chunk by a new filter (``None``: all at once; the problems are per trajectory, and
+    the penalty update's ``L`` at N = 32 needs ~12 GB at B = 8192 in one piece).
 
     Returns:
         ``(H, c, info)``; ``info["active_components"]``: the mean count of components not held at zero.
@@ -119,20 +121,27 @@ def filter_qp_problems(
         raise ValueError(f"unknown QP problems {problems!r}; known: {', '.join(FILTER_QP_PROBLEMS)}")
     model = AttitudeModel(estimate_bias=True)
     gen = torch.Generator().manual_seed(seed)
-    u = torch.full((B, 3), 0.06, dtype=F64)
-    if problems == "galerkin-managed":
-        # the prior, not a posterior: a 5-star update (σ = 1e-5 rad) splits the 5 components into 15 and the next
-        # pass prunes all but the heaviest, a QP of one active component
-        filt = make_filter("AGSF-galerkin-managed", model, compile_fused=compile, capacity=N)
-        prior = pad_mixture(attitude_mixture(B, 5, True, gen), N)
-    else:
-        filt = make_filter("AGSF-galerkin" if problems == "galerkin" else "AGSF", model, compile_fused=compile)
-        prior = attitude_mixture(B, N, True, gen)
-    with _captured(penalty if problems == "penalty" else galerkin) as calls:
-        filt.predict(prior, u, 0.1)
-    H, c = calls[-1]
-    active = filt.diagnostics["active_components"] if problems == "galerkin-managed" else torch.tensor(N)
-    return H, c, {"active_components": float(active.to(F64).mean())}
+    Hs, cs, active = [], [], []
+    for start in range(0, B, chunk or B):
+        size = min(chunk or B, B - start)
+        u = torch.full((size, 3), 0.06, dtype=F64)
+        if problems == "galerkin-managed":
+            # the prior, not a posterior: a 5-star update (σ = 1e-5 rad) splits the 5 components into 15 and the
+            # next pass prunes all but the heaviest, a QP of one active component
+            filt = make_filter("AGSF-galerkin-managed", model, compile_fused=compile, capacity=N)
+            prior = pad_mixture(attitude_mixture(size, 5, True, gen), N)
+        else:
+            filt = make_filter("AGSF-galerkin" if problems == "galerkin" else "AGSF", model, compile_fused=compile)
+            prior = attitude_mixture(size, N, True, gen)
+        with _captured(penalty if problems == "penalty" else galerkin) as calls:
+            filt.predict(prior, u, 0.1)
+        H, c = calls[-1]
+        Hs.append(H)
+        cs.append(c)
+        managed = problems == "galerkin-managed"
+        active.append(filt.diagnostics["active_components"] if managed else torch.full((size,), N))
+    mean_active = float(torch.cat(active).to(F64).mean())
+    return torch.cat(Hs), torch.cat(cs), {"active_components": mean_active}
 
 
 def bench_qp_filter(

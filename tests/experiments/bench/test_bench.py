@@ -81,6 +81,12 @@ def test_the_captured_qp_is_the_one_the_filter_solves():
         if problems == "galerkin-managed":
             assert (w[:, 5:] == 0).all()
         assert_within(filt.predict(mix, u, 0.1).weights, w, 1e-12, f"{name}'s weights against the captured QP's")
+    # built a chunk of trajectories at a time (a new filter each), the problems are those of one piece
+    H1, c1, info1 = filter_qp_problems("penalty", 4, 5, chunk=None)
+    H2, c2, info2 = filter_qp_problems("penalty", 4, 5, chunk=2)
+    assert_within(H2, H1, relative_bound(H1, 1e-13, 1e-15), "H built in chunks against one piece")
+    assert_within(c2, c1, relative_bound(c1, 1e-13, 1e-15), "c built in chunks against one piece")
+    assert info1 == info2 == {"active_components": 5.0}
 
 
 def test_managed_memory_workload_reports_its_peak():
