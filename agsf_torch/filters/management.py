@@ -10,11 +10,14 @@ Each management pass (:meth:`MixtureManagement.apply`) runs, batched over trajec
 
 1. **prune**: a component whose weight is below ``prune_weight`` becomes inactive (never the heaviest);
 2. **merge** (Runnalls 2007): ``merge_rounds`` rounds in which every pair of *mutual* nearest components by
-   Runnalls' bound on the Kullback–Leibler discrimination of the merged mixture from the original,
+   Runnalls' bound on the Kullback–Leibler discrimination of the merged pair from the pair at equal weights,
 
-   .. math:: B_{ij} = ½\\big[(w_i + w_j)\\log\\det P_{ij} - w_i \\log\\det P_i - w_j \\log\\det P_j\\big]
+   .. math:: b_{ij} = ½\\big[\\log\\det\\big(½P_i + ½P_j + ¼ δδ^T\\big) − ½\\log\\det P_i − ½\\log\\det P_j\\big],
+             \\qquad δ = m_i − m_j
 
-   merges where ``B_ij ≤ merge_bound`` (nats), moment-preserving and in the chart of the heavier
+   (a dissimilarity of the two Gaussians whatever their weights, as the ACTS fitter's symmetric KL distance: a
+   light component far from the others is not merged for being light, which is pruning's decision),
+   merges where ``b_ij ≤ merge_bound`` (nats), moment-preserving and in the chart of the heavier
    (``model.align``: the attitude's MRP set or its shadow), into the heavier's slot;
 3. **split**: a component whose nonlinearity score exceeds its threshold is split along the axis the score
    names into three, preserving its mean and covariance exactly (:data:`SPLIT_WEIGHTS`), into free slots,
@@ -91,11 +94,15 @@ class MixtureManagement:
         capacity: ``K``, the mixture's slots (≥ the initial component count; ≤ the weight QP's limit).  A mixture
             given with fewer components is padded with inactive slots at the filter's first step.
         prune_weight: weight (dimensionless, in [0, 0.5)) below which a component is dropped; the heaviest is
-            never dropped.  Default 1e-4, as the ACTS Gaussian-sum fitter.
-        merge_bound: Runnalls' bound ``B_ij`` (nats) at or below which a mutual-nearest pair merges, in
-            ``[0, 0.5]``.  Default 1e-3 nats: pairs that the merged Gaussian describes to within a thousandth of
-            a nat; a split's own children (bound ≥ 0.014 w of their parent's weight w) stay apart above a parent
-            weight of 0.07.
+            never dropped.  Default 0 (never): with a precise sensor after a wide prior the linearised update drives
+            the weights of the components it cannot yet judge far below 1e-30, and a dropped component cannot
+            come back (on ``agsf validate``'s one-star scenario from a uniform attitude, pruning at any weight from
+            1e-4, the ACTS fitter's, down to 1e-30 left 50 times the error of no pruning).  Merging frees the slots
+            of components that coincide.
+        merge_bound: the pair's Runnalls bound per unit weight ``b_ij`` (nats) at or below which a mutual-nearest
+            pair merges, in ``[0, 0.5]``.  Default 1e-3 nats: pairs that one Gaussian describes to within a
+            thousandth of a nat (two equal components merge when their means are less than 0.09 standard
+            deviations apart); a split's adjacent children (``b`` = 0.22) stay apart.
         merge_rounds: rounds of mutual-nearest merging per pass (each merges disjoint pairs in parallel).
         split_measurement: split before a measurement update where the measurement's curvature along a
             component's axis, ``½‖h(m + s_k) + h(m − s_k) − 2h(m)‖`` in noise standard deviations (the
@@ -110,7 +117,7 @@ class MixtureManagement:
         default=16, metadata=option("managed filters: slots K of the mixture (≥ components)", config="int")
     )
     prune_weight: float = field(
-        default=1e-4,
+        default=0.0,
         metadata=option("managed filters: drop components below this weight (0: never)", config="float"),
     )
     merge_bound: float = field(
@@ -283,21 +290,27 @@ def _logdet(P: Tensor) -> Tensor:
 def runnalls_bound(
     log_w: Tensor, means: Tensor, covs: Tensor, model: ContinuousModel
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Runnalls' bound for every pair ``i < j`` and the merged moments in the chart of the heavier.
+    """The dissimilarity ``b_ij`` of every pair ``i < j`` and their merged moments in the chart of the heavier.
 
-    .. math:: m_{ij} = (w_i m_i + w_j m_j)/w,\\quad
-              P_{ij} = (w_i P_i + w_j P_j)/w + \\frac{w_i w_j}{w^2}(m_i − m_j)(m_i − m_j)^T,\\quad w = w_i + w_j
+    ``b_ij`` is Runnalls' bound on the Kullback–Leibler discrimination of the merged pair from the pair, taken at
+    equal weights (a weight-free dissimilarity of the two Gaussians, as the ACTS fitter's symmetric KL distance): a
+    light component far from the others is not merged for being light, which is pruning's decision.  The merged
+    moments use the pair's own weights ``f = w / (w_i + w_j)``, formed in the log domain:
+
+    .. math:: b_{ij} = ½\\big[\\log\\det\\big(½P_i + ½P_j + ¼ δδ^T\\big) − ½\\log\\det P_i − ½\\log\\det P_j\\big],\\quad
+              δ = m_i − m_j,
+
+    .. math:: m_{ij} = f_i m_i + f_j m_j,\\quad P_{ij} = f_i P_i + f_j P_j + f_i f_j δδ^T
 
     Args:
         log_w: ``[..., K]`` normalised (``−inf``: inactive); means: ``[..., K, n]``; covs: ``[..., K, n, n]``.
 
     Returns:
-        ``(bound [..., K, K]`` nats, ``+inf`` on the diagonal and for inactive slots, ``pair [K, K]`` int64 index of
+        ``(b [..., K, K]`` nats, ``+inf`` on the diagonal and for inactive slots, ``pair [K, K]`` int64 index of
         the pair ``(min, max)`` into the next two, ``merged means [..., K(K−1)/2, n]``, ``merged covs``).
     """
     K = log_w.shape[-1]
     iu, ju = torch.triu_indices(K, K, 1, device=log_w.device)
-    w = log_w.exp()
     heavier_first = log_w[..., iu] >= log_w[..., ju]  # [..., M]
     a = torch.where(heavier_first, iu, ju)  # the keeper's index per pair
     b = torch.where(heavier_first, ju, iu)
@@ -306,9 +319,9 @@ def runnalls_bound(
     Pa = torch.gather(covs, -3, a[..., None, None].expand(*a.shape, *covs.shape[-2:]))
     Pb = torch.gather(covs, -3, b[..., None, None].expand(*b.shape, *covs.shape[-2:]))
     mb, Pb = model.align(mb, Pb, ma)  # the lighter in the heavier's chart
-    wa, wb = torch.gather(w, -1, a), torch.gather(w, -1, b)
-    wsum = (wa + wb).clamp_min(torch.finfo(w.dtype).tiny)
-    fa, fb = wa / wsum, wb / wsum
+    lwa, lwb = torch.gather(log_w, -1, a), torch.gather(log_w, -1, b)
+    lw_pair = torch.logaddexp(lwa, lwb)
+    fa, fb = torch.exp(lwa - lw_pair), torch.exp(lwb - lw_pair)  # the pair's own weights, in the log domain
     m = fa[..., None] * ma + fb[..., None] * mb
     d = ma - mb
     P = (
@@ -319,7 +332,9 @@ def runnalls_bound(
     P = 0.5 * (P + P.transpose(-1, -2))
     ld = _logdet(covs)  # [..., K]
     ld_a, ld_b = torch.gather(ld, -1, a), torch.gather(ld, -1, b)
-    bound = 0.5 * ((wa + wb) * _logdet(P) - wa * ld_a - wb * ld_b)
+    # the dissimilarity: the pair's bound at equal weights (½ each), whatever their weights
+    P_half = 0.5 * (Pa + Pb) + 0.25 * d[..., :, None] * d[..., None, :]
+    bound = 0.5 * (_logdet(0.5 * (P_half + P_half.transpose(-1, -2))) - 0.5 * ld_a - 0.5 * ld_b)
     active = torch.isfinite(log_w)
     ok = torch.gather(active, -1, a) & torch.gather(active, -1, b) & torch.isfinite(bound)
     bound = torch.where(ok, bound.clamp_min(0.0), torch.full_like(bound, math.inf))
@@ -360,7 +375,8 @@ def _apply_merges(
 def _merge_round(
     log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, bound_max: float
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """One round: every mutual-nearest pair with bound ≤ ``bound_max`` merges into the heavier's slot."""
+    """One round: every mutual-nearest pair with bound per unit weight ≤ ``bound_max`` merges into the heavier's
+    slot."""
     K = log_w.shape[-1]
     log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
     bound, pair, m, P = runnalls_bound(log_w, means, covs, model)
@@ -378,8 +394,8 @@ def _merge_round(
 def _make_room(
     log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, want: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Where a split is wanted and fewer than two slots are free, merge the pair of least bound if it is lighter
-    than the heaviest candidate (one pair per trajectory)."""
+    """Where a split is wanted and fewer than two slots are free, merge the pair of least bound per unit weight if
+    it is lighter than the heaviest candidate (one pair per trajectory)."""
     free = (~torch.isfinite(log_w)).sum(-1)
     need = want.any(-1) & (free < len(SPLIT_WEIGHTS) - 1)
     if not bool(need.any()):

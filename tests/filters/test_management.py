@@ -105,16 +105,33 @@ def test_runnalls_bound_and_merged_moments_follow_the_formulas(gen):
         mm = (wn[i] * mn[i] + wn[j] * mn[j]) / ws
         d = mn[i] - mn[j]
         PP = (wn[i] * Pn[i] + wn[j] * Pn[j]) / ws + wn[i] * wn[j] / ws**2 * np.outer(d, d)
+        half = 0.5 * (Pn[i] + Pn[j]) + 0.25 * np.outer(d, d)  # Runnalls' pair bound at equal weights
         expected = 0.5 * (
-            ws * np.linalg.slogdet(PP)[1] - wn[i] * np.linalg.slogdet(Pn[i])[1] - wn[j] * np.linalg.slogdet(Pn[j])[1]
+            np.linalg.slogdet(half)[1] - 0.5 * np.linalg.slogdet(Pn[i])[1] - 0.5 * np.linalg.slogdet(Pn[j])[1]
         )
-        logdets = abs(np.linalg.slogdet(PP)[1]) + abs(np.linalg.slogdet(Pn[i])[1]) + abs(np.linalg.slogdet(Pn[j])[1])
+        logdets = abs(np.linalg.slogdet(half)[1]) + abs(np.linalg.slogdet(Pn[i])[1]) + abs(np.linalg.slogdet(Pn[j])[1])
         assert_within(bound[0, i, j], expected, 64 * EPS * (1 + logdets), f"bound of ({i}, {j})")
         assert_within(bound[0, j, i], expected, 64 * EPS * (1 + logdets), f"bound of ({j}, {i})")
         k = int(pair[i, j])
         assert_within(m[0, k], mm, 16 * EPS * np.abs(mn).max(), f"merged mean ({i}, {j})")
         assert_within(P[0, k], PP, 32 * EPS * np.abs(PP).max(), f"merged covariance ({i}, {j})")
     assert bool(torch.isinf(bound[0].diagonal()).all())
+
+
+def test_a_light_component_is_not_merged_for_being_light():
+    # the dissimilarity is weight-free: a component of weight e^-800 (0 in float64) 5 standard deviations away has
+    # b = ½ log(1 + 5²/4) whatever its weight, and merges only with a bound that large
+    model = _linear_model(1)
+    means = torch.tensor([[[0.0], [5.0]]], dtype=F64)
+    covs = torch.ones(1, 2, 1, 1, dtype=F64)
+    for lw in (-800.0, -1.0, 0.0):
+        log_w = torch.tensor([[0.0, lw]], dtype=F64)
+        bound, *_ = runnalls_bound(log_w - torch.logsumexp(log_w, -1, keepdim=True), means, covs, model)
+        assert_within(bound[0, 0, 1], 0.5 * math.log(1 + 25 / 4), 8 * EPS, f"b at log-weight {lw}")
+        out = MixtureManagement(capacity=2, **{**IDLE, "merge_bound": 0.5}).apply(
+            GaussianMixture(log_weights=log_w, means=means, covs=covs), model
+        )
+        assert out.counts["merges"].tolist() == [0]
 
 
 def test_mutual_nearest_pairs_merge_in_one_round_and_keep_the_moments(gen):
