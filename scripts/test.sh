@@ -40,5 +40,6 @@ if [ $# -eq 0 ]; then
         tests/fpke tests/test_fpke.py tests/test_qp.py tests/test_update.py tests/test_propagation.py \
         tests/test_gating.py tests/test_rotations.py tests/test_mixture.py tests/filters/test_galerkin.py \
         tests/filters/test_adaptive.py tests/filters/test_multiplicative.py tests/filters/test_unscented_quaternion.py \
-        tests/filters/test_particle.py tests/attitude/test_floor.py tests/density tests/models tests/fused
+        tests/filters/test_particle.py tests/filters/test_management.py tests/attitude/test_floor.py tests/density \
+        tests/models tests/fused tests/experiments/studies/test_split_density.py
 fi
