@@ -201,11 +201,10 @@ class MixtureManagement:
         counts = {}
         log_w, T, counts["prunes"] = self._prune(log_w, T)
         merges = torch.zeros_like(counts["prunes"])
-        for _ in range(self.merge_rounds if self.merge_bound > 0 else 0):
-            if not bool((torch.isfinite(log_w).sum(-1) > 1).any()):  # one component everywhere: nothing to merge
-                break
-            log_w, means, covs, T, merged = _merge_round(log_w, means, covs, T, model, self.merge_bound)
-            merges = merges + merged
+        if self.merge_bound > 0 and bool((torch.isfinite(log_w).sum(-1) > 1).any()):  # else nothing to merge
+            log_w, means, covs, T, merges = _merge_rounds(
+                log_w, means, covs, T, model, self.merge_bound, self.merge_rounds
+            )
         splits = torch.zeros_like(merges)
         if score is not None:
             want = torch.isfinite(log_w) & (score > threshold)
@@ -372,23 +371,32 @@ def _apply_merges(
     return log_w, means, covs, T
 
 
-def _merge_round(
-    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, bound_max: float
+def _merge_rounds(
+    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, bound_max: float, rounds: int
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """One round: every mutual-nearest pair with bound per unit weight ≤ ``bound_max`` merges into the heavier's
-    slot."""
+    """``rounds`` rounds: in each, every mutual-nearest pair with ``b ≤ bound_max`` merges into the heavier's slot.
+
+    The dissimilarities and merged moments are evaluated once (:func:`runnalls_bound`); a later round sees the
+    pairs of components no earlier round touched (their numbers unchanged: ``b`` and the merged moments depend on
+    the pair alone), so a merged component merges again at the next pass."""
     K = log_w.shape[-1]
     log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
     bound, pair, m, P = runnalls_bound(log_w, means, covs, model)
-    best, partner = bound.min(-1)
     slots = torch.arange(K, device=log_w.device)
-    mutual = torch.gather(partner, -1, partner) == slots
-    heavier = (log_w > torch.gather(log_w, -1, partner)) | (
-        (log_w == torch.gather(log_w, -1, partner)) & (slots < partner)
-    )
-    keep = mutual & heavier & (best <= bound_max)
-    log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, pair, m, P)
-    return log_w, means, covs, T, keep.sum(-1)
+    merges = torch.zeros(log_w.shape[:-1], dtype=torch.int64, device=log_w.device)
+    for _ in range(rounds):
+        best, partner = bound.min(-1)
+        mutual = torch.gather(partner, -1, partner) == slots
+        lw_partner = torch.gather(log_w, -1, partner)
+        heavier = (log_w > lw_partner) | ((log_w == lw_partner) & (slots < partner))
+        keep = mutual & heavier & (best <= bound_max)
+        if not bool(keep.any()):
+            break
+        touched = keep | _scatter_slots(torch.zeros_like(keep), torch.where(keep, partner, K), keep)
+        log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, pair, m, P)
+        merges = merges + keep.sum(-1)
+        bound = bound.masked_fill(touched[..., :, None] | touched[..., None, :], math.inf)
+    return log_w, means, covs, T, merges
 
 
 def _make_room(
