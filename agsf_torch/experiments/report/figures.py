@@ -64,6 +64,15 @@ def _figure(figsize: tuple[float, float]) -> Any:
     return Figure(figsize=figsize, layout="constrained")
 
 
+def _nothing_to_show(message: str) -> Any:
+    """A small figure holding only ``message``: a figure whose filters are absent from the experiment."""
+    fig = _figure((6.0, 2.5))
+    ax = fig.add_subplot()
+    ax.axis("off")
+    ax.text(0.5, 0.5, message, ha="center", va="center", transform=ax.transAxes)
+    return fig
+
+
 def _filter_colors(summary: dict[str, Any]) -> dict[str, str]:
     """One colour per filter, the same in every figure (in the summary's order)."""
     return {name: f"C{i % 10}" for i, name in enumerate(summary["filters"])}
@@ -275,18 +284,7 @@ def weights_figure(summary: dict[str, Any]) -> Any:
     }
     stars = _star_times(summary)
     if not shown:
-        fig = _figure((6.0, 2.5))
-        ax = fig.add_subplot()
-        ax.axis("off")
-        ax.text(
-            0.5,
-            0.5,
-            "no mixture filter in this experiment:\nno component weights to show",
-            ha="center",
-            va="center",
-            transform=ax.transAxes,
-        )
-        return fig
+        return _nothing_to_show("no mixture filter in this experiment:\nno component weights to show")
     from matplotlib.patches import Patch
 
     ncomp = max(w.shape[1] for w in shown.values())
@@ -410,18 +408,7 @@ def mixture_figure(summary: dict[str, Any]) -> Any:
 
     managed = _managed(summary)
     if not managed:
-        fig = _figure((6.0, 2.5))
-        ax = fig.add_subplot()
-        ax.axis("off")
-        ax.text(
-            0.5,
-            0.5,
-            "no managed filter in this experiment:\nno splits, merges or prunes to show",
-            ha="center",
-            va="center",
-            transform=ax.transAxes,
-        )
-        return fig
+        return _nothing_to_show("no managed filter in this experiment:\nno splits, merges or prunes to show")
     t = np.asarray(summary["time_s"], dtype=float)
     colors = _filter_colors(summary)
     styles = {name: _LINESTYLES[i % len(_LINESTYLES)] for i, name in enumerate(managed)}
