@@ -9,22 +9,19 @@ __all__ = ["targets", "format_table"]
 #: What bounds the managed rows and the weight QP's speed-up, where a target is not met (profiled; see
 #: docs/results/performance.md, "Mixture management").
 MANAGED_GSF_LIMIT = (
-    "the management passes, ~95 % of the step (profiled at B = 4096, one thread): per pass two merge rounds, each "
-    "Runnalls' bound over all K(K−1)/2 = 120 slot pairs (both covariances gathered, the charts aligned, a Cholesky "
-    "log-determinant per merged pair: ~1.1 s a round), the entropy test (the drift Jacobian at 2n + 1 = 13 points "
-    "per slot, 0.9 s) and the measurement-curvature test (0.5 s); the 16-slot propagation and update are ~0.3 s, "
-    "~4× the fused GSF at N = 5"
+    "the management passes (before the propagation and before the update): the pair dissimilarities over all "
+    "K(K−1)/2 = 120 slot pairs (both covariances gathered, the charts aligned, a Cholesky log-determinant per pair), "
+    "the entropy test (the drift Jacobian at 2n + 1 = 13 points per slot) and the measurement-curvature test; the "
+    "16-slot propagation and update alone are a few times the fused GSF at N = 5 (profile: performance.md)"
 )
 MANAGED_GALERKIN_LIMIT = (
-    "the management pass, ~78 % of the step (profiled at B = 4096, one thread): two merge rounds of Runnalls' bound "
-    "over 120 slot pairs (2.1 s) and the entropy test (0.85 s); the Galerkin update at 16 slots (136 pairs per "
-    "trajectory: the pairs' kernel 0.65 s, the QP 0.09 s) is ~0.8 s, ~11× the unmanaged one at N = 5"
+    "the management pass: the pair dissimilarities over 120 slot pairs and the entropy test; the Galerkin update at "
+    "16 slots (136 pairs per trajectory) adds several times the unmanaged one at N = 5 (profile: performance.md)"
 )
 QP_LIMIT = (
-    "the torch solver's 1–4 active-set iterations, each a batched LAPACK solve of the [B, N+1, N+1] KKT systems, "
-    "with the convexity Cholesky and the KKT residual: ~2 µs a problem at N = 5, 12–27 µs at N = 16 (held slots "
-    "take 3 iterations where the unmanaged Galerkin problem takes 1), 45–150 µs at N = 32 on one thread, against "
-    "Clarabel's 120–670 µs a problem (its per-problem setup included): ≥ 100× needs ≤ 1.2–6.7 µs"
+    "the torch solver's active-set iterations, each a batched LAPACK solve of the [B, N+1, N+1] KKT systems, with "
+    "the convexity Cholesky and the KKT residual, against Clarabel's per-problem solve (its setup included): the "
+    "per-problem times in the rows above say how far each N is from 100×"
 )
 
 
