@@ -63,6 +63,11 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _hangup_by_default() -> None:
+    """In the child before it runs: SIGHUP at its default action (a terminal's process), whatever started the suite."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 @pytest.mark.skipif(not fork_available(), reason="cases side by side need fork (Linux)")
 @pytest.mark.parametrize(
     ("signum", "whole_group"),
@@ -85,6 +90,9 @@ def test_a_terminating_signal_ends_reproduce_as_ctrl_c_does(tmp_path, signum, wh
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group, as under `timeout`
+        # a terminal's process, whatever started the suite: under nohup SIGHUP is inherited ignored, and a command
+        # started ignoring it keeps it ignored (by design), so the test would wait for nothing
+        preexec_fn=_hangup_by_default,
     )
     cases = [f"case{k}" for k in (1, 2, 3)]
     try:
