@@ -179,6 +179,12 @@ def rate_derivatives(p: Vec, s: Entry = None) -> tuple[Mat, Vec]:
     return [[mul(0.25, v) for v in row] for row in kinematics_matrix(p, s)], [mul(1.5, v) for v in p]
 
 
+def drift_divergence(p: Vec, w: Vec) -> Entry:
+    """``div f = tr ∂f/∂x = (3/2)pᵀω`` (1/s): the trace of :func:`drift_jacobian` (its ``F`` block has
+    ``Fₖₖ = ½pᵀω``; the bias block is zero), ``ω`` the body rate (:func:`body_rate`)."""
+    return mul(1.5, dot((p[k], w[k]) for k in range(3)))
+
+
 def fokker_planck_terms(p: Vec, w: Vec, c: Entry) -> dict:
     """The Fokker–Planck terms of the MRP block at ``p`` (method.md §3), ``c = σ_v²/32``, ``s = pᵀp``:
     ``s``, ``rate`` ``f_p = ¼B(p)ω``, ``divergence`` ``div f = (3/2)pᵀω``, ``diffusion`` ``D_pp = c(1 + s)²`` (the
@@ -189,7 +195,7 @@ def fokker_planck_terms(p: Vec, w: Vec, c: Entry) -> dict:
     return {
         "s": s,
         "rate": mrp_rate(p, w, s),
-        "divergence": mul(1.5, dot((p[k], w[k]) for k in range(3))),
+        "divergence": drift_divergence(p, w),
         "diffusion": mul(c, mul(one_s, one_s)),
         "diffusion_divergence": [mul(c4s, p[k]) for k in range(3)],
         "second_divergence": mul(mul(4.0, c), add(3.0, mul(5.0, s))),

@@ -124,7 +124,7 @@ class GaussianSumFilter(BaseFilter):
         elif step == "update" and mg.split_measurement > 0 and measurement is not None:
             score, axis = measurement_nonlinearity(mixture.means, mixture.covs, measurement)
             threshold = mg.split_measurement
-        result = mg.apply(mixture, self.model, score, axis, threshold)
+        result = mg.apply(mixture, self.model, score, axis, threshold, compile=self.compile_fused)
         self.weight_map = result.weight_map
         return result.mixture, result.counts
 

@@ -18,7 +18,8 @@ Each management pass (:meth:`MixtureManagement.apply`) runs, batched over trajec
    (a dissimilarity of the two Gaussians whatever their weights, as the ACTS fitter's symmetric KL distance: a
    light component far from the others is not merged for being light, which is pruning's decision),
    merges where ``b_ij ≤ merge_bound`` (nats), moment-preserving and in the chart of the heavier
-   (``model.align``: the attitude's MRP set or its shadow), into the heavier's slot;
+   (``model.align``: the attitude's MRP set or its shadow), into the heavier's slot (``b_ij`` compares the means in
+   the charts they are stored in);
 3. **split**: a component whose nonlinearity score exceeds its threshold is split along the axis the score
    names into three, preserving its mean and covariance exactly (:data:`SPLIT_WEIGHTS`), into free slots,
    heaviest candidates first; where no two slots are free, the pair of least bound is merged first when the
@@ -53,6 +54,7 @@ __all__ = [
     "SPLIT_VARIANCE",
     "pad_mixture",
     "runnalls_bound",
+    "merged_moments",
     "measurement_nonlinearity",
     "entropy_nonlinearity",
 ]
@@ -182,6 +184,8 @@ class MixtureManagement:
         score: Tensor | None = None,
         axis: Tensor | None = None,
         threshold: float = 0.0,
+        *,
+        compile: bool = False,
     ) -> ManagementResult:
         """One management pass: prune, merge, then split the components whose ``score > threshold``.
 
@@ -191,6 +195,7 @@ class MixtureManagement:
             score: ``[..., K]`` nonlinearity scores, or ``None`` (no split); axis: ``[..., K]`` int64, the axis
                 ``k`` of each component to split along (``s_k = L e_k``, ``P = LLᵀ``).
             threshold: split where ``score > threshold``.
+            compile: the pair dissimilarities' kernel compiled ahead of time (:func:`runnalls_bound`).
 
         Returns:
             :class:`ManagementResult`.
@@ -203,13 +208,13 @@ class MixtureManagement:
         merges = torch.zeros_like(counts["prunes"])
         if self.merge_bound > 0 and bool((torch.isfinite(log_w).sum(-1) > 1).any()):  # else nothing to merge
             log_w, means, covs, T, merges = _merge_rounds(
-                log_w, means, covs, T, model, self.merge_bound, self.merge_rounds
+                log_w, means, covs, T, model, self.merge_bound, self.merge_rounds, compile
             )
         splits = torch.zeros_like(merges)
         if score is not None:
             want = torch.isfinite(log_w) & (score > threshold)
             if bool(want.any()):
-                log_w, means, covs, T, forced = _make_room(log_w, means, covs, T, model, want)
+                log_w, means, covs, T, forced = _make_room(log_w, means, covs, T, model, want, compile)
                 merges = merges + forced
                 log_w, means, covs, T, splits = _split(log_w, means, covs, T, want, axis)
                 means, covs = model.canonicalize(means, covs)
@@ -286,83 +291,95 @@ def _logdet(P: Tensor) -> Tensor:
     return torch.where(info == 0, logdet, torch.full_like(logdet, math.nan))
 
 
-def runnalls_bound(
-    log_w: Tensor, means: Tensor, covs: Tensor, model: ContinuousModel
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The dissimilarity ``b_ij`` of every pair ``i < j`` and their merged moments in the chart of the heavier.
+def runnalls_bound(log_w: Tensor, means: Tensor, covs: Tensor, *, compile: bool = False) -> Tensor:
+    """The dissimilarity ``b_ij`` of every pair of active components, in nats.
 
     ``b_ij`` is Runnalls' bound on the Kullback–Leibler discrimination of the merged pair from the pair, taken at
     equal weights (a weight-free dissimilarity of the two Gaussians, as the ACTS fitter's symmetric KL distance): a
-    light component far from the others is not merged for being light, which is pruning's decision.  The merged
-    moments use the pair's own weights ``f = w / (w_i + w_j)``, formed in the log domain:
+    light component far from the others is not merged for being light, which is pruning's decision.
 
     .. math:: b_{ij} = ½\\big[\\log\\det\\big(½P_i + ½P_j + ¼ δδ^T\\big) − ½\\log\\det P_i − ½\\log\\det P_j\\big],\\quad
-              δ = m_i − m_j,
+              δ = m_i − m_j
 
-    .. math:: m_{ij} = f_i m_i + f_j m_j,\\quad P_{ij} = f_i P_i + f_j P_j + f_i f_j δδ^T
+    The means are compared in the charts they are stored in (canonical for attitude): two components that describe
+    nearly the same attitude from different MRP sets (near a 180° rotation) are far apart here and are not merged.
+    Evaluated on lanes (:func:`agsf_torch.fused.merge_bound.pair_dissimilarity_kernel`), compiled if
+    ``compile``; the arguments are detached (the bound only decides which pairs merge).
 
     Args:
-        log_w: ``[..., K]`` normalised (``−inf``: inactive); means: ``[..., K, n]``; covs: ``[..., K, n, n]``.
+        log_w: ``[..., K]`` (``−inf``: inactive); means: ``[..., K, n]``; covs: ``[..., K, n, n]``.
 
     Returns:
-        ``(b [..., K, K]`` nats, ``+inf`` on the diagonal and for inactive slots, ``pair [K, K]`` int64 index of
-        the pair ``(min, max)`` into the next two, ``merged means [..., K(K−1)/2, n]``, ``merged covs``).
+        ``b [..., K, K]`` nats, symmetric, ``+inf`` on the diagonal, for inactive slots and where a covariance is
+        not positive definite.
     """
-    K = log_w.shape[-1]
+    from ..fused.lanes import DEFAULT_CHUNK, run_in_chunks
+    from ..fused.merge_bound import pair_dissimilarity_kernel
+
+    K, n = means.shape[-2:]
+    lead = log_w.shape[:-1]
+    count = math.prod(lead)
     iu, ju = torch.triu_indices(K, K, 1, device=log_w.device)
-    heavier_first = log_w[..., iu] >= log_w[..., ju]  # [..., M]
-    a = torch.where(heavier_first, iu, ju)  # the keeper's index per pair
-    b = torch.where(heavier_first, ju, iu)
-    ma = torch.gather(means, -2, a[..., None].expand(*a.shape, means.shape[-1]))
-    mb = torch.gather(means, -2, b[..., None].expand(*b.shape, means.shape[-1]))
-    Pa = torch.gather(covs, -3, a[..., None, None].expand(*a.shape, *covs.shape[-2:]))
-    Pb = torch.gather(covs, -3, b[..., None, None].expand(*b.shape, *covs.shape[-2:]))
-    mb, Pb = model.align(mb, Pb, ma)  # the lighter in the heavier's chart
-    lwa, lwb = torch.gather(log_w, -1, a), torch.gather(log_w, -1, b)
-    lw_pair = torch.logaddexp(lwa, lwb)
-    fa, fb = torch.exp(lwa - lw_pair), torch.exp(lwb - lw_pair)  # the pair's own weights, in the log domain
-    m = fa[..., None] * ma + fb[..., None] * mb
-    d = ma - mb
-    P = (
-        fa[..., None, None] * Pa
-        + fb[..., None, None] * Pb
-        + (fa * fb)[..., None, None] * d[..., :, None] * d[..., None, :]
+    pairs = iu.numel()
+    inputs = (
+        means.detach().expand(*lead, K, n).reshape(count, K, n),
+        covs.detach().expand(*lead, K, n, n).reshape(count, K, n, n),
     )
-    P = 0.5 * (P + P.transpose(-1, -2))
-    ld = _logdet(covs)  # [..., K]
-    ld_a, ld_b = torch.gather(ld, -1, a), torch.gather(ld, -1, b)
-    # the dissimilarity: the pair's bound at equal weights (½ each), whatever their weights
-    P_half = 0.5 * (Pa + Pb) + 0.25 * d[..., :, None] * d[..., None, :]
-    bound = 0.5 * (_logdet(0.5 * (P_half + P_half.transpose(-1, -2))) - 0.5 * ld_a - 0.5 * ld_b)
+    (b,) = run_in_chunks(
+        pair_dissimilarity_kernel,
+        inputs,
+        compile=compile,
+        chunk=max(1, DEFAULT_CHUNK // max(pairs, 1)),
+        key=("merge-bound",),
+    )
+    b = b.reshape(*lead, pairs)
     active = torch.isfinite(log_w)
-    ok = torch.gather(active, -1, a) & torch.gather(active, -1, b) & torch.isfinite(bound)
-    bound = torch.where(ok, bound.clamp_min(0.0), torch.full_like(bound, math.inf))
-    full = bound.new_full((*log_w.shape, K), math.inf)
-    full[..., iu, ju] = bound
-    full[..., ju, iu] = bound
-    pair = torch.zeros(K, K, dtype=torch.int64, device=log_w.device)
-    pair[iu, ju] = torch.arange(iu.numel(), device=log_w.device)
-    pair[ju, iu] = pair[iu, ju]
-    return full, pair, m, P
+    ok = active[..., iu] & active[..., ju] & torch.isfinite(b)
+    b = torch.where(ok, b.clamp_min(0.0), torch.full_like(b, math.inf))
+    full = b.new_full((*lead, K, K), math.inf)
+    full[..., iu, ju] = b
+    full[..., ju, iu] = b
+    return full
+
+
+def merged_moments(
+    log_w_a: Tensor, mean_a: Tensor, cov_a: Tensor, log_w_b: Tensor, mean_b: Tensor, cov_b: Tensor, model
+) -> tuple[Tensor, Tensor]:
+    """The moment-preserving merge of component ``b`` into ``a``, in ``a``'s chart (``model.align``: for attitude
+    the MRP set, or its shadow, nearer ``a``'s mean), with the pair's own weights ``f = w / (w_a + w_b)`` formed in
+    the log domain:
+
+    .. math:: m = f_a m_a + f_b m_b,\\quad P = f_a P_a + f_b P_b + f_a f_b δδ^T,\\quad δ = m_a − m_b
+
+    Args:
+        log_w_a, log_w_b: ``[...]``; mean_a, mean_b: ``[..., n]``; cov_a, cov_b: ``[..., n, n]``.
+
+    Returns:
+        ``(m [..., n], P [..., n, n])`` (symmetrised).
+    """
+    mean_b, cov_b = model.align(mean_b, cov_b, mean_a)
+    lw = torch.logaddexp(log_w_a, log_w_b)
+    fa, fb = torch.exp(log_w_a - lw), torch.exp(log_w_b - lw)
+    d = mean_a - mean_b
+    m = fa[..., None] * mean_a + fb[..., None] * mean_b
+    P = (
+        fa[..., None, None] * cov_a
+        + fb[..., None, None] * cov_b
+        + (fa * fb)[..., None, None] * (d[..., :, None] * d[..., None, :])
+    )
+    return m, 0.5 * (P + P.transpose(-1, -2))
 
 
 def _apply_merges(
-    log_w: Tensor,
-    means: Tensor,
-    covs: Tensor,
-    T: Tensor,
-    keep: Tensor,
-    partner: Tensor,
-    pair: Tensor,
-    m: Tensor,
-    P: Tensor,
+    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, keep: Tensor, partner: Tensor, model: ContinuousModel
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Merge ``partner[i]`` into ``i`` where ``keep[..., i]`` (disjoint pairs)."""
-    idx = pair[torch.arange(keep.shape[-1], device=keep.device), partner]  # [..., K]
-    m_new = torch.gather(m, -2, idx[..., None].expand(*idx.shape, m.shape[-1]))
-    P_new = torch.gather(P, -3, idx[..., None, None].expand(*idx.shape, *P.shape[-2:]))
-    absorbed = _scatter_slots(torch.zeros_like(keep), torch.where(keep, partner, keep.shape[-1]), keep)
+    """Merge ``partner[i]`` into ``i`` where ``keep[..., i]`` (disjoint pairs; :func:`merged_moments`)."""
+    n = means.shape[-1]
+    m_p = torch.gather(means, -2, partner[..., None].expand(*partner.shape, n))
+    P_p = torch.gather(covs, -3, partner[..., None, None].expand(*partner.shape, n, n))
     lw_partner = torch.gather(log_w, -1, partner)
+    m_new, P_new = merged_moments(log_w, means, covs, lw_partner, m_p, P_p, model)
+    absorbed = _scatter_slots(torch.zeros_like(keep), torch.where(keep, partner, keep.shape[-1]), keep)
     log_w = torch.where(keep, torch.logaddexp(log_w, lw_partner), log_w).masked_fill(absorbed, -math.inf)
     T_partner = torch.gather(T, -2, partner[..., None].expand_as(T))
     T = torch.where(keep[..., None], T + T_partner, T).masked_fill(absorbed[..., None], 0.0)
@@ -372,16 +389,23 @@ def _apply_merges(
 
 
 def _merge_rounds(
-    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, bound_max: float, rounds: int
+    log_w: Tensor,
+    means: Tensor,
+    covs: Tensor,
+    T: Tensor,
+    model: ContinuousModel,
+    bound_max: float,
+    rounds: int,
+    compile: bool,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """``rounds`` rounds: in each, every mutual-nearest pair with ``b ≤ bound_max`` merges into the heavier's slot.
 
-    The dissimilarities and merged moments are evaluated once (:func:`runnalls_bound`); a later round sees the
-    pairs of components no earlier round touched (their numbers unchanged: ``b`` and the merged moments depend on
-    the pair alone), so a merged component merges again at the next pass."""
+    The dissimilarities are evaluated once (:func:`runnalls_bound`); a later round sees the pairs of components no
+    earlier round touched (their ``b`` unchanged: it depends on the pair alone), so a merged component merges again
+    at the next pass."""
     K = log_w.shape[-1]
     log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
-    bound, pair, m, P = runnalls_bound(log_w, means, covs, model)
+    bound = runnalls_bound(log_w, means, covs, compile=compile)
     slots = torch.arange(K, device=log_w.device)
     merges = torch.zeros(log_w.shape[:-1], dtype=torch.int64, device=log_w.device)
     for _ in range(rounds):
@@ -393,24 +417,24 @@ def _merge_rounds(
         if not bool(keep.any()):
             break
         touched = keep | _scatter_slots(torch.zeros_like(keep), torch.where(keep, partner, K), keep)
-        log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, pair, m, P)
+        log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, model)
         merges = merges + keep.sum(-1)
         bound = bound.masked_fill(touched[..., :, None] | touched[..., None, :], math.inf)
     return log_w, means, covs, T, merges
 
 
 def _make_room(
-    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, want: Tensor
+    log_w: Tensor, means: Tensor, covs: Tensor, T: Tensor, model: ContinuousModel, want: Tensor, compile: bool
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Where a split is wanted and fewer than two slots are free, merge the pair of least bound per unit weight if
-    it is lighter than the heaviest candidate (one pair per trajectory)."""
+    """Where a split is wanted and fewer than two slots are free, merge the pair of least bound if it is lighter
+    than the heaviest candidate (one pair per trajectory)."""
     free = (~torch.isfinite(log_w)).sum(-1)
     need = want.any(-1) & (free < len(SPLIT_WEIGHTS) - 1)
     if not bool(need.any()):
         return log_w, means, covs, T, torch.zeros_like(free)
     K = log_w.shape[-1]
     log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
-    bound, pair, m, P = runnalls_bound(log_w, means, covs, model)
+    bound = runnalls_bound(log_w, means, covs, compile=compile)
     flat = bound.flatten(-2).argmin(-1)
     i, j = flat // K, flat % K
     lw_i, lw_j = torch.gather(log_w, -1, i[..., None])[..., 0], torch.gather(log_w, -1, j[..., None])[..., 0]
@@ -421,7 +445,7 @@ def _make_room(
     ok = need & lighter & torch.isfinite(bound.flatten(-2).amin(-1))
     keep = torch.nn.functional.one_hot(keeper, K).bool() & ok[..., None]
     partner = torch.where(keep, other[..., None].expand_as(keep), torch.arange(K, device=log_w.device))
-    log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, pair, m, P)
+    log_w, means, covs, T = _apply_merges(log_w, means, covs, T, keep, partner, model)
     return log_w, means, covs, T, ok.long()
 
 
@@ -528,7 +552,7 @@ def entropy_nonlinearity(
     .. math:: |E[∇·f] - ∇·f(m)| ≈ ½ \\Big| Σ_k δ_k \\Big|,\\qquad
               δ_k = ∇·f(m + s_k) + ∇·f(m - s_k) - 2∇·f(m)
 
-    (exact for a divergence quadratic in the state), ``∇·f = tr ∂f/∂x`` (``model.drift_jacobian``).  The axis is
+    (exact for a divergence quadratic in the state), ``∇·f = tr ∂f/∂x`` (``model.drift_divergence``).  The axis is
     ``argmax_k |δ_k|``.
 
     Args:
@@ -542,7 +566,6 @@ def entropy_nonlinearity(
     lead = pts.shape[:-3]
     K = pts.shape[-3]
     u_c = None if u is None else u.unsqueeze(-2)
-    A = model.drift_jacobian(pts.reshape(*lead, K * (2 * n + 1), n), u_c)
-    div = A.diagonal(dim1=-2, dim2=-1).sum(-1).reshape(*lead, K, 2 * n + 1)
+    div = model.drift_divergence(pts.reshape(*lead, K * (2 * n + 1), n), u_c).reshape(*lead, K, 2 * n + 1)
     delta = div[..., 1 : n + 1] + div[..., n + 1 :] - 2.0 * div[..., :1]  # [..., K, n]
     return 0.5 * delta.sum(-1).abs(), delta.abs().argmax(-1)

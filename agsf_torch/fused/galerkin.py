@@ -26,10 +26,10 @@ from torch import Tensor
 
 from ..attitude import physics
 from .algebra import Entry, add, cholesky, cholesky_solve, dot, mul, neg, sub, symmetric_part, zeros
-from .lanes import entries
+from .lanes import entries, pair_index, symmetric_to_pairs, to_pairs
 from .propagation import attitude_rates
 
-__all__ = ["attitude_pair_kernel", "residual_mean", "pair_index", "product_gaussian"]
+__all__ = ["attitude_pair_kernel", "residual_mean", "product_gaussian"]
 
 Mat = list[list[Entry]]
 
@@ -98,28 +98,6 @@ def product_gaussian(mi: list[Entry], Pi: Mat, mj: list[Entry], Pj: Mat) -> dict
     return {"mean": mean, "cov": S, "log_z": log_z, "gain": Kt, "y": y, "sum_precision": Sinv, "ok": ok}
 
 
-def pair_index(N: int) -> tuple[list[int], list[int]]:
-    """The pairs ``i ≤ j`` of ``N`` components in the order of ``torch.triu_indices(N, N)``."""
-    pairs = [(i, j) for i in range(N) for j in range(i, N)]
-    return [i for i, _ in pairs], [j for _, j in pairs]
-
-
-def _gather(v: Entry, T: int, N: int, index: list[int]) -> Entry:
-    """One entry over ``T·N`` component lanes (trajectory-major) → over ``T·P`` pair lanes, taking
-    component ``index[p]`` for pair ``p`` (structural zeros, numbers and 0-d parameters such as ``σ_u²``
-    pass through: they are the same on every lane)."""
-    if not isinstance(v, Tensor) or v.dim() == 0:
-        return v
-    return v.reshape(T, N)[:, index].reshape(-1)
-
-
-def _gather_symmetric(A: Mat, T: int, N: int, index: list[int]) -> Mat:
-    """A symmetric matrix's entries gathered to the pairs (the lower triangle, mirrored)."""
-    n = len(A)
-    low = [[_gather(A[i][j], T, N, index) for j in range(i + 1)] for i in range(n)]
-    return [[low[i][j] if j <= i else low[j][i] for j in range(n)] for i in range(n)]
-
-
 def attitude_pair_kernel(
     means: Tensor, covs: Tensor, u: Tensor, c: Tensor, sv2: Tensor, su2: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -141,14 +119,14 @@ def attitude_pair_kernel(
     P = len(first)
     (mi, Pi, rate_i, cov_rate_i), (mj, Pj, rate_j, cov_rate_j) = (
         (
-            [_gather(v, T, N, index) for v in m_c],
-            _gather_symmetric(P_c, T, N, index),
-            [_gather(v, T, N, index) for v in f_c],
-            _gather_symmetric(Pdot_c, T, N, index),
+            [to_pairs(v, T, N, index) for v in m_c],
+            symmetric_to_pairs(P_c, T, N, index),
+            [to_pairs(v, T, N, index) for v in f_c],
+            symmetric_to_pairs(Pdot_c, T, N, index),
         )
         for index in (first, second)
     )
-    ue = [_gather(v, T, N, first) for v in u_c]
+    ue = [to_pairs(v, T, N, first) for v in u_c]
     g = product_gaussian(mi, Pi, mj, Pj)
     Kt, y, Sinv, mean, S, log_z = (g[k] for k in ("gain", "y", "sum_precision", "mean", "cov", "log_z"))
     mom = physics.fokker_planck_moments(mean, S, ue, c)

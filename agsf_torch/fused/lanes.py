@@ -29,6 +29,9 @@ from ..compiled_kernels import kernel_name, package_path, variant_threads
 __all__ = [
     "entries",
     "stack_entries",
+    "pair_index",
+    "to_pairs",
+    "symmetric_to_pairs",
     "run_in_chunks",
     "worth_fusing",
     "COMPILED_CHUNK",
@@ -98,6 +101,29 @@ def stack_entries(nested, lanes: int) -> Tensor:
         for v in flat
     ]
     return torch.stack(cols, -1).reshape(lanes, *shape_of(nested))
+
+
+def pair_index(N: int, *, diagonal: bool = True) -> tuple[list[int], list[int]]:
+    """The pairs ``i ≤ j`` (``diagonal=False``: ``i < j``) of ``N`` components, in the order of
+    ``torch.triu_indices(N, N)`` (``torch.triu_indices(N, N, 1)``): the first and the second index of each."""
+    pairs = [(i, j) for i in range(N) for j in range(i if diagonal else i + 1, N)]
+    return [i for i, _ in pairs], [j for _, j in pairs]
+
+
+def to_pairs(v, T: int, N: int, index: list[int]):
+    """One entry over ``T·N`` component lanes (trajectory-major) → over ``T·P`` pair lanes, taking
+    component ``index[p]`` for pair ``p`` (structural zeros, numbers and 0-d parameters such as ``σ_u²``
+    pass through: they are the same on every lane)."""
+    if not isinstance(v, Tensor) or v.dim() == 0:
+        return v
+    return v.reshape(T, N)[:, index].reshape(-1)
+
+
+def symmetric_to_pairs(A: list, T: int, N: int, index: list[int]) -> list:
+    """A symmetric matrix's entries taken to the pairs (:func:`to_pairs`; the lower triangle, mirrored)."""
+    n = len(A)
+    low = [[to_pairs(A[i][j], T, N, index) for j in range(i + 1)] for i in range(n)]
+    return [[low[i][j] if j <= i else low[j][i] for j in range(n)] for i in range(n)]
 
 
 class _Declined(Exception):

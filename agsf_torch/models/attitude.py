@@ -132,6 +132,13 @@ class AttitudeModel(FusedAttitudePaths, ContinuousModel):
         """
         return as_tensor(physics.drift_jacobian(*self._entries(x, u)), like=x)
 
+    @derived_from("drift", "_gyro_rate", generic=ContinuousModel.drift_divergence)
+    def drift_divergence(self, x: Tensor, u: Tensor) -> Tensor:
+        """Closed form ``∇·f = (3/2)pᵀω`` with ``ω = ω̃ − b`` (:func:`~agsf_torch.attitude.physics.drift_divergence`),
+        ``[...]`` 1/s."""
+        xe, ue = self._entries(x, u)
+        return physics.drift_divergence(xe[:3], physics.body_rate(xe, ue))
+
     @derived_from("noise_gain", "noise_psd", generic=ContinuousModel.process_noise)
     def process_noise(self, x: Tensor) -> Tensor:
         """Closed form ``g Q gᵀ``: ``(σ_v²/16)(1 + s)² I₃`` on the MRP block (``B Bᵀ = (1+s)² I``;

@@ -196,6 +196,10 @@ class ContinuousModel(nn.Module):
         """``A = ∂f/∂x`` at ``x``, ``[..., n, n]`` (default: ``torch.func``)."""
         return batched_jacobian(lambda z: self.drift(z, u), x)
 
+    def drift_divergence(self, x: Tensor, u: Tensor | None) -> Tensor:
+        """``∇·f = tr ∂f/∂x`` at ``x``, ``[...]`` (1/s; default: the trace of :meth:`drift_jacobian`)."""
+        return self.drift_jacobian(x, u).diagonal(dim1=-2, dim2=-1).sum(-1)
+
     def process_noise(self, x: Tensor) -> Tensor:
         """``g(x) Q g(x)ᵀ``, the Riccati equation's source term, ``[..., n, n]``."""
         g = self.noise_gain(x)
@@ -208,7 +212,7 @@ class ContinuousModel(nn.Module):
     def fokker_planck_terms(self, x: Tensor, u: Tensor | None) -> FokkerPlanckTerms:
         """Drift, diffusion and their derivatives at ``x`` (default: ``torch.func``).
 
-        ``div f`` is the trace of :meth:`drift_jacobian`; ``aₖ = Σⱼ ∂Dⱼₖ/∂xⱼ`` and
+        ``div f`` is :meth:`drift_divergence`; ``aₖ = Σⱼ ∂Dⱼₖ/∂xⱼ`` and
         ``Σⱼₖ ∂²Dⱼₖ/∂xⱼ∂xₖ = div a`` by nested forward-mode differentiation of
         :meth:`diffusion`.  Subclasses with closed forms override this.
         """
@@ -223,7 +227,7 @@ class ContinuousModel(nn.Module):
         c = batched_jacobian(divergence_of_diffusion, x).diagonal(dim1=-2, dim2=-1).sum(-1)
         return FokkerPlanckTerms(
             drift=self.drift(x, u),
-            drift_divergence=self.drift_jacobian(x, u).diagonal(dim1=-2, dim2=-1).sum(-1),
+            drift_divergence=self.drift_divergence(x, u),
             diffusion=self.diffusion(x),
             diffusion_divergence=a,
             diffusion_second_divergence=c,

@@ -24,6 +24,7 @@ from agsf_torch.filters.management import (
     SPLIT_WEIGHTS,
     entropy_nonlinearity,
     measurement_nonlinearity,
+    merged_moments,
     pad_mixture,
     runnalls_bound,
 )
@@ -93,12 +94,12 @@ def test_a_split_keeps_the_mixtures_mean_and_covariance(gen):
 
 
 def test_runnalls_bound_and_merged_moments_follow_the_formulas(gen):
-    n = 2
+    n = 3
     model = _linear_model(n)
-    w = torch.tensor([[0.5, 0.3, 0.2]], dtype=F64)
-    means = torch.randn(1, 3, n, generator=gen, dtype=F64)
-    covs = random_spd(gen, 1, 3, n=n)
-    bound, pair, m, P = runnalls_bound(w.log(), means, covs, model)
+    w = torch.tensor([[0.5, 0.3, 0.2, 0.0]], dtype=F64)  # slot 3 inactive
+    means = torch.randn(1, 4, n, generator=gen, dtype=F64)
+    covs = random_spd(gen, 1, 4, n=n)
+    bound = runnalls_bound(w.log(), means, covs)
     wn, mn, Pn = w[0].numpy(), means[0].numpy(), covs[0].numpy()
     for i, j in ((0, 1), (0, 2), (1, 2)):
         ws = wn[i] + wn[j]
@@ -112,10 +113,33 @@ def test_runnalls_bound_and_merged_moments_follow_the_formulas(gen):
         logdets = abs(np.linalg.slogdet(half)[1]) + abs(np.linalg.slogdet(Pn[i])[1]) + abs(np.linalg.slogdet(Pn[j])[1])
         assert_within(bound[0, i, j], expected, 64 * EPS * (1 + logdets), f"bound of ({i}, {j})")
         assert_within(bound[0, j, i], expected, 64 * EPS * (1 + logdets), f"bound of ({j}, {i})")
-        k = int(pair[i, j])
-        assert_within(m[0, k], mm, 16 * EPS * np.abs(mn).max(), f"merged mean ({i}, {j})")
-        assert_within(P[0, k], PP, 32 * EPS * np.abs(PP).max(), f"merged covariance ({i}, {j})")
+        m, P = merged_moments(w[0, i].log(), means[0, i], covs[0, i], w[0, j].log(), means[0, j], covs[0, j], model)
+        assert_within(m, mm, 16 * EPS * np.abs(mn).max(), f"merged mean ({i}, {j})")
+        assert_within(P, PP, 32 * EPS * np.abs(PP).max(), f"merged covariance ({i}, {j})")
     assert bool(torch.isinf(bound[0].diagonal()).all())
+    assert bool(torch.isinf(bound[0, 3]).all()) and bool(torch.isinf(bound[0, :, 3]).all())  # the inactive slot
+
+
+def test_runnalls_bound_is_infinite_where_a_covariance_is_not_positive_definite(gen):
+    means = torch.randn(2, 3, 2, generator=gen, dtype=F64)
+    covs = random_spd(gen, 2, 3, n=2).clone()
+    covs[1, 2] = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=F64)  # indefinite
+    bound = runnalls_bound(torch.zeros(2, 3, dtype=F64), means, covs)
+    assert bool(torch.isinf(bound[1, 2]).all()) and bool(torch.isfinite(bound[1, 0, 1]))
+    off_diagonal = ~torch.eye(3, dtype=torch.bool)
+    assert bool(torch.isfinite(bound[0][off_diagonal]).all())
+
+
+def test_the_merge_is_taken_in_the_heavier_components_chart():
+    # two components of nearly the same attitude from opposite MRP sets (a rotation of 180° ± 0.1° about x): the
+    # lighter is moved to the heavier's set before the moments are matched, so the merged mean is an attitude of
+    # the pair, not their average across the sphere
+    model = AttitudeModel(estimate_bias=False)
+    m_a = torch.tensor([math.tan(math.radians(179.9) / 4), 0.0, 0.0], dtype=F64)  # |p| < 1: canonical
+    m_b = torch.tensor([math.tan(math.radians(-179.8) / 4), 0.0, 0.0], dtype=F64)  # 180.2°, canonical
+    P = 1e-8 * torch.eye(3, dtype=F64)
+    m, _ = merged_moments(torch.tensor(-0.1, dtype=F64), m_a, P, torch.tensor(-2.0, dtype=F64), m_b, P, model)
+    assert m[0] > 0.99 and abs(float(m[1])) < 1e-12 and abs(float(m[2])) < 1e-12
 
 
 def test_a_light_component_is_not_merged_for_being_light():
@@ -126,7 +150,7 @@ def test_a_light_component_is_not_merged_for_being_light():
     covs = torch.ones(1, 2, 1, 1, dtype=F64)
     for lw in (-800.0, -1.0, 0.0):
         log_w = torch.tensor([[0.0, lw]], dtype=F64)
-        bound, *_ = runnalls_bound(log_w - torch.logsumexp(log_w, -1, keepdim=True), means, covs, model)
+        bound = runnalls_bound(log_w - torch.logsumexp(log_w, -1, keepdim=True), means, covs)
         assert_within(bound[0, 0, 1], 0.5 * math.log(1 + 25 / 4), 8 * EPS, f"b at log-weight {lw}")
         out = MixtureManagement(capacity=2, **{**IDLE, "merge_bound": 0.5}).apply(
             GaussianMixture(log_weights=log_w, means=means, covs=covs), model

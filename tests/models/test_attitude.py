@@ -33,6 +33,22 @@ def test_drift_jacobian_matches_autograd(gen, estimate_bias):
 
 
 @pytest.mark.parametrize("estimate_bias", [False, True])
+def test_drift_divergence_is_the_trace_of_the_autograd_jacobian(gen, estimate_bias):
+    model = AttitudeModel(estimate_bias=estimate_bias, bias=torch.tensor([1e-4, -2e-4, 3e-4], dtype=torch.float64))
+    x = _states(gen, 2000, estimate_bias)
+    u = 0.1 * torch.randn(2000, 3, generator=gen, dtype=torch.float64)
+    div = model.drift_divergence(x, u)
+    trace = torch.func.vmap(torch.func.jacrev(model.drift))(x, u).diagonal(dim1=-2, dim2=-1).sum(-1)
+    # ∂fₖ/∂pₖ sums terms of size |p||ω| and |p|²|ω| (the MRP rate's ¼(1 − s)ω, ½[p×]ω and ½ppᵀω): each side
+    # rounds them to a few ulps
+    w = u - (x[:, 3:] if estimate_bias else model.bias)
+    p = x[:, :3].norm(dim=-1)
+    scale = w.norm(dim=-1) * (1 + p + p**2)
+    assert_within(div, trace, 32 * EPS * scale, "closed-form ∇·f against the trace of torch.func's Jacobian")
+    assert div.shape == (2000,)
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
 def test_process_noise_closed_form_matches_generic(gen, estimate_bias):
     model = AttitudeModel(estimate_bias=estimate_bias, sigma_v=3e-6, sigma_u=2e-8)
     x = _states(gen, 500, estimate_bias)

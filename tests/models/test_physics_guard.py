@@ -72,13 +72,24 @@ def _filters(model, fused, n, B):
 
 def test_the_derivations_give_way_where_the_physics_is_the_users():
     parent, child = AttitudeModel(estimate_bias=True), SpinningAttitude(estimate_bias=True)
-    derived = ("drift_jacobian", "fokker_planck_terms", "fokker_planck_moments", "fpke_polynomial_space")
+    derived = (
+        "drift_jacobian",
+        "drift_divergence",
+        "fokker_planck_terms",
+        "fokker_planck_moments",
+        "fpke_polynomial_space",
+    )
     kernels = ("fused_propagation", "fused_galerkin_pairs", "fused_penalty_pairs", "fpke_pair_products")
     assert all(follows_physics(parent, name) for name in derived + kernels + ("process_noise",))
     # the user overrode drift_jacobian: theirs applies; the closed forms and kernels derived from drift do not
     assert follows_physics(child, "drift_jacobian") and follows_physics(child, "process_noise")
     assert not any(follows_physics(child, name) for name in derived[1:] + kernels)
     assert child.fpke_polynomial_space() is None and child.fpke_quadrature_points() is None
+    # the child's divergence is the trace of its own Jacobian (the generic route), not the parent's closed form
+    x, u = torch.tensor([[0.1, -0.2, 0.3, 0.0, 0.0, 0.0]], dtype=F64), torch.tensor([[0.01, 0.02, -0.03]], dtype=F64)
+    own = child.drift_jacobian(x, u).diagonal(dim1=-2, dim2=-1).sum(-1)
+    assert torch.equal(child.drift_divergence(x, u), own)
+    assert not torch.equal(own, parent.drift_divergence(x, u))
     camera = MisalignedCamera(torch.eye(3, dtype=F64))
     assert follows_physics(camera, "jacobian") and not follows_physics(camera, "fused_update")
 
