@@ -62,10 +62,12 @@ __all__ = [
     "COVARIANCE_FORM_MAX_CONDITION",
     "ComponentUpdate",
     "check_innovation",
+    "cholesky_axes",
     "covariance_form_usable",
     "evaluate_measurement",
     "gram_factor",
     "kalman_update",
+    "measurement_curvature",
     "moment_matched_factor",
     "moment_matched_innovation",
 ]
@@ -259,6 +261,34 @@ def check_innovation(y: Tensor, means: Tensor, h: Tensor, S_diag: Tensor, valid:
     )
 
 
+def cholesky_axes(means: Tensor, covs: Tensor) -> Tensor:
+    """The points ``m``, ``m + s_k``, ``m − s_k`` of each component (``s_k = L e_k``, ``P = LLᵀ``, ``k = 1…n``):
+    ``[..., N, 2n + 1, n]`` from ``means [..., N, n]`` and ``covs [..., N, n, n]``."""
+    s = torch.linalg.cholesky(covs).transpose(-1, -2)  # row k: s_k
+    m = means.unsqueeze(-2)
+    return torch.cat((m, m + s, m - s), -2)
+
+
+def measurement_curvature(means: Tensor, covs: Tensor, measurement: MeasurementModel) -> Tensor:
+    """The measurement's second differences along each component's axes, ``[..., N, n, d]``:
+
+    .. math:: c_k = h(μ + s_k) + h(μ − s_k) − 2h(μ),\\qquad s_k = L e_k,\\; P = LL^T
+
+    (``≈ s_kᵀ∇²h s_k``, exact for a quadratic ``h``), in the measurement's units; the component dim is moved to
+    the front for the call (:func:`evaluate_measurement`).
+
+    Args:
+        means: ``[..., N, n]``; covs: ``[..., N, n, n]``.
+    """
+    n = means.shape[-1]
+    pts = cholesky_axes(means, covs)
+    lead, N = pts.shape[:-3], pts.shape[-3]
+    x = pts.reshape(*lead, N * (2 * n + 1), n).movedim(-2, 0)
+    h = measurement.predict(x).movedim(0, -2)
+    h = h.reshape(*lead, N, 2 * n + 1, h.shape[-1])
+    return h[..., 1 : n + 1, :] + h[..., n + 1 :, :] - 2.0 * h[..., :1, :]
+
+
 def evaluate_measurement(measurement: MeasurementModel, means: Tensor) -> tuple[Tensor, Tensor]:
     """``h(μᵢ)`` and ``Hᵢ`` for every component.
 
@@ -319,6 +349,7 @@ def kalman_update(
     iterations: int = 1,
     mask: Tensor | None = None,
     mixture_nis: bool = True,
+    curvature: Tensor | None = None,
 ) -> ComponentUpdate:
     """Joseph-form EKF update of all components and Bayes' rule on the weights.
 
@@ -348,6 +379,13 @@ def kalman_update(
             ``measurement.mask()`` (e.g. after innovation gating).
         mixture_nis: compute :attr:`ComponentUpdate.nis_mixture` (a single-Gaussian caller
             that does not report it saves its factorisation).
+        curvature: ``[..., N, n, d]`` or ``None``: the measurement's second differences along each component's
+            axes, ``c_k = h(μ + s_k) + h(μ − s_k) − 2h(μ)`` (``s_k = L e_k``, ``P = LLᵀ``,
+            :func:`measurement_curvature`).  Given, the update is the
+            second-order one of the divided-difference filter (Nørgaard, Poulsen & Ravn 2000): the prediction
+            is ``h + ½Σ_k c_k`` and its covariance gains ``½Σ_k c_k c_kᵀ`` (the second-order terms of a
+            Gaussian, the Hessian's off-diagonal terms in the axes' frame left out), so a component wide
+            against the noise is not updated as if ``h`` were linear over it.
 
     Returns:
         :class:`ComponentUpdate`.
@@ -362,11 +400,17 @@ def kalman_update(
         mask = measurement.mask()
     y = y.unsqueeze(-2)  # [..., 1, d]
     R = R.unsqueeze(-3) if R.dim() > 2 else R
+    shift = None
+    if curvature is not None:
+        shift = 0.5 * curvature.sum(-2)  # [..., N, d]
+        R = R + 0.5 * curvature.transpose(-1, -2) @ curvature  # [..., N, d, d]
     n = means.shape[-1]
     eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
     x = means
     for j in range(int(iterations)):
         h, H = evaluate_measurement(measurement, x)
+        if shift is not None:
+            h = h + shift
         d = h.shape[-1]
         if y.shape[-1] != d:
             raise ValueError(

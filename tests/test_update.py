@@ -8,6 +8,7 @@ Expected values come from an independent computation: the same linearised update
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import mpmath
@@ -29,6 +30,7 @@ from agsf_torch.models.star_vectors import tangent_basis
 from agsf_torch.update import evaluate_measurement, kalman_update
 from tests.helpers import EAGER, F64, assert_within, random_mrps
 
+EPS = float(np.finfo(np.float64).eps)
 PRIOR_VAR = 1e-3  # MRP² per axis: ≈ 7° per axis, the paper's prior
 
 
@@ -344,3 +346,41 @@ def test_the_covariance_form_test_without_a_mask_counts_every_entry():
     every = covariance_form_usable(L, info, torch.ones(4, 3), S)
     assert torch.equal(covariance_form_usable(L, info, None, S), every)
     assert every.tolist() == [True, True, False, False]
+
+
+def test_the_second_order_update_of_a_quadratic_measurement_is_its_closed_form():
+    # h(x) = x² on N(μ, P): E[h] = μ² + P, Var[h] = 4μ²P + 2P² (Gaussian moments), and the divided differences
+    # along s = √P give c = 2P exactly: the update predicts μ² + P with S = 4μ²P + 2P² + R and gain K = 2μP/S
+    mu, P, R, y = 0.7, 0.3, 0.04, 0.9
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
+    means = torch.tensor([[[mu]]], dtype=F64)
+    covs = torch.tensor([[[[P]]]], dtype=F64)
+    c = update_module.measurement_curvature(means, covs, meas)
+    assert_within(c[0, 0, 0, 0], 2 * P, 16 * EPS * (mu * mu + P), "c of x² along √P")
+    out = kalman_update(torch.zeros(1, 1, dtype=F64), means, covs, torch.tensor([[y]], dtype=F64), meas, curvature=c)
+    H = 2 * mu
+    S = H * H * P + 2 * P * P + R
+    K = P * H / S
+    mean = mu + K * (y - mu * mu - P)
+    cov = (1 - K * H) ** 2 * P + K * K * (R + 2 * P * P)  # Joseph form with the second-order noise
+    nis = (y - mu * mu - P) ** 2 / S
+    scale = 16 * EPS * (1 + mu * mu + P + abs(y)) / R  # the gain divides by S ≥ R
+    assert_within(out.innovation_cov[0, 0, 0, 0], S, 16 * EPS * S, "S with the second-order terms")
+    assert_within(out.means[0, 0, 0], mean, scale, "second-order mean")
+    assert_within(out.covs[0, 0, 0, 0], cov, scale * P, "second-order covariance")
+    assert_within(out.nis[0, 0], nis, scale * (1 + nis), "second-order NIS")
+
+
+def test_zero_curvature_is_the_ekf_update(gen):
+    B, N, n = 4, 3, 2
+    meas = FunctionMeasurement(lambda x: torch.sin(x), 0.01 * torch.eye(n, dtype=F64))
+    means = torch.randn(B, N, n, generator=gen, dtype=F64)
+    A = torch.randn(B, N, n, n, generator=gen, dtype=F64)
+    covs = 0.1 * A @ A.transpose(-1, -2) + 0.01 * torch.eye(n, dtype=F64)
+    log_w = torch.log_softmax(torch.randn(B, N, generator=gen, dtype=F64), -1)
+    y = torch.randn(B, n, generator=gen, dtype=F64)
+    plain = kalman_update(log_w, means, covs, y, meas)
+    zero = kalman_update(log_w, means, covs, y, meas, curvature=torch.zeros(B, N, n, n, dtype=F64))
+    for field in dataclasses.fields(plain):  # R + 0 and h + 0: the same numbers
+        a, b = getattr(plain, field.name), getattr(zero, field.name)
+        assert (a is None and b is None) or torch.equal(a, b), field.name

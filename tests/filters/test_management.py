@@ -31,13 +31,15 @@ from agsf_torch.filters.management import (
 from agsf_torch.filters.registry import CONFIG_OPTIONS, make_filter
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.models.benchmarks import SineDriftModel
+from agsf_torch.models.function_measurement import FunctionMeasurement
 from agsf_torch.models.linear import LinearModel
+from agsf_torch.update import kalman_update, measurement_curvature
 from tests.helpers import F64, assert_within, random_mrps, random_spd, random_unit_vectors, relative_bound
 
 EPS = float(np.finfo(np.float64).eps)
 
-#: Management that never acts: the mixture is only padded.
-IDLE = dict(prune_weight=0.0, merge_bound=0.0, split_measurement=0.0, split_entropy_rate=0.0)
+#: Management that never acts: the mixture is only padded, and updated with the EKF update.
+IDLE = dict(prune_weight=0.0, merge_bound=0.0, split_measurement=0.0, split_entropy_rate=0.0, second_order_update=False)
 
 
 def _np_moments(w, m, P):
@@ -214,8 +216,6 @@ def test_the_weight_map_carries_the_old_weights_to_the_new(gen):
 
 
 def test_measurement_nonlinearity_of_a_quadratic_measurement_is_its_closed_form():
-    from agsf_torch.models.function_measurement import FunctionMeasurement
-
     sigma = 0.2
     meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[sigma**2]], dtype=F64))
     means = torch.tensor([[[0.3], [-2.0]]], dtype=F64)
@@ -309,7 +309,7 @@ def test_registry_builds_the_managed_filters_with_their_options():
     assert make_filter("GSF", model).management is None
     for name in ("capacity", "prune_weight", "merge_bound", "merge_rounds", "split_measurement", "split_entropy_rate"):
         assert name in CONFIG_OPTIONS
-    assert make_filter("GSF-managed", model).checkpoint_options()["management"]["capacity"] == 16
+    assert make_filter("GSF-managed", model).checkpoint_options()["management"] == MixtureManagement().as_dict()
     assert "management" not in make_filter("GSF", model).checkpoint_options()
 
 
@@ -325,6 +325,7 @@ def test_registry_builds_the_managed_filters_with_their_options():
         ({"merge_rounds": 0}, "merge_rounds"),
         ({"split_measurement": float("inf")}, "split_measurement"),
         ({"split_entropy_rate": -1.0}, "split_entropy_rate"),
+        ({"second_order_update": 1}, "second_order_update"),
     ],
 )
 def test_bad_options_are_refused_by_name(options, match):
@@ -345,3 +346,22 @@ def test_management_on_the_wrong_filter_or_mixture_is_refused(gen):
         filt.predict(mix, u, 0.1)
     with pytest.raises(ValueError, match="capacity"):
         pad_mixture(mix, 4)
+
+
+def test_the_managed_update_is_the_second_order_one():
+    # h = x² on one component N(0.7, 0.3) with splitting and merging off: the managed GSF's update is
+    # kalman_update with the curvature along the component's axis (tests/test_update.py checks that update against
+    # its closed form), and with second_order_update=False the EKF update
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[0.04]], dtype=F64))
+    model = _linear_model(1)
+    belief = GaussianMixture.from_gaussian(torch.tensor([[0.7]], dtype=F64), torch.tensor([[[0.3]]], dtype=F64))
+    y = torch.tensor([[0.9]], dtype=F64)
+    still = {**IDLE, "second_order_update": True}
+    got = GaussianSumFilter(model, management=MixtureManagement(capacity=1, **still)).update(belief, y, meas)
+    c = measurement_curvature(belief.means, belief.covs, meas)
+    want = kalman_update(belief.log_weights, belief.means, belief.covs, y, meas, curvature=c)
+    assert torch.equal(got.means, want.means) and torch.equal(got.covs, want.covs)
+    ekf = GaussianSumFilter(model, management=MixtureManagement(capacity=1, **IDLE)).update(belief, y, meas)
+    plain = kalman_update(belief.log_weights, belief.means, belief.covs, y, meas)
+    assert torch.equal(ekf.means, plain.means) and torch.equal(ekf.covs, plain.covs)
+    assert not torch.equal(ekf.covs, got.covs)

@@ -14,7 +14,8 @@ Reference: the Crank–Nicolson FPKE solution on the benchmark's grid (4001 poin
 
 * ``gsf``: :class:`GaussianSumFilter`, one component, unmanaged (the EKF's density);
 * ``gsf_managed``, ``agsf_managed`` (the paper's weight update, ``"penalty"``), ``agsf_galerkin_managed``
-  (``"galerkin"``): the same one-component prior, with management (default: capacity 16, the defaults);
+  (``"galerkin"``): the same one-component prior, with management (default: capacity 16, the other options
+  the defaults);
 * with ``benchmark_prior=True``, as a reference point, the unmanaged ``gsf_benchmark``, ``agsf_benchmark`` and
   ``agsf_galerkin_benchmark`` from the benchmark's two-component prior, scored against the grid density started
   from that prior (same mean and variance as the one-component prior, not the same density).
@@ -173,7 +174,7 @@ def run_split_density(
         report_times: times (s, multiples of ``DT`` in ``(0, horizon]``) at which the densities on the grid
             are kept.
         mean, variance: of the one-component prior (default: :func:`one_component_prior`'s).
-        management: of the managed filters (default ``MixtureManagement()``: capacity 16).
+        management: of the managed filters (default ``MixtureManagement(capacity=16)``).
         substeps: RK4 steps per ``DT`` of every filter.
         quadrature: Gauss–Hermite points of the weight updates (``PenaltyWeightUpdate(quadrature=...)`` and
             ``GalerkinWeightUpdate(quadrature=...)``), as the benchmark's tests.
@@ -204,7 +205,7 @@ def run_split_density(
         if not (0 <= k < steps and math.isclose((k + 1) * DT, t, rel_tol=1e-9)):
             raise ValueError(f"report time {t!r} is not a multiple of {DT} s in (0, {horizon}]")
         report_index.append(k)
-    management = MixtureManagement() if management is None else management
+    management = MixtureManagement(capacity=16) if management is None else management
     grid = GRID
     xg = torch.tensor(grid, dtype=torch.float64)[:, None]
     priors = {"one_component": one_component_prior(mean, variance)}
