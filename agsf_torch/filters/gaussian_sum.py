@@ -9,7 +9,7 @@ from torch import Tensor
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
-from ..update import ComponentUpdate, kalman_update, measurement_curvature
+from ..update import measurement_curvature
 from .base import BaseFilter, UpdateFrame
 from .management import (
     MANAGEMENT_DIAGNOSTICS,
@@ -129,24 +129,13 @@ class GaussianSumFilter(BaseFilter):
         self.weight_map = result.weight_map
         return result.mixture, result.counts
 
-    def _kalman_step(self, frame: UpdateFrame, y: Tensor, mask: Tensor | None) -> ComponentUpdate:
-        """As the base filter's; with management's ``second_order_update``, the generic update with the measurement's
-        curvature along each component's axes (:func:`~agsf_torch.update.kalman_update`,
-        :func:`~agsf_torch.update.measurement_curvature`)."""
+    def _update_curvature(self, frame: UpdateFrame) -> Tensor | None:
+        """With management's ``second_order_update``, the measurement's curvature along each component's axes
+        (:func:`~agsf_torch.update.measurement_curvature`): the update is then the generic second-order one."""
         mg = self.management
         if mg is None or not mg.second_order_update:
-            return super()._kalman_step(frame, y, mask)
-        return kalman_update(
-            frame.log_weights,
-            frame.means,
-            frame.covs,
-            y,
-            frame.measurement,
-            self.update_iterations,
-            mask=mask,
-            mixture_nis=self.mixture_nis,
-            curvature=measurement_curvature(frame.means, frame.covs, frame.measurement),
-        )
+            return None
+        return measurement_curvature(frame.means, frame.covs, frame.measurement)
 
     def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
         """As the base class's, the model's shape contract at the first ``predict`` with it
