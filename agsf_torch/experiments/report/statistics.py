@@ -199,6 +199,22 @@ def mean_ci95(values: np.ndarray) -> tuple[float, float, float]:
     return m, m - half, m + half
 
 
+def median_ci95(values: np.ndarray) -> tuple[float, float, float]:
+    """Median of per-run values ``[B]`` and its distribution-free (sign-test) interval of at least 95 % coverage,
+    ``(median, low, high)``: the order statistics ``x₍ₖ₎``, ``x₍B₋ₖ₊₁₎`` with ``k`` the largest integer such that
+    ``P(Bin(B, ½) ≤ k − 1) ≤ 0.025`` (the interval holds whatever the values' distribution, heavy tails included);
+    ``(median, −inf, inf)`` below six values, where no such ``k`` exists."""
+    from scipy.stats import binom
+
+    x = np.sort(np.asarray(values, dtype=np.float64))
+    B = x.size
+    med = float(np.median(x)) if B else float("nan")
+    k = int((binom.cdf(np.arange(B), B, 0.5) <= 0.025).sum())  # P(Bin ≤ j) ≤ 0.025 for j < k
+    if k < 1:
+        return med, -math.inf, math.inf
+    return med, float(x[k - 1]), float(x[B - k])
+
+
 def paired_difference(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
     """Paired per-run difference ``a − b`` (deg): mean, Student-t 95 % interval and relative to ``mean(b)``."""
     m, lo, hi = mean_ci95(np.asarray(a) - np.asarray(b))

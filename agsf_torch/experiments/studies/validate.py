@@ -58,7 +58,7 @@ from ...rotations import attitude_error_vector
 from ...storage.files import save_figure, write_json, write_text
 from ..config.factories import filter_model, loop_options, make_filters
 from ..config.loader import ExperimentConfig, load_config
-from ..report.statistics import clopper_pearson, mean_ci95
+from ..report.statistics import clopper_pearson, mean_ci95, median_ci95
 from ..run.experiment import make_env
 from ..run.outputs import prepare_output
 from ..run.resources import check_memory
@@ -428,8 +428,10 @@ def paired_divergence(baseline: np.ndarray, managed: np.ndarray) -> dict[str, An
 def managed_comparisons(filters: dict[str, Any]) -> dict[str, Any]:
     """Each managed filter against each single-Gaussian filter of the scenario (:data:`SINGLE_GAUSSIAN_FILTERS`),
     run by run: ``"{managed} vs {baseline}"`` → ``diverged`` (:func:`paired_divergence`, > 0: the managed filter
-    diverged in fewer runs) and ``density_score`` (the per-run score's difference managed − baseline, its mean and
-    Student-t 95 % interval; > 0: the managed filter's density is the better; ``None`` without scores)."""
+    diverged in fewer runs) and ``density_score`` (the per-run score's difference managed − baseline: its mean and
+    Student-t 95 % interval, its median and distribution-free 95 % interval (:func:`~..report.statistics.median_ci95`:
+    a few runs' scores far in a single Gaussian's tail make the t interval uninformative) and the runs in which the
+    managed filter scored higher; > 0: the managed filter's density is the better; ``None`` without scores)."""
     out: dict[str, Any] = {}
     for m in (f for f in filters if f.endswith("-managed")):
         for b in (f for f in SINGLE_GAUSSIAN_FILTERS if f in filters):
@@ -440,7 +442,15 @@ def managed_comparisons(filters: dict[str, Any]) -> dict[str, Any]:
                 diff = diff[np.isfinite(diff)]
                 if diff.size >= 2:
                     mean, lo, hi = mean_ci95(diff)
-                    score = {"difference": mean, "ci95": [lo, hi]}
+                    med, med_lo, med_hi = median_ci95(diff)
+                    score = {
+                        "difference": mean,
+                        "ci95": [lo, hi],
+                        "median": med,
+                        "median_ci95": [med_lo, med_hi],
+                        "managed_better": int((diff > 0).sum()),
+                        "runs": int(diff.size),
+                    }
             out[f"{m} vs {b}"] = {
                 "diverged": paired_divergence(fb["diverged_runs"], fm["diverged_runs"]),
                 "density_score": score,
@@ -656,18 +666,24 @@ def validation_table(summaries: dict[str, Any]) -> str:
             "",
             "Managed Gaussian sums against the single Gaussians, run by run (the same runs): the divergence fraction's "
             "difference baseline − managed (> 0: the managed filter diverged less; McNemar's exact interval) and the "
-            "density score's difference managed − baseline (> 0: the managed density is the better; Student-t).",
+            "density score's difference managed − baseline (> 0: the managed density is the better): its mean "
+            "(Student-t interval), its median (distribution-free sign-test interval) and the runs the managed filter "
+            "scored higher in.",
             "",
-            "| scenario | pair | diverged: difference [95 %] (discordant runs) | density score: difference [95 %] |",
-            "| --- | --- | --- | --- |",
+            "| scenario | pair | diverged: difference [95 %] (discordant runs) | density score: mean difference [95 %] "
+            "| median difference [95 %] | managed higher |",
+            "| --- | --- | --- | --- | --- | --- |",
         ]
         for sname, pair, c in pairs:
             d, sc = c["diverged"], c["density_score"]
-            score = (
-                "—"
-                if sc is None
-                else f"{_fmt(sc['difference'], 4)} [{_fmt(sc['ci95'][0], 4)}, {_fmt(sc['ci95'][1], 4)}]"
-            )
+            if sc is None:
+                score = "— | — | —"
+            else:
+                score = (
+                    f"{_fmt(sc['difference'], 4)} [{_fmt(sc['ci95'][0], 4)}, {_fmt(sc['ci95'][1], 4)}] | "
+                    f"{_fmt(sc['median'], 4)} [{_fmt(sc['median_ci95'][0], 4)}, {_fmt(sc['median_ci95'][1], 4)}] | "
+                    f"{sc['managed_better']} of {sc['runs']}"
+                )
             lines.append(
                 f"| {sname} | {pair} | {_fmt(100 * d['difference'])} % [{_fmt(100 * d['ci95'][0])}, "
                 f"{_fmt(100 * d['ci95'][1])}] ({d['discordant']}) | {score} |"

@@ -195,3 +195,33 @@ def test_paired_divergence_is_mcnemars_exact_conditional_interval():
     assert binomtest(8, 9).pvalue < 0.05
     same = paired_divergence(baseline, baseline)
     assert same == {"difference": 0.0, "ci95": [0.0, 0.0], "discordant": 0}
+
+
+def test_the_median_interval_is_the_sign_tests_order_statistics():
+    from scipy.stats import binom
+
+    from agsf_torch.experiments.report.statistics import median_ci95
+
+    rng = np.random.default_rng(3)
+    values = rng.standard_cauchy(16)  # heavy tails: where the t interval says little
+    med, lo, hi = median_ci95(values)
+    x = np.sort(values)
+    # n = 16: P(Bin(16, ½) ≤ 3) = 697/65536 ≤ 0.025 < P(Bin ≤ 4): the 4th and the 13th order statistics
+    assert binom.cdf(3, 16, 0.5) <= 0.025 < binom.cdf(4, 16, 0.5)
+    assert (lo, hi) == (x[3], x[12]) and med == np.median(x)
+    assert 1 - 2 * binom.cdf(3, 16, 0.5) >= 0.95  # the interval's coverage
+    assert median_ci95(values[:5])[1:] == (-math.inf, math.inf)  # 2·(½)⁵ > 0.05: no such interval
+    assert median_ci95(values[:6])[1:] == (np.min(values[:6]), np.max(values[:6]))  # 2·(½)⁶ ≤ 0.05
+
+
+def test_managed_comparisons_report_the_density_score_robustly():
+    from agsf_torch.experiments.studies.validate import managed_comparisons
+
+    runs = 8
+    managed = {"diverged_runs": [0] * runs, "density_score_runs": [10.0] * runs}
+    # the single Gaussian: one run far in its tail, the rest just below the managed filter
+    baseline = {"diverged_runs": [0] * runs, "density_score_runs": [9.0] * (runs - 1) + [-1e9]}
+    out = managed_comparisons({"GSF-managed": managed, "EKF": baseline})["GSF-managed vs EKF"]["density_score"]
+    assert out["managed_better"] == runs and out["runs"] == runs
+    assert out["median"] == 1.0 and out["median_ci95"][0] == 1.0  # every difference ≥ 1: the interval excludes 0
+    assert out["ci95"][0] < 0  # the t interval, dominated by the one run, does not
