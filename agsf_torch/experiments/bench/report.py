@@ -9,14 +9,16 @@ __all__ = ["targets", "format_table"]
 #: What bounds the managed rows and the weight QP's speed-up, where a target is not met (profiled; see
 #: docs/results/performance.md, "Mixture management").
 MANAGED_GSF_LIMIT = (
-    "the management passes (before the propagation and before the update): the pair dissimilarities over all "
-    "K(K−1)/2 = 120 slot pairs (both covariances gathered, the charts aligned, a Cholesky log-determinant per pair), "
-    "the entropy test (the drift Jacobian at 2n + 1 = 13 points per slot) and the measurement-curvature test; the "
-    "16-slot propagation and update alone are a few times the fused GSF at N = 5 (profile: performance.md)"
+    "the second-order update (management's default): the generic Kalman update of all 16 slots with their "
+    "curvature, about six times the fused star update of the same slots, and the measurement's curvature at 2n + 1 = 13 points per "
+    "slot, evaluated twice (the split test before the pass, the update after it); the pair dissimilarities (one "
+    "compiled kernel) and the entropy test (the model's closed-form divergence) are a small part (profile: "
+    "performance.md)"
 )
 MANAGED_GALERKIN_LIMIT = (
-    "the management pass: the pair dissimilarities over 120 slot pairs and the entropy test; the Galerkin update at "
-    "16 slots (136 pairs per trajectory) adds several times the unmanaged one at N = 5 (profile: performance.md)"
+    "the Galerkin pair kernel over all 136 slot pairs of 16 slots, the inactive ones' included (their weights are "
+    "held at zero afterwards): about nine tenths of the step at 5 active slots; the management pass and the QP are "
+    "the rest (profile: performance.md)"
 )
 QP_LIMIT = (
     "the torch solver's active-set iterations, each a batched LAPACK solve of the [B, N+1, N+1] KKT systems, with "
