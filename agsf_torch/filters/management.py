@@ -122,8 +122,8 @@ class MixtureManagement:
             :func:`agsf_torch.update.measurement_curvature`: the divided-difference filter's prediction
             ``h + ½Σ_k c_k`` and innovation covariance ``+ ½Σ_k c_k c_kᵀ``), on the generic update path.  Default
             ``True``: a component still too wide for the sensor when the slots are spent is then not updated as if
-            the measurement were linear over it (on ``agsf validate``'s one-star scenario from a uniform attitude
-            the EKF update left errors two to three orders of magnitude outside the components' covariance).
+            the measurement were linear over it (on ``agsf validate``'s one-star scenario from a uniform attitude,
+            32 runs, 64 slots: ANEES 2.4e3 with the EKF update, 2.9 with this one, in its band).
             ``False``: the EKF update of the method (the fused path where the measurement has one).  With
             splitting and merging off (``merge_bound=0``, ``split_measurement=0``, ``split_entropy_rate=0``) and
             ``capacity`` equal to the components, this is the unmanaged filter with the second-order update.
