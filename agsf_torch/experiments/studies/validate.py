@@ -505,6 +505,7 @@ def _summary_figure(path: Path, summaries: dict[str, dict[str, Any]]) -> None:
     names = list(summaries)
     filters = [f for f in VALIDATION_FILTERS if any(f in s["filters"] for s in summaries.values())]
     width = 0.8 / len(filters)
+    palette = plt.get_cmap("tab20").colors  # the ten tab10 colours first, then their light variants: 20 distinct
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(8, 1.1 * len(names)), 7), sharex=True, layout="constrained")
     x = np.arange(len(names))
     for k, f in enumerate(filters):
@@ -522,16 +523,18 @@ def _summary_figure(path: Path, summaries: dict[str, dict[str, Any]]) -> None:
             err[0].append(m["diverged_fraction"] - m["diverged_ci95"][0])
             err[1].append(m["diverged_ci95"][1] - m["diverged_fraction"])
             anees.append(m["anees"]["steady"]["mean"])
-        top.bar(x + offset, frac, width, yerr=err, capsize=1.5, label=f, color=f"C{k}")
-        bottom.bar(x + offset, anees, width, label=f, color=f"C{k}")
+        color = palette[(2 * k) % 20 + (2 * k) // 20]
+        top.bar(x + offset, frac, width, yerr=err, capsize=1.5, label=f, color=color)
+        bottom.bar(x + offset, anees, width, label=f, color=color)
     for k, s in enumerate(names):
         lo, hi = next(iter(summaries[s]["filters"].values()))["anees_band"]
         bottom.fill_between([k - 0.45, k + 0.45], lo, hi, color="k", alpha=0.15, lw=0)
-    top.set(ylabel=f"runs diverged (error > {DIVERGED_DEG:g}° at the end)", ylim=(0, 1.05))
-    bottom.set(ylabel="ANEES, steady-state window (grey: 95 % band)")
+    top.set(ylabel=f"runs diverged (> {DIVERGED_DEG:g}° at the end)", ylim=(0, 1.05))
+    bottom.set(ylabel="steady ANEES (grey: 95 % band)")
     bottom.set_yscale("log")
     bottom.set_xticks(x, names, rotation=30, ha="right")
-    top.legend(fontsize=7, ncol=len(filters))
+    # one legend above the panels (an axes legend of every filter in one row squeezes the axes it sits in)
+    fig.legend(*top.get_legend_handles_labels(), loc="outside upper center", ncol=min(len(filters), 6), fontsize=8)
     for ax in (top, bottom):
         ax.grid(True, axis="y", alpha=0.3)
     save_figure(fig, path, dpi=100)
