@@ -368,7 +368,13 @@ def runnalls_bound(log_w: Tensor, means: Tensor, covs: Tensor, *, compile: bool 
 
 
 def merged_moments(
-    log_w_a: Tensor, mean_a: Tensor, cov_a: Tensor, log_w_b: Tensor, mean_b: Tensor, cov_b: Tensor, model
+    log_w_a: Tensor,
+    mean_a: Tensor,
+    cov_a: Tensor,
+    log_w_b: Tensor,
+    mean_b: Tensor,
+    cov_b: Tensor,
+    model: ContinuousModel,
 ) -> tuple[Tensor, Tensor]:
     """The moment-preserving merge of component ``b`` into ``a``, in ``a``'s chart (``model.align``: for attitude
     the MRP set, or its shadow, nearer ``a``'s mean), with the pair's own weights ``f = w / (w_a + w_b)`` formed in
