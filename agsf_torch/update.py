@@ -340,6 +340,13 @@ def _information_gain(covs: Tensor, H: Tensor, R_eff: Tensor, need: Tensor) -> t
     return K, L_P, L_R, log_det
 
 
+def _joseph(covs: Tensor, K: Tensor, H: Tensor, R: Tensor, eye_n: Tensor) -> Tensor:
+    """The Joseph form ``(I − KH) P (I − KH)ᵀ + K R Kᵀ``, symmetrised: ``[..., N, n, n]``."""
+    IKH = eye_n - K @ H
+    P = IKH @ covs @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+    return 0.5 * (P + P.transpose(-1, -2))
+
+
 def kalman_update(
     log_weights: Tensor,
     means: Tensor,
@@ -349,7 +356,7 @@ def kalman_update(
     iterations: int = 1,
     mask: Tensor | None = None,
     mixture_nis: bool = True,
-    curvature: Tensor | None = None,
+    second_order: bool = False,
 ) -> ComponentUpdate:
     """Joseph-form EKF update of all components and Bayes' rule on the weights.
 
@@ -379,13 +386,16 @@ def kalman_update(
             ``measurement.mask()`` (e.g. after innovation gating).
         mixture_nis: compute :attr:`ComponentUpdate.nis_mixture` (a single-Gaussian caller
             that does not report it saves its factorisation).
-        curvature: ``[..., N, n, d]`` or ``None``: the measurement's second differences along each component's
-            axes, ``c_k = h(μ + s_k) + h(μ − s_k) − 2h(μ)`` (``s_k = L e_k``, ``P = LLᵀ``,
-            :func:`measurement_curvature`).  Given, the update is the
-            second-order one of the divided-difference filter (Nørgaard, Poulsen & Ravn 2000): the prediction
-            is ``h + ½Σ_k c_k`` and its covariance gains ``½Σ_k c_k c_kᵀ`` (the second-order terms of a
-            Gaussian, the Hessian's off-diagonal terms in the axes' frame left out), so a component wide
-            against the noise is not updated as if ``h`` were linear over it.
+        second_order: the second-order update of the divided-difference filter (Nørgaard, Poulsen & Ravn
+            2000): with the measurement's second differences along the axes of the Gaussian it is linearised
+            over, ``c_k = h(x + s_k) + h(x − s_k) − 2h(x)`` (``s_k = L e_k``, ``LLᵀ`` that Gaussian's covariance,
+            :func:`measurement_curvature`), the prediction is ``h + ½Σ_k c_k`` and its covariance gains
+            ``½Σ_k c_k c_kᵀ`` (the second-order terms of a Gaussian, the Hessian's off-diagonal terms in the
+            axes' frame left out), so a component wide against the noise is not updated as if ``h`` were
+            linear over it.  The first linearisation is over the prior ``N(μ, P)``; with ``iterations > 1``
+            each later one is over the last iterate and its Joseph covariance (iterated posterior
+            linearisation, García-Fernández et al. 2015): the terms shrink as the iterate's spread does, so
+            where the iterated update has found a narrow posterior they vanish and it is the iterated EKF's.
 
     Returns:
         :class:`ComponentUpdate`.
@@ -400,17 +410,15 @@ def kalman_update(
         mask = measurement.mask()
     y = y.unsqueeze(-2)  # [..., 1, d]
     R = R.unsqueeze(-3) if R.dim() > 2 else R
-    shift = None
-    if curvature is not None:
-        shift = 0.5 * curvature.sum(-2)  # [..., N, d]
-        R = R + 0.5 * curvature.transpose(-1, -2) @ curvature  # [..., N, d, d]
     n = means.shape[-1]
     eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
-    x = means
+    x, spread, R_noise = means, covs, R
     for j in range(int(iterations)):
         h, H = evaluate_measurement(measurement, x)
-        if shift is not None:
-            h = h + shift
+        if second_order:  # linearised over N(x, spread): the prior, then the last iterate's posterior
+            c = measurement_curvature(x, spread, measurement)  # [..., N, n, d]
+            h = h + 0.5 * c.sum(-2)
+            R = R_noise + 0.5 * c.transpose(-1, -2) @ c  # [..., N, d, d]
         d = h.shape[-1]
         if y.shape[-1] != d:
             raise ValueError(
@@ -443,10 +451,10 @@ def kalman_update(
         if robust:
             K = torch.where(need[..., None, None], K_info, K)
         x = means + (K @ nu.unsqueeze(-1)).squeeze(-1)
+        if second_order and j + 1 < iterations:
+            spread = _joseph(covs, K, H, R_eff, eye_n)
     new_means = x
-    IKH = eye_n - K @ H
-    new_covs = IKH @ covs @ IKH.transpose(-1, -2) + K @ R_eff @ K.transpose(-1, -2)
-    new_covs = 0.5 * (new_covs + new_covs.transpose(-1, -2))
+    new_covs = _joseph(covs, K, H, R_eff, eye_n)
 
     z = torch.linalg.solve_triangular(L, nu.unsqueeze(-1), upper=False).squeeze(-1)
     nis = (z * z).sum(-1)

@@ -8,7 +8,6 @@ Expected values come from an independent computation: the same linearised update
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import mpmath
@@ -357,7 +356,9 @@ def test_the_second_order_update_of_a_quadratic_measurement_is_its_closed_form()
     covs = torch.tensor([[[[P]]]], dtype=F64)
     c = update_module.measurement_curvature(means, covs, meas)
     assert_within(c[0, 0, 0, 0], 2 * P, 16 * EPS * (mu * mu + P), "c of x² along √P")
-    out = kalman_update(torch.zeros(1, 1, dtype=F64), means, covs, torch.tensor([[y]], dtype=F64), meas, curvature=c)
+    out = kalman_update(
+        torch.zeros(1, 1, dtype=F64), means, covs, torch.tensor([[y]], dtype=F64), meas, second_order=True
+    )
     H = 2 * mu
     S = H * H * P + 2 * P * P + R
     K = P * H / S
@@ -371,16 +372,54 @@ def test_the_second_order_update_of_a_quadratic_measurement_is_its_closed_form()
     assert_within(out.nis[0, 0], nis, scale * (1 + nis), "second-order NIS")
 
 
-def test_zero_curvature_is_the_ekf_update(gen):
+def test_the_iterated_second_order_update_relinearises_over_the_iterate_posterior():
+    # h(x) = x² again, two linearisations: the first over the prior N(μ, P) (the closed form above), the second
+    # over N(x₁, P₁), x₁ and P₁ the first's mean and Joseph covariance: c = 2P₁, H = 2x₁, the prediction
+    # x₁² + P₁ + H(μ − x₁) and S = H²P + R + 2P₁², applied to the prior (posterior linearisation)
+    mu, P, R, y = 0.7, 0.3, 0.04, 0.9
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
+    means = torch.tensor([[[mu]]], dtype=F64)
+    covs = torch.tensor([[[[P]]]], dtype=F64)
+    Y = torch.tensor([[y]], dtype=F64)
+    out = kalman_update(torch.zeros(1, 1, dtype=F64), means, covs, Y, meas, iterations=2, second_order=True)
+    H0 = 2 * mu
+    K0 = P * H0 / (H0 * H0 * P + 2 * P * P + R)
+    x1 = mu + K0 * (y - mu * mu - P)
+    P1 = (1 - K0 * H0) ** 2 * P + K0 * K0 * (R + 2 * P * P)
+    H1 = 2 * x1
+    S = H1 * H1 * P + R + 2 * P1 * P1
+    K = P * H1 / S
+    nu = y - x1 * x1 - P1 - H1 * (mu - x1)
+    mean = mu + K * nu
+    cov = (1 - K * H1) ** 2 * P + K * K * (R + 2 * P1 * P1)
+    scale = 64 * EPS * (1 + mu * mu + P + abs(y)) / R  # two gains, each dividing by S ≥ R
+    assert_within(out.innovation_cov[0, 0, 0, 0], S, scale * S, "S over the iterate's posterior")
+    assert_within(out.means[0, 0, 0], mean, scale, "iterated second-order mean")
+    assert_within(out.covs[0, 0, 0, 0], cov, scale * P, "iterated second-order covariance")
+    assert_within(out.nis[0, 0], nu * nu / S, scale * (1 + nu * nu / S), "iterated second-order NIS")
+
+
+def test_the_second_order_update_of_a_linear_measurement_is_the_ekf_update(gen):
+    # h = Ax: every second difference is zero but for rounding, ≤ 4ε(|A||m| + |A||s|) per entry, which moves the
+    # prediction by half the sum over the n axes and the mean by the gain times that
     B, N, n = 4, 3, 2
-    meas = FunctionMeasurement(lambda x: torch.sin(x), 0.01 * torch.eye(n, dtype=F64))
+    A = torch.tensor([[1.5, -0.5], [0.25, 2.0]], dtype=F64)
+    meas = FunctionMeasurement(lambda x: x @ A.T, 0.01 * torch.eye(n, dtype=F64))
     means = torch.randn(B, N, n, generator=gen, dtype=F64)
-    A = torch.randn(B, N, n, n, generator=gen, dtype=F64)
-    covs = 0.1 * A @ A.transpose(-1, -2) + 0.01 * torch.eye(n, dtype=F64)
+    G = torch.randn(B, N, n, n, generator=gen, dtype=F64)
+    covs = 0.1 * G @ G.transpose(-1, -2) + 0.01 * torch.eye(n, dtype=F64)
     log_w = torch.log_softmax(torch.randn(B, N, generator=gen, dtype=F64), -1)
     y = torch.randn(B, n, generator=gen, dtype=F64)
-    plain = kalman_update(log_w, means, covs, y, meas)
-    zero = kalman_update(log_w, means, covs, y, meas, curvature=torch.zeros(B, N, n, n, dtype=F64))
-    for field in dataclasses.fields(plain):  # R + 0 and h + 0: the same numbers
-        a, b = getattr(plain, field.name), getattr(zero, field.name)
-        assert (a is None and b is None) or torch.equal(a, b), field.name
+    for iterations in (1, 3):
+        plain = kalman_update(log_w, means, covs, y, meas, iterations)
+        second = kalman_update(log_w, means, covs, y, meas, iterations, second_order=True)
+        spread = means.abs().amax((-2, -1)) + covs.diagonal(dim1=-2, dim2=-1).amax(-1).sqrt().amax(-1)  # [B]
+        c_max = 4 * EPS * A.abs().sum(-1).max() * spread  # [B] bound on |c_k| entries
+        shift = 0.5 * n * c_max  # [B] bound on the prediction's shift
+        K_t = torch.linalg.solve(plain.innovation_cov, A @ covs)  # Kᵀ = S⁻¹HP, the EKF's gain
+        gain = K_t.abs().sum(-2).amax((-2, -1))  # [B] the largest row sum of |K|
+        m_max, y_max = means.abs().amax((-2, -1)), y.abs().amax(-1)
+        tol = 64 * EPS * (1 + m_max * (1 + gain * A.abs().sum(-1).max()) + gain * y_max) + gain * shift
+        assert_within(second.means, plain.means, tol[:, None, None], f"means, {iterations} linearisations")
+        cov_scale = covs.diagonal(dim1=-2, dim2=-1).amax((-2, -1))
+        assert_within(second.covs, plain.covs, 64 * EPS * cov_scale[:, None, None, None], "covariances")

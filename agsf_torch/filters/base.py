@@ -375,10 +375,10 @@ class BaseFilter:
     def _kalman_step(self, frame: UpdateFrame, y: Tensor, mask: Tensor | None) -> ComponentUpdate:
         """The update of every component and Bayes' rule on the weights: the measurement's fused path
         if it has one (``MeasurementModel.fused_update``) and ``fused`` is on, else the generic
-        Joseph-form update (:func:`agsf_torch.update.kalman_update`), which alone takes the second-order terms of
-        :meth:`_update_curvature` where a filter gives them."""
-        curvature = self._update_curvature(frame)
-        if self.fused and curvature is None:
+        Joseph-form update (:func:`agsf_torch.update.kalman_update`), which alone takes the second-order terms
+        where :meth:`_second_order_update` asks for them."""
+        second_order = self._second_order_update()
+        if self.fused and not second_order:
             result = frame.measurement.fused_update(
                 frame.log_weights,
                 frame.means,
@@ -400,13 +400,13 @@ class BaseFilter:
             self.update_iterations,
             mask=mask,
             mixture_nis=self.mixture_nis,
-            curvature=curvature,
+            second_order=second_order,
         )
 
-    def _update_curvature(self, frame: UpdateFrame) -> Tensor | None:
-        """The measurement's second differences along each component's axes for a second-order update
-        (``kalman_update``'s ``curvature``, ``[..., N, n, d]``), or ``None`` (default: the EKF update)."""
-        return None
+    def _second_order_update(self) -> bool:
+        """Whether the update takes the measurement's second-order terms (``kalman_update``'s
+        ``second_order``); ``False`` (default: the EKF update, or the iterated EKF's)."""
+        return False
 
     def _posterior(
         self, prior: GaussianMixture, frame: UpdateFrame, result: ComponentUpdate

@@ -9,8 +9,7 @@ from torch import Tensor
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel, MeasurementModel
 from ..propagation import propagate_moments
-from ..update import measurement_curvature
-from .base import BaseFilter, UpdateFrame
+from .base import BaseFilter
 from .management import (
     MANAGEMENT_DIAGNOSTICS,
     MixtureManagement,
@@ -129,13 +128,10 @@ class GaussianSumFilter(BaseFilter):
         self.weight_map = result.weight_map
         return result.mixture, result.counts
 
-    def _update_curvature(self, frame: UpdateFrame) -> Tensor | None:
-        """With management's ``second_order_update``, the measurement's curvature along each component's axes
-        (:func:`~agsf_torch.update.measurement_curvature`): the update is then the generic second-order one."""
-        mg = self.management
-        if mg is None or not mg.second_order_update:
-            return None
-        return measurement_curvature(frame.means, frame.covs, frame.measurement)
+    def _second_order_update(self) -> bool:
+        """Management's ``second_order_update``: the update is then the generic second-order one
+        (:func:`~agsf_torch.update.kalman_update`'s ``second_order``)."""
+        return self.management is not None and self.management.second_order_update
 
     def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
         """As the base class's, the model's shape contract at the first ``predict`` with it

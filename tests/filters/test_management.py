@@ -33,7 +33,7 @@ from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.models.benchmarks import SineDriftModel
 from agsf_torch.models.function_measurement import FunctionMeasurement
 from agsf_torch.models.linear import LinearModel
-from agsf_torch.update import kalman_update, measurement_curvature
+from agsf_torch.update import kalman_update
 from tests.helpers import F64, assert_within, random_mrps, random_spd, random_unit_vectors, relative_bound
 
 EPS = float(np.finfo(np.float64).eps)
@@ -350,7 +350,7 @@ def test_management_on_the_wrong_filter_or_mixture_is_refused(gen):
 
 def test_the_managed_update_is_the_second_order_one():
     # h = x² on one component N(0.7, 0.3) with splitting and merging off: the managed GSF's update is
-    # kalman_update with the curvature along the component's axis (tests/test_update.py checks that update against
+    # kalman_update's second-order update (tests/test_update.py checks that update against
     # its closed form), and with second_order_update=False the EKF update
     meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[0.04]], dtype=F64))
     model = _linear_model(1)
@@ -358,8 +358,7 @@ def test_the_managed_update_is_the_second_order_one():
     y = torch.tensor([[0.9]], dtype=F64)
     still = {**IDLE, "second_order_update": True}
     got = GaussianSumFilter(model, management=MixtureManagement(capacity=1, **still)).update(belief, y, meas)
-    c = measurement_curvature(belief.means, belief.covs, meas)
-    want = kalman_update(belief.log_weights, belief.means, belief.covs, y, meas, curvature=c)
+    want = kalman_update(belief.log_weights, belief.means, belief.covs, y, meas, second_order=True)
     assert torch.equal(got.means, want.means) and torch.equal(got.covs, want.covs)
     ekf = GaussianSumFilter(model, management=MixtureManagement(capacity=1, **IDLE)).update(belief, y, meas)
     plain = kalman_update(belief.log_weights, belief.means, belief.covs, y, meas)
