@@ -298,6 +298,36 @@ def pad_mixture(mixture: GaussianMixture, capacity: int) -> GaussianMixture:
     return mixture.replace(log_weights=log_w, means=means, covs=covs, validate=False)
 
 
+def active_slots(log_weights: Tensor) -> Tensor | None:
+    """The slots a computation over a managed mixture's components needs, ``[..., A]`` slot indices: each
+    trajectory's active slots first (in slot order), then its inactive ones, where ``A`` is the batch's largest
+    active count rounded up to a power of two (kernels specialised to a slot count then serve many steps: at
+    most ``log₂K + 1`` counts), or ``None`` where that is every one of the ``K`` slots.  A trajectory with fewer
+    active slots than ``A`` keeps some inactive ones (weight zero, a copy of its heaviest component).
+
+    Args:
+        log_weights: ``[..., K]``, ``−inf`` at inactive slots.
+    """
+    K = log_weights.shape[-1]
+    active = torch.isfinite(log_weights)
+    most = int(active.sum(-1).max())
+    A = min(K, 1 << max(0, most - 1).bit_length())
+    if A >= K:
+        return None
+    return torch.argsort((~active).to(torch.uint8), dim=-1, stable=True)[..., :A]
+
+
+def gather_slots(mixture: GaussianMixture, index: Tensor) -> GaussianMixture:
+    """The mixture of the slots ``index [..., A]`` (:func:`active_slots`) of ``mixture`` (``[..., K]`` slots)."""
+    n = mixture.state_dim
+    return GaussianMixture(
+        log_weights=torch.gather(mixture.log_weights, -1, index),
+        means=torch.gather(mixture.means, -2, index[..., None].expand(*index.shape, n)),
+        covs=torch.gather(mixture.covs, -3, index[..., None, None].expand(*index.shape, n, n)),
+        validate=False,
+    )
+
+
 def _fill_inactive(log_w: Tensor, means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
     """Inactive slots hold a copy of their trajectory's heaviest component."""
     inactive = ~torch.isfinite(log_w)

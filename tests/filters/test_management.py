@@ -13,6 +13,7 @@ from agsf_torch import GaussianMixture
 from agsf_torch.filters import (
     AdaptiveGaussianSumFilter,
     ExtendedKalmanFilter,
+    GalerkinWeightUpdate,
     GaussianSumFilter,
     MixtureManagement,
     MultiplicativeEKF,
@@ -22,6 +23,7 @@ from agsf_torch.filters.management import (
     SPLIT_OFFSETS,
     SPLIT_VARIANCE,
     SPLIT_WEIGHTS,
+    active_slots,
     entropy_nonlinearity,
     measurement_nonlinearity,
     merged_moments,
@@ -274,6 +276,46 @@ def test_idle_management_only_pads_and_changes_no_estimate(gen, fused):
     assert set(MANAGEMENT_DIAGNOSTICS) <= set(managed.diagnostics)
     assert set(managed.diagnostic_keys("update")) == set(managed.diagnostics)
     assert managed.diagnostics["active_components"].tolist() == [5] * 4
+
+
+def test_active_slots_come_first_and_their_count_is_rounded_up_to_a_power_of_two():
+    inf = -math.inf
+    log_w = torch.full((2, 16), inf, dtype=F64)
+    log_w[0, [2, 5, 9]] = math.log(1 / 3)
+    log_w[1, [0, 1, 3, 4, 7, 15]] = math.log(1 / 6)
+    index = active_slots(log_w)
+    assert index.shape == (2, 8)  # six active at most: eight slots
+    assert index[0, :3].tolist() == [2, 5, 9] and index[1, :6].tolist() == [0, 1, 3, 4, 7, 15]
+    picked = torch.gather(log_w, -1, index)
+    assert bool(torch.isinf(picked[0, 3:]).all()) and bool(torch.isinf(picked[1, 6:]).all())
+    assert len(set(index[0].tolist())) == 8 and len(set(index[1].tolist())) == 8  # distinct slots
+    assert active_slots(torch.zeros(3, 5, dtype=F64)) is None  # every slot active
+    assert active_slots(log_w[:, :8].clone().fill_(0.0)) is None
+    one = torch.full((1, 4), inf, dtype=F64)
+    one[0, 3] = 0.0
+    assert active_slots(one).tolist() == [[3]]
+    three = torch.tensor([[0.0, inf, -1.0, -2.0, inf]], dtype=F64)
+    assert active_slots(three).tolist() == [[0, 2, 3, 1]]  # three active of five: four slots
+
+
+def test_a_managed_weight_update_computes_on_the_active_slots_only(gen):
+    # 5 active components in 16 slots: the Galerkin update sees 8 slots (5 active, 3 held at zero), and its
+    # weights come back to the active slots, −inf at the others
+    seen = []
+
+    class Recorded(GalerkinWeightUpdate):
+        def compute(self, model, prior, propagated, u, elapsed):
+            seen.append(propagated.num_components)
+            return super().compute(model, prior, propagated, u, elapsed)
+
+    model, mix, meas, y, u = _attitude_problem(gen, var=1e-2)
+    managed = AdaptiveGaussianSumFilter(
+        model, weight_update=Recorded(), management=MixtureManagement(capacity=16, **IDLE)
+    )
+    out = managed.predict(mix, u, 0.5)
+    assert seen == [8]
+    assert out.num_components == 16 and bool(torch.isinf(out.log_weights[:, 5:]).all())
+    assert bool(torch.isfinite(out.log_weights[:, :5]).all())
 
 
 @pytest.mark.parametrize("weight_update", ["penalty", "galerkin"])

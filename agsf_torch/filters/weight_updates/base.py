@@ -8,6 +8,7 @@ its evaluation).  See :mod:`agsf_torch.filters.weight_updates`.
 from __future__ import annotations
 
 import dataclasses
+import math
 import weakref
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -22,6 +23,7 @@ from ...models.base import ContinuousModel
 from ...models.derived import provides
 from ...propagation import moment_derivatives
 from ...qp import MAX_COMPONENTS, hold_at_zero
+from ..management import active_slots, gather_slots
 from ..options import option, positive_int
 
 __all__ = [
@@ -188,7 +190,7 @@ class WeightUpdate:
         before = self.run.reference
         self.run.reference, self.run.hold_inactive = reference, weight_map is not None
         try:
-            log_weights, extra = self.compute(model, prior, propagated, u, elapsed)
+            log_weights, extra = self._compute_on_slots(model, prior, propagated, u, elapsed)
         except BaseException:
             self.run.reference = before
             raise
@@ -196,6 +198,29 @@ class WeightUpdate:
             self.run.hold_inactive = False
         self.run.step, self.run.elapsed = step, 0.0
         return log_weights, {**extra, "weights_adapted": True}
+
+    def _compute_on_slots(
+        self,
+        model: ContinuousModel,
+        prior: GaussianMixture,
+        propagated: GaussianMixture,
+        u: Tensor | None,
+        elapsed: float,
+    ) -> tuple[Tensor, dict[str, Any]]:
+        """:meth:`compute`; for a managed mixture, on the slots its active components need
+        (:func:`~agsf_torch.filters.management.active_slots`: the pairs of a weight update grow with the square of
+        the slots, and the inactive ones take no part), the new log-weights and the reference put back in their
+        slots (the new log-weights ``−inf`` at the others, the reference as it was there)."""
+        index = active_slots(propagated.log_weights) if self.run.hold_inactive else None
+        if index is None:
+            return self.compute(model, prior, propagated, u, elapsed)
+        full = self.run.reference if self.run.reference is not None else prior.log_weights
+        if self.run.reference is not None:
+            self.run.reference = torch.gather(self.run.reference, -1, index)
+        log_w, extra = self.compute(model, gather_slots(prior, index), gather_slots(propagated, index), u, elapsed)
+        if self.run.reference is not None:
+            self.run.reference = full.scatter(-1, index, self.run.reference)
+        return torch.full_like(propagated.log_weights, -math.inf).scatter(-1, index, log_w), extra
 
     def check(self, mixture: GaussianMixture) -> None:
         """Raise ``ValueError`` if this update cannot adapt ``mixture`` (default: it can).  Called on every
