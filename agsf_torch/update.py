@@ -340,13 +340,6 @@ def _information_gain(covs: Tensor, H: Tensor, R_eff: Tensor, need: Tensor) -> t
     return K, L_P, L_R, log_det
 
 
-def _joseph(covs: Tensor, K: Tensor, H: Tensor, R: Tensor, eye_n: Tensor) -> Tensor:
-    """The Joseph form ``(I − KH) P (I − KH)ᵀ + K R Kᵀ``, symmetrised: ``[..., N, n, n]``."""
-    IKH = eye_n - K @ H
-    P = IKH @ covs @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
-    return 0.5 * (P + P.transpose(-1, -2))
-
-
 def kalman_update(
     log_weights: Tensor,
     means: Tensor,
@@ -387,15 +380,16 @@ def kalman_update(
         mixture_nis: compute :attr:`ComponentUpdate.nis_mixture` (a single-Gaussian caller
             that does not report it saves its factorisation).
         second_order: the second-order update of the divided-difference filter (Nørgaard, Poulsen & Ravn
-            2000): with the measurement's second differences along the axes of the Gaussian it is linearised
-            over, ``c_k = h(x + s_k) + h(x − s_k) − 2h(x)`` (``s_k = L e_k``, ``LLᵀ`` that Gaussian's covariance,
+            2000): with the measurement's second differences along the prior's axes,
+            ``c_k = h(μ + s_k) + h(μ − s_k) − 2h(μ)`` (``s_k = L e_k``, ``P = LLᵀ``,
             :func:`measurement_curvature`), the prediction is ``h + ½Σ_k c_k`` and its covariance gains
             ``½Σ_k c_k c_kᵀ`` (the second-order terms of a Gaussian, the Hessian's off-diagonal terms in the
             axes' frame left out), so a component wide against the noise is not updated as if ``h`` were
-            linear over it.  The first linearisation is over the prior ``N(μ, P)``; with ``iterations > 1``
-            each later one is over the last iterate and its Joseph covariance (iterated posterior
-            linearisation, García-Fernández et al. 2015): the terms shrink as the iterate's spread does, so
-            where the iterated update has found a narrow posterior they vanish and it is the iterated EKF's.
+            linear over it.  With ``iterations > 1`` every relinearisation keeps these terms of the prior.
+            Taking them over each iterate's posterior instead (iterated posterior linearisation) was measured
+            and is not used: with one star per frame
+            (``agsf validate``'s ``single_vector`` scenarios, 32 runs, 64 slots) the managed GSF's steady ANEES
+            rose from 8.0 to 415 (90°) and from 2.9 to 122 (uniform).
 
     Returns:
         :class:`ComponentUpdate`.
@@ -412,13 +406,16 @@ def kalman_update(
     R = R.unsqueeze(-3) if R.dim() > 2 else R
     n = means.shape[-1]
     eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
-    x, spread, R_noise = means, covs, R
+    shift = None
+    if second_order:  # over the prior N(μ, P), for every linearisation (the docstring says why)
+        c = measurement_curvature(means, covs, measurement)  # [..., N, n, d]
+        shift = 0.5 * c.sum(-2)  # [..., N, d]
+        R = R + 0.5 * c.transpose(-1, -2) @ c  # [..., N, d, d]
+    x = means
     for j in range(int(iterations)):
         h, H = evaluate_measurement(measurement, x)
-        if second_order:  # linearised over N(x, spread): the prior, then the last iterate's posterior
-            c = measurement_curvature(x, spread, measurement)  # [..., N, n, d]
-            h = h + 0.5 * c.sum(-2)
-            R = R_noise + 0.5 * c.transpose(-1, -2) @ c  # [..., N, d, d]
+        if shift is not None:
+            h = h + shift
         d = h.shape[-1]
         if y.shape[-1] != d:
             raise ValueError(
@@ -451,10 +448,10 @@ def kalman_update(
         if robust:
             K = torch.where(need[..., None, None], K_info, K)
         x = means + (K @ nu.unsqueeze(-1)).squeeze(-1)
-        if second_order and j + 1 < iterations:
-            spread = _joseph(covs, K, H, R_eff, eye_n)
     new_means = x
-    new_covs = _joseph(covs, K, H, R_eff, eye_n)
+    IKH = eye_n - K @ H
+    new_covs = IKH @ covs @ IKH.transpose(-1, -2) + K @ R_eff @ K.transpose(-1, -2)
+    new_covs = 0.5 * (new_covs + new_covs.transpose(-1, -2))
 
     z = torch.linalg.solve_triangular(L, nu.unsqueeze(-1), upper=False).squeeze(-1)
     nis = (z * z).sum(-1)

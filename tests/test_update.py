@@ -372,10 +372,9 @@ def test_the_second_order_update_of_a_quadratic_measurement_is_its_closed_form()
     assert_within(out.nis[0, 0], nis, scale * (1 + nis), "second-order NIS")
 
 
-def test_the_iterated_second_order_update_relinearises_over_the_iterate_posterior():
-    # h(x) = x² again, two linearisations: the first over the prior N(μ, P) (the closed form above), the second
-    # over N(x₁, P₁), x₁ and P₁ the first's mean and Joseph covariance: c = 2P₁, H = 2x₁, the prediction
-    # x₁² + P₁ + H(μ − x₁) and S = H²P + R + 2P₁², applied to the prior (posterior linearisation)
+def test_the_iterated_second_order_update_keeps_the_priors_terms():
+    # h(x) = x² again, two linearisations: the second at the first's mean x₁ (H = 2x₁), with the prior's
+    # second-order terms (c = 2P: the prediction x₁² + P + H(μ − x₁), the noise R + 2P²), applied to the prior
     mu, P, R, y = 0.7, 0.3, 0.04, 0.9
     meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
     means = torch.tensor([[[mu]]], dtype=F64)
@@ -383,17 +382,15 @@ def test_the_iterated_second_order_update_relinearises_over_the_iterate_posterio
     Y = torch.tensor([[y]], dtype=F64)
     out = kalman_update(torch.zeros(1, 1, dtype=F64), means, covs, Y, meas, iterations=2, second_order=True)
     H0 = 2 * mu
-    K0 = P * H0 / (H0 * H0 * P + 2 * P * P + R)
-    x1 = mu + K0 * (y - mu * mu - P)
-    P1 = (1 - K0 * H0) ** 2 * P + K0 * K0 * (R + 2 * P * P)
+    x1 = mu + P * H0 / (H0 * H0 * P + 2 * P * P + R) * (y - mu * mu - P)
     H1 = 2 * x1
-    S = H1 * H1 * P + R + 2 * P1 * P1
+    S = H1 * H1 * P + R + 2 * P * P
     K = P * H1 / S
-    nu = y - x1 * x1 - P1 - H1 * (mu - x1)
+    nu = y - x1 * x1 - P - H1 * (mu - x1)
     mean = mu + K * nu
-    cov = (1 - K * H1) ** 2 * P + K * K * (R + 2 * P1 * P1)
+    cov = (1 - K * H1) ** 2 * P + K * K * (R + 2 * P * P)
     scale = 64 * EPS * (1 + mu * mu + P + abs(y)) / R  # two gains, each dividing by S ≥ R
-    assert_within(out.innovation_cov[0, 0, 0, 0], S, scale * S, "S over the iterate's posterior")
+    assert_within(out.innovation_cov[0, 0, 0, 0], S, scale * S, "S at the iterate with the prior's terms")
     assert_within(out.means[0, 0, 0], mean, scale, "iterated second-order mean")
     assert_within(out.covs[0, 0, 0, 0], cov, scale * P, "iterated second-order covariance")
     assert_within(out.nis[0, 0], nu * nu / S, scale * (1 + nu * nu / S), "iterated second-order NIS")
