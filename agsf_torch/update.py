@@ -68,6 +68,7 @@ __all__ = [
     "gram_factor",
     "kalman_update",
     "measurement_curvature",
+    "measurement_second_differences",
     "moment_matched_factor",
     "moment_matched_innovation",
 ]
@@ -274,19 +275,50 @@ def measurement_curvature(means: Tensor, covs: Tensor, measurement: MeasurementM
 
     .. math:: c_k = h(μ + s_k) + h(μ − s_k) − 2h(μ),\\qquad s_k = L e_k,\\; P = LL^T
 
-    (``≈ s_kᵀ∇²h s_k``, exact for a quadratic ``h``), in the measurement's units; the component dim is moved to
-    the front for the call (:func:`evaluate_measurement`).
+    (``≈ s_kᵀ∇²h s_k``, exact for a quadratic ``h``), in the measurement's units.
 
     Args:
         means: ``[..., N, n]``; covs: ``[..., N, n, n]``.
     """
+    return _second_differences(means, covs, measurement, mixed=False)[0]
+
+
+def measurement_second_differences(means: Tensor, covs: Tensor, measurement: MeasurementModel) -> tuple[Tensor, Tensor]:
+    """The measurement's second differences along each component's axes and across each pair of them:
+    ``c [..., N, n, d]`` (:func:`measurement_curvature`) and, for the ``n(n − 1)/2`` pairs ``k < l`` (in the
+    order of ``torch.triu_indices(n, n, 1)``), ``[..., N, n(n − 1)/2, d]``
+
+    .. math:: M_{kl} = h(μ + s_k + s_l) − h(μ + s_k) − h(μ + s_l) + h(μ)
+
+    (``≈ s_kᵀ∇²h s_l``, exact for a quadratic ``h``).  With them the second-order covariance of ``h`` under
+    ``N(μ, P)`` is ``½ tr(∇²hₐ P ∇²h_b P) = ½Σ_k c_k c_kᵀ + Σ_{k<l} M_kl M_klᵀ`` (exact for a quadratic ``h``).
+
+    Args:
+        means: ``[..., N, n]``; covs: ``[..., N, n, n]``.
+    """
+    return _second_differences(means, covs, measurement, mixed=True)
+
+
+def _second_differences(
+    means: Tensor, covs: Tensor, measurement: MeasurementModel, mixed: bool
+) -> tuple[Tensor, Tensor | None]:
+    """``(c, M or None)`` of :func:`measurement_second_differences`, ``h`` evaluated once at every point (the
+    component dim moved to the front for the call, as :func:`evaluate_measurement`)."""
     n = means.shape[-1]
-    pts = cholesky_axes(means, covs)
-    lead, N = pts.shape[:-3], pts.shape[-3]
-    x = pts.reshape(*lead, N * (2 * n + 1), n).movedim(-2, 0)
+    pts = cholesky_axes(means, covs)  # [..., N, 2n + 1, n]: μ, μ + s_k, μ − s_k
+    if mixed:
+        k, l = torch.triu_indices(n, n, 1, device=means.device)
+        plus = pts[..., 1 : n + 1, :]
+        pts = torch.cat((pts, plus[..., k, :] + plus[..., l, :] - pts[..., :1, :]), -2)  # μ + s_k + s_l
+    lead, N, Q = pts.shape[:-3], pts.shape[-3], pts.shape[-2]
+    x = pts.reshape(*lead, N * Q, n).movedim(-2, 0)
     h = measurement.predict(x).movedim(0, -2)
-    h = h.reshape(*lead, N, 2 * n + 1, h.shape[-1])
-    return h[..., 1 : n + 1, :] + h[..., n + 1 :, :] - 2.0 * h[..., :1, :]
+    h = h.reshape(*lead, N, Q, h.shape[-1])
+    centre, plus = h[..., :1, :], h[..., 1 : n + 1, :]
+    c = plus + h[..., n + 1 : 2 * n + 1, :] - 2.0 * centre
+    if not mixed:
+        return c, None
+    return c, h[..., 2 * n + 1 :, :] - plus[..., k, :] - plus[..., l, :] + centre
 
 
 def evaluate_measurement(measurement: MeasurementModel, means: Tensor) -> tuple[Tensor, Tensor]:
@@ -379,17 +411,17 @@ def kalman_update(
             ``measurement.mask()`` (e.g. after innovation gating).
         mixture_nis: compute :attr:`ComponentUpdate.nis_mixture` (a single-Gaussian caller
             that does not report it saves its factorisation).
-        second_order: the second-order update of the divided-difference filter (Nørgaard, Poulsen & Ravn
-            2000): with the measurement's second differences along the prior's axes,
-            ``c_k = h(μ + s_k) + h(μ − s_k) − 2h(μ)`` (``s_k = L e_k``, ``P = LLᵀ``,
-            :func:`measurement_curvature`), the prediction is ``h + ½Σ_k c_k`` and its covariance gains
-            ``½Σ_k c_k c_kᵀ`` (the second-order terms of a Gaussian, the Hessian's off-diagonal terms in the
-            axes' frame left out), so a component wide against the noise is not updated as if ``h`` were
-            linear over it.  With ``iterations > 1`` every relinearisation keeps these terms of the prior.
-            Taking them over each iterate's posterior instead (iterated posterior linearisation) was measured
-            and is not used: with one star per frame
-            (``agsf validate``'s ``single_vector`` scenarios, 32 runs, 64 slots) the managed GSF's steady ANEES
-            rose from 8.0 to 415 (90°) and from 2.9 to 122 (uniform).
+        second_order: the second-order update: with the measurement's second differences along the prior's axes
+            and across each pair of them (:func:`measurement_second_differences`: ``c_k ≈ s_kᵀ∇²h s_k``,
+            ``M_kl ≈ s_kᵀ∇²h s_l``, ``s_k = L e_k``, ``P = LLᵀ``), the prediction is ``h + ½Σ_k c_k`` and its
+            covariance gains ``½Σ_k c_k c_kᵀ + Σ_{k<l} M_kl M_klᵀ``: the second-order terms of a Gaussian,
+            ``½tr(∇²h P)`` and ``½tr(∇²hₐ P ∇²h_b P)``, exact for a quadratic ``h`` (the divided-difference
+            filter of Nørgaard, Poulsen & Ravn 2000 keeps only the ``c_k``), so a component wide against the
+            noise is not updated as if ``h`` were linear over it.  With ``iterations > 1`` every
+            relinearisation keeps these terms of the prior: taken over each iterate's posterior instead (iterated
+            posterior linearisation, measured with the ``c_k`` alone, 32 runs, 64 slots), the managed GSF's
+            steady ANEES with one star per frame (``agsf validate``'s ``single_vector`` scenarios) rose from 8.0
+            to 415 (90°) and from 2.9 to 122 (uniform).
 
     Returns:
         :class:`ComponentUpdate`.
@@ -408,9 +440,9 @@ def kalman_update(
     eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
     shift = None
     if second_order:  # over the prior N(μ, P), for every linearisation (the docstring says why)
-        c = measurement_curvature(means, covs, measurement)  # [..., N, n, d]
+        c, M = measurement_second_differences(means, covs, measurement)  # [..., N, n, d], [..., N, n(n−1)/2, d]
         shift = 0.5 * c.sum(-2)  # [..., N, d]
-        R = R + 0.5 * c.transpose(-1, -2) @ c  # [..., N, d, d]
+        R = R + 0.5 * c.transpose(-1, -2) @ c + M.transpose(-1, -2) @ M  # [..., N, d, d]
     x = means
     for j in range(int(iterations)):
         h, H = evaluate_measurement(measurement, x)

@@ -372,6 +372,38 @@ def test_the_second_order_update_of_a_quadratic_measurement_is_its_closed_form()
     assert_within(out.nis[0, 0], nis, scale * (1 + nis), "second-order NIS")
 
 
+def test_the_second_order_update_of_a_product_takes_the_mixed_terms():
+    # h(x) = x₁x₂ on N(μ, P): E[h] = μ₁μ₂ + P₁₂ and Var[h] = HPHᵀ + P₁₁P₂₂ + P₁₂² with H = (μ₂, μ₁) (Gaussian
+    # moments: ½tr(∇²h P ∇²h P)); the axes' second differences alone (c_k) would miss P₁₁P₂₂ − P₁₂² of it
+    mu = torch.tensor([0.7, -0.4], dtype=F64)
+    P = torch.tensor([[0.3, 0.1], [0.1, 0.2]], dtype=F64)
+    R, y = 0.04, 0.5
+    meas = FunctionMeasurement(lambda x: x[..., :1] * x[..., 1:2], torch.tensor([[R]], dtype=F64))
+    means, covs = mu[None, None], P[None, None]
+    c, M = update_module.measurement_second_differences(means, covs, meas)
+    assert c.shape == (1, 1, 2, 1) and M.shape == (1, 1, 1, 1)
+    L = torch.linalg.cholesky(P)
+    A = torch.tensor([[0.0, 1.0], [1.0, 0.0]], dtype=F64)
+    LAL = L.T @ A @ L  # entry (k, l): s_kᵀ∇²h s_l
+    bound = 32 * EPS * float((mu.abs().max() + L.abs().sum(0).max()) ** 2)
+    assert_within(c[0, 0, :, 0], LAL.diagonal(), bound, "c_k of x₁x₂")
+    assert_within(M[0, 0, 0, 0], LAL[0, 1], bound, "M_12 of x₁x₂")
+    out = kalman_update(
+        torch.zeros(1, 1, dtype=F64), means, covs, torch.tensor([[y]], dtype=F64), meas, second_order=True
+    )
+    H = torch.stack((mu[1], mu[0]))
+    S = float(H @ P @ H) + R + float(P[0, 0] * P[1, 1] + P[0, 1] ** 2)
+    pred = float(mu[0] * mu[1] + P[0, 1])
+    K = P @ H / S
+    mean = mu + K * (y - pred)
+    IKH = torch.eye(2, dtype=F64) - K[:, None] * H[None, :]
+    cov = IKH @ P @ IKH.T + (S - float(H @ P @ H)) * K[:, None] * K[None, :]  # Joseph form, R + the second order
+    scale = 64 * EPS * (1 + float(mu.abs().max()) ** 2 + float(P.abs().max()) + abs(y)) / R
+    assert_within(out.innovation_cov[0, 0, 0, 0], S, scale * S, "S of x₁x₂ with the mixed terms")
+    assert_within(out.means[0, 0], mean, scale, "second-order mean of x₁x₂")
+    assert_within(out.covs[0, 0], cov, scale * float(P.abs().max()), "second-order covariance of x₁x₂")
+
+
 def test_the_iterated_second_order_update_keeps_the_priors_terms():
     # h(x) = x² again, two linearisations: the second at the first's mean x₁ (H = 2x₁), with the prior's
     # second-order terms (c = 2P: the prediction x₁² + P + H(μ − x₁), the noise R + 2P²), applied to the prior

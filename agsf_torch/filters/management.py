@@ -117,13 +117,13 @@ class MixtureManagement:
         split_entropy_rate: split before a propagation where the rate at which the linearised propagation
             misjudges the entropy, ``|E[∇·f] − ∇·f(m)|`` (nats/s; DeMars, Bishop & Jah's test in continuous
             time, the expectation to second order from the axes ``±s_k``), exceeds this.  Default 0.05 nats/s.
-        second_order_update: update every component with the second-order terms of the measurement's curvature
-            along its axes (:func:`agsf_torch.update.kalman_update` with ``second_order``: the divided-difference
-            filter's prediction ``h + ½Σ_k c_k`` and innovation covariance ``+ ½Σ_k c_k c_kᵀ``, taken over the
-            prior and kept by every relinearisation of an iterated update), on the generic update path.  Default
-            ``True``: a component still too wide for the sensor when the slots are spent is then not updated as if
-            the measurement were linear over it (on ``agsf validate``'s one-star scenario from a uniform attitude,
-            32 runs, 64 slots: ANEES 2.4e3 with the EKF update, 2.9 with this one, in its band).
+        second_order_update: update every component with the second-order terms of the measurement over its
+            spread (:func:`agsf_torch.update.kalman_update` with ``second_order``: the prediction
+            ``h + ½Σ_k c_k`` and innovation covariance ``+ ½Σ_k c_k c_kᵀ + Σ_{k<l} M_kl M_klᵀ`` from the second
+            differences along the component's axes and across each pair of them, taken over the prior and kept by
+            every relinearisation of an iterated update), on the generic update path.  Default ``True``: a
+            component still too wide for the sensor when the slots are spent is then not updated as if the
+            measurement were linear over it (``docs/results/management.md`` measures what it buys).
             ``False``: the EKF update of the method (the fused path where the measurement has one).  With
             splitting and merging off (``merge_bound=0``, ``split_measurement=0``, ``split_entropy_rate=0``) and
             ``capacity`` equal to the components, this is the unmanaged filter with the second-order update.
