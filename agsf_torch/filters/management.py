@@ -359,7 +359,8 @@ def runnalls_bound(log_w: Tensor, means: Tensor, covs: Tensor, *, compile: bool 
     The means are compared in the charts they are stored in (canonical for attitude): two components that describe
     nearly the same attitude from different MRP sets (near a 180° rotation) are far apart here and are not merged.
     Evaluated on lanes (:func:`agsf_torch.fused.merge_bound.pair_dissimilarity_kernel`), compiled if
-    ``compile``; the arguments are detached (the bound only decides which pairs merge).
+    ``compile``, over the pairs of the slots the active components need (:func:`active_slots`); the arguments are
+    detached (the bound only decides which pairs merge).
 
     Args:
         log_w: ``[..., K]`` (``−inf``: inactive); means: ``[..., K, n]``; covs: ``[..., K, n, n]``.
@@ -373,6 +374,20 @@ def runnalls_bound(log_w: Tensor, means: Tensor, covs: Tensor, *, compile: bool 
 
     K, n = means.shape[-2:]
     lead = log_w.shape[:-1]
+    index = active_slots(log_w)
+    if index is not None:  # the pairs of the slots the active components need (active_slots), +inf elsewhere
+        lead = torch.broadcast_shapes(lead, means.shape[:-2], covs.shape[:-3])
+        index = index.expand(*lead, index.shape[-1])
+        A = index.shape[-1]
+        b = runnalls_bound(
+            torch.gather(log_w.expand(*lead, K), -1, index),
+            torch.gather(means.expand(*lead, K, n), -2, index[..., None].expand(*lead, A, n)),
+            torch.gather(covs.expand(*lead, K, n, n), -3, index[..., None, None].expand(*lead, A, n, n)),
+            compile=compile,
+        )
+        at = (index[..., :, None] * K + index[..., None, :]).reshape(*lead, A * A)
+        full = b.new_full((*lead, K * K), math.inf).scatter(-1, at, b.reshape(*lead, A * A))
+        return full.reshape(*lead, K, K)
     count = math.prod(lead)
     iu, ju = torch.triu_indices(K, K, 1, device=log_w.device)
     pairs = iu.numel()

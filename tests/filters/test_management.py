@@ -124,6 +124,25 @@ def test_runnalls_bound_and_merged_moments_follow_the_formulas(gen):
     assert bool(torch.isinf(bound[0, 3]).all()) and bool(torch.isinf(bound[0, :, 3]).all())  # the inactive slot
 
 
+def test_runnalls_bound_of_scattered_active_slots_is_the_bound_of_those_pairs(gen):
+    # 8 slots, 3 active in each trajectory at different slots: the pairs are computed on 4 gathered slots
+    # (active_slots) and put back; each active pair's bound is the one of the same pair among all slots active
+    K, n = 8, 3
+    means = torch.randn(2, K, n, generator=gen, dtype=F64)
+    covs = random_spd(gen, 2, K, n=n)
+    log_w = torch.full((2, K), -math.inf, dtype=F64)
+    log_w[0, [1, 4, 6]] = math.log(1 / 3)
+    log_w[1, [0, 2, 7]] = math.log(1 / 3)
+    bound = runnalls_bound(log_w, means, covs)
+    every = runnalls_bound(torch.zeros(2, K, dtype=F64), means, covs)  # no slot inactive: all 28 pairs
+    active = torch.isfinite(log_w)
+    pair = active[:, :, None] & active[:, None, :] & ~torch.eye(K, dtype=torch.bool)
+    assert int(pair.sum()) == 12
+    scale = 64 * EPS * (1 + every[pair].abs() + torch.logdet(covs).abs().amax())
+    assert_within(bound[pair], every[pair], scale, "bound of the active pairs")
+    assert bool(torch.isinf(bound[~pair]).all())
+
+
 def test_runnalls_bound_is_infinite_where_a_covariance_is_not_positive_definite(gen):
     means = torch.randn(2, 3, 2, generator=gen, dtype=F64)
     covs = random_spd(gen, 2, 3, n=2).clone()
