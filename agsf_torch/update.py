@@ -285,13 +285,18 @@ def measurement_curvature(means: Tensor, covs: Tensor, measurement: MeasurementM
 
 def measurement_second_differences(means: Tensor, covs: Tensor, measurement: MeasurementModel) -> tuple[Tensor, Tensor]:
     """The measurement's second differences along each component's axes and across each pair of them:
-    ``c [..., N, n, d]`` (:func:`measurement_curvature`) and, for the ``n(n − 1)/2`` pairs ``k < l`` (in the
-    order of ``torch.triu_indices(n, n, 1)``), ``[..., N, n(n − 1)/2, d]``
+    ``c [..., N, r, d]`` (:func:`measurement_curvature`'s where ``r = n``) and, for the ``r(r − 1)/2`` pairs
+    ``k < l`` (in the order of ``torch.triu_indices(r, r, 1)``), ``[..., N, r(r − 1)/2, d]``
 
     .. math:: M_{kl} = h(μ + s_k + s_l) − h(μ + s_k) − h(μ + s_l) + h(μ)
 
     (``≈ s_kᵀ∇²h s_l``, exact for a quadratic ``h``).  With them the second-order covariance of ``h`` under
     ``N(μ, P)`` is ``½ tr(∇²hₐ P ∇²h_b P) = ½Σ_k c_k c_kᵀ + Σ_{k<l} M_kl M_klᵀ`` (exact for a quadratic ``h``).
+    Where the measurement reads only ``r < n`` state entries
+    (:meth:`~agsf_torch.models.base.MeasurementModel.state_entries`), the axes are those of the marginal
+    covariance of those entries, ``P_rr = L_r L_rᵀ`` (``r`` axes, ``r(r − 1)/2`` pairs): the same terms, since ``h``
+    does not vary along the rest (with the read entries first in the state, the first ``r`` axes of ``P``'s own
+    factor are these and the others' terms are exactly zero).
 
     Args:
         means: ``[..., N, n]``; covs: ``[..., N, n, n]``.
@@ -302,23 +307,35 @@ def measurement_second_differences(means: Tensor, covs: Tensor, measurement: Mea
 def _second_differences(
     means: Tensor, covs: Tensor, measurement: MeasurementModel, mixed: bool
 ) -> tuple[Tensor, Tensor | None]:
-    """``(c, M or None)`` of :func:`measurement_second_differences`, ``h`` evaluated once at every point (the
-    component dim moved to the front for the call, as :func:`evaluate_measurement`)."""
+    """``(c, M or None)`` of :func:`measurement_second_differences` (``mixed``) or :func:`measurement_curvature`,
+    ``h`` evaluated once at every point (the component dim moved to the front for the call, as
+    :func:`evaluate_measurement`).  With ``mixed`` and a measurement that reads only some state entries
+    (:meth:`~agsf_torch.models.base.MeasurementModel.state_entries`) the axes are those of the marginal covariance
+    of those entries: the terms of the other axes vanish exactly, and so are not evaluated."""
     n = means.shape[-1]
-    pts = cholesky_axes(means, covs)  # [..., N, 2n + 1, n]: μ, μ + s_k, μ − s_k
+    entries = measurement.state_entries() if mixed else None
+    if entries is None or len(entries) >= n:
+        s = torch.linalg.cholesky(covs).transpose(-1, -2)  # [..., N, n, n], row k: s_k
+    else:
+        idx = torch.as_tensor(entries, device=means.device)
+        L = torch.linalg.cholesky(covs[..., idx[:, None], idx[None, :]])  # the read entries' marginal
+        s = means.new_zeros(*L.shape[:-1], n)  # [..., N, r, n]
+        s[..., idx] = L.transpose(-1, -2)
+    r = s.shape[-2]
+    m = means.unsqueeze(-2)
+    pts = torch.cat((m, m + s, m - s), -2)  # [..., N, 2r + 1, n]: μ, μ + s_k, μ − s_k
     if mixed:
-        k, l = torch.triu_indices(n, n, 1, device=means.device)
-        plus = pts[..., 1 : n + 1, :]
-        pts = torch.cat((pts, plus[..., k, :] + plus[..., l, :] - pts[..., :1, :]), -2)  # μ + s_k + s_l
+        k, l = torch.triu_indices(r, r, 1, device=means.device)
+        pts = torch.cat((pts, m + s[..., k, :] + s[..., l, :]), -2)  # μ + s_k + s_l
     lead, N, Q = pts.shape[:-3], pts.shape[-3], pts.shape[-2]
     x = pts.reshape(*lead, N * Q, n).movedim(-2, 0)
     h = measurement.predict(x).movedim(0, -2)
     h = h.reshape(*lead, N, Q, h.shape[-1])
-    centre, plus = h[..., :1, :], h[..., 1 : n + 1, :]
-    c = plus + h[..., n + 1 : 2 * n + 1, :] - 2.0 * centre
+    centre, plus = h[..., :1, :], h[..., 1 : r + 1, :]
+    c = plus + h[..., r + 1 : 2 * r + 1, :] - 2.0 * centre
     if not mixed:
         return c, None
-    return c, h[..., 2 * n + 1 :, :] - plus[..., k, :] - plus[..., l, :] + centre
+    return c, h[..., 2 * r + 1 :, :] - plus[..., k, :] - plus[..., l, :] + centre
 
 
 def evaluate_measurement(measurement: MeasurementModel, means: Tensor) -> tuple[Tensor, Tensor]:

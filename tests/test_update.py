@@ -404,6 +404,42 @@ def test_the_second_order_update_of_a_product_takes_the_mixed_terms():
     assert_within(out.covs[0, 0], cov, scale * float(P.abs().max()), "second-order covariance of x₁x₂")
 
 
+def test_the_second_order_terms_over_the_read_entries_are_those_over_every_axis(gen):
+    # the star measurement reads the MRP only (state_entries 0–2): its second differences over the MRP's marginal
+    # (3 axes, 3 pairs) give the update that every axis of the 6-state covariance gives (6 axes, 15 pairs), whose
+    # bias axes add exact zeros (the Cholesky factor is lower triangular, the MRP first)
+    from agsf_torch.models import StarVectorMeasurement
+
+    class EveryEntry(StarVectorMeasurement):
+        def state_entries(self):
+            return None
+
+    B, N, M = 4, 3, 2
+    r = torch.nn.functional.normalize(torch.randn(B, M, 3, generator=gen, dtype=F64), dim=-1)
+    means = torch.cat((0.2 * torch.randn(B, N, 3, generator=gen, dtype=F64), torch.zeros(B, N, 3, dtype=F64)), -1)
+    G = torch.randn(B, N, 6, 6, generator=gen, dtype=F64)
+    covs = 1e-3 * G @ G.transpose(-1, -2) + 1e-6 * torch.eye(6, dtype=F64)
+    y = torch.nn.functional.normalize(torch.randn(B, M, 3, generator=gen, dtype=F64), dim=-1).flatten(-2)
+    log_w = torch.log_softmax(torch.randn(B, N, generator=gen, dtype=F64), -1)
+    star, every = StarVectorMeasurement(r, sigma=1e-2), EveryEntry(r, sigma=1e-2)
+    c3, M3 = update_module.measurement_second_differences(means, covs, star)
+    c6, M6 = update_module.measurement_second_differences(means, covs, every)
+    assert c3.shape[-2] == 3 and M3.shape[-2] == 3 and c6.shape[-2] == 6 and M6.shape[-2] == 15
+    bound = 16 * EPS  # second differences of unit vectors: entries of |h| ≤ 1, four of them
+    assert_within(c3, c6[..., :3, :], bound, "c along the MRP axes")
+    assert_within(c6[..., 3:, :], torch.zeros_like(c6[..., 3:, :]), bound, "c along the bias axes")
+    pairs = [(k, l) for k in range(6) for l in range(k + 1, 6)]
+    mrp_pairs = [i for i, (k, l) in enumerate(pairs) if l < 3]
+    assert_within(M3, M6[..., mrp_pairs, :], bound, "M across MRP axes")
+    a = kalman_update(log_w, means, covs, y, star, second_order=True)
+    b = kalman_update(log_w, means, covs, y, every, second_order=True)
+    # the same prediction shift and noise to the rounding of the sums over axes, scaled by the gains (S ≥ σ²)
+    scale = 64 * EPS * (1 + 1 / 1e-2**2 * float(covs.diagonal(dim1=-2, dim2=-1).max()))
+    assert_within(a.means, b.means, scale, "means")
+    assert_within(a.covs, b.covs, scale * float(covs.abs().max()), "covariances")
+    assert_within(a.log_weights, b.log_weights, scale * (1 + b.nis.abs().max()), "log-weights")
+
+
 def test_the_iterated_second_order_update_keeps_the_priors_terms():
     # h(x) = x² again, two linearisations: the second at the first's mean x₁ (H = 2x₁), with the prior's
     # second-order terms (c = 2P: the prediction x₁² + P + H(μ − x₁), the noise R + 2P²), applied to the prior

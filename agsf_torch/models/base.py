@@ -346,6 +346,14 @@ class MeasurementModel(nn.Module):
         super().__init_subclass__(**kwargs)
         record_derivations(cls)  # closed forms and kernels hold only for the physics they were derived from
 
+    def state_entries(self) -> tuple[int, ...] | None:
+        """The state entries ``h`` reads, or ``None`` (default): all of them.  The second-order update then takes
+        the measurement's second differences over the marginal of these entries only
+        (:func:`agsf_torch.update.measurement_second_differences`), which is exact: ``h`` does not vary along the
+        others.  A model that declares them derives it from its ``predict`` (``derived_from``), so a subclass that
+        reads more gets ``None``."""
+        return None
+
     def predict(self, x: Tensor) -> Tensor:
         """Predicted measurement ``h(x)``: ``[..., n]`` → ``[..., d]``."""
         raise NotImplementedError(f"{type(self).__name__} must implement predict(x): [..., n] → [..., d]")

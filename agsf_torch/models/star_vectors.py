@@ -237,6 +237,11 @@ class StarVectorMeasurement(MeasurementModel):
         """``h(x) = vec(C(p) r_j)`` (:func:`~agsf_torch.attitude.physics.star_vector`): ``x [..., n]`` → ``[..., 3M]``."""
         return as_tensor(self._body_vectors(x)[0], like=x).flatten(-2)
 
+    @derived_from("predict", "_body_vectors", generic=MeasurementModel.state_entries)
+    def state_entries(self) -> tuple[int, ...] | None:
+        """The MRP ``p``, entries 0–2: the star directions do not depend on the gyro bias."""
+        return (0, 1, 2)
+
     @derived_from("predict", "_body_vectors", generic=MeasurementModel.jacobian)
     def jacobian(self, x: Tensor) -> Tensor:
         """Closed form ``∂(C(p) r)/∂p = [(C r)×] E``, ``E = 4B(p)ᵀ/(1+s)²``; zero on bias states

@@ -183,3 +183,9 @@ def test_the_parents_kernels_still_run_for_the_parent(gen, monkeypatch):
     # mean's entries and of the propagated covariance's scale (1e-4)
     assert_within(out.means, generic.means, 64 * torch.finfo(F64).eps * (1 + out.means.abs()), "propagated means")
     assert_within(out.covs, generic.covs, 64 * torch.finfo(F64).eps * 1e-4, "propagated covariances")
+
+
+def test_a_subclass_that_changes_the_camera_reads_every_state_entry():
+    r = torch.eye(3, dtype=F64)[None]
+    assert StarVectorMeasurement(r, sigma=1e-5).state_entries() == (0, 1, 2)
+    assert MisalignedCamera(r, sigma=1e-5).state_entries() is None  # its predict is its own: no declaration
