@@ -9,16 +9,17 @@ __all__ = ["targets", "format_table"]
 #: What bounds the managed rows and the weight QP's speed-up, where a target is not met (profiled; see
 #: docs/results/performance.md, "Mixture management").
 MANAGED_GSF_LIMIT = (
-    "the second-order update (management's default): the generic Kalman update of all 16 slots with their "
-    "curvature, about six times the fused star update of the same slots, and the measurement's curvature at 2n + 1 = 13 points per "
-    "slot, evaluated twice (the split test before the pass, the update after it); the pair dissimilarities (one "
-    "compiled kernel) and the entropy test (the model's closed-form divergence) are a small part (profile: "
+    "the second-order update (management's default): the generic Kalman update of all 16 slots with the "
+    "measurement's second-order terms, whose noise covariance is dense over the 15 star entries (the fused star "
+    "update, which the EKF update takes, goes star by star), about two thirds of the step; the measurement's "
+    "second differences over the MRP (10 points per slot) and, for the split test before the pass, along every "
+    "axis (13 points per slot); the management passes' pair bounds and entropy test are a small part (profile: "
     "performance.md)"
 )
 MANAGED_GALERKIN_LIMIT = (
-    "the Galerkin pair kernel over all 136 slot pairs of 16 slots, the inactive ones' included (their weights are "
-    "held at zero afterwards): about nine tenths of the step at 5 active slots; the management pass and the QP are "
-    "the rest (profile: performance.md)"
+    "the Galerkin update over the 8 slots the 5 active components need (36 pairs) and its QP, about half of the "
+    "step; the management pass (the entropy test over all 16 slots) and the 16-slot propagation are the rest "
+    "(profile: performance.md)"
 )
 QP_LIMIT = (
     "the torch solver's active-set iterations, each a batched LAPACK solve of the [B, N+1, N+1] KKT systems, with "

@@ -9,7 +9,9 @@ the two calls alternate (:func:`~.harness.side_by_side`) and each side's median 
 * :func:`bench_qp_filter` — the filters' own problems: the ``(H, c)`` a weight update passes its solver in one
   predict step of a 6-state attitude mixture (:func:`filter_qp_problems`, captured at the call), the Galerkin
   update's ``M + εI`` and the penalty update's ``L̃ + λI`` on an ``N``-component mixture, and the managed Galerkin
-  filter's at capacity ``N`` with its inactive slots held at zero (:func:`agsf_torch.qp.hold_at_zero`).
+  filter's at capacity ``N``, over the slots its active components need
+  (:func:`agsf_torch.filters.management.active_slots`) with the inactive ones among them held at zero
+  (:func:`agsf_torch.qp.hold_at_zero`).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ FILTER_QP_PROBLEMS = {
     "galerkin": "AGSF-galerkin's M + εI and c, one predict of an N-component split of the attitude prior",
     "penalty": "AGSF (penalty)'s L̃ + λI and −λw_ref, one predict of an N-component split of the attitude prior",
     "galerkin-managed": "AGSF-galerkin-managed's QP at capacity N, one predict of the 5-component prior padded to "
-    "N (its N − 5 inactive slots held at zero)",
+    "N: over the slots its 5 active components need (active_slots: 8 at N = 16, 3 of them held at zero)",
 }
 
 
