@@ -265,7 +265,12 @@ def check_innovation(y: Tensor, means: Tensor, h: Tensor, S_diag: Tensor, valid:
 def cholesky_axes(means: Tensor, covs: Tensor) -> Tensor:
     """The points ``m``, ``m + s_k``, ``m − s_k`` of each component (``s_k = L e_k``, ``P = LLᵀ``, ``k = 1…n``):
     ``[..., N, 2n + 1, n]`` from ``means [..., N, n]`` and ``covs [..., N, n, n]``."""
-    s = torch.linalg.cholesky(covs).transpose(-1, -2)  # row k: s_k
+    return _axis_points(means, torch.linalg.cholesky(covs).transpose(-1, -2))
+
+
+def _axis_points(means: Tensor, s: Tensor) -> Tensor:
+    """``m``, ``m + s_k``, ``m − s_k``: ``[..., N, 2r + 1, n]`` from ``means [..., N, n]`` and the axes
+    ``s [..., N, r, n]`` (row ``k``: ``s_k``)."""
     m = means.unsqueeze(-2)
     return torch.cat((m, m + s, m - s), -2)
 
@@ -322,11 +327,10 @@ def _second_differences(
         s = means.new_zeros(*L.shape[:-1], n)  # [..., N, r, n]
         s[..., idx] = L.transpose(-1, -2)
     r = s.shape[-2]
-    m = means.unsqueeze(-2)
-    pts = torch.cat((m, m + s, m - s), -2)  # [..., N, 2r + 1, n]: μ, μ + s_k, μ − s_k
+    pts = _axis_points(means, s)  # [..., N, 2r + 1, n]: μ, μ + s_k, μ − s_k
     if mixed:
         k, l = torch.triu_indices(r, r, 1, device=means.device)
-        pts = torch.cat((pts, m + s[..., k, :] + s[..., l, :]), -2)  # μ + s_k + s_l
+        pts = torch.cat((pts, pts[..., :1, :] + s[..., k, :] + s[..., l, :]), -2)  # μ + s_k + s_l
     lead, N, Q = pts.shape[:-3], pts.shape[-3], pts.shape[-2]
     x = pts.reshape(*lead, N * Q, n).movedim(-2, 0)
     h = measurement.predict(x).movedim(0, -2)
@@ -436,9 +440,8 @@ def kalman_update(
             filter of Nørgaard, Poulsen & Ravn 2000 keeps only the ``c_k``), so a component wide against the
             noise is not updated as if ``h`` were linear over it.  With ``iterations > 1`` every
             relinearisation keeps these terms of the prior: taken over each iterate's posterior instead (iterated
-            posterior linearisation, measured with the ``c_k`` alone, 32 runs, 64 slots), the managed GSF's
-            steady ANEES with one star per frame (``agsf validate``'s ``single_vector`` scenarios) rose from 8.0
-            to 415 (90°) and from 2.9 to 122 (uniform).
+            posterior linearisation) they cost the managed filters their consistency with one star per frame
+            (``docs/results/management.md``).
 
     Returns:
         :class:`ComponentUpdate`.
@@ -457,7 +460,7 @@ def kalman_update(
     eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
     shift = None
     if second_order:  # over the prior N(μ, P), for every linearisation (the docstring says why)
-        c, M = measurement_second_differences(means, covs, measurement)  # [..., N, n, d], [..., N, n(n−1)/2, d]
+        c, M = measurement_second_differences(means, covs, measurement)  # [..., N, r, d], [..., N, r(r−1)/2, d]
         shift = 0.5 * c.sum(-2)  # [..., N, d]
         R = R + 0.5 * c.transpose(-1, -2) @ c + M.transpose(-1, -2) @ M  # [..., N, d, d]
     x = means

@@ -318,12 +318,17 @@ def active_slots(log_weights: Tensor) -> Tensor | None:
 
 def gather_slots(mixture: GaussianMixture, index: Tensor) -> GaussianMixture:
     """The mixture of the slots ``index [..., A]`` (:func:`active_slots`) of ``mixture`` (``[..., K]`` slots)."""
-    n = mixture.state_dim
-    return GaussianMixture(
-        log_weights=torch.gather(mixture.log_weights, -1, index),
-        means=torch.gather(mixture.means, -2, index[..., None].expand(*index.shape, n)),
-        covs=torch.gather(mixture.covs, -3, index[..., None, None].expand(*index.shape, n, n)),
-        validate=False,
+    log_w, means, covs = _slot_tensors(index, mixture.log_weights, mixture.means, mixture.covs)
+    return GaussianMixture(log_weights=log_w, means=means, covs=covs, validate=False)
+
+
+def _slot_tensors(index: Tensor, log_w: Tensor, means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``log_w [..., K]``, ``means [..., K, n]`` and ``covs [..., K, n, n]`` at the slots ``index [..., A]``."""
+    n = means.shape[-1]
+    return (
+        torch.gather(log_w, -1, index),
+        torch.gather(means, -2, index[..., None].expand(*index.shape, n)),
+        torch.gather(covs, -3, index[..., None, None].expand(*index.shape, n, n)),
     )
 
 
@@ -379,12 +384,8 @@ def runnalls_bound(log_w: Tensor, means: Tensor, covs: Tensor, *, compile: bool 
         lead = torch.broadcast_shapes(lead, means.shape[:-2], covs.shape[:-3])
         index = index.expand(*lead, index.shape[-1])
         A = index.shape[-1]
-        b = runnalls_bound(
-            torch.gather(log_w.expand(*lead, K), -1, index),
-            torch.gather(means.expand(*lead, K, n), -2, index[..., None].expand(*lead, A, n)),
-            torch.gather(covs.expand(*lead, K, n, n), -3, index[..., None, None].expand(*lead, A, n, n)),
-            compile=compile,
-        )
+        slots = _slot_tensors(index, log_w.expand(*lead, K), means.expand(*lead, K, n), covs.expand(*lead, K, n, n))
+        b = runnalls_bound(*slots, compile=compile)
         at = (index[..., :, None] * K + index[..., None, :]).reshape(*lead, A * A)
         full = b.new_full((*lead, K * K), math.inf).scatter(-1, at, b.reshape(*lead, A * A))
         return full.reshape(*lead, K, K)
