@@ -58,7 +58,9 @@ def _linear_model(n=3):
 
 def test_the_split_table_keeps_a_unit_gaussians_moments():
     w, mu = np.array(SPLIT_WEIGHTS), np.array(SPLIT_OFFSETS)
-    assert_within(w.sum(), 1.0, 2 * EPS, "split weights sum")
+    # three constants rounded to ½ ulp each and two additions: under 2ε in any order; 8ε leaves room for the few
+    # ulps another machine's summation may round differently (pytest --jitter-ulps moves the sum by up to 4 ulps)
+    assert_within(w.sum(), 1.0, 8 * EPS, "split weights sum")
     assert_within((w * mu).sum(), 0.0, 4 * EPS, "split mean")
     assert_within((w * (SPLIT_VARIANCE + mu**2)).sum(), 1.0, 8 * EPS, "split variance")
     assert 0.0 < SPLIT_VARIANCE < 1.0
