@@ -15,6 +15,7 @@ from torch import Tensor
 
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel
+from ..qp import MAX_COMPONENTS
 from .gaussian_sum import GaussianSumFilter
 from .weight_updates import WEIGHT_UPDATES, WeightUpdate, make_weight_update
 
@@ -80,6 +81,11 @@ class AdaptiveGaussianSumFilter(GaussianSumFilter):
                 f"pass weight_update={owner_name}({name}=...)"
             )
         super().__init__(model, **options)
+        if self.management is not None and self.management.capacity > MAX_COMPONENTS:
+            raise ValueError(
+                f"management capacity must be ≤ {MAX_COMPONENTS} for an adaptive filter (the weight QP's limit; the "
+                f"GSF has none), got {self.management.capacity}"
+            )
         update = make_weight_update(weight_update)
         update.check_free(self)  # before it is rebound to this filter's model
         update.bind(model, fused=self.fused, compile_fused=self.compile_fused)

@@ -32,6 +32,7 @@ from ..mixture import GaussianMixture, as_real_tensor
 from ..models.base import ContinuousModel, MeasurementModel
 from ..models.contract import check_measurement_elementwise
 from ..update import ComponentUpdate, kalman_update
+from .management import gather_slots, spread_slots
 from .options import FilterOptions
 from .step_diagnostics import StepDiagnostics
 
@@ -265,7 +266,12 @@ class BaseFilter:
         """
         u, dt = self._validate_predict(mixture, u, dt)
         mixture, managed = self._manage(mixture, "predict", u=u)
-        propagated, repairs = self._propagate(mixture, u, dt)
+        slots = self._computed_slots(mixture)
+        if slots is None:
+            propagated, repairs = self._propagate(mixture, u, dt)
+        else:
+            propagated, repairs = self._propagate(gather_slots(mixture, slots), u, dt)
+            propagated, _ = spread_slots(mixture, propagated, slots)
         adapted, extra = self._adapt_weights(mixture, propagated, u, dt)
         self.diagnostics = StepDiagnostics(
             {"weight_entropy": adapted.entropy_of_weights(), "covariance_repairs": repairs, **managed, **extra}
@@ -284,6 +290,13 @@ class BaseFilter:
         ``measurement``): the mixture to go on with and diagnostics; by default the mixture as it is.  A
         Gaussian-sum filter's mixture management runs here (:mod:`agsf_torch.filters.management`)."""
         return mixture, {}
+
+    def _computed_slots(self, mixture: GaussianMixture) -> Tensor | None:
+        """The slots of ``mixture`` a propagation and an update compute, ``[..., A]`` indices
+        (:func:`~agsf_torch.filters.management.active_slots`; the others are inactive and are restored as copies of
+        the heaviest component by :func:`~agsf_torch.filters.management.spread_slots`), or ``None``: every slot.
+        By default every slot."""
+        return None
 
     def _validate_predict(self, mixture: GaussianMixture, u: Any, dt: Any) -> tuple[Tensor | None, float]:
         """Check the mixture, ``dt`` and ``u`` before anything changes; return ``(u [..., m] or None, dt)``."""
@@ -323,15 +336,20 @@ class BaseFilter:
         """
         y = self._validate_update(mixture, y, measurement)
         mixture, managed = self._manage(mixture, "update", measurement=measurement)
-        frame = self._update_frame(mixture, measurement)
+        slots = self._computed_slots(mixture)
+        computed = mixture if slots is None else gather_slots(mixture, slots)
+        frame = self._update_frame(computed, measurement)
         mask, gate = self._gate(frame, y)
         result = self._kalman_step(frame, y, mask)
-        posterior, repairs = self._posterior(mixture, frame, result)
+        posterior, repairs = self._posterior(computed, frame, result)
+        nis = result.nis
+        if slots is not None:
+            posterior, (nis,) = spread_slots(mixture, posterior, slots, nis)
         nis_mixture = result.nis_mixture if result.nis_mixture is not None else result.nis[..., 0]
         self.diagnostics = StepDiagnostics(
             {
                 "log_likelihood": result.log_likelihood,
-                "nis": result.nis,
+                "nis": nis,
                 "nis_mixture": nis_mixture,
                 "dof": result.dof,
                 "weight_entropy": posterior.entropy_of_weights(),

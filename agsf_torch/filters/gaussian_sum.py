@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from ..mixture import GaussianMixture
@@ -13,7 +14,9 @@ from .base import BaseFilter
 from .management import (
     MANAGEMENT_DIAGNOSTICS,
     MixtureManagement,
+    active_slots,
     entropy_nonlinearity,
+    gather_slots,
     measurement_nonlinearity,
     pad_mixture,
 )
@@ -116,17 +119,28 @@ class GaussianSumFilter(BaseFilter):
         if mg is None:
             return mixture, {}
         mixture = pad_mixture(mixture, mg.capacity)
+        slots = active_slots(mixture.log_weights)  # the tests score the active components' slots only
+        scored = mixture if slots is None else gather_slots(mixture, slots)
         score = axis = None
         threshold = 0.0
         if step == "predict" and mg.split_entropy_rate > 0:
-            score, axis = entropy_nonlinearity(self.model, mixture.means, mixture.covs, u)
+            score, axis = entropy_nonlinearity(self.model, scored.means, scored.covs, u)
             threshold = mg.split_entropy_rate
         elif step == "update" and mg.split_measurement > 0 and measurement is not None:
-            score, axis = measurement_nonlinearity(mixture.means, mixture.covs, measurement)
+            score, axis = measurement_nonlinearity(scored.means, scored.covs, measurement)
             threshold = mg.split_measurement
+        if score is not None and slots is not None:  # back to their slots; an unscored (inactive) slot scores 0
+            score = torch.zeros_like(mixture.log_weights).scatter(-1, slots, score)
+            axis = torch.zeros_like(mixture.log_weights, dtype=axis.dtype).scatter(-1, slots, axis)
         result = mg.apply(mixture, self.model, score, axis, threshold, compile=self.compile_fused)
         self.weight_map = result.weight_map
         return result.mixture, result.counts
+
+    def _computed_slots(self, mixture: GaussianMixture) -> Tensor | None:
+        """With management, the slots the active components need (:func:`~agsf_torch.filters.management.active_slots`):
+        a step computes only those, and the inactive slots, which carry no weight, are restored as copies of the
+        heaviest component (:func:`~agsf_torch.filters.management.spread_slots`)."""
+        return None if self.management is None else active_slots(mixture.log_weights)
 
     def _second_order_update(self) -> bool:
         """Management's ``second_order_update``: the update is then the generic second-order one

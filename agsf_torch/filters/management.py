@@ -42,7 +42,6 @@ from torch import Tensor
 
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel, MeasurementModel
-from ..qp import MAX_COMPONENTS
 from ..update import cholesky_axes, measurement_curvature
 from .options import option, positive_int
 
@@ -54,6 +53,9 @@ __all__ = [
     "SPLIT_OFFSETS",
     "SPLIT_VARIANCE",
     "pad_mixture",
+    "active_slots",
+    "gather_slots",
+    "spread_slots",
     "runnalls_bound",
     "merged_moments",
     "measurement_nonlinearity",
@@ -94,9 +96,10 @@ class MixtureManagement:
         AdaptiveGaussianSumFilter(model, management=MixtureManagement(capacity=32, split_measurement=0.5))
 
     Attributes:
-        capacity: ``K``, the mixture's slots (≥ the initial component count; ≤ the weight QP's limit).  A mixture
-            given with fewer components is padded with inactive slots at the filter's first step.  Default 64, the
-            QP's limit: on ``agsf validate``'s one-star scenario from a uniform attitude 16 slots left the managed
+        capacity: ``K``, the mixture's slots (≥ the initial component count; for the adaptive filters ≤
+            :data:`~agsf_torch.qp.MAX_COMPONENTS`, the weight QP's limit, which the GSF does not have).  A mixture
+            given with fewer components is padded with inactive slots at the filter's first step; a step computes
+            only the slots its active components need (:func:`active_slots`).  Default 64: on ``agsf validate``'s one-star scenario from a uniform attitude 16 slots left the managed
             GSF at 10–20 times the floor, 32 at about 1.3 times, 64 at it (16 runs each; every slot costs work in
             every step, the merge test's pairs grow as ``K²``).
         prune_weight: weight (dimensionless, in [0, 0.5)) below which a component is dropped; the heaviest is
@@ -173,8 +176,6 @@ class MixtureManagement:
 
     def __post_init__(self) -> None:
         positive_int("capacity", self.capacity)
-        if self.capacity > MAX_COMPONENTS:
-            raise ValueError(f"capacity must be ≤ {MAX_COMPONENTS} (the weight QP's limit), got {self.capacity}")
         _nonnegative("prune_weight", self.prune_weight)
         if not self.prune_weight < 0.5:
             raise ValueError(
@@ -322,14 +323,49 @@ def gather_slots(mixture: GaussianMixture, index: Tensor) -> GaussianMixture:
     return GaussianMixture(log_weights=log_w, means=means, covs=covs, validate=False)
 
 
+def spread_slots(
+    mixture: GaussianMixture, computed: GaussianMixture, index: Tensor, *per_component: Tensor
+) -> tuple[GaussianMixture, tuple[Tensor, ...]]:
+    """The ``K`` slots of ``mixture`` after a step computed only the slots ``index [..., A]``
+    (:func:`active_slots`), whose result is ``computed`` (``A`` slots): each active slot takes its computed
+    component, each inactive slot (weight zero) a copy of its trajectory's heaviest computed component, the
+    invariant of a managed mixture.
+
+    Args:
+        mixture: the ``K`` slots the step started from (their shapes and charts).
+        computed: the step's result on the slots ``index``.
+        index: ``[..., A]`` slot indices, distinct within a trajectory.
+        per_component: tensors ``[..., A, ...]`` of the step (e.g. each component's NIS), spread the same way.
+
+    Returns:
+        ``(the K-slot mixture, the per-component tensors [..., K, ...])``.
+    """
+    K, A = mixture.log_weights.shape[-1], index.shape[-1]
+    lw = computed.log_weights
+    heaviest = lw.argmax(-1, keepdim=True).expand_as(index)
+    position = torch.arange(A, device=index.device).expand_as(index)
+    source = heaviest[..., :1].expand(*index.shape[:-1], K).clone()
+    source.scatter_(-1, index, torch.where(torch.isfinite(lw), position, heaviest))
+    log_w = torch.full_like(mixture.log_weights, -math.inf).scatter(-1, index, lw)
+    spread = mixture.replace(
+        log_weights=log_w,
+        means=_take_slots(computed.means, source),
+        covs=_take_slots(computed.covs, source),
+        validate=False,
+    )
+    return spread, tuple(_take_slots(t, source) for t in per_component)
+
+
+def _take_slots(values: Tensor, index: Tensor) -> Tensor:
+    """``values [..., K, *rest]`` at the slots ``index [..., A]``: ``[..., A, *rest]``."""
+    rest = values.shape[index.dim() :]
+    at = index.reshape(*index.shape, *(1,) * len(rest)).expand(*index.shape, *rest)
+    return torch.gather(values, index.dim() - 1, at)
+
+
 def _slot_tensors(index: Tensor, log_w: Tensor, means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``log_w [..., K]``, ``means [..., K, n]`` and ``covs [..., K, n, n]`` at the slots ``index [..., A]``."""
-    n = means.shape[-1]
-    return (
-        torch.gather(log_w, -1, index),
-        torch.gather(means, -2, index[..., None].expand(*index.shape, n)),
-        torch.gather(covs, -3, index[..., None, None].expand(*index.shape, n, n)),
-    )
+    return _take_slots(log_w, index), _take_slots(means, index), _take_slots(covs, index)
 
 
 def _fill_inactive(log_w: Tensor, means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:

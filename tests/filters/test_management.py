@@ -25,10 +25,12 @@ from agsf_torch.filters.management import (
     SPLIT_WEIGHTS,
     active_slots,
     entropy_nonlinearity,
+    gather_slots,
     measurement_nonlinearity,
     merged_moments,
     pad_mixture,
     runnalls_bound,
+    spread_slots,
 )
 from agsf_torch.filters.registry import CONFIG_OPTIONS, make_filter
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
@@ -319,6 +321,80 @@ def test_active_slots_come_first_and_their_count_is_rounded_up_to_a_power_of_two
     assert active_slots(three).tolist() == [[0, 2, 3, 1]]  # three active of five: four slots
 
 
+def test_spread_slots_puts_computed_components_back_and_fills_inactive_slots_with_the_heaviest(gen):
+    inf = -math.inf
+    K, n = 8, 2
+    log_w = torch.full((2, K), inf, dtype=F64)
+    log_w[0, [1, 4, 6]] = torch.log(torch.tensor([0.2, 0.5, 0.3], dtype=F64))
+    log_w[1, [0, 7]] = torch.log(torch.tensor([0.6, 0.4], dtype=F64))
+    mix = GaussianMixture(
+        log_weights=log_w, means=torch.randn(2, K, n, generator=gen, dtype=F64), covs=random_spd(gen, 2, K, n=n)
+    )
+    index = active_slots(log_w)
+    assert index.shape == (2, 4)  # three active at most: four slots, one inactive among them in each
+    computed = gather_slots(mix, index)
+    computed = computed.replace(means=computed.means + 1.0, covs=2.0 * computed.covs, validate=False)
+    per_slot = torch.arange(4, dtype=F64).expand(2, 4) + 10.0
+    spread, (nis,) = spread_slots(mix, computed, index, per_slot)
+    assert spread.num_components == K
+    assert torch.equal(torch.isfinite(spread.log_weights), torch.isfinite(log_w))
+    active = torch.isfinite(log_w)
+    # gather_slots normalises the gathered weights again: a logsumexp of weights that sum to one, a few eps
+    assert_within(spread.log_weights[active], mix.log_weights[active], 8 * EPS, "active slots' log-weights")
+    assert torch.equal(spread.means[active], mix.means[active] + 1.0)
+    assert torch.equal(spread.covs[active], 2.0 * mix.covs[active])
+    for b, heaviest in ((0, 4), (1, 0)):  # every inactive slot: a copy of the heaviest computed component
+        idle = ~active[b]
+        assert torch.equal(spread.means[b, idle], (mix.means[b, heaviest] + 1.0).expand(int(idle.sum()), n))
+        assert torch.equal(spread.covs[b, idle], (2.0 * mix.covs[b, heaviest]).expand(int(idle.sum()), n, n))
+        position = int((index[b] == heaviest).nonzero())
+        assert bool((nis[b, idle] == 10.0 + position).all())
+        assert nis[b, index[b, 0]] == 10.0
+
+
+@pytest.mark.parametrize("weight_update", [None, "galerkin"])
+def test_a_managed_step_computes_on_the_active_slots_and_matches_computing_every_slot(gen, weight_update):
+    # five active components in 16 slots: propagation and update see the 8 slots they need; the active
+    # components come out as when every slot is computed (the same arithmetic per component), the inactive
+    # slots as copies of the heaviest
+    seen = []
+
+    class EverySlot:
+        def _computed_slots(self, mixture):
+            return None
+
+    class Recorded:
+        def _propagate(self, mixture, u, dt):
+            seen.append(("propagate", mixture.num_components))
+            return super()._propagate(mixture, u, dt)
+
+        def _kalman_step(self, frame, y, mask):
+            seen.append(("update", frame.log_weights.shape[-1]))
+            return super()._kalman_step(frame, y, mask)
+
+    model, mix, meas, y, u = _attitude_problem(gen, var=1e-2, stars=1)
+    base = GaussianSumFilter if weight_update is None else AdaptiveGaussianSumFilter
+    kwargs = {} if weight_update is None else {"weight_update": weight_update}
+    opts = dict(IDLE, second_order_update=True)
+    sliced = type("Sliced", (Recorded, base), {})(model, management=MixtureManagement(capacity=16, **opts), **kwargs)
+    whole = type("Whole", (EverySlot, base), {})(model, management=MixtureManagement(capacity=16, **opts), **kwargs)
+    a = sliced.update(sliced.predict(mix, u, 0.5), y, meas)
+    b = whole.update(whole.predict(mix, u, 0.5), y, meas)
+    assert seen == [("propagate", 8), ("update", 8)]
+    assert torch.equal(torch.isfinite(a.log_weights), torch.isfinite(b.log_weights))
+    live = torch.isfinite(b.log_weights)
+    assert_within(a.log_weights[live], b.log_weights[live], relative_bound(b.log_weights[live], 1e-10, 1e-12), "log-w")
+    ma, Pa = sliced.estimate(a)
+    mb, Pb = whole.estimate(b)
+    assert_within(ma, mb, relative_bound(mb, 1e-12, 1e-12 * float(mb.abs().max())), "estimate")
+    assert_within(Pa, Pb, relative_bound(Pb, 1e-10, 1e-12 * float(Pb.abs().max())), "covariance")
+    heaviest = a.log_weights.argmax(-1)
+    idle = ~live
+    for t in range(a.log_weights.shape[0]):
+        assert torch.equal(a.means[t, idle[t]], a.means[t, heaviest[t]].expand(int(idle[t].sum()), -1))
+    assert sliced.diagnostics["nis"].shape == b.log_weights.shape
+
+
 def test_a_managed_weight_update_computes_on_the_active_slots_only(gen):
     # 5 active components in 16 slots: the Galerkin update sees 8 slots (5 active, 3 held at zero), and its
     # weights come back to the active slots, −inf at the others
@@ -380,7 +456,6 @@ def test_registry_builds_the_managed_filters_with_their_options():
     ("options", "match"),
     [
         ({"capacity": 0}, "capacity"),
-        ({"capacity": 65}, "capacity"),
         ({"prune_weight": -1e-3}, "prune_weight"),
         ({"prune_weight": 0.5}, "prune_weight"),
         ({"merge_bound": float("nan")}, "merge_bound"),
@@ -407,6 +482,12 @@ def test_management_on_the_wrong_filter_or_mixture_is_refused(gen):
     filt = GaussianSumFilter(model, management=MixtureManagement(capacity=4))
     with pytest.raises(ValueError, match="capacity"):
         filt.predict(mix, u, 0.1)
+    # the weight QP's limit binds the adaptive filters only; the GSF takes more slots
+    for weight_update in ("penalty", "galerkin"):
+        with pytest.raises(ValueError, match="capacity must be ≤ 64 for an adaptive filter"):
+            AdaptiveGaussianSumFilter(model, weight_update=weight_update, management=MixtureManagement(capacity=65))
+    wide = GaussianSumFilter(model, management=MixtureManagement(capacity=65))
+    assert wide.predict(mix, u, 0.1).num_components == 65
     with pytest.raises(ValueError, match="capacity"):
         pad_mixture(mix, 4)
 

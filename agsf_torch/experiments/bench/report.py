@@ -9,17 +9,17 @@ __all__ = ["targets", "format_table"]
 #: What bounds the managed rows and the weight QP's speed-up, where a target is not met (profiled; see
 #: docs/results/performance.md, "Mixture management").
 MANAGED_GSF_LIMIT = (
-    "the second-order update (management's default): the generic Kalman update of all 16 slots with the "
-    "measurement's second-order terms, whose noise covariance is dense over the 15 star entries (the fused star "
-    "update, which the EKF update takes, goes star by star), about two thirds of the step; the measurement's "
-    "second differences over the MRP (10 points per slot) and, for the split test before the pass, along every "
-    "axis (13 points per slot); the management passes' pair bounds and entropy test are a small part (profile: "
-    "performance.md)"
+    "the second-order update (management's default): the generic Kalman update of the slots the active "
+    "components need (all 16 here: the update's splits leave 15 active) with the measurement's second-order terms, "
+    "whose noise covariance is dense over the 15 star entries (the fused star update, which the EKF update takes, "
+    "goes star by star), about four fifths of the step; the measurement's second differences over the MRP (10 "
+    "points per slot) and, for the split test before the pass, along every axis (13 points per slot); the "
+    "management passes' pair bounds and entropy test are a small part (profile: performance.md)"
 )
 MANAGED_GALERKIN_LIMIT = (
-    "the Galerkin update over the 8 slots the 5 active components need (36 pairs) and its QP, about half of the "
-    "step; the management pass (the entropy test over all 16 slots) and the 16-slot propagation are the rest "
-    "(profile: performance.md)"
+    "the Galerkin update over the 8 slots the 5 active components need (36 pairs) and its QP, about three fifths "
+    "of the step; the management pass (pair bounds, the entropy test over those 8 slots) and their propagation are "
+    "the rest (profile: performance.md)"
 )
 QP_LIMIT = (
     "the torch solver's active-set iterations, each a batched LAPACK solve of the [B, N+1, N+1] KKT systems, with "

@@ -217,6 +217,12 @@ class _ExperimentFields:
             )
         managed = [f for f in self.filters if filter_spec(f).managed]
         capacity = getattr(self, "capacity", CONFIG_OPTIONS["capacity"].default)
+        adaptive_managed = [f for f in managed if f in ADAPTIVE_FILTERS]
+        if adaptive_managed and isinstance(capacity, int) and capacity > MAX_COMPONENTS:
+            raise ValueError(
+                f"config key 'capacity' must be ≤ {MAX_COMPONENTS} for the adaptive managed filter(s) "
+                f"{', '.join(adaptive_managed)} (the weight QP's limit; GSF-managed has none), got {capacity}"
+            )
         if managed and isinstance(capacity, int) and capacity < self.components:
             raise ValueError(
                 f"config key 'capacity' ({capacity}) must be ≥ 'components' ({self.components}) for the managed "

@@ -172,3 +172,9 @@ def test_a_managed_filters_capacity_below_the_components_is_refused_by_name():
     cfg = load_config("case1", ['filters=["GSF", "GSF-managed"]', "components=9", "capacity=9"])
     assert cfg.filter_options()["capacity"] == 9
     assert load_config("case1", ['filters=["GSF"]', "components=9", "capacity=4"]).components == 9  # unmanaged: unused
+
+
+def test_an_adaptive_managed_filters_capacity_above_the_qp_limit_is_refused_by_name():
+    with pytest.raises(ValueError, match="'capacity' must be ≤ 64 .*AGSF-galerkin-managed"):
+        load_config("case1", ['filters=["GSF-managed", "AGSF-galerkin-managed"]', "capacity=128"])
+    assert load_config("case1", ['filters=["GSF-managed"]', "capacity=128"]).filter_options()["capacity"] == 128
