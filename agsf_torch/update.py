@@ -126,7 +126,9 @@ def moment_matched_innovation(log_weights: Tensor, nu: Tensor, S: Tensor) -> tup
     w = log_weights.exp()
     nu_bar = (w[..., None] * nu).sum(-2)
     dn = nu - nu_bar.unsqueeze(-2)
-    S_bar = (w[..., None, None] * (S + dn[..., :, None] * dn[..., None, :])).sum(-3)
+    # Σ wᵢSᵢ and Σ wᵢ dnᵢdnᵢᵀ = dnᵀ diag(w) dn as contractions, without an [..., N, k, k] temporary
+    spread = (w[..., None] * dn).transpose(-1, -2) @ dn
+    S_bar = torch.einsum("...i,...ijk->...jk", w, S) + 0.5 * (spread + spread.transpose(-1, -2))
     return nu_bar, S_bar
 
 
@@ -477,8 +479,11 @@ def kalman_update(
             valid = torch.ones(h.shape[:-1] + (d,), dtype=means.dtype, device=means.device)
         else:
             valid = mask.to(means.dtype).unsqueeze(-2).expand(h.shape)
-        R_eff = valid[..., :, None] * valid[..., None, :] * R + torch.diag_embed(1.0 - valid)
-        H = valid[..., None] * H
+        if mask is None or bool(mask.all()):  # every entry valid: the masking below would change nothing
+            R_eff = R.expand(*h.shape, d)
+        else:
+            R_eff = valid[..., :, None] * valid[..., None, :] * R + torch.diag_embed(1.0 - valid)
+            H = valid[..., None] * H
         PHt = covs @ H.transpose(-1, -2)  # [..., N, n, d]
         S = H @ PHt + R_eff
         if j == 0:

@@ -488,3 +488,17 @@ def test_the_second_order_update_of_a_linear_measurement_is_the_ekf_update(gen):
         assert_within(second.means, plain.means, tol[:, None, None], f"means, {iterations} linearisations")
         cov_scale = covs.diagonal(dim1=-2, dim2=-1).amax((-2, -1))
         assert_within(second.covs, plain.covs, 64 * EPS * cov_scale[:, None, None, None], "covariances")
+
+
+def test_moment_matched_innovation_is_the_mixtures_mean_and_covariance_in_closed_form():
+    # two components in two entries, exact binary fractions: ν̄ = Σ wᵢνᵢ, S̄ = Σ wᵢ(Sᵢ + (νᵢ − ν̄)(νᵢ − ν̄)ᵀ)
+    w = torch.tensor([[0.25, 0.75]], dtype=F64)
+    nu = torch.tensor([[[1.0, 0.0], [-1.0, 2.0]]], dtype=F64)
+    S = torch.tensor([[[[2.0, 0.5], [0.5, 1.0]], [[1.0, -0.25], [-0.25, 4.0]]]], dtype=F64)
+    nu_bar, S_bar = update_module.moment_matched_innovation(w.log(), nu, S)
+    # ν̄ = (−0.5, 1.5); deviations (1.5, −1.5) and (−0.5, 0.5):
+    # S̄ = 0.25·[[2 + 2.25, 0.5 − 2.25], [., 1 + 2.25]] + 0.75·[[1 + 0.25, −0.25 − 0.25], [., 4 + 0.25]]
+    want_S = torch.tensor([[[2.0, -0.8125], [-0.8125, 4.0]]], dtype=F64)
+    assert_within(nu_bar, torch.tensor([[-0.5, 1.5]], dtype=F64), 4 * float(np.finfo(np.float64).eps), "ν̄")
+    assert_within(S_bar, want_S, 16 * float(np.finfo(np.float64).eps), "S̄")
+    assert torch.equal(S_bar, S_bar.transpose(-1, -2))

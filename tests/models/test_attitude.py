@@ -9,6 +9,7 @@ import torch
 
 from agsf_torch import rotations as rot
 from agsf_torch.models import AttitudeModel, ContinuousModel
+from agsf_torch.models.attitude import SHADOW_FORCED, SHADOW_SPREAD
 from tests.helpers import assert_within, random_mrps, relative_bound
 
 EPS = torch.finfo(torch.float64).eps
@@ -118,6 +119,25 @@ def test_canonicalize_switches_to_shadow(gen, estimate_bias):
     assert_within(P2[switched], mapped, relative_bound(mapped, 1e-12, 1e-18), "covariance mapped to the shadow set")
     if estimate_bias:
         assert torch.equal(P2[:, 3:, 3:], P[:, 3:, 3:]) and torch.equal(m2[:, 3:], x[:, 3:])  # the bias untouched
+
+
+def test_canonicalize_keeps_a_component_too_wide_for_the_linearised_switch(gen):
+    # the shadow map bends by about √tr P_pp / |p| over one standard deviation: a wider component than
+    # SHADOW_SPREAD·|p| stays in its own set (its linearised switch would misplace most of its mass) until
+    # |p| > SHADOW_FORCED, where it switches whatever its spread
+    model = AttitudeModel(estimate_bias=True)
+    p = torch.tensor([[1.7, 0.0, 0.0], [1.7, 0.0, 0.0], [0.0, 3.5, 0.0], [0.6, 0.0, 0.0]], dtype=torch.float64)
+    x = torch.cat((p, torch.zeros(4, 3, dtype=torch.float64)), -1)
+    variance = torch.tensor([0.17, (0.09 * 1.7) ** 2 / 3, 0.17, 0.17], dtype=torch.float64)
+    P = torch.diag_embed(
+        torch.cat((variance[:, None].expand(4, 3), torch.full((4, 3), 1e-10, dtype=torch.float64)), -1)
+    )
+    m2, P2 = model.canonicalize(x, P)
+    assert torch.equal(m2[0], x[0]) and torch.equal(P2[0], P[0])  # wide (√tr = 0.71 > 0.17): kept
+    assert_within(m2[1, :3], rot.mrp_shadow(p[1]), 1e-15, "narrow: switched")
+    assert_within(m2[2, :3], rot.mrp_shadow(p[2]), 1e-15, "beyond |p| = 3: switched")
+    assert torch.equal(m2[3], x[3])  # inside the unit ball: never switched
+    assert (SHADOW_SPREAD, SHADOW_FORCED) == (0.1, 3.0)
 
 
 def test_state_error_uses_nearest_set(gen):
