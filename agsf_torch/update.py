@@ -465,6 +465,7 @@ def kalman_update(
         c, M = measurement_second_differences(means, covs, measurement)  # [..., N, r, d], [..., N, r(r−1)/2, d]
         shift = 0.5 * c.sum(-2)  # [..., N, d]
         R = R + 0.5 * c.transpose(-1, -2) @ c + M.transpose(-1, -2) @ M  # [..., N, d, d]
+    every_entry_valid = mask is None or bool(mask.all())
     x = means
     for j in range(int(iterations)):
         h, H = evaluate_measurement(measurement, x)
@@ -479,7 +480,7 @@ def kalman_update(
             valid = torch.ones(h.shape[:-1] + (d,), dtype=means.dtype, device=means.device)
         else:
             valid = mask.to(means.dtype).unsqueeze(-2).expand(h.shape)
-        if mask is None or bool(mask.all()):  # every entry valid: the masking below would change nothing
+        if every_entry_valid:  # the masking below would change nothing
             R_eff = R.expand(*h.shape, d)
         else:
             R_eff = valid[..., :, None] * valid[..., None, :] * R + torch.diag_embed(1.0 - valid)

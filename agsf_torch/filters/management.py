@@ -99,9 +99,10 @@ class MixtureManagement:
         capacity: ``K``, the mixture's slots (≥ the initial component count; for the adaptive filters ≤
             :data:`~agsf_torch.qp.MAX_COMPONENTS`, the weight QP's limit, which the GSF does not have).  A mixture
             given with fewer components is padded with inactive slots at the filter's first step; a step computes
-            only the slots its active components need (:func:`active_slots`).  Default 64: on ``agsf validate``'s one-star scenario from a uniform attitude 16 slots left the managed
-            GSF at 10–20 times the floor, 32 at about 1.3 times, 64 at it (16 runs each; every slot costs work in
-            every step, the merge test's pairs grow as ``K²``).
+            only the slots its active components need (:func:`active_slots`).  Default 64: on ``agsf validate``'s
+            one-star scenario from a uniform attitude 16 slots left the managed GSF at 10–20 times the floor, 32 at
+            about 1.3 times, 64 at it (16 runs each; the merge test's pairs grow as the square of the active
+            slots).
         prune_weight: weight (dimensionless, in [0, 0.5)) below which a component is dropped; the heaviest is
             never dropped.  Default 0 (never): with a precise sensor after a wide prior the linearised update drives
             the weights of the components it cannot yet judge far below 1e-30, and a dropped component cannot
@@ -342,9 +343,9 @@ def spread_slots(
     """
     K, A = mixture.log_weights.shape[-1], index.shape[-1]
     lw = computed.log_weights
-    heaviest = lw.argmax(-1, keepdim=True).expand_as(index)
+    heaviest = lw.argmax(-1, keepdim=True)  # [..., 1], a position among the computed slots
     position = torch.arange(A, device=index.device).expand_as(index)
-    source = heaviest[..., :1].expand(*index.shape[:-1], K).clone()
+    source = heaviest.expand(*index.shape[:-1], K).clone()  # where each slot takes its component from
     source.scatter_(-1, index, torch.where(torch.isfinite(lw), position, heaviest))
     log_w = torch.full_like(mixture.log_weights, -math.inf).scatter(-1, index, lw)
     spread = mixture.replace(
