@@ -50,6 +50,7 @@ __all__ = [
     "solve_simplex_qp",
     "kkt_residual",
     "hold_at_zero",
+    "bounded_below",
     "solve_simplex_qp_clarabel",
     "solve_simplex_qp_cvxpy",
 ]
@@ -166,6 +167,30 @@ def hold_at_zero(H: Tensor, c: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
     eye = torch.eye(H.shape[-1], dtype=torch.bool, device=H.device)
     held = torch.where(eye & ~active[..., None, :], h[..., None, None], torch.zeros_like(H))
     return torch.where(both, H, held), torch.where(active, c, (2.0 * scale + h)[..., None].expand_as(c))
+
+
+def bounded_below(H: Tensor, c: Tensor, lower: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The simplex QP ``(H, c)`` with ``w ≥ ℓ`` as a simplex QP in ``v``.
+
+    With ``w = ℓ + s·v``, ``s = 1 − Σℓ``, the set ``{w ≥ ℓ, Σw = 1}`` is the simplex in ``v``, and
+    ``½wᵀHw + cᵀw = s·(½ vᵀ(sH)v + (c + Hℓ)ᵀv) + const``: the problem in ``v`` is ``(sH, c + Hℓ)``, convex with
+    ``H``, so :func:`solve_simplex_qp` solves it exactly and ``w = ℓ + s·v``.
+
+    Args:
+        H: ``[..., N, N]``; c: ``[..., N]``; lower: ``ℓ [..., N]``, finite, ``≥ 0``, ``Σℓ < 1``.
+
+    Returns:
+        ``(sH [..., N, N], c + Hℓ [..., N], s [...])``.
+
+    Raises:
+        ValueError: ``ℓ`` negative or not finite, or ``Σℓ ≥ 1`` (no room left on the simplex).
+    """
+    if not bool(torch.isfinite(lower).all()) or bool((lower < 0).any()):
+        raise ValueError("lower bounds must be finite and ≥ 0")
+    s = 1.0 - lower.sum(-1)
+    if not bool((s > 0).all()):
+        raise ValueError(f"lower bounds must sum to less than 1, got a sum of {float(lower.sum(-1).max())}")
+    return s[..., None, None] * H, c + (H @ lower.unsqueeze(-1)).squeeze(-1), s
 
 
 def solve_simplex_qp(H: Tensor, c: Tensor | None = None, *, chunk_size: int | None = 4096) -> QPResult:

@@ -7,6 +7,7 @@ import torch
 
 from agsf_torch.qp import (
     MAX_COMPONENTS,
+    bounded_below,
     kkt_residual,
     solve_simplex_qp,
     solve_simplex_qp_clarabel,
@@ -241,3 +242,38 @@ def test_singular_gram_matrices_in_float32_are_convex_to_float32_rounding():
     res = solve_simplex_qp(H)
     assert torch.isfinite(res.w).all()
     assert_within(res.w.sum(-1), 1.0, relative_bound(1.0, 1e-5, 1e-5), "sum of float32 weights")
+
+
+@pytest.mark.parametrize("N", [2, 5, 9, 16])
+def test_bounded_below_gives_the_kkt_point_of_the_bounded_problem(gen, N):
+    # min ½wᵀHw + cᵀw over {w ≥ ℓ, Σw = 1}: at the minimiser, with g = Hw + c and ν its multiplier, gᵢ = ν where
+    # wᵢ > ℓᵢ and gᵢ ≥ ν where wᵢ = ℓᵢ (checked here directly, not through the transformed problem)
+    H, c = _random_problems(gen, 60, N)
+    c = 5.0 * c  # far from the centre: many bounds active
+    lower = 0.5 / N * torch.rand(60, N, generator=gen, dtype=F64)
+    Hv, cv, s = bounded_below(H, c, lower)
+    w = lower + s[..., None] * solve_simplex_qp(Hv, cv).w
+    g = (H @ w.unsqueeze(-1)).squeeze(-1) + c
+    free = w - lower
+    nu = (free * g).sum(-1, keepdim=True) / free.sum(-1, keepdim=True)
+    scale = 1.0 + H.abs().flatten(-2).amax(-1) + c.abs().amax(-1)
+    tol = 1e-12 * scale[:, None]
+    assert bool((free >= -1e-15).all())
+    assert_within(w.sum(-1), 1.0, 1e-12, "sum of the weights")
+    assert bool(((g - nu) >= -tol).all()), "dual feasibility"
+    assert_within(free * (g - nu), 0.0, tol, "complementarity")
+    assert bool(((w - lower) < 1e-15).any(-1).float().mean() > 0.5), "most problems should have a bound active"
+
+
+def test_bounded_below_without_bounds_is_the_simplex_problem(gen):
+    H, c = _random_problems(gen, 20, 5)
+    Hv, cv, s = bounded_below(H, c, torch.zeros(20, 5, dtype=F64))
+    assert torch.equal(Hv, H) and torch.equal(cv, c) and torch.equal(s, torch.ones(20, dtype=F64))
+
+
+@pytest.mark.parametrize(
+    ("lower", "match"), [([-0.1, 0.2], "≥ 0"), ([0.5, 0.5], "less than 1"), ([0.1, float("nan")], "finite")]
+)
+def test_bounded_below_refuses_bounds_that_leave_no_simplex(lower, match):
+    with pytest.raises(ValueError, match=match):
+        bounded_below(torch.eye(2, dtype=F64), torch.zeros(2, dtype=F64), torch.tensor(lower, dtype=F64))

@@ -4,7 +4,9 @@ The mixture keeps its shape ``[..., K]`` (``K`` = :attr:`MixtureManagement.capac
 not in use is an *inactive slot*, with log-weight ``−inf`` (weight zero), so every trajectory advances in one
 tensor program however many components it carries.  An inactive slot holds a copy of its trajectory's heaviest
 component (a finite, positive definite Gaussian): it takes no part in the estimate, the likelihood, the weight
-QP (held at zero, :func:`agsf_torch.qp.hold_at_zero`) or the density, and costs nothing that could fail.
+QP (held at zero, :func:`agsf_torch.qp.hold_at_zero`) or the density, and costs nothing that could fail.  The
+weight QP keeps every active component active (:func:`~agsf_torch.filters.weight_updates.base.solve_weight_qp`):
+only management makes a slot inactive.
 
 Each management pass (:meth:`MixtureManagement.apply`) runs, batched over trajectories:
 

@@ -33,6 +33,7 @@ from agsf_torch.filters.management import (
     spread_slots,
 )
 from agsf_torch.filters.registry import CONFIG_OPTIONS, make_filter
+from agsf_torch.filters.weight_updates.base import MANAGED_WEIGHT_KEPT, WeightUpdateRun, solve_weight_qp
 from agsf_torch.models import AttitudeModel, StarVectorMeasurement
 from agsf_torch.models.benchmarks import SineDriftModel
 from agsf_torch.models.function_measurement import FunctionMeasurement
@@ -413,6 +414,24 @@ def test_a_managed_weight_update_computes_on_the_active_slots_only(gen):
     assert seen == [8]
     assert out.num_components == 16 and bool(torch.isinf(out.log_weights[:, 5:]).all())
     assert bool(torch.isfinite(out.log_weights[:, :5]).all())
+
+
+def test_a_managed_weight_qp_keeps_every_active_component_and_holds_the_inactive_at_zero():
+    # H = I, c = (10, 0, 0, 0, 0): on the simplex the minimiser drops the first component (w = (0, ¼, ¼, ¼, ¼));
+    # a managed mixture's zero weight would free that slot for good, so the component keeps κ·w⁰ of its weight,
+    # and the fifth slot, inactive, stays at zero
+    H = torch.eye(5, dtype=F64)
+    c = torch.tensor([10.0, 0.0, 0.0, 0.0, 0.0], dtype=F64)
+    log_w0 = torch.tensor([math.log(0.25)] * 4 + [-math.inf], dtype=F64)
+    plain, _ = solve_weight_qp(WeightUpdateRun(), H, c, torch.zeros(5, dtype=F64))
+    assert plain[0] == 0.0
+    w, res = solve_weight_qp(WeightUpdateRun(hold_inactive=True), H, c, log_w0)
+    kept = MANAGED_WEIGHT_KEPT * 0.25
+    # the rest share 1 − κ/4 equally: (1 − κ/4)/3 each
+    expected = torch.tensor([kept, *[(1.0 - kept) / 3.0] * 3, 0.0], dtype=F64)
+    assert_within(w, expected, 4 * EPS, "weights with the first component kept")
+    assert w[4] == 0.0
+    assert_within(res.kkt_residual, 0.0, 1e-12, "KKT residual of the problem solved")
 
 
 @pytest.mark.parametrize("weight_update", ["penalty", "galerkin"])

@@ -11,9 +11,9 @@ from torch import Tensor
 from ...fpke import fpke_matrix, fused_galerkin_matrices, galerkin_matrices, residual_rule
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
-from ...qp import kkt_residual, solve_simplex_qp
+from ...qp import kkt_residual
 from ..options import option
-from .base import QuadratureUpdate, check_finite_matrix, component_rates, has_gaussian_moments, held_qp
+from .base import QuadratureUpdate, check_finite_matrix, component_rates, has_gaussian_moments, solve_weight_qp
 
 __all__ = ["GalerkinWeightUpdate"]
 
@@ -58,7 +58,8 @@ class GalerkinWeightUpdate(QuadratureUpdate):
     Diagnostics: ``galerkin_residual_change [...]`` (``∫e²`` after minus before,
     exact and cheap: ``[(w − w⁻)ᵀM(w − w⁻) + 2Δt(w − w⁻)ᵀKw⁻]/Δt²``, ≤ 0 to rounding: a step that leaves the
     weights where they were may read +1e-16),
-    ``qp_kkt_residual [...]`` (of the problem without the proximal term),
+    ``qp_kkt_residual [...]`` (of the problem without the proximal term, and, in a managed mixture, without the
+    share each component keeps, :func:`~.base.solve_weight_qp`),
     ``qp_iterations``; with ``residual_diagnostics`` also the two errors.
 
     ``Δt`` restarts at each measurement update (:meth:`WeightUpdate.observe_update`):
@@ -136,12 +137,9 @@ class GalerkinWeightUpdate(QuadratureUpdate):
         c = ((elapsed * G.drift - G.mass) @ w0.unsqueeze(-1)).squeeze(-1)
         eps = self.tikhonov * G.mass.diagonal(dim1=-2, dim2=-1).amax(-1)
         eye = torch.eye(N, dtype=w0.dtype, device=w0.device)
-        active = torch.isfinite(propagated.log_weights)
-        res = solve_simplex_qp(
-            *held_qp(self.run, G.mass + eps[..., None, None] * eye, c - eps[..., None] * w0, propagated.log_weights)
+        w_new, res = solve_weight_qp(
+            self.run, G.mass + eps[..., None, None] * eye, c - eps[..., None] * w0, propagated.log_weights
         )
-        w_new = torch.where(active | (not self.run.hold_inactive), res.w.clamp_min(0.0), 0.0)
-        w_new = w_new / w_new.sum(-1, keepdim=True)
         dw = w_new - w0
         change = (dw.unsqueeze(-2) @ G.mass @ dw.unsqueeze(-1)).squeeze(-1).squeeze(-1)
         change = change + 2.0 * elapsed * (dw.unsqueeze(-2) @ G.drift @ w0.unsqueeze(-1)).squeeze(-1).squeeze(-1)

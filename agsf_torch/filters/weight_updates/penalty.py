@@ -12,9 +12,8 @@ from ...fpke import fpke_matrix, fused_fpke_matrix
 from ...fpke.rounding import without_rounding_rows
 from ...mixture import GaussianMixture
 from ...models.base import ContinuousModel
-from ...qp import solve_simplex_qp
 from ..options import option
-from .base import QuadratureUpdate, component_rates, held_qp
+from .base import QuadratureUpdate, component_rates, solve_weight_qp
 
 __all__ = ["PenaltyWeightUpdate"]
 
@@ -49,8 +48,8 @@ class PenaltyWeightUpdate(QuadratureUpdate):
         cadence, quadrature, chunk_size, compile: :class:`WeightUpdate`, :class:`QuadratureUpdate`.
 
     Diagnostics: ``fpke_error_before``, ``fpke_error_after`` (unscaled ``wᵀLw``
-    with the propagated and the new weights, ``[...]``), ``qp_kkt_residual [...]``,
-    ``qp_iterations`` (int).
+    with the propagated and the new weights, ``[...]``), ``qp_kkt_residual [...]`` (of the problem solved; in
+    a managed mixture the one bounded below, :func:`~.base.solve_weight_qp`), ``qp_iterations`` (int).
     """
 
     reg: float | Tensor = field(
@@ -166,9 +165,7 @@ class PenaltyWeightUpdate(QuadratureUpdate):
                 raise ValueError(
                     f"unscaled FPKE matrix overflows at trajectory index {tuple(idx)}; use scaling='trace'"
                 )
-        res = solve_simplex_qp(*held_qp(self.run, Ls + self.reg * eye, -self.reg * w_ref, propagated.log_weights))
-        w_new = torch.where(active | (not self.run.hold_inactive), res.w.clamp_min(0.0), 0.0)
-        w_new = w_new / w_new.sum(-1, keepdim=True)
+        w_new, res = solve_weight_qp(self.run, Ls + self.reg * eye, -self.reg * w_ref, propagated.log_weights)
         log_w = torch.log(w_new)
         log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)  # normalised to rounding in the log domain
         extra = {
