@@ -1,4 +1,4 @@
-"""Every Markdown table of the documentation and the README has as many cells in each row as in its header.
+"""Every Markdown table of the documentation and the README has body rows, each with its header's cell count.
 
 A ``|`` inside a cell (``w_{k|k}``, even in a code span) ends the cell in GitHub-flavoured Markdown and in
 MyST unless escaped as ``\\|``; a row with the wrong count renders shifted or cut, and a table whose rows
@@ -46,6 +46,26 @@ def test_cells_counts_escaped_pipes_as_text():
 def test_table_rows_finds_a_short_row():
     text = "| a | b | c |\n| --- | --- | --- |\n| 1 | 2 | 3 |\n| 1 | 2 |\n\nprose | with a pipe\n"
     assert table_rows(text) == [(3, 3, 3), (4, 2, 3)]
+
+
+def headers_without_rows(text: str) -> list[int]:
+    """Lines (from 1) of the tables that have a header and a delimiter but no body row."""
+    lines = text.splitlines() + [""]
+    return [
+        i + 1
+        for i in range(len(lines) - 2)
+        if lines[i].startswith("|") and _DELIMITER.match(lines[i + 1].strip()) and not lines[i + 2].startswith("|")
+    ]
+
+
+def test_headers_without_rows_finds_an_empty_table():
+    assert headers_without_rows("| a | b |\n| --- | --- |\n\ntext\n| c |\n| --- |\n| 1 |\n") == [1]
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_table_has_rows(path):
+    empty = headers_without_rows(path.read_text())
+    assert not empty, f"{path.relative_to(ROOT)}: tables without rows at lines {empty}"
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: str(p.relative_to(ROOT)))
