@@ -56,6 +56,7 @@ __all__ = [
     "SPLIT_VARIANCE",
     "pad_mixture",
     "active_slots",
+    "slot_count",
     "gather_slots",
     "spread_slots",
     "runnalls_bound",
@@ -301,20 +302,28 @@ def pad_mixture(mixture: GaussianMixture, capacity: int) -> GaussianMixture:
     return mixture.replace(log_weights=log_w, means=means, covs=covs, validate=False)
 
 
+def slot_count(active: int) -> int:
+    """The slots a computation over ``active`` components takes: the smallest of ``1, 2, 3, 4, 6, 8, 12, 16, 24,
+    …`` (``2ᵏ`` and ``3·2ᵏ⁻¹``) that is at least ``active``.  Kernels specialised to a slot count then serve many
+    steps (``2·log₂K`` counts up to a capacity ``K = 2ᵐ``), and a step carries at most a third more slots than it
+    has active components (a power of two alone: up to twice as many, four times the pairs of a weight update)."""
+    power = 1 << max(0, int(active) - 1).bit_length()  # the smallest power of two ≥ active
+    three_quarters = 3 * power // 4
+    return three_quarters if power >= 4 and three_quarters >= active else power
+
+
 def active_slots(log_weights: Tensor) -> Tensor | None:
     """The slots a computation over a managed mixture's components needs, ``[..., A]`` slot indices: each
-    trajectory's active slots first (in slot order), then its inactive ones, where ``A`` is the batch's largest
-    active count rounded up to a power of two (kernels specialised to a slot count then serve many steps: at
-    most ``log₂K + 1`` counts), or ``None`` where that is every one of the ``K`` slots.  A trajectory with fewer
-    active slots than ``A`` keeps some inactive ones (weight zero, a copy of its heaviest component).
+    trajectory's active slots first (in slot order), then its inactive ones, where ``A`` is :func:`slot_count` of
+    the batch's largest active count, or ``None`` where that is every one of the ``K`` slots.  A trajectory with
+    fewer active slots than ``A`` keeps some inactive ones (weight zero, a copy of its heaviest component).
 
     Args:
         log_weights: ``[..., K]``, ``−inf`` at inactive slots.
     """
     K = log_weights.shape[-1]
     active = torch.isfinite(log_weights)
-    most = int(active.sum(-1).max())
-    A = min(K, 1 << max(0, most - 1).bit_length())
+    A = min(K, slot_count(int(active.sum(-1).max())))
     if A >= K:
         return None
     return torch.argsort((~active).to(torch.uint8), dim=-1, stable=True)[..., :A]

@@ -30,6 +30,7 @@ from agsf_torch.filters.management import (
     merged_moments,
     pad_mixture,
     runnalls_bound,
+    slot_count,
     spread_slots,
 )
 from agsf_torch.filters.registry import CONFIG_OPTIONS, make_filter
@@ -130,7 +131,7 @@ def test_runnalls_bound_and_merged_moments_follow_the_formulas(gen):
 
 
 def test_runnalls_bound_of_scattered_active_slots_is_the_bound_of_those_pairs(gen):
-    # 8 slots, 3 active in each trajectory at different slots: the pairs are computed on 4 gathered slots
+    # 8 slots, 3 active in each trajectory at different slots: the pairs are computed on 3 gathered slots
     # (active_slots) and put back; each active pair's bound is the one of the same pair among all slots active
     K, n = 8, 3
     means = torch.randn(2, K, n, generator=gen, dtype=F64)
@@ -302,40 +303,48 @@ def test_idle_management_only_pads_and_changes_no_estimate(gen, fused):
     assert managed.diagnostics["active_components"].tolist() == [5] * 4
 
 
-def test_active_slots_come_first_and_their_count_is_rounded_up_to_a_power_of_two():
+@pytest.mark.parametrize(
+    ("active", "slots"),
+    [(1, 1), (2, 2), (3, 3), (4, 4), (5, 6), (6, 6), (7, 8), (8, 8), (9, 12), (12, 12), (13, 16), (25, 32), (33, 48)],
+)
+def test_slot_count_is_the_next_power_of_two_or_three_halves_of_one(active, slots):
+    assert slot_count(active) == slots
+
+
+def test_active_slots_come_first_and_their_count_is_the_slot_count():
     inf = -math.inf
     log_w = torch.full((2, 16), inf, dtype=F64)
     log_w[0, [2, 5, 9]] = math.log(1 / 3)
-    log_w[1, [0, 1, 3, 4, 7, 15]] = math.log(1 / 6)
+    log_w[1, [0, 1, 3, 4, 7, 15, 11]] = math.log(1 / 7)
     index = active_slots(log_w)
-    assert index.shape == (2, 8)  # six active at most: eight slots
-    assert index[0, :3].tolist() == [2, 5, 9] and index[1, :6].tolist() == [0, 1, 3, 4, 7, 15]
+    assert index.shape == (2, 8)  # seven active at most: eight slots
+    assert index[0, :3].tolist() == [2, 5, 9] and index[1, :7].tolist() == [0, 1, 3, 4, 7, 11, 15]
     picked = torch.gather(log_w, -1, index)
-    assert bool(torch.isinf(picked[0, 3:]).all()) and bool(torch.isinf(picked[1, 6:]).all())
+    assert bool(torch.isinf(picked[0, 3:]).all()) and bool(torch.isinf(picked[1, 7:]).all())
     assert len(set(index[0].tolist())) == 8 and len(set(index[1].tolist())) == 8  # distinct slots
     assert active_slots(torch.zeros(3, 5, dtype=F64)) is None  # every slot active
     assert active_slots(log_w[:, :8].clone().fill_(0.0)) is None
     one = torch.full((1, 4), inf, dtype=F64)
     one[0, 3] = 0.0
     assert active_slots(one).tolist() == [[3]]
-    three = torch.tensor([[0.0, inf, -1.0, -2.0, inf]], dtype=F64)
-    assert active_slots(three).tolist() == [[0, 2, 3, 1]]  # three active of five: four slots
+    five = torch.tensor([[0.0, inf, -1.0, -2.0, inf, -3.0, inf, -4.0]], dtype=F64)
+    assert active_slots(five).tolist() == [[0, 2, 3, 5, 7, 1]]  # five active of eight: six slots
 
 
 def test_spread_slots_puts_computed_components_back_and_fills_inactive_slots_with_the_heaviest(gen):
     inf = -math.inf
     K, n = 8, 2
     log_w = torch.full((2, K), inf, dtype=F64)
-    log_w[0, [1, 4, 6]] = torch.log(torch.tensor([0.2, 0.5, 0.3], dtype=F64))
+    log_w[0, [1, 3, 4, 6, 7]] = torch.log(torch.tensor([0.2, 0.05, 0.5, 0.2, 0.05], dtype=F64))
     log_w[1, [0, 7]] = torch.log(torch.tensor([0.6, 0.4], dtype=F64))
     mix = GaussianMixture(
         log_weights=log_w, means=torch.randn(2, K, n, generator=gen, dtype=F64), covs=random_spd(gen, 2, K, n=n)
     )
     index = active_slots(log_w)
-    assert index.shape == (2, 4)  # three active at most: four slots, one inactive among them in each
+    assert index.shape == (2, 6)  # five active at most: six slots, one inactive among them in each
     computed = gather_slots(mix, index)
     computed = computed.replace(means=computed.means + 1.0, covs=2.0 * computed.covs, validate=False)
-    per_slot = torch.arange(4, dtype=F64).expand(2, 4) + 10.0
+    per_slot = torch.arange(6, dtype=F64).expand(2, 6) + 10.0
     spread, (nis,) = spread_slots(mix, computed, index, per_slot)
     assert spread.num_components == K
     assert torch.equal(torch.isfinite(spread.log_weights), torch.isfinite(log_w))
@@ -355,7 +364,7 @@ def test_spread_slots_puts_computed_components_back_and_fills_inactive_slots_wit
 
 @pytest.mark.parametrize("weight_update", [None, "galerkin"])
 def test_a_managed_step_computes_on_the_active_slots_and_matches_computing_every_slot(gen, weight_update):
-    # five active components in 16 slots: propagation and update see the 8 slots they need; the active
+    # five active components in 16 slots: propagation and update see the 6 slots they need; the active
     # components come out as when every slot is computed (the same arithmetic per component), the inactive
     # slots as copies of the heaviest
     seen = []
@@ -381,7 +390,7 @@ def test_a_managed_step_computes_on_the_active_slots_and_matches_computing_every
     whole = type("Whole", (EverySlot, base), {})(model, management=MixtureManagement(capacity=16, **opts), **kwargs)
     a = sliced.update(sliced.predict(mix, u, 0.5), y, meas)
     b = whole.update(whole.predict(mix, u, 0.5), y, meas)
-    assert seen == [("propagate", 8), ("update", 8)]
+    assert seen == [("propagate", 6), ("update", 6)]
     assert torch.equal(torch.isfinite(a.log_weights), torch.isfinite(b.log_weights))
     live = torch.isfinite(b.log_weights)
     assert_within(a.log_weights[live], b.log_weights[live], relative_bound(b.log_weights[live], 1e-10, 1e-12), "log-w")
@@ -397,7 +406,7 @@ def test_a_managed_step_computes_on_the_active_slots_and_matches_computing_every
 
 
 def test_a_managed_weight_update_computes_on_the_active_slots_only(gen):
-    # 5 active components in 16 slots: the Galerkin update sees 8 slots (5 active, 3 held at zero), and its
+    # 5 active components in 16 slots: the Galerkin update sees 6 slots (5 active, 1 held at zero), and its
     # weights come back to the active slots, −inf at the others
     seen = []
 
@@ -411,7 +420,7 @@ def test_a_managed_weight_update_computes_on_the_active_slots_only(gen):
         model, weight_update=Recorded(), management=MixtureManagement(capacity=16, **IDLE)
     )
     out = managed.predict(mix, u, 0.5)
-    assert seen == [8]
+    assert seen == [6]
     assert out.num_components == 16 and bool(torch.isinf(out.log_weights[:, 5:]).all())
     assert bool(torch.isfinite(out.log_weights[:, :5]).all())
 

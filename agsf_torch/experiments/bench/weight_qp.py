@@ -116,7 +116,7 @@ def filter_qp_problems(
     """
     from ...filters.management import pad_mixture
     from ...filters.registry import make_filter
-    from ...filters.weight_updates import galerkin, penalty
+    from ...filters.weight_updates import base as weight_update_base
     from ...models import AttitudeModel
 
     if problems not in FILTER_QP_PROBLEMS:
@@ -135,7 +135,7 @@ def filter_qp_problems(
         else:
             filt = make_filter("AGSF-galerkin" if problems == "galerkin" else "AGSF", model, compile_fused=compile)
             prior = attitude_mixture(size, N, True, gen)
-        with _captured(penalty if problems == "penalty" else galerkin) as calls:
+        with _captured(weight_update_base) as calls:  # every weight update solves its QP there
             filt.predict(prior, u, 0.1)
         H, c = calls[-1]
         Hs.append(H)

@@ -61,12 +61,14 @@ def test_qp_rows_on_the_filters_problems_report_agreement():
 
 def test_the_captured_qp_is_the_one_the_filter_solves():
     """The Galerkin filter's new weights are the solution of the captured (H, c), renormalised; the managed one's
-    QP covers the 8 slots its 5 active components need (slots 0–7 of the padded prior), zero on the held ones, and
-    its other slots stay inactive."""
+    QP covers the 6 slots its 5 active components need (slots 0–5 of the padded prior), its captured problem is the
+    one in v (w = κw⁰ + (1 − κ)v, each active component keeping κ of its weight), zero on the held slot, and its
+    other slots stay inactive."""
     from agsf_torch.experiments.bench.harness import attitude_mixture
     from agsf_torch.experiments.bench.weight_qp import filter_qp_problems
     from agsf_torch.filters.management import pad_mixture
     from agsf_torch.filters.registry import make_filter
+    from agsf_torch.filters.weight_updates.base import MANAGED_WEIGHT_KEPT
     from agsf_torch.models import AttitudeModel
     from agsf_torch.qp import solve_simplex_qp
 
@@ -78,11 +80,14 @@ def test_the_captured_qp_is_the_one_the_filter_solves():
             mix = pad_mixture(mix, N)
         filt = make_filter(name, AttitudeModel(estimate_bias=True), **({"capacity": N} if N == 16 else {}))
         w = solve_simplex_qp(H, c).w.clamp_min(0.0)
+        if problems == "galerkin-managed":
+            assert H.shape[-1] == 6 and (w[:, 5:] == 0).all()
+            w = MANAGED_WEIGHT_KEPT * mix.weights[:, :6] + (1.0 - MANAGED_WEIGHT_KEPT) * w
         w = w / w.sum(-1, keepdim=True)
         weights = filt.predict(mix, u, 0.1).weights
         if problems == "galerkin-managed":
-            assert H.shape[-1] == 8 and (w[:, 5:] == 0).all() and (weights[:, 8:] == 0).all()
-            weights = weights[:, :8]
+            assert (weights[:, 6:] == 0).all()
+            weights = weights[:, :6]
         assert_within(weights, w, 1e-12, f"{name}'s weights against the captured QP's")
     # built a chunk of trajectories at a time (a new filter each), the problems are those of one piece
     H1, c1, info1 = filter_qp_problems("penalty", 4, 5, chunk=None)
