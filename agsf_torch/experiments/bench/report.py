@@ -17,9 +17,9 @@ MANAGED_GSF_LIMIT = (
     "management passes' pair bounds and entropy test are a small part (profile: performance.md)"
 )
 MANAGED_GALERKIN_LIMIT = (
-    "the Galerkin update over the 8 slots the 5 active components need (36 pairs) and its QP, about three fifths "
-    "of the step; the management pass (pair bounds, the entropy test over those 8 slots) and their propagation are "
-    "the rest (profile: performance.md)"
+    "the Galerkin update over the 6 slots the 5 active components need (management.slot_count: 21 pairs) and its "
+    "QP, the management pass (pair bounds, the entropy test over those 6 slots) and their propagation (profile: "
+    "performance.md)"
 )
 QP_LIMIT = (
     "the torch solver's active-set iterations, each a batched LAPACK solve of the [B, N+1, N+1] KKT systems, with "
