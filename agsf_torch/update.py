@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -60,6 +61,7 @@ from .shapes import broadcast_shapes
 
 __all__ = [
     "COVARIANCE_FORM_MAX_CONDITION",
+    "LINEAR_POSTERIOR",
     "ComponentUpdate",
     "check_innovation",
     "cholesky_axes",
@@ -71,6 +73,7 @@ __all__ = [
     "measurement_second_differences",
     "moment_matched_factor",
     "moment_matched_innovation",
+    "second_order_size",
 ]
 
 #: Largest lower bound ``(max ℓᵢ / min ℓᵢ)²`` of the condition of the correlation matrix
@@ -79,6 +82,12 @@ __all__ = [
 #: is used.  ``ε·10¹⁰ ≈ 2·10⁻⁶``: the covariance form's relative error bound.  Other dtypes scale
 #: it by ``ε_float64 / ε`` (the same error bound: about 18 in float32).
 COVARIANCE_FORM_MAX_CONDITION = 1e10
+
+#: The second-order update of an iterated update keeps its plain posterior for a component where the
+#: measurement's second-order part over that posterior, :func:`second_order_size` (the expected squared size of
+#: ``h − h_lin`` in noise units, dimensionless), is at most this: a tenth of one noise variance summed over the
+#: entries, where the Gaussian posterior of the iterated update's Laplace approximation is accurate.
+LINEAR_POSTERIOR = 0.1
 
 
 @dataclass(frozen=True)
@@ -440,9 +449,12 @@ def kalman_update(
             covariance gains ``½Σ_k c_k c_kᵀ + Σ_{k<l} M_kl M_klᵀ``: the second-order terms of a Gaussian,
             ``½tr(∇²h P)`` and ``½tr(∇²hₐ P ∇²h_b P)``, exact for a quadratic ``h`` (the divided-difference
             filter of Nørgaard, Poulsen & Ravn 2000 keeps only the ``c_k``), so a component wide against the
-            noise is not updated as if ``h`` were linear over it.  With ``iterations > 1`` every
-            relinearisation keeps these terms of the prior: taken over each iterate's posterior instead (iterated
-            posterior linearisation) they cost the managed filters their consistency with one star per frame
+            noise is not updated as if ``h`` were linear over it.  With ``iterations > 1`` the plain iterated
+            update runs first, and a component keeps its posterior where ``h`` is linear over that posterior
+            (:func:`second_order_size` ``≤`` :data:`LINEAR_POSTERIOR`): the Gauss–Newton iterates have then found
+            the mode and the Gaussian about it is the posterior.  Elsewhere every relinearisation keeps the
+            terms of the prior: taken over each iterate's posterior instead (iterated posterior linearisation)
+            they cost the managed filters their consistency with one star per frame
             (``docs/results/management.md``).
 
     Returns:
@@ -458,10 +470,69 @@ def kalman_update(
         mask = measurement.mask()
     y = y.unsqueeze(-2)  # [..., 1, d]
     R = R.unsqueeze(-3) if R.dim() > 2 else R
+    part = _component_updates(means, covs, y, measurement, R, mask, iterations, prior_terms=False)
+    if second_order:
+        keep = None
+        if int(iterations) > 1:  # the iterated posterior stands where h is linear over it (the docstring)
+            keep = second_order_size(part.means, part.covs, measurement, part.R_eff, part.valid) <= LINEAR_POSTERIOR
+        if keep is None or not bool(keep.all()):
+            second = _component_updates(means, covs, y, measurement, R, mask, iterations, prior_terms=True)
+            part = second if keep is None else _select_components(keep, part, second)
+    nu, S, H, R_eff, valid = part.nu, part.S, part.H, part.R_eff, part.valid
+    new_means, new_covs, nis = part.means, part.covs, part.nis
+    dof = valid.sum(-1)  # [..., N]
+    log_beta = -0.5 * (nis + part.log_det + dof * math.log(2.0 * math.pi))
+    joint = log_weights + log_beta
+    log_lik = torch.logsumexp(joint, -1)
+    new_log_weights = joint - log_lik.unsqueeze(-1)
+    nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :]) if mixture_nis else None
+    if provides(measurement, "data_log_likelihood", MeasurementModel):
+        # the data's own degrees of freedom (a unit vector's two), whatever R the gain spreads the noise over
+        HL = H @ torch.linalg.cholesky(0.5 * (covs + covs.transpose(-1, -2)))
+        log_lik = measurement.data_log_likelihood(log_weights, nu, HL, y.squeeze(-2), valid)
+
+    # trajectories without a valid entry are left exactly as they were
+    any_valid = dof[..., 0] > 0
+    new_means = torch.where(any_valid[..., None, None], new_means, means)
+    new_covs = torch.where(any_valid[..., None, None, None], new_covs, covs)
+    new_log_weights = torch.where(any_valid[..., None], new_log_weights, log_weights)
+    log_lik = torch.where(any_valid, log_lik, torch.zeros_like(log_lik))
+    return ComponentUpdate(new_means, new_covs, new_log_weights, log_lik, nis, dof[..., 0], nu, S, nis_mixture)
+
+
+class _Components(NamedTuple):
+    """Every component's update before Bayes' rule on the weights (:func:`_component_updates`): the posterior
+    ``means [..., N, n]`` and ``covs [..., N, n, n]``, ``nis`` and ``log_det`` (of ``S``) ``[..., N]``, the last
+    linearisation's ``nu [..., N, d]``, ``S`` and ``R_eff [..., N, d, d]``, ``H [..., N, d, n]``, and the entry
+    validity ``valid [..., N, d]`` (0/1 in the means' dtype)."""
+
+    means: Tensor
+    covs: Tensor
+    nis: Tensor
+    log_det: Tensor
+    nu: Tensor
+    S: Tensor
+    H: Tensor
+    R_eff: Tensor
+    valid: Tensor
+
+
+def _component_updates(
+    means: Tensor,
+    covs: Tensor,
+    y: Tensor,
+    measurement: MeasurementModel,
+    R: Tensor,
+    mask: Tensor | None,
+    iterations: int,
+    prior_terms: bool,
+) -> _Components:
+    """The (iterated) Joseph-form update of every component (:func:`kalman_update`), ``y [..., 1, d]``, with the
+    second-order terms over the prior where ``prior_terms``."""
     n = means.shape[-1]
     eye_n = torch.eye(n, dtype=means.dtype, device=means.device)
     shift = None
-    if second_order:  # over the prior N(μ, P), for every linearisation (the docstring says why)
+    if prior_terms:  # over the prior N(μ, P), for every linearisation (kalman_update's docstring says why)
         c, M = measurement_second_differences(means, covs, measurement)  # [..., N, r, d], [..., N, r(r−1)/2, d]
         shift = 0.5 * c.sum(-2)  # [..., N, d]
         R = R + 0.5 * c.transpose(-1, -2) @ c + M.transpose(-1, -2) @ M  # [..., N, d, d]
@@ -506,7 +577,6 @@ def kalman_update(
         if robust:
             K = torch.where(need[..., None, None], K_info, K)
         x = means + (K @ nu.unsqueeze(-1)).squeeze(-1)
-    new_means = x
     IKH = eye_n - K @ H
     new_covs = IKH @ covs @ IKH.transpose(-1, -2) + K @ R_eff @ K.transpose(-1, -2)
     new_covs = 0.5 * (new_covs + new_covs.transpose(-1, -2))
@@ -515,29 +585,43 @@ def kalman_update(
     nis = (z * z).sum(-1)
     log_det = 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
     if robust:
-        dx = new_means - means
+        dx = x - means
         e = torch.linalg.solve_triangular(L_R, (nu - (H @ dx.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1), upper=False)
         f = torch.linalg.solve_triangular(L_P, dx.unsqueeze(-1), upper=False)
         nis = torch.where(need, (e * e).sum((-2, -1)) + (f * f).sum((-2, -1)), nis)
         log_det = torch.where(need, log_det_info, log_det)
-    dof = valid.sum(-1)  # [..., N]
-    log_beta = -0.5 * (nis + log_det + dof * math.log(2.0 * math.pi))
-    joint = log_weights + log_beta
-    log_lik = torch.logsumexp(joint, -1)
-    new_log_weights = joint - log_lik.unsqueeze(-1)
-    nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :]) if mixture_nis else None
-    if provides(measurement, "data_log_likelihood", MeasurementModel):
-        # the data's own degrees of freedom (a unit vector's two), whatever R the gain spreads the noise over
-        HL = H @ torch.linalg.cholesky(0.5 * (covs + covs.transpose(-1, -2)))
-        log_lik = measurement.data_log_likelihood(log_weights, nu, HL, y.squeeze(-2), valid)
+    return _Components(x, new_covs, nis, log_det, nu, S, H, R_eff, valid)
 
-    # trajectories without a valid entry are left exactly as they were
-    any_valid = dof[..., 0] > 0
-    new_means = torch.where(any_valid[..., None, None], new_means, means)
-    new_covs = torch.where(any_valid[..., None, None, None], new_covs, covs)
-    new_log_weights = torch.where(any_valid[..., None], new_log_weights, log_weights)
-    log_lik = torch.where(any_valid, log_lik, torch.zeros_like(log_lik))
-    return ComponentUpdate(new_means, new_covs, new_log_weights, log_lik, nis, dof[..., 0], nu, S, nis_mixture)
+
+def _select_components(keep: Tensor, first: _Components, second: _Components) -> _Components:
+    """``first``'s update of the components where ``keep [..., N]`` holds, ``second``'s elsewhere."""
+    picked = []
+    for a, b in zip(first, second):
+        k = keep.reshape(keep.shape + (1,) * (max(a.dim(), b.dim()) - keep.dim()))
+        picked.append(torch.where(k, a, b))
+    return _Components(*picked)
+
+
+def second_order_size(means: Tensor, covs: Tensor, measurement: MeasurementModel, R: Tensor, valid: Tensor) -> Tensor:
+    """The expected squared size, in the noise's units, of the measurement's second-order part over each
+    component ``N(μ, P)``, ``[..., N]``:
+
+    .. math:: E\\lVert R^{-½}(h(x) - h(μ) - H(x - μ))\\rVert^2 ≈ \\operatorname{tr}(R^{-1}Σ_2) + b_2^T R^{-1} b_2,
+              \\quad b_2 = ½Σ_k c_k,\\; Σ_2 = ½Σ_k c_k c_k^T + Σ_{k<l} M_{kl} M_{kl}^T
+
+    (:func:`measurement_second_differences`; exact for a quadratic ``h``), over the valid entries: zero for a
+    measurement linear over the component, about ``d`` where its curvature over it is as large as the noise.
+
+    Args:
+        means: ``[..., N, n]``; covs: ``[..., N, n, n]``; R: ``[..., N, d, d]`` or ``[d, d]`` (positive definite:
+            invalid entries' blocks replaced by the identity, as :func:`kalman_update` does); valid: ``[..., N, d]``
+            0/1 in the means' dtype.
+    """
+    c, M = measurement_second_differences(means, covs, measurement)  # [..., N, r, d], [..., N, p, d]
+    A = torch.cat((math.sqrt(0.5) * c, M, 0.5 * c.sum(-2, keepdim=True)), -2) * valid.unsqueeze(-2)
+    L_R = torch.linalg.cholesky(R)
+    Z = torch.linalg.solve_triangular(L_R, A.transpose(-1, -2), upper=False)  # [..., N, d, r + p + 1]
+    return (Z * Z).sum((-2, -1))
 
 
 def _mixture_nis(

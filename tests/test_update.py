@@ -440,10 +440,23 @@ def test_the_second_order_terms_over_the_read_entries_are_those_over_every_axis(
     assert_within(a.log_weights, b.log_weights, scale * (1 + b.nis.abs().max()), "log-weights")
 
 
+def _iterated_plain_posterior_variance(mu, P, R, y):
+    """The plain two-linearisation update of h(x) = x² by hand: its posterior variance."""
+    H0 = 2 * mu
+    x1 = mu + P * H0 / (H0 * H0 * P + R) * (y - mu * mu)
+    H1 = 2 * x1
+    K = P * H1 / (H1 * H1 * P + R)
+    return (1 - K * H1) ** 2 * P + K * K * R
+
+
 def test_the_iterated_second_order_update_keeps_the_priors_terms():
     # h(x) = x² again, two linearisations: the second at the first's mean x₁ (H = 2x₁), with the prior's
-    # second-order terms (c = 2P: the prediction x₁² + P + H(μ − x₁), the noise R + 2P²), applied to the prior
-    mu, P, R, y = 0.7, 0.3, 0.04, 0.9
+    # second-order terms (c = 2P: the prediction x₁² + P + H(μ − x₁), the noise R + 2P²), applied to the prior,
+    # where h is not linear over the plain iterated posterior: its second-order size 3P₊²/R (c = 2P₊: the bias
+    # P₊ and the variance 2P₊²) is above LINEAR_POSTERIOR
+    mu, P, R, y = 0.3, 1.0, 1.0, 0.9
+    P_plus = _iterated_plain_posterior_variance(mu, P, R, y)
+    assert 3 * P_plus**2 / R > 2 * update_module.LINEAR_POSTERIOR
     meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
     means = torch.tensor([[[mu]]], dtype=F64)
     covs = torch.tensor([[[[P]]]], dtype=F64)
