@@ -14,9 +14,10 @@ One concept per module:
   (:data:`CHARTS`, :func:`chart_for`, :func:`canonical_points`) and the log-density of
   a Gaussian mixture in a chart (:func:`mixture_log_density`);
 * :mod:`~agsf_torch.density.score` — the density score and its lineage-aware standard
-  error (:func:`density_score`, :func:`effective_sample_size`);
+  error (:func:`density_score`);
 * :mod:`~agsf_torch.density.reference` — the sampler (:class:`PosteriorReference`):
-  forecast, bootstrap update, resampling, per-step diagnostics (:class:`ReferenceStepRecord`);
+  forecast (:mod:`agsf_torch.sample_paths`), bootstrap update, resampling (:mod:`agsf_torch.weighted_samples`,
+  whose :func:`effective_sample_size` is exported here too), per-step diagnostics (:class:`ReferenceStepRecord`);
 * :mod:`~agsf_torch.density.redraw` — its path-space redraw where the bootstrap
   collapses: Laplace (Gauss–Newton) fits of the posterior of ``x₀`` along the
   noise-free flow, and importance sampling over all frames;
@@ -25,11 +26,12 @@ One concept per module:
 * :mod:`~agsf_torch.density.frames` — a measurement frame as the sampler records it.
 """
 
+from ..weighted_samples import effective_sample_size
 from .charts import CHARTS, canonical_points, chart_for, mixture_log_density
 from .frames import ReferenceStepRecord
 from .proposal import InitialStateProposal
 from .reference import PosteriorReference
-from .score import density_score, effective_sample_size
+from .score import density_score
 
 __all__ = [
     "CHARTS",

@@ -4,7 +4,7 @@
 whole paths of the model's Itô SDE ``dx = f(x, u) dt + g(x) dβ``, ``E[dβ dβᵀ] = Q dt``:
 
 * **Forecast.** ``x₀`` from the prior (a Gaussian or a Gaussian mixture), then ``substeps`` steps per input
-  interval of Euler–Maruyama with the drift integrated by one RK4 step (:mod:`agsf_torch.density.forecast`: weak
+  interval of Euler–Maruyama with the drift integrated by one RK4 step (:mod:`agsf_torch.sample_paths`: weak
   order 1, the noise-free motion to fourth order).
 * **Measurements.** Bootstrap reweighting by ``p(y | x)``; systematic resampling when
   ``ESS < resample_threshold·K``.  Where the bootstrap would collapse
@@ -28,11 +28,12 @@ from torch import Tensor
 
 from ..mixture import GaussianMixture, check_covariance
 from ..models.base import ContinuousModel, MeasurementModel
+from ..sample_paths import em_rk4_interval, sqrt_psd
+from ..weighted_samples import effective_sample_size, systematic_resample
 from .charts import canonical_points, chart_for, check_chart
-from .forecast import em_rk4_interval, sqrt_psd
 from .frames import Frame, ReferenceStepRecord, point_eval
 from .redraw import PathSpaceRedraw
-from .score import density_score, effective_sample_size
+from .score import density_score
 
 __all__ = ["PosteriorReference"]
 
@@ -256,8 +257,14 @@ class PosteriorReference(PathSpaceRedraw):
         return u
 
     def _em_interval(self, x: Tensor, u: Tensor | None, dt: float) -> Tensor:
-        """One input interval of ``substeps`` steps of :func:`.forecast.em_rk4_interval`."""
-        return em_rk4_interval(self.model, x, u, dt, self.substeps, self._Q_sqrt, self.chart, self._randn)
+        """One input interval of ``substeps`` steps of :func:`agsf_torch.sample_paths.em_rk4_interval`."""
+        return em_rk4_interval(
+            self.model, x, u, dt, self.substeps, self._Q_sqrt, self._canonical, lambda shape: self._randn(*shape)
+        )
+
+    def _canonical(self, x: Tensor) -> Tensor:
+        """``x`` in the sampler's canonical chart (:func:`.charts.canonical_points`)."""
+        return canonical_points(x, self.chart)
 
     def _frame_log_likelihood(self, frame: Frame, x: Tensor) -> Tensor:
         """``log N(y; h(x), R)`` over the valid entries, ``x [B, K, n]`` → ``[B, K]``."""
@@ -403,12 +410,8 @@ class PosteriorReference(PathSpaceRedraw):
     def _resample(self, which: Tensor) -> None:
         """Systematic resampling of the trajectories flagged in ``which [B]``."""
         B, K = self.log_weights.shape
-        w = torch.softmax(self.log_weights, -1)
-        c = torch.cumsum(w, -1)
-        c[:, -1] = 1.0
-        u0 = torch.rand(B, 1, generator=self.generator, dtype=self._dtype, device=self._device)
-        pos = (u0 + torch.arange(K, dtype=self._dtype, device=self._device)) / K
-        idx = torch.searchsorted(c, pos).clamp_max(K - 1)
+        u0 = torch.rand(B, generator=self.generator, dtype=self._dtype, device=self._device)
+        idx = systematic_resample(self.log_weights, u0)
         idx = torch.where(which[:, None], idx, torch.arange(K, device=self._device).expand(B, K))
         n = self.state_dim
         self.samples = torch.gather(self.samples, 1, idx[..., None].expand(-1, -1, n))

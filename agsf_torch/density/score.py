@@ -23,21 +23,7 @@ from torch import Tensor
 from ..mixture import GaussianMixture
 from .charts import check_chart, mixture_log_density
 
-__all__ = ["effective_sample_size", "density_score"]
-
-
-def effective_sample_size(log_weights: Tensor) -> Tensor:
-    """Kish effective sample size of (unnormalised) log-weights.
-
-    .. math:: \\mathrm{ESS} = (Σ_i w_i)^2 / Σ_i w_i^2
-
-    Args:
-        log_weights: ``[..., K]``.
-
-    Returns:
-        ``[...]`` in ``[1, K]``.
-    """
-    return torch.exp(2.0 * torch.logsumexp(log_weights, -1) - torch.logsumexp(2.0 * log_weights, -1))
+__all__ = ["density_score"]
 
 
 def density_score(

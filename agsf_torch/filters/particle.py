@@ -20,7 +20,7 @@ covariance ``(m̂, Σ̂)``; the mixture's own moments add the kernel, ``(m̂, (1
   .. math:: x ← Φ^{RK4}_τ(x) + g(x)\\, Q^{1/2} ξ \\sqrt τ,\\qquad ξ \\sim N(0, I_q),\\ τ = Δt/\\text{substeps},
 
   (weak order 1 like Euler–Maruyama; the noise-free motion to fourth order, which a star camera resolves on a
-  rotating spacecraft, :mod:`agsf_torch.density.forecast`), each step followed by the model's own chart
+  rotating spacecraft, :mod:`agsf_torch.sample_paths`), each step followed by the model's own chart
   switch (:meth:`~agsf_torch.models.base.ContinuousModel.canonicalize`: the MRP shadow set at ``|p| > 1``).
 * **update**: ``log wᵢ += log N(y; h(xᵢ), R)`` over the valid entries, normalised with log-sum-exp;
   systematic resampling where ``ESS = 1/Σwᵢ² < ρM``, then roughening, with ``m̂, Σ̂ = LLᵀ`` of the weighted
@@ -58,7 +58,9 @@ from torch import Tensor
 from ..finite import all_finite
 from ..mixture import GaussianMixture
 from ..models.base import ContinuousModel, MeasurementModel
+from ..sample_paths import em_rk4_interval, sqrt_psd
 from ..update import ComponentUpdate
+from ..weighted_samples import effective_sample_size, systematic_resample, weighted_moments
 from .base import UPDATE_DIAGNOSTICS, BaseFilter, UpdateFrame
 from .options import option, positive_int
 
@@ -68,9 +70,6 @@ __all__ = [
     "PARTICLE_DIAGNOSTICS",
     "ROUGHENINGS",
     "kernel_bandwidth",
-    "effective_sample_size",
-    "systematic_resample",
-    "weighted_moments",
 ]
 
 #: Keys an update of the particle filter adds to :data:`~agsf_torch.filters.base.UPDATE_DIAGNOSTICS`.
@@ -96,67 +95,6 @@ def kernel_bandwidth(num_particles: int, state_dim: int) -> float:
     """
     n, M = int(state_dim), int(num_particles)
     return (4.0 / (n + 2)) ** (1.0 / (n + 4)) * M ** (-1.0 / (n + 4))
-
-
-def effective_sample_size(log_weights: Tensor) -> Tensor:
-    """Kish's effective sample size ``(Σwᵢ)²/Σwᵢ²`` of (unnormalised) log-weights ``[..., M]`` → ``[...]``, in ``[1, M]``
-    (one exponential per weight, scaled by the largest)."""
-    w = torch.exp(log_weights - log_weights.amax(-1, keepdim=True))
-    return w.sum(-1) ** 2 / (w * w).sum(-1)
-
-
-def systematic_resample(log_weights: Tensor, offset: Tensor) -> Tensor:
-    """Ancestor indices of systematic resampling (Kitagawa 1996; Carpenter, Clifford & Fearnhead 1999).
-
-    The ``k``-th new particle, ``k = 0 … M−1``, is the first ``i`` with ``cᵢ > (u + k)/M`` (``cᵢ = Σ_{j≤i} wⱼ`` of
-    the normalised weights, ``c_M = 1``), one uniform ``u ∈ [0, 1)`` per trajectory.  Counted instead of
-    searched: particle ``i`` is drawn
-
-    .. math:: N_i - N_{i-1}\\ \\text{times},\\qquad N_i = \\min(M, \\max(0, ⌈M c_i − u⌉)),\\ N_0 = 0,
-
-    which is ``⌊Mwᵢ⌋`` or ``⌈Mwᵢ⌉`` (to the rounding of ``cᵢ``; never for a zero weight) and ``Mwᵢ`` in
-    expectation; the indices follow from the counts by one scatter and one cumulative sum.
-
-    Args:
-        log_weights: ``[..., M]`` (normalised or not).
-        offset: ``u ∈ [0, 1)``, ``[...]``.
-
-    Returns:
-        ``[..., M]`` int64 indices, non-decreasing along the last dim.
-    """
-    M = log_weights.shape[-1]
-    c = torch.cumsum(torch.softmax(log_weights, -1), -1)
-    c = torch.cat((c[..., :-1], torch.ones_like(c[..., -1:])), -1)  # the last edge exactly 1: M draws in all
-    drawn = torch.ceil(M * c - offset.to(c).unsqueeze(-1)).clamp(0, M).to(torch.int64)  # N_i
-    starts = torch.cat((torch.zeros_like(drawn[..., :1]), drawn[..., :-1]), -1)  # N_{i-1}: particle i's first draw
-    marks = torch.zeros((*drawn.shape[:-1], M + 1), dtype=torch.int64, device=drawn.device)
-    marks.scatter_add_(-1, starts, torch.ones_like(starts))
-    # the k-th draw is the last particle whose first draw is at or before k (one drawn 0 times shares the next start)
-    return torch.cumsum(marks[..., :M], -1) - 1
-
-
-def weighted_moments(x: Tensor, log_weights: Tensor) -> tuple[Tensor, Tensor]:
-    """Weighted mean and covariance of points.
-
-    .. math:: \\hat m = Σ_i w_i x_i,\\qquad \\hat Σ = Σ_i w_i (x_i - \\hat m)(x_i - \\hat m)^T
-
-    Args:
-        x: ``[..., M, n]``; log_weights: ``[..., M]`` (normalised or not).
-
-    Returns:
-        ``(m̂ [..., n], Σ̂ [..., n, n])``, ``Σ̂`` symmetric.
-    """
-    w = torch.softmax(log_weights, -1)
-    mean = (w.unsqueeze(-2) @ x).squeeze(-2)
-    d = x - mean.unsqueeze(-2)
-    cov = (d * w.unsqueeze(-1)).transpose(-1, -2) @ d
-    return mean, 0.5 * (cov + cov.transpose(-1, -2))
-
-
-def _psd_sqrt(Q: Tensor) -> Tensor:
-    """Symmetric square root of a positive semidefinite ``Q [..., q, q]`` (eigenvalues clipped at 0)."""
-    evals, evecs = torch.linalg.eigh(0.5 * (Q + Q.transpose(-1, -2)))
-    return (evecs * evals.clamp_min(0.0).sqrt().unsqueeze(-2)) @ evecs.transpose(-1, -2)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -471,20 +409,10 @@ class ParticleFilter(BaseFilter):
         """The particles after ``substeps`` Euler–Maruyama steps with an RK4 drift (module docstring), each
         followed by the model's chart switch; the weights unchanged; the kernel of the new cloud."""
         x, log_weights = self._particles(mixture)
-        uu = None if u is None else u.unsqueeze(-2)  # broadcast over particles
-        tau = dt / self.substeps
-        noise_sqrt = _psd_sqrt(torch.as_tensor(self.model.noise_psd()).to(x))  # Q^{1/2}, [q, q] or [..., q, q]
-        f = self.model.drift
-        for _ in range(self.substeps):
-            gain = self.model.noise_gain(x) @ noise_sqrt  # g Q^{1/2}, [..., M, n, q]
-            xi = self._randn((*x.shape[:-1], gain.shape[-1]), x)
-            k1 = f(x, uu)
-            k2 = f(x + 0.5 * tau * k1, uu)
-            k3 = f(x + 0.5 * tau * k2, uu)
-            k4 = f(x + tau * k3, uu)
-            # broadcast-and-sum: faster than a batched matmul for tiny matrices
-            diffusion = (gain * xi.unsqueeze(-2)).sum(-1)
-            x = self._canonical(x + (tau / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4) + math.sqrt(tau) * diffusion)
+        noise_sqrt = sqrt_psd(torch.as_tensor(self.model.noise_psd()).to(x))  # Q^{1/2}, [q, q] or [..., q, q]
+        x = em_rk4_interval(
+            self.model, x, u, dt, self.substeps, noise_sqrt, self._canonical, lambda shape: self._randn(shape, x)
+        )
         self._check_finite(x, "a particle after propagation", " (more substeps may follow the model's drift)")
         return self._belief(x, log_weights)
 

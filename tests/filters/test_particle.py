@@ -30,10 +30,11 @@ from agsf_torch import GaussianMixture
 from agsf_torch.attitude.inputs import AttitudeInputs
 from agsf_torch.filter_loop import StepInput, filter_steps, sample_prior
 from agsf_torch.filters.base import Filter
-from agsf_torch.filters.particle import ParticleFilter, kernel_bandwidth, systematic_resample, weighted_moments
+from agsf_torch.filters.particle import ParticleFilter, kernel_bandwidth
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, LinearModel, StarVectorMeasurement
 from agsf_torch.quantiles import chi2_quantile
 from agsf_torch.rotations import attitude_error_vector, mrp_to_dcm
+from agsf_torch.weighted_samples import systematic_resample, weighted_moments
 from tests import linear_system as ls
 from tests.helpers import F64, assert_statistic, assert_within, random_mrps, random_unit_vectors, relative_bound
 
