@@ -34,7 +34,7 @@ from agsf_torch.filters.particle import ParticleFilter, kernel_bandwidth
 from agsf_torch.models import AttitudeModel, FunctionMeasurement, LinearModel, StarVectorMeasurement
 from agsf_torch.quantiles import chi2_quantile
 from agsf_torch.rotations import attitude_error_vector, mrp_to_dcm
-from agsf_torch.weighted_samples import systematic_resample, weighted_moments
+from agsf_torch.weighted_samples import weighted_moments
 from tests import linear_system as ls
 from tests.helpers import F64, assert_statistic, assert_within, random_mrps, random_unit_vectors, relative_bound
 
@@ -223,37 +223,7 @@ def test_the_covariance_at_16384_particles_is_the_kalman_covariance(linear_runs)
     )
 
 
-# -------------------------------------------------------------------------- 2. systematic resampling and roughening
-def test_systematic_resampling_draws_every_particle_floor_or_ceil_of_M_w(gen):
-    """Exact: particle ``i`` is drawn ``⌊Mwᵢ⌋`` or ``⌈Mwᵢ⌉`` times (to the rounding of the cumulative weights:
-    ``2M²ε`` in ``Mwᵢ``), zero weights never, ``M`` draws in all, indices sorted; batched over trajectories with
-    their own offsets equal to one at a time; and unbiased: averaged over offsets ``u`` on a grid of ``K`` points the
-    counts are ``Mwᵢ`` to ``2/K`` (each count is a difference of two step functions of ``u``, each off by at most
-    ``1/K`` on the grid)."""
-    B, M = 6, 1000
-    lw = 3.0 * torch.randn(B, M, generator=gen, dtype=F64)
-    lw[1] = 0.0  # equal weights (but the zeros below)
-    lw[2, 5] = 40.0  # one particle carries nearly all
-    lw[:, ::7] = -math.inf  # zero weights
-    u = torch.rand(B, generator=gen, dtype=F64)
-    u[0], u[3] = 0.0, 1.0 - 2.0**-53
-    idx = systematic_resample(lw, u)
-    counts = torch.zeros(B, M, dtype=F64).scatter_add_(-1, idx, torch.ones_like(idx, dtype=F64))
-    Mw = M * torch.softmax(lw, -1)
-    slack = 2.0 * M * M * torch.finfo(F64).eps
-    assert bool((counts >= torch.floor(Mw - slack)).all()) and bool((counts <= torch.ceil(Mw + slack)).all())
-    assert bool((counts[:, ::7] == 0).all())
-    assert counts.sum(-1).tolist() == [M] * B
-    assert bool((idx[:, 1:] >= idx[:, :-1]).all())
-    for b in range(B):
-        assert torch.equal(systematic_resample(lw[b], u[b]), idx[b])
-    K = 4096
-    grid = (torch.arange(K, dtype=F64) + 0.5) / K
-    many = systematic_resample(lw[0].expand(K, M), grid)
-    mean_counts = torch.zeros(K, M, dtype=F64).scatter_add_(-1, many, torch.ones_like(many, dtype=F64)).mean(0)
-    assert_within(mean_counts, Mw[0], 2.0 / K + slack, "counts averaged over the offset")
-
-
+# -------------------------------------------------------------------------- 2. roughening (resampling: tests/test_weighted_samples.py)
 def _roughened(roughening: str, gen: torch.Generator, B: int = 200, M: int = 1000):
     """One weighted cloud of ``M`` particles (ESS ≈ M/3) given to ``B`` trajectories, updated with a measurement
     that carries no information (``h`` constant: the weights stay) and so resampled and roughened; the same seed
