@@ -477,6 +477,71 @@ def test_the_iterated_second_order_update_keeps_the_priors_terms():
     assert_within(out.nis[0, 0], nu * nu / S, scale * (1 + nu * nu / S), "iterated second-order NIS")
 
 
+def test_the_iterated_second_order_update_keeps_the_plain_posterior_where_h_is_linear_over_it():
+    # h(x) = x² from a prior the sensor narrows: over the plain iterated posterior the second-order size 3P₊²/R is
+    # below LINEAR_POSTERIOR, so the second-order update returns the plain iterated update: the same computation
+    mu, P, R, y = 0.7, 0.3, 0.04, 0.9
+    P_plus = _iterated_plain_posterior_variance(mu, P, R, y)
+    assert 3 * P_plus**2 / R < 0.5 * update_module.LINEAR_POSTERIOR
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
+    args = (torch.zeros(1, 1, dtype=F64), torch.tensor([[[mu]]], dtype=F64), torch.tensor([[[[P]]]], dtype=F64))
+    Y = torch.tensor([[y]], dtype=F64)
+    plain = kalman_update(*args, Y, meas, iterations=2)
+    second = kalman_update(*args, Y, meas, iterations=2, second_order=True)
+    for name in ("means", "covs", "log_weights", "log_likelihood", "nis", "innovation", "innovation_cov"):
+        assert torch.equal(getattr(second, name), getattr(plain, name)), name
+    # one linearisation is not the mode: the second-order terms stay
+    once = kalman_update(*args, Y, meas, iterations=1, second_order=True)
+    assert not torch.equal(once.means, kalman_update(*args, Y, meas, iterations=1).means)
+
+
+def test_the_iterated_second_order_update_chooses_per_component():
+    # two components of h(x) = x²: the first narrowed by the sensor (linear over its plain posterior), the second
+    # near h's stationary point, where the sensor hardly narrows it (not): each is its own update's, and the weights are Bayes' rule over the
+    # likelihoods βᵢ = N(ν; 0, S) of the update each component took
+    R, y = 0.04, 0.9
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
+    means = torch.tensor([[[0.7], [0.01]]], dtype=F64)
+    covs = torch.tensor([[[[0.3]], [[0.1]]]], dtype=F64)
+    log_w = torch.log(torch.tensor([[0.25, 0.75]], dtype=F64))
+    Y = torch.tensor([[y]], dtype=F64)
+    sizes = [3 * _iterated_plain_posterior_variance(m, P, R, y) ** 2 / R for m, P in ((0.7, 0.3), (0.01, 0.1))]
+    assert sizes[0] < 0.5 * update_module.LINEAR_POSTERIOR < 2 * update_module.LINEAR_POSTERIOR < sizes[1]
+    plain = kalman_update(log_w, means, covs, Y, meas, iterations=2)
+    prior_terms = kalman_update(log_w, means, covs, Y, meas, iterations=2, second_order=True)
+    assert not torch.equal(prior_terms.means[0, 1], plain.means[0, 1])
+    # the second component alone, where it is its own mixture: the prior's terms
+    alone = kalman_update(torch.zeros(1, 1, dtype=F64), means[:, 1:], covs[:, 1:], Y, meas, 2, second_order=True)
+    # (the same computation for the first; the second's batch is another shape, whose kernels may round otherwise:
+    # two gains each dividing by S ≥ R, as the other second-order tests bound them)
+    scale = 64 * EPS * (1 + 0.7**2 + 0.3 + y) / R
+    for name in ("means", "covs", "nis", "innovation", "innovation_cov"):
+        got, own = getattr(prior_terms, name), getattr(alone, name)[0, 0]
+        assert torch.equal(got[0, 0], getattr(plain, name)[0, 0]), f"{name}: the linear component's plain update"
+        assert_within(got[0, 1], own, scale * (1 + own.abs().max()), f"{name}: the curved component's own update")
+    log_beta = -0.5 * (prior_terms.nis + torch.logdet(prior_terms.innovation_cov) + math.log(2 * math.pi))
+    expected = torch.log_softmax(log_w + log_beta, -1)
+    assert_within(prior_terms.log_weights, expected, 16 * EPS * (1 + log_beta.abs().max()), "Bayes' rule")
+
+
+def test_second_order_size_is_the_gaussian_moment_of_the_quadratic_part():
+    # h = (x₁², x₁x₂) on N(μ, P) with entry noise R = diag(r₁, r₂): the quadratic parts δ₁² and δ₁δ₂ have means
+    # (P₁₁, P₁₂) and variances (2P₁₁², P₁₁P₂₂ + P₁₂²), so E‖R^{-½}h₂‖² = (3P₁₁²)/r₁ + (P₁₁P₂₂ + 2P₁₂²)/r₂; a
+    # masked entry takes no part
+    mu = torch.tensor([0.4, -0.2], dtype=F64)
+    P = torch.tensor([[0.3, 0.1], [0.1, 0.2]], dtype=F64)
+    r = torch.tensor([0.05, 0.02], dtype=F64)
+    meas = FunctionMeasurement(lambda x: torch.cat((x[..., :1] ** 2, x[..., :1] * x[..., 1:2]), -1), torch.diag(r))
+    size = update_module.second_order_size(mu[None, None], P[None, None], meas, torch.diag(r), torch.ones(1, 1, 2))
+    first, second = 3 * P[0, 0] ** 2 / r[0], (P[0, 0] * P[1, 1] + 2 * P[0, 1] ** 2) / r[1]
+    bound = 64 * EPS * float(1 + mu.abs().max()) ** 2 / float(r.min())
+    assert_within(size[0, 0], first + second, bound, "both entries")
+    masked = torch.tensor([[[1.0, 0.0]]], dtype=F64)
+    R_eff = torch.diag(torch.stack((r[0], torch.ones((), dtype=F64))))  # kalman_update's: the identity block
+    size = update_module.second_order_size(mu[None, None], P[None, None], meas, R_eff, masked)
+    assert_within(size[0, 0], first, bound, "the first entry only")
+
+
 def test_the_second_order_update_of_a_linear_measurement_is_the_ekf_update(gen):
     # h = Ax: every second difference is zero but for rounding, ≤ 4ε(|A||m| + |A||s|) per entry, which moves the
     # prediction by half the sum over the n axes and the mean by the gain times that
