@@ -474,7 +474,11 @@ def kalman_update(
     if second_order:
         keep = None
         if int(iterations) > 1:  # the iterated posterior stands where h is linear over it (the docstring)
-            keep = second_order_size(part.means, part.covs, measurement, part.R_eff, part.valid) <= LINEAR_POSTERIOR
+            # (a posterior that rounding left without a Cholesky factor is not judged: the prior's terms there)
+            factored = torch.linalg.cholesky_ex(part.covs).info == 0
+            judged = torch.where(factored[..., None, None], part.covs, covs)
+            size = second_order_size(part.means, judged, measurement, part.R_eff, part.valid)
+            keep = factored & (size <= LINEAR_POSTERIOR)
         if keep is None or not bool(keep.all()):
             second = _component_updates(means, covs, y, measurement, R, mask, iterations, prior_terms=True)
             part = second if keep is None else _select_components(keep, part, second)

@@ -524,6 +524,29 @@ def test_the_iterated_second_order_update_chooses_per_component():
     assert_within(prior_terms.log_weights, expected, 16 * EPS * (1 + log_beta.abs().max()), "Bayes' rule")
 
 
+def test_a_plain_posterior_without_a_cholesky_factor_takes_the_priors_terms(monkeypatch):
+    # the linear component of the test above, its plain posterior covariance replaced by an indefinite one (what
+    # rounding could leave): the choice does not factor it, and the component takes the prior's terms
+    R, y = 0.04, 0.9
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
+    args = (torch.zeros(1, 1, dtype=F64), torch.tensor([[[0.7]]], dtype=F64), torch.tensor([[[[0.3]]]], dtype=F64))
+    Y = torch.tensor([[y]], dtype=F64)
+    honest = kalman_update(*args, Y, meas, iterations=2, second_order=True)
+    original = update_module._component_updates
+
+    def indefinite(*a, prior_terms, **k):
+        part = original(*a, prior_terms=prior_terms, **k)
+        return part if prior_terms else part._replace(covs=-part.covs)
+
+    monkeypatch.setattr(update_module, "_component_updates", indefinite)
+    out = kalman_update(*args, Y, meas, iterations=2, second_order=True)
+    with_terms = original(
+        args[1], args[2], Y.unsqueeze(-2), meas, torch.tensor([[R]], dtype=F64), None, 2, prior_terms=True
+    )
+    assert torch.equal(out.means, with_terms.means) and torch.equal(out.covs, with_terms.covs)
+    assert not torch.equal(out.means, honest.means)
+
+
 def test_second_order_size_is_the_gaussian_moment_of_the_quadratic_part():
     # h = (x₁², x₁x₂) on N(μ, P) with entry noise R = diag(r₁, r₂): the quadratic parts δ₁² and δ₁δ₂ have means
     # (P₁₁, P₁₂) and variances (2P₁₁², P₁₁P₂₂ + P₁₂²), so E‖R^{-½}h₂‖² = (3P₁₁²)/r₁ + (P₁₁P₂₂ + 2P₁₂²)/r₂; a
