@@ -83,10 +83,11 @@ __all__ = [
 #: it by ``ε_float64 / ε`` (the same error bound: about 18 in float32).
 COVARIANCE_FORM_MAX_CONDITION = 1e10
 
-#: The second-order update of an iterated update keeps its plain posterior for a component where the
-#: measurement's second-order part over that posterior, :func:`second_order_size` (the expected squared size of
-#: ``h − h_lin`` in noise units, dimensionless), is at most this: a tenth of one noise variance summed over the
-#: entries, where the Gaussian posterior of the iterated update's Laplace approximation is accurate.
+#: The second-order update of an iterated update keeps its plain posterior for a mixture where, for every active
+#: component, the measurement's second-order part over that component's posterior, :func:`second_order_size` (the
+#: expected squared size of ``h − h_lin`` in noise units, dimensionless), is at most this: a tenth of one noise
+#: variance summed over the entries, where the Gaussian posterior of the iterated update's Laplace approximation
+#: is accurate.
 LINEAR_POSTERIOR = 0.1
 
 
@@ -450,10 +451,11 @@ def kalman_update(
             ``½tr(∇²h P)`` and ``½tr(∇²hₐ P ∇²h_b P)``, exact for a quadratic ``h`` (the divided-difference
             filter of Nørgaard, Poulsen & Ravn 2000 keeps only the ``c_k``), so a component wide against the
             noise is not updated as if ``h`` were linear over it.  With ``iterations > 1`` the plain iterated
-            update runs first, and a component keeps its posterior where ``h`` is linear over that posterior
-            (:func:`second_order_size` ``≤`` :data:`LINEAR_POSTERIOR`): the Gauss–Newton iterates have then found
-            the mode and the Gaussian about it is the posterior.  Elsewhere every relinearisation keeps the
-            terms of the prior: taken over each iterate's posterior instead (iterated posterior linearisation)
+            update runs first, and a mixture keeps its posterior where ``h`` is linear over the posterior of every
+            active component (:func:`second_order_size` ``≤`` :data:`LINEAR_POSTERIOR`): the Gauss–Newton
+            iterates have then found the modes and the Gaussians about them are the posterior.  The choice is the
+            mixture's, not each component's, so that the components' likelihoods ``βᵢ``, which set the weights,
+            come from one approximation.  Elsewhere every relinearisation keeps the terms of the prior: taken over each iterate's posterior instead (iterated posterior linearisation)
             they cost the managed filters their consistency with one star per frame
             (``docs/results/management.md``).
 
@@ -478,7 +480,9 @@ def kalman_update(
             factored = torch.linalg.cholesky_ex(part.covs).info == 0
             judged = torch.where(factored[..., None, None], part.covs, covs)
             size = second_order_size(part.means, judged, measurement, part.R_eff, part.valid)
-            keep = factored & (size <= LINEAR_POSTERIOR)
+            linear = (factored & (size <= LINEAR_POSTERIOR)) | (log_weights == -math.inf)  # inactive: no say
+            # the whole mixture or none of it: its components' likelihoods are then one approximation's
+            keep = linear.all(-1, keepdim=True).expand(linear.shape)
         if keep is None or not bool(keep.all()):
             second = _component_updates(means, covs, y, measurement, R, mask, iterations, prior_terms=True)
             part = second if keep is None else _select_components(keep, part, second)

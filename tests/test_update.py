@@ -495,33 +495,47 @@ def test_the_iterated_second_order_update_keeps_the_plain_posterior_where_h_is_l
     assert not torch.equal(once.means, kalman_update(*args, Y, meas, iterations=1).means)
 
 
-def test_the_iterated_second_order_update_chooses_per_component():
-    # two components of h(x) = x²: the first narrowed by the sensor (linear over its plain posterior), the second
-    # near h's stationary point, where the sensor hardly narrows it (not): each is its own update's, and the weights are Bayes' rule over the
-    # likelihoods βᵢ = N(ν; 0, S) of the update each component took
+def test_the_iterated_second_order_update_chooses_per_mixture():
+    # two trajectories of two components of h(x) = x²: in the first both are narrowed by the sensor (h linear over
+    # their plain posteriors), and the mixture keeps its plain update; in the second one is (0.7, 0.3) and one sits
+    # near h's stationary point, where the sensor hardly narrows it (not), and the whole mixture takes the prior's
+    # terms, so that both components' likelihoods βᵢ, which set the weights, come from one approximation
     R, y = 0.04, 0.9
     meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, torch.tensor([[R]], dtype=F64))
-    means = torch.tensor([[[0.7], [0.01]]], dtype=F64)
-    covs = torch.tensor([[[[0.3]], [[0.1]]]], dtype=F64)
-    log_w = torch.log(torch.tensor([[0.25, 0.75]], dtype=F64))
-    Y = torch.tensor([[y]], dtype=F64)
-    sizes = [3 * _iterated_plain_posterior_variance(m, P, R, y) ** 2 / R for m, P in ((0.7, 0.3), (0.01, 0.1))]
-    assert sizes[0] < 0.5 * update_module.LINEAR_POSTERIOR < 2 * update_module.LINEAR_POSTERIOR < sizes[1]
+    means = torch.tensor([[[0.7], [0.8]], [[0.7], [0.01]]], dtype=F64)
+    covs = torch.tensor([[[[0.3]], [[0.3]]], [[[0.3]], [[0.1]]]], dtype=F64)
+    log_w = torch.log(torch.tensor([[0.25, 0.75], [0.25, 0.75]], dtype=F64))
+    Y = torch.tensor([[y], [y]], dtype=F64)
+    sizes = [3 * _iterated_plain_posterior_variance(m, P, R, y) ** 2 / R for m, P in ((0.7, 0.3), (0.8, 0.3))]
+    assert max(sizes) < 0.5 * update_module.LINEAR_POSTERIOR
+    curved = 3 * _iterated_plain_posterior_variance(0.01, 0.1, R, y) ** 2 / R
+    assert curved > 2 * update_module.LINEAR_POSTERIOR
     plain = kalman_update(log_w, means, covs, Y, meas, iterations=2)
-    prior_terms = kalman_update(log_w, means, covs, Y, meas, iterations=2, second_order=True)
-    assert not torch.equal(prior_terms.means[0, 1], plain.means[0, 1])
-    # the second component alone, where it is its own mixture: the prior's terms
-    alone = kalman_update(torch.zeros(1, 1, dtype=F64), means[:, 1:], covs[:, 1:], Y, meas, 2, second_order=True)
-    # (the same computation for the first; the second's batch is another shape, whose kernels may round otherwise:
-    # two gains each dividing by S ≥ R, as the other second-order tests bound them)
-    scale = 64 * EPS * (1 + 0.7**2 + 0.3 + y) / R
-    for name in ("means", "covs", "nis", "innovation", "innovation_cov"):
-        got, own = getattr(prior_terms, name), getattr(alone, name)[0, 0]
-        assert torch.equal(got[0, 0], getattr(plain, name)[0, 0]), f"{name}: the linear component's plain update"
-        assert_within(got[0, 1], own, scale * (1 + own.abs().max()), f"{name}: the curved component's own update")
-    log_beta = -0.5 * (prior_terms.nis + torch.logdet(prior_terms.innovation_cov) + math.log(2 * math.pi))
+    chosen = kalman_update(log_w, means, covs, Y, meas, iterations=2, second_order=True)
+    with_terms = update_module._component_updates(
+        means, covs, Y.unsqueeze(-2), meas, torch.tensor([[R]], dtype=F64), None, 2, prior_terms=True
+    )
+    for name, field in (
+        ("means", "means"),
+        ("covs", "covs"),
+        ("nis", "nis"),
+        ("innovation", "nu"),
+        ("innovation_cov", "S"),
+    ):
+        got = getattr(chosen, name)
+        assert torch.equal(got[0], getattr(plain, name)[0]), f"{name}: the linear mixture's plain update"
+        assert torch.equal(got[1], getattr(with_terms, field)[1]), f"{name}: the curved mixture's, with the terms"
+    assert torch.equal(chosen.log_weights[0], plain.log_weights[0])
+    log_beta = -0.5 * (chosen.nis + torch.logdet(chosen.innovation_cov) + math.log(2 * math.pi))
     expected = torch.log_softmax(log_w + log_beta, -1)
-    assert_within(prior_terms.log_weights, expected, 16 * EPS * (1 + log_beta.abs().max()), "Bayes' rule")
+    assert_within(chosen.log_weights, expected, 16 * EPS * (1 + log_beta.abs().max()), "Bayes' rule")
+    # an inactive slot (weight 0) has no say: the second trajectory's curved slot switched off, it keeps its plain
+    # update too
+    off = log_w.clone()
+    off[1] = torch.tensor([0.0, -math.inf], dtype=F64)
+    plain_off = kalman_update(off, means, covs, Y, meas, iterations=2)
+    chosen_off = kalman_update(off, means, covs, Y, meas, iterations=2, second_order=True)
+    assert torch.equal(chosen_off.means, plain_off.means) and torch.equal(chosen_off.covs, plain_off.covs)
 
 
 def test_a_plain_posterior_without_a_cholesky_factor_takes_the_priors_terms(monkeypatch):
