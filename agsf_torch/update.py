@@ -62,6 +62,7 @@ from .shapes import broadcast_shapes
 __all__ = [
     "COVARIANCE_FORM_MAX_CONDITION",
     "LINEAR_POSTERIOR",
+    "PLAIN_POSTERIOR_PROBABILITY",
     "ComponentUpdate",
     "check_innovation",
     "cholesky_axes",
@@ -89,6 +90,12 @@ COVARIANCE_FORM_MAX_CONDITION = 1e10
 #: variance summed over the entries, where the Gaussian posterior of the iterated update's Laplace approximation
 #: is accurate.
 LINEAR_POSTERIOR = 0.1
+
+#: ... and where the frame agrees with the mixture's prediction: its moment-matched NIS at most the ``χ²_d``
+#: quantile at this probability (``d`` the frame's valid entries).  A posterior that is narrow about a mode the
+#: data contradict (every component far from the truth) is no evidence that the iterates found the posterior;
+#: there the prior's terms keep the frame's weight down, as they do for a component still wide.
+PLAIN_POSTERIOR_PROBABILITY = 0.999
 
 
 @dataclass(frozen=True)
@@ -452,8 +459,9 @@ def kalman_update(
             filter of Nørgaard, Poulsen & Ravn 2000 keeps only the ``c_k``), so a component wide against the
             noise is not updated as if ``h`` were linear over it.  With ``iterations > 1`` the plain iterated
             update runs first, and a mixture keeps its posterior where ``h`` is linear over the posterior of every
-            active component (:func:`second_order_size` ``≤`` :data:`LINEAR_POSTERIOR`): the Gauss–Newton
-            iterates have then found the modes and the Gaussians about them are the posterior.  The choice is the
+            active component (:func:`second_order_size` ``≤`` :data:`LINEAR_POSTERIOR`) and the frame agrees with
+            the mixture's prediction (NIS within :data:`PLAIN_POSTERIOR_PROBABILITY`): the Gauss–Newton iterates
+            have then found the modes and the Gaussians about them are the posterior.  The choice is the
             mixture's, not each component's, so that the components' likelihoods ``βᵢ``, which set the weights,
             come from one approximation.  Elsewhere every relinearisation keeps the terms of the prior: taken over each iterate's posterior instead (iterated posterior linearisation)
             they cost the managed filters their consistency with one star per frame
@@ -481,8 +489,11 @@ def kalman_update(
             judged = torch.where(factored[..., None, None], part.covs, covs)
             size = second_order_size(part.means, judged, measurement, part.R_eff, part.valid)
             linear = (factored & (size <= LINEAR_POSTERIOR)) | (log_weights == -math.inf)  # inactive: no say
-            # the whole mixture or none of it: its components' likelihoods are then one approximation's
-            keep = linear.all(-1, keepdim=True).expand(linear.shape)
+            # the whole mixture or none of it: its components' likelihoods are then one approximation's; and only
+            # where the frame agrees with the mixture's prediction (a narrow posterior about a mode the data
+            # contradict is no evidence: there the prior's terms keep the frame's weight down)
+            agrees = _frame_agrees(log_weights, part, covs)
+            keep = (linear.all(-1) & agrees).unsqueeze(-1).expand(linear.shape)
         if keep is None or not bool(keep.all()):
             second = _component_updates(means, covs, y, measurement, R, mask, iterations, prior_terms=True)
             part = second if keep is None else _select_components(keep, part, second)
@@ -599,6 +610,22 @@ def _component_updates(
         nis = torch.where(need, (e * e).sum((-2, -1)) + (f * f).sum((-2, -1)), nis)
         log_det = torch.where(need, log_det_info, log_det)
     return _Components(x, new_covs, nis, log_det, nu, S, H, R_eff, valid)
+
+
+def _frame_agrees(log_weights: Tensor, part: _Components, covs: Tensor) -> Tensor:
+    """Whether the frame agrees with the mixture's prediction, ``[...]``: the moment-matched NIS of ``part``'s
+    innovations (prior weights; :func:`moment_matched_innovation`) at most the ``χ²_d`` quantile at
+    :data:`PLAIN_POSTERIOR_PROBABILITY`, ``d`` the valid entries of the frame."""
+    from .quantiles import chi2_quantile
+
+    valid = part.valid[..., 0, :]
+    nis = _mixture_nis(log_weights, part.nu, part.S, part.H, covs, part.R_eff, valid)
+    dof = valid.sum(-1)
+    bound = torch.full_like(nis, math.inf)
+    for d in torch.unique(dof).tolist():  # the frames' few distinct entry counts
+        if d > 0:
+            bound = torch.where(dof == d, chi2_quantile(PLAIN_POSTERIOR_PROBABILITY, d), bound)
+    return nis <= bound
 
 
 def _select_components(keep: Tensor, first: _Components, second: _Components) -> _Components:

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from scipy import stats
+from scipy.stats import chi2
 
 from agsf_torch import update as update_module
 from agsf_torch.consistency import chi2_band
@@ -536,6 +537,31 @@ def test_the_iterated_second_order_update_chooses_per_mixture():
     plain_off = kalman_update(off, means, covs, Y, meas, iterations=2)
     chosen_off = kalman_update(off, means, covs, Y, meas, iterations=2, second_order=True)
     assert torch.equal(chosen_off.means, plain_off.means) and torch.equal(chosen_off.covs, plain_off.covs)
+
+
+def test_a_frame_that_contradicts_the_prediction_takes_the_priors_terms():
+    # h(x) = x² from (0.7, 0.3) with R = 0.04: y = 10 moves the iterates to x ≈ 4.2, where h is linear over the
+    # narrow posterior (3P₊²/R ≈ 3e-6), but the NIS at the last linearisation, ν²/S ≈ 42, is far beyond the
+    # χ²₁ quantile at PLAIN_POSTERIOR_PROBABILITY (10.8 at 0.999): the data contradict the component, and the
+    # update keeps the prior's terms; y = 3 (NIS ≈ 4.2) keeps the plain posterior
+    R = torch.tensor([[0.04]], dtype=F64)
+    meas = FunctionMeasurement(lambda x: x[..., :1] ** 2, R)
+    log_w, means, covs = torch.zeros(1, 1, dtype=F64), torch.tensor([[[0.7]]], dtype=F64), torch.full((1, 1, 1, 1), 0.3)
+    covs = covs.to(F64)
+    bound = float(chi2.ppf(update_module.PLAIN_POSTERIOR_PROBABILITY, 1))
+    for y, plain_kept in ((10.0, False), (3.0, True)):
+        Y = torch.tensor([[y]], dtype=F64)
+        parts = {
+            terms: update_module._component_updates(means, covs, Y.unsqueeze(-2), meas, R, None, 2, prior_terms=terms)
+            for terms in (False, True)
+        }
+        plain = parts[False]
+        assert float(update_module.second_order_size(plain.means, plain.covs, meas, plain.R_eff, plain.valid)) < 1e-3
+        assert (float(plain.nis[0, 0]) <= bound) == plain_kept
+        assert not torch.equal(parts[True].means, plain.means)
+        out = kalman_update(log_w, means, covs, Y, meas, iterations=2, second_order=True)
+        chosen = parts[not plain_kept]
+        assert torch.equal(out.means, chosen.means) and torch.equal(out.covs, chosen.covs), y
 
 
 def test_a_plain_posterior_without_a_cholesky_factor_takes_the_priors_terms(monkeypatch):
