@@ -128,9 +128,9 @@ class MixtureManagement:
             spread (:func:`agsf_torch.update.kalman_update` with ``second_order``: the prediction
             ``h + ½Σ_k c_k`` and innovation covariance ``+ ½Σ_k c_k c_kᵀ + Σ_{k<l} M_kl M_klᵀ`` from the second
             differences along the component's axes and across each pair of them, taken over the prior and kept by
-            every relinearisation of an iterated update, which keeps its plain posterior for a component where
-            the measurement is linear over that posterior: :data:`agsf_torch.update.LINEAR_POSTERIOR`), on the
-            generic update path.  Default ``True``: a component still too wide for the sensor when the slots are
+            every relinearisation of an iterated update, which keeps its plain posterior for a mixture where the
+            measurement is linear over every component's posterior and the frame agrees with the prediction:
+            :data:`agsf_torch.update.LINEAR_POSTERIOR`), on the generic update path.  Default ``True``: a component still too wide for the sensor when the slots are
             spent is then not updated as if the measurement were linear over it (``docs/results/management.md``
             measures what it buys).
             ``False``: the EKF update of the method (the fused path where the measurement has one).  With
