@@ -463,9 +463,9 @@ def kalman_update(
             the mixture's prediction (NIS within :data:`PLAIN_POSTERIOR_PROBABILITY`): the Gauss–Newton iterates
             have then found the modes and the Gaussians about them are the posterior.  The choice is the
             mixture's, not each component's, so that the components' likelihoods ``βᵢ``, which set the weights,
-            come from one approximation.  Elsewhere every relinearisation keeps the terms of the prior: taken over each iterate's posterior instead (iterated posterior linearisation)
-            they cost the managed filters their consistency with one star per frame
-            (``docs/results/management.md``).
+            come from one approximation.  Elsewhere every relinearisation keeps the terms of the prior: taken
+            over each iterate's posterior instead (iterated posterior linearisation) they cost the managed
+            filters their consistency with one star per frame (``docs/results/management.md``).
 
     Returns:
         :class:`ComponentUpdate`.
@@ -481,6 +481,7 @@ def kalman_update(
     y = y.unsqueeze(-2)  # [..., 1, d]
     R = R.unsqueeze(-3) if R.dim() > 2 else R
     part = _component_updates(means, covs, y, measurement, R, mask, iterations, prior_terms=False)
+    part_nis_mixture = None  # the mixture NIS of `part`, where it was needed before the end
     if second_order:
         keep = None
         if int(iterations) > 1:  # the iterated posterior stands where h is linear over it (the docstring)
@@ -492,11 +493,13 @@ def kalman_update(
             # the whole mixture or none of it: its components' likelihoods are then one approximation's; and only
             # where the frame agrees with the mixture's prediction (a narrow posterior about a mode the data
             # contradict is no evidence: there the prior's terms keep the frame's weight down)
-            agrees = _frame_agrees(log_weights, part, covs)
-            keep = (linear.all(-1) & agrees).unsqueeze(-1).expand(linear.shape)
+            valid0 = part.valid[..., 0, :]
+            part_nis_mixture = _mixture_nis(log_weights, part.nu, part.S, part.H, covs, part.R_eff, valid0)
+            keep = linear.all(-1) & _frame_agrees(part_nis_mixture, valid0)  # [...]
         if keep is None or not bool(keep.all()):
             second = _component_updates(means, covs, y, measurement, R, mask, iterations, prior_terms=True)
             part = second if keep is None else _select_components(keep, part, second)
+            part_nis_mixture = None
     nu, S, H, R_eff, valid = part.nu, part.S, part.H, part.R_eff, part.valid
     new_means, new_covs, nis = part.means, part.covs, part.nis
     dof = valid.sum(-1)  # [..., N]
@@ -504,7 +507,11 @@ def kalman_update(
     joint = log_weights + log_beta
     log_lik = torch.logsumexp(joint, -1)
     new_log_weights = joint - log_lik.unsqueeze(-1)
-    nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :]) if mixture_nis else None
+    nis_mixture = None
+    if mixture_nis:
+        nis_mixture = part_nis_mixture
+        if nis_mixture is None:
+            nis_mixture = _mixture_nis(log_weights, nu, S, H, covs, R_eff, valid[..., 0, :])
     if provides(measurement, "data_log_likelihood", MeasurementModel):
         # the data's own degrees of freedom (a unit vector's two), whatever R the gain spreads the noise over
         HL = H @ torch.linalg.cholesky(0.5 * (covs + covs.transpose(-1, -2)))
@@ -612,24 +619,22 @@ def _component_updates(
     return _Components(x, new_covs, nis, log_det, nu, S, H, R_eff, valid)
 
 
-def _frame_agrees(log_weights: Tensor, part: _Components, covs: Tensor) -> Tensor:
-    """Whether the frame agrees with the mixture's prediction, ``[...]``: the moment-matched NIS of ``part``'s
-    innovations (prior weights; :func:`moment_matched_innovation`) at most the ``χ²_d`` quantile at
-    :data:`PLAIN_POSTERIOR_PROBABILITY`, ``d`` the valid entries of the frame."""
+def _frame_agrees(nis_mixture: Tensor, valid: Tensor) -> Tensor:
+    """Whether the frame agrees with the mixture's prediction, ``[...]``: its moment-matched NIS ``[...]``
+    (:func:`moment_matched_innovation`, prior weights) at most the ``χ²_d`` quantile at
+    :data:`PLAIN_POSTERIOR_PROBABILITY`, ``d`` the frame's valid entries (``valid [..., d]``, 0/1)."""
     from .quantiles import chi2_quantile
 
-    valid = part.valid[..., 0, :]
-    nis = _mixture_nis(log_weights, part.nu, part.S, part.H, covs, part.R_eff, valid)
     dof = valid.sum(-1)
-    bound = torch.full_like(nis, math.inf)
+    bound = torch.full_like(nis_mixture, math.inf)
     for d in torch.unique(dof).tolist():  # the frames' few distinct entry counts
         if d > 0:
             bound = torch.where(dof == d, chi2_quantile(PLAIN_POSTERIOR_PROBABILITY, d), bound)
-    return nis <= bound
+    return nis_mixture <= bound
 
 
 def _select_components(keep: Tensor, first: _Components, second: _Components) -> _Components:
-    """``first``'s update of the components where ``keep [..., N]`` holds, ``second``'s elsewhere."""
+    """``first``'s update of the mixtures where ``keep [...]`` holds, ``second``'s elsewhere."""
     picked = []
     for a, b in zip(first, second):
         k = keep.reshape(keep.shape + (1,) * (max(a.dim(), b.dim()) - keep.dim()))

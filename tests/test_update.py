@@ -489,7 +489,16 @@ def test_the_iterated_second_order_update_keeps_the_plain_posterior_where_h_is_l
     Y = torch.tensor([[y]], dtype=F64)
     plain = kalman_update(*args, Y, meas, iterations=2)
     second = kalman_update(*args, Y, meas, iterations=2, second_order=True)
-    for name in ("means", "covs", "log_weights", "log_likelihood", "nis", "innovation", "innovation_cov"):
+    for name in (
+        "means",
+        "covs",
+        "log_weights",
+        "log_likelihood",
+        "nis",
+        "innovation",
+        "innovation_cov",
+        "nis_mixture",
+    ):
         assert torch.equal(getattr(second, name), getattr(plain, name)), name
     # one linearisation is not the mode: the second-order terms stay
     once = kalman_update(*args, Y, meas, iterations=1, second_order=True)
